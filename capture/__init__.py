@@ -1,0 +1,1 @@
+"""Capture: a stage's neural character and capture ring -> skinning -> renderer -> dataset on disk."""

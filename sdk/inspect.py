@@ -1,0 +1,247 @@
+"""`rigspace inspect`: a scene's metrics, the prims rigspace cares about, and validation.
+
+Like a look through usdview's prim browser from the terminal: stage metadata, skeletons,
+animations, skinned meshes, cameras, lights and neural characters (every schema value
+and applied API), then the findings of USD's validators and rigspace's. Exit code 0
+without errors, 1 with errors; `--json` prints one object with keys stage, prims,
+errors, warnings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any
+
+from pxr import Usd, UsdGeom, UsdLux, UsdSkel
+
+from rigspace.sdk import schema, validation
+from rigspace.sdk.cli import CommandSpec
+from rigspace.sdk.stage import meters_per_unit, open_stage, up_axis
+
+
+def stage_metrics(stage: Usd.Stage) -> dict[str, Any]:
+    default_prim = stage.GetDefaultPrim()
+    return {
+        "path": stage.GetRootLayer().realPath or stage.GetRootLayer().identifier,
+        "upAxis": up_axis(stage),
+        "metersPerUnit": meters_per_unit(stage),
+        "startTimeCode": stage.GetStartTimeCode(),
+        "endTimeCode": stage.GetEndTimeCode(),
+        "timeCodesPerSecond": stage.GetTimeCodesPerSecond(),
+        "framesPerSecond": stage.GetFramesPerSecond(),
+        "defaultPrim": str(default_prim.GetPath()) if default_prim else None,
+        "layers": len(stage.GetUsedLayers()),
+    }
+
+
+def _triangles(mesh: UsdGeom.Mesh) -> int:
+    counts = mesh.GetFaceVertexCountsAttr().Get()
+    return int(sum(max(int(c) - 2, 0) for c in counts)) if counts else 0
+
+
+def _value(value: Any) -> Any:
+    """A JSON-friendly version of a USD attribute value."""
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    if hasattr(value, "path") and hasattr(value, "resolvedPath"):  # Sdf.AssetPath
+        return value.path
+    if hasattr(value, "GetReal"):  # Gf quaternions
+        return [value.GetReal(), *value.GetImaginary()]
+    try:
+        return [_value(v) for v in value]
+    except TypeError:
+        return str(value)
+
+
+def _schema_values(prim: Usd.Prim) -> dict[str, Any]:
+    """Every rigspace property of the prim (authored or fallback), relationships as paths."""
+    values: dict[str, Any] = {}
+    for prop in prim.GetProperties():
+        name = prop.GetName()
+        if not name.startswith("rigspace:"):
+            continue
+        if isinstance(prop, Usd.Relationship):
+            values[name] = [str(t) for t in prop.GetTargets()]
+        else:
+            values[name] = _value(prop.Get())
+    return values
+
+
+def _light_info(prim: Usd.Prim) -> dict[str, Any]:
+    light = UsdLux.LightAPI(prim)
+    return {
+        "intensity": light.GetIntensityAttr().Get(),
+        "exposure": light.GetExposureAttr().Get(),
+        "color": _value(light.GetColorAttr().Get()),
+        "animated": any(
+            a.ValueMightBeTimeVarying()
+            for a in (light.GetIntensityAttr(), light.GetColorAttr(), light.GetExposureAttr())
+        ),
+    }
+
+
+def _camera_info(prim: Usd.Prim) -> dict[str, Any]:
+    cam = UsdGeom.Camera(prim)
+    xformable = UsdGeom.Xformable(prim)
+    return {
+        "focalLength": cam.GetFocalLengthAttr().Get(),
+        "horizontalAperture": cam.GetHorizontalApertureAttr().Get(),
+        "verticalAperture": cam.GetVerticalApertureAttr().Get(),
+        "clippingRange": _value(cam.GetClippingRangeAttr().Get()),
+        "animated": xformable.TransformMightBeTimeVarying(),
+    }
+
+
+def describe_prim(prim: Usd.Prim) -> dict[str, Any] | None:
+    """A summary of a prim rigspace cares about, or None for the others."""
+    entry: dict[str, Any] = {"path": str(prim.GetPath()), "type": prim.GetTypeName()}
+    if schema.is_neural_character(prim):
+        entry["kind"] = "neuralCharacter"
+        entry["appliedSchemas"] = list(prim.GetAppliedSchemas())
+        entry["values"] = _schema_values(prim)
+    elif prim.IsA(UsdSkel.Root):
+        entry["kind"] = "skelRoot"
+    elif prim.IsA(UsdSkel.Skeleton):
+        entry["kind"] = "skeleton"
+        entry["joints"] = len(schema.skeleton_joints(prim))
+        source = UsdSkel.BindingAPI(prim).GetAnimationSource()
+        entry["animationSource"] = str(source.GetPath()) if source else None
+    elif prim.IsA(UsdSkel.Animation):
+        entry["kind"] = "skelAnimation"
+        entry["joints"] = len(UsdSkel.Animation(prim).GetJointsAttr().Get() or [])
+        span = validation.animation_time_range(prim)
+        entry["timeRange"] = list(span) if span else None
+        clips = prim.GetCustomDataByKey("rigspace:clips")
+        if clips:
+            entry["clips"] = {k: list(v) for k, v in clips.items()}
+    elif prim.IsA(UsdGeom.Mesh):
+        mesh = UsdGeom.Mesh(prim)
+        binding = UsdSkel.BindingAPI(prim)
+        skinned = bool(binding.GetJointIndicesPrimvar().IsDefined())
+        entry["kind"] = "skinnedMesh" if skinned else "mesh"
+        entry["points"] = len(mesh.GetPointsAttr().Get() or [])
+        entry["triangles"] = _triangles(mesh)
+        if skinned:
+            entry["influences"] = binding.GetJointIndicesPrimvar().GetElementSize()
+    elif prim.IsA(UsdGeom.Gprim):
+        entry["kind"] = "geometry"
+    elif prim.IsA(UsdGeom.Camera):
+        entry["kind"] = "camera"
+        entry.update(_camera_info(prim))
+    elif prim.HasAPI(UsdLux.LightAPI):
+        entry["kind"] = "light"
+        entry.update(_light_info(prim))
+    else:
+        return None
+    return entry
+
+
+def inspect_stage(stage: Usd.Stage, include_usd_validators: bool = True) -> dict[str, Any]:
+    prims = [
+        info
+        for prim in stage.Traverse(Usd.TraverseInstanceProxies())
+        if (info := describe_prim(prim)) is not None
+    ]
+    findings = validation.validate(stage, include_usd=include_usd_validators)
+    return {
+        "stage": stage_metrics(stage),
+        "prims": prims,
+        "errors": [f.as_dict() for f in findings if f.severity == validation.ERROR],
+        "warnings": [f.as_dict() for f in findings if f.severity == validation.WARNING],
+    }
+
+
+def _details(info: dict[str, Any]) -> str:
+    kind = info["kind"]
+    if kind == "skeleton":
+        anim = info["animationSource"] or "no animation"
+        return f"{info['joints']} joints, animation {anim}"
+    if kind == "skelAnimation":
+        span = info["timeRange"]
+        text = f"{info['joints']} joints, "
+        text += f"time {span[0]:g}-{span[1]:g}" if span else "no time samples"
+        if "clips" in info:
+            text += ", clips " + ", ".join(
+                f"{k} {a:g}-{b:g}"
+                for k, (a, b) in sorted(info["clips"].items(), key=lambda c: c[1])
+            )
+        return text
+    if kind in ("skinnedMesh", "mesh"):
+        text = f"{info['points']} points, {info['triangles']} triangles"
+        return text + (f", {info['influences']} influences" if kind == "skinnedMesh" else "")
+    if kind == "camera":
+        near, far = info["clippingRange"]
+        moving = ", animated" if info["animated"] else ""
+        return (
+            f"focal {info['focalLength']:g}, aperture {info['horizontalAperture']:g}"
+            f"x{info['verticalAperture']:g}, clip {near:g}-{far:g}{moving}"
+        )
+    if kind == "light":
+        color = ", ".join(f"{c:.3g}" for c in info["color"])
+        moving = ", animated" if info["animated"] else ""
+        return f"intensity {info['intensity']:g}, exposure {info['exposure']:g}, color ({color}){moving}"
+    return ""
+
+
+def format_report(report: dict[str, Any]) -> str:
+    s = report["stage"]
+    lines = [
+        f"Stage {s['path']}",
+        f"  upAxis {s['upAxis']}, metersPerUnit {s['metersPerUnit']:g}, "
+        f"time {s['startTimeCode']:g}-{s['endTimeCode']:g} at {s['timeCodesPerSecond']:g} "
+        f"timecodes/s ({s['framesPerSecond']:g} fps), defaultPrim {s['defaultPrim']}, "
+        f"{s['layers']} layers",
+        "",
+        "Prims",
+    ]
+    width = max((len(p["path"]) for p in report["prims"]), default=0)
+    for p in report["prims"]:
+        lines.append(f"  {p['path']:<{width}}  {p['kind']:<15} {_details(p)}".rstrip())
+        if p["kind"] == "neuralCharacter":
+            if p["appliedSchemas"]:
+                lines.append(f"      applied: {', '.join(p['appliedSchemas'])}")
+            for name, value in p["values"].items():
+                lines.append(f"      {name} = {json.dumps(value)}")
+    if not report["prims"]:
+        lines.append("  (none)")
+    errors, warnings = report["errors"], report["warnings"]
+    lines += ["", f"Validation: {len(errors)} errors, {len(warnings)} warnings"]
+    for finding in errors + warnings:
+        where = finding["prim"] or "stage"
+        lines.append(
+            f"  {finding['severity']:<7} {where}  [{finding['validator']}.{finding['code']}]"
+        )
+        lines.append(f"          {finding['message']}")
+    return "\n".join(lines)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("scene", help="a .usda, .usdc, .usd or .usdz file")
+    parser.add_argument("--json", action="store_true", help="print one JSON object instead")
+    parser.add_argument(
+        "--no-usd-validators",
+        action="store_true",
+        help="run only rigspace's validators, not USD's built-in ones",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    stage = open_stage(args.scene)
+    report = inspect_stage(stage, include_usd_validators=not args.no_usd_validators)
+    if args.json:
+        json.dump(report, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        print(format_report(report))
+    return 1 if report["errors"] else 0
+
+
+COMMAND = CommandSpec(
+    name="inspect",
+    help="print a scene's metrics, characters, cameras, lights and validation findings",
+    description=__doc__ or "",
+    add_arguments=add_arguments,
+    run=run,
+)

@@ -1,0 +1,226 @@
+"""Typed readers for the rigspace schemas (codeless, so USD generates no Python classes).
+
+Each reader returns a frozen dataclass of plain Python values: the authored value where
+there is one, else the schema's fallback. Nothing here raises on bad values; the
+validators (`rigspace.sdk.validation`) judge them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pxr import Sdf, Usd, UsdSkel
+
+from rigspace.usd_schemas import (
+    CAPTURE_RING_API,
+    LIVE_BINDING_API,
+    LIVE_NAMESPACE,
+    NEURAL_CHARACTER,
+)
+
+CAPTURE_NS = "rigspace:captureRing:"
+
+
+def _get(prim: Usd.Prim, name: str, default=None):
+    attr = prim.GetAttribute(name)
+    if not attr:
+        return default
+    value = attr.Get()
+    return default if value is None else value
+
+
+def _targets(prim: Usd.Prim, name: str) -> tuple[str, ...]:
+    rel = prim.GetRelationship(name)
+    return tuple(str(p) for p in rel.GetForwardedTargets()) if rel else ()
+
+
+def is_neural_character(prim: Usd.Prim) -> bool:
+    return prim.GetTypeName() == NEURAL_CHARACTER
+
+
+def neural_characters(stage: Usd.Stage) -> list[Usd.Prim]:
+    """Every active RigspaceNeuralCharacter prim on the stage, in traversal order."""
+    return [p for p in stage.Traverse() if is_neural_character(p)]
+
+
+@dataclass(frozen=True)
+class NeuralCharacter:
+    """The values of a RigspaceNeuralCharacter prim."""
+
+    path: str
+    skeleton_targets: tuple[str, ...]
+    animation_targets: tuple[str, ...]
+    model: str
+    """The authored asset path, as written (empty: no model)."""
+    model_resolved: str
+    """The asset path resolved by USD's asset resolver (empty when it does not resolve)."""
+    maps: tuple[str, ...]
+    look_at_joint: str
+    training_distance: float
+    training_focal_length: float
+    training_aperture: float
+    joints: tuple[str, ...]
+    rotation_encoding: str
+    applied_apis: tuple[str, ...] = ()
+
+    @property
+    def skeleton(self) -> str | None:
+        return self.skeleton_targets[0] if len(self.skeleton_targets) == 1 else None
+
+
+def read_neural_character(prim: Usd.Prim) -> NeuralCharacter:
+    model = _get(prim, "rigspace:model")
+    return NeuralCharacter(
+        path=str(prim.GetPath()),
+        skeleton_targets=_targets(prim, "rigspace:skeleton"),
+        animation_targets=_targets(prim, "rigspace:animationSource"),
+        model=model.path if model else "",
+        model_resolved=model.resolvedPath if model else "",
+        maps=tuple(_get(prim, "rigspace:maps", ())),
+        look_at_joint=str(_get(prim, "rigspace:lookAtJoint", "")),
+        training_distance=float(_get(prim, "rigspace:trainingCamera:distance", 0.0)),
+        training_focal_length=float(_get(prim, "rigspace:trainingCamera:focalLength", 0.0)),
+        training_aperture=float(_get(prim, "rigspace:trainingCamera:horizontalAperture", 0.0)),
+        joints=tuple(_get(prim, "rigspace:joints", ())),
+        rotation_encoding=str(_get(prim, "rigspace:rotationEncoding", "rot6d")),
+        applied_apis=tuple(prim.GetAppliedSchemas()),
+    )
+
+
+@dataclass(frozen=True)
+class CaptureRing:
+    """The values of a RigspaceCaptureRingAPI."""
+
+    views_per_ring: int
+    elevations: tuple[float, ...]
+    radius: float
+    focal_length: float
+    horizontal_aperture: float
+    resolution: int
+    clipping_range: tuple[float, float]
+    look_at_joint: str
+    clip_names: tuple[str, ...]
+    clip_ranges: tuple[tuple[float, float], ...]
+    held_out_clips: tuple[str, ...]
+    held_out_views_per_ring: int
+    held_out_elevations: tuple[float, ...]
+
+
+def has_capture_ring(prim: Usd.Prim) -> bool:
+    return CAPTURE_RING_API in prim.GetAppliedSchemas()
+
+
+def read_capture_ring(prim: Usd.Prim) -> CaptureRing:
+    def get(name, default=None):
+        return _get(prim, CAPTURE_NS + name, default)
+
+    clipping = get("clippingRange", (0.1, 1e4))
+    return CaptureRing(
+        views_per_ring=int(get("viewsPerRing", 12)),
+        elevations=tuple(float(e) for e in get("elevations", (0.0,))),
+        radius=float(get("radius", 0.0)),
+        focal_length=float(get("focalLength", 50.0)),
+        horizontal_aperture=float(get("horizontalAperture", 20.955)),
+        resolution=int(get("resolution", 128)),
+        clipping_range=(float(clipping[0]), float(clipping[1])),
+        look_at_joint=str(get("lookAtJoint", "")),
+        clip_names=tuple(str(n) for n in get("clipNames", ())),
+        clip_ranges=tuple((float(r[0]), float(r[1])) for r in get("clipRanges", ())),
+        held_out_clips=tuple(str(n) for n in get("heldOutClips", ())),
+        held_out_views_per_ring=int(get("heldOutViewsPerRing", 0)),
+        held_out_elevations=tuple(float(e) for e in get("heldOutElevations", ())),
+    )
+
+
+@dataclass(frozen=True)
+class LiveBinding:
+    """One instance of the multiple-apply RigspaceLiveBindingAPI."""
+
+    name: str
+    url: str
+    enabled: bool
+    source_bones: tuple[str, ...]
+    target_joints: tuple[str, ...]
+    source_up_axis: str
+    source_handedness: str
+    source_meters_per_unit: float
+    rest_pose: tuple[tuple[float, float, float, float], ...]
+    """(w, x, y, z) per source bone."""
+    smoothing: str
+    smoothing_strength: float
+    buffering: str
+    buffer_seconds: float
+    timeout_seconds: float
+    extra: dict = field(default_factory=dict)
+
+
+def live_binding_names(prim: Usd.Prim) -> list[str]:
+    prefix = LIVE_BINDING_API + ":"
+    return [s[len(prefix) :] for s in prim.GetAppliedSchemas() if s.startswith(prefix)]
+
+
+def read_live_bindings(prim: Usd.Prim) -> list[LiveBinding]:
+    bindings = []
+    for name in live_binding_names(prim):
+
+        def get(prop, default=None, _name=name):
+            return _get(prim, f"{LIVE_NAMESPACE}:{_name}:{prop}", default)
+
+        rest = get("restPose", ())
+        bindings.append(
+            LiveBinding(
+                name=name,
+                url=str(get("url", "")),
+                enabled=bool(get("enabled", True)),
+                source_bones=tuple(get("sourceBones", ())),
+                target_joints=tuple(get("targetJoints", ())),
+                source_up_axis=str(get("sourceUpAxis", "Y")),
+                source_handedness=str(get("sourceHandedness", "right")),
+                source_meters_per_unit=float(get("sourceMetersPerUnit", 1.0)),
+                rest_pose=tuple(
+                    (float(q.GetReal()), *(float(c) for c in q.GetImaginary())) for q in rest
+                ),
+                smoothing=str(get("smoothing", "none")),
+                smoothing_strength=float(get("smoothingStrength", 0.5)),
+                buffering=str(get("buffering", "latest")),
+                buffer_seconds=float(get("bufferSeconds", 0.05)),
+                timeout_seconds=float(get("timeoutSeconds", 0.5)),
+            )
+        )
+    return bindings
+
+
+def skeleton_joints(skeleton_prim: Usd.Prim) -> list[str]:
+    """The Skeleton's joint paths (UsdSkel order), e.g. 'pelvis/spine_01'."""
+    return [str(j) for j in (UsdSkel.Skeleton(skeleton_prim).GetJointsAttr().Get() or [])]
+
+
+class JointLookupError(KeyError):
+    """A joint name that is missing from, or ambiguous in, a skeleton's joint list."""
+
+
+def find_joint(name: str, joints: list[str]) -> int:
+    """Index of `name` in a skeleton's joint paths: a full path or a unique last element."""
+    if name in joints:
+        return joints.index(name)
+    matches = [i for i, j in enumerate(joints) if Sdf.Path(j).name == name]
+    if len(matches) == 1:
+        return matches[0]
+    if matches:
+        raise JointLookupError(
+            f"joint name {name!r} is ambiguous: "
+            + ", ".join(joints[i] for i in matches)
+            + "; use the full joint path"
+        )
+    raise JointLookupError(f"joint {name!r} is not in the skeleton")
+
+
+def resolve_model_path(character: NeuralCharacter) -> Path | None:
+    """The manifest.json of the character's model bundle, or None when it does not resolve."""
+    if not character.model_resolved:
+        return None
+    path = Path(character.model_resolved)
+    if path.is_dir():
+        path = path / "manifest.json"
+    return path if path.is_file() else None

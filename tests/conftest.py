@@ -1,0 +1,103 @@
+"""Shared fixtures: tiny character scenes built on the fly, the repository's paths."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+import rigspace.sdk  # noqa: F401  (registers the schemas before any stage is opened)
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_ASSETS = REPO.parent / "shared" / "assets"
+CESIUM_MAN = REPO / "samples" / "assets" / "CesiumMan" / "CesiumMan.usdz"
+
+TINY_JOINTS = ["hips", "hips/spine", "hips/spine/head", "hips/leg_l", "hips/leg_r"]
+
+
+def write_tiny_scene(
+    folder: Path, body: str = "", character: str = "", extra_apis: str = ""
+) -> Path:
+    """A valid scene: a 5-joint skeleton animated over time codes 0-10 and a neural character.
+
+    `character` adds property lines to the character prim, `extra_apis` adds to its
+    apiSchemas list, `body` adds prims under /World.
+    """
+    joints = ", ".join(f'"{j}"' for j in TINY_JOINTS)
+    identity = ", ".join(["((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,0,0,1))"] * len(TINY_JOINTS))
+    rotations = ", ".join(["(1, 0, 0, 0)"] * len(TINY_JOINTS))
+    turned = ", ".join(["(0.9238795, 0, 0.3826834, 0)"] * len(TINY_JOINTS))
+    translations = ", ".join(["(0, 1, 0)"] * len(TINY_JOINTS))
+    apis = '"RigspaceCaptureRingAPI"' + (", " + extra_apis if extra_apis else "")
+    text = f"""#usda 1.0
+(
+    defaultPrim = "World"
+    metersPerUnit = 1
+    upAxis = "Y"
+    startTimeCode = 0
+    endTimeCode = 10
+    timeCodesPerSecond = 30
+)
+
+def Xform "World"
+{{
+    def SkelRoot "Asset"
+    {{
+        def Skeleton "Skel" (prepend apiSchemas = ["SkelBindingAPI"])
+        {{
+            uniform token[] joints = [{joints}]
+            uniform matrix4d[] bindTransforms = [{identity}]
+            uniform matrix4d[] restTransforms = [{identity}]
+            rel skel:animationSource = </World/Asset/Skel/Anim>
+
+            def SkelAnimation "Anim"
+            {{
+                uniform token[] joints = [{joints}]
+                quatf[] rotations.timeSamples = {{ 0: [{rotations}], 10: [{turned}] }}
+                float3[] translations.timeSamples = {{ 0: [{translations}], 10: [{translations}] }}
+                half3[] scales = [{", ".join(["(1, 1, 1)"] * len(TINY_JOINTS))}]
+            }}
+        }}
+    }}
+
+    def RigspaceNeuralCharacter "Hero" (prepend apiSchemas = [{apis}])
+    {{
+        rel rigspace:skeleton = </World/Asset/Skel>
+        uniform float2[] rigspace:captureRing:clipRanges = [(0, 4), (5, 10)]
+        uniform token[] rigspace:captureRing:clipNames = ["a", "b"]
+        uniform token[] rigspace:captureRing:heldOutClips = ["b"]
+{character}
+    }}
+{body}
+}}
+"""
+    path = folder / "scene.usda"
+    path.write_text(text)
+    return path
+
+
+def write_bundle_manifest(folder: Path, joints: list[str], **overrides) -> Path:
+    """A model bundle folder holding only a manifest (what the validators read)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    manifest = {
+        "format": "rigspace.bundle",
+        "format_version": 1,
+        "joints": joints,
+        "rotation_encoding": "rot6d",
+        "maps": ["albedo", "normal", "depth", "mask"],
+        "training_camera": {"distance": 3.0, "focal_length": 50.0, "horizontal_aperture": 20.955},
+    }
+    manifest.update(overrides)
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    return folder
+
+
+@pytest.fixture
+def tiny_scene(tmp_path: Path):
+    """Factory: write_tiny_scene into the test's tmp_path."""
+
+    def make(**kwargs) -> Path:
+        return write_tiny_scene(tmp_path, **kwargs)
+
+    return make
