@@ -43,7 +43,10 @@ def _triangles(mesh: UsdGeom.Mesh) -> int:
 
 def _value(value: Any) -> Any:
     """A JSON-friendly version of a USD attribute value."""
-    if value is None or isinstance(value, bool | int | float | str):
+    if isinstance(value, float):
+        # Attribute values are mostly float32: print what was authored, not the binary noise.
+        return float(f"{value:.7g}")
+    if value is None or isinstance(value, bool | int | str):
         return value
     if hasattr(value, "path") and hasattr(value, "resolvedPath"):  # Sdf.AssetPath
         return value.path
@@ -67,6 +70,16 @@ def _schema_values(prim: Usd.Prim) -> dict[str, Any]:
         else:
             values[name] = _value(prop.Get())
     return values
+
+
+def _authored(prim: Usd.Prim) -> list[str]:
+    """The rigspace properties with an authored opinion (the others show schema fallbacks)."""
+    return [
+        p.GetName()
+        for p in prim.GetAuthoredProperties()
+        if p.GetName().startswith("rigspace:")
+        and (isinstance(p, Usd.Relationship) or p.HasAuthoredValue())
+    ]
 
 
 def _light_info(prim: Usd.Prim) -> dict[str, Any]:
@@ -101,6 +114,7 @@ def describe_prim(prim: Usd.Prim) -> dict[str, Any] | None:
         entry["kind"] = "neuralCharacter"
         entry["appliedSchemas"] = list(prim.GetAppliedSchemas())
         entry["values"] = _schema_values(prim)
+        entry["authored"] = _authored(prim)
     elif prim.IsA(UsdSkel.Root):
         entry["kind"] = "skelRoot"
     elif prim.IsA(UsdSkel.Skeleton):
@@ -203,7 +217,8 @@ def format_report(report: dict[str, Any]) -> str:
             if p["appliedSchemas"]:
                 lines.append(f"      applied: {', '.join(p['appliedSchemas'])}")
             for name, value in p["values"].items():
-                lines.append(f"      {name} = {json.dumps(value)}")
+                fallback = "" if name in p["authored"] else "  (fallback)"
+                lines.append(f"      {name} = {json.dumps(value)}{fallback}")
     if not report["prims"]:
         lines.append("  (none)")
     errors, warnings = report["errors"], report["warnings"]
