@@ -155,6 +155,11 @@ class LiveBinding:
     extra: dict = field(default_factory=dict)
 
 
+def _wxyz(q) -> tuple[float, float, float, float]:
+    x, y, z = q.GetImaginary()
+    return (float(q.GetReal()), float(x), float(y), float(z))
+
+
 def live_binding_names(prim: Usd.Prim) -> list[str]:
     prefix = LIVE_BINDING_API + ":"
     return [s[len(prefix) :] for s in prim.GetAppliedSchemas() if s.startswith(prefix)]
@@ -178,9 +183,7 @@ def read_live_bindings(prim: Usd.Prim) -> list[LiveBinding]:
                 source_up_axis=str(get("sourceUpAxis", "Y")),
                 source_handedness=str(get("sourceHandedness", "right")),
                 source_meters_per_unit=float(get("sourceMetersPerUnit", 1.0)),
-                rest_pose=tuple(
-                    (float(q.GetReal()), *(float(c) for c in q.GetImaginary())) for q in rest
-                ),
+                rest_pose=tuple(_wxyz(q) for q in rest),
                 smoothing=str(get("smoothing", "none")),
                 smoothing_strength=float(get("smoothingStrength", 0.5)),
                 buffering=str(get("buffering", "latest")),

@@ -404,7 +404,7 @@ def _check_clips(prim: Usd.Prim, ring: schema.CaptureRing) -> Iterator[Issue]:
         )
     anim = character_animation(prim) if schema.is_neural_character(prim) else None
     span = animation_time_range(anim) if anim is not None else None
-    if span is not None:
+    if anim is not None and span is not None:
         outside = [
             f"{n} ({a:g}-{b:g})"
             for n, (a, b) in zip(ring.clip_names, ring.clip_ranges, strict=True)
@@ -458,7 +458,6 @@ def check_live_binding(prim: Usd.Prim) -> Iterator[Issue]:
         return
     yield from _owner_is_character(prim, "RigspaceLiveBindingAPI")
     skeleton = character_skeleton(prim) if schema.is_neural_character(prim) else None
-    joints = schema.skeleton_joints(skeleton) if skeleton is not None else None
     for b in bindings:
         where = f"Live binding {b.name!r} on {prim.GetPath()}"
         ns = f"rigspace:live:{b.name}:"
@@ -475,8 +474,8 @@ def check_live_binding(prim: Usd.Prim) -> Iterator[Issue]:
                 f"{where}: {len(b.source_bones)} sourceBones but {len(b.target_joints)} "
                 "targetJoints. Fix: author one target joint per source bone.",
             )
-        if joints is not None:
-            missing = _missing_joints(b.target_joints, joints)
+        if skeleton is not None:
+            missing = _missing_joints(b.target_joints, schema.skeleton_joints(skeleton))
             if missing:
                 yield error(
                     "TargetJointsMissing",
