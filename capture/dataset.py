@@ -1,0 +1,218 @@
+"""The dataset on disk: work items, their atomic records, and the final manifest.
+
+Layout of a dataset folder:
+    capture.json            resolved CaptureSettings (written first; resume checks it)
+    samples/<clip>/t<time>_v<view>.exr   one EXR per sample (capture/exr.py)
+    items/<item>.npz        one record per finished work item (written last, atomically)
+    params.npz              the parameters table, every sample in dataset order (finalize)
+    manifest.json           counts, splits, checksums, settings (finalize)
+    contact_sheet.png       a grid of maps from a few samples (finalize)
+
+A work item is one clip's chunk of frames seen from one group of ring views (a ring, or
+its held-out views). Items are independent; `--shard i/n` takes items i, i+n, ... An
+item is done exactly when its record exists; a killed run leaves at most temporary files
+and an item without a record, which the next run redoes from scratch. Finalizing is
+deterministic and idempotent, so one run, a resumed run and merged shards give the same
+manifest.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rigspace.capture.ring import HELDOUT_CLIPS, HELDOUT_VIEWS, SPLITS, TRAIN, RingView
+from rigspace.capture.settings import CaptureSettings, Clip
+
+FORMAT = "rigspace.dataset"
+FORMAT_VERSION = 1
+SETTINGS_FILE = "capture.json"
+MANIFEST_FILE = "manifest.json"
+PARAMS_FILE = "params.npz"
+CONTACT_SHEET = "contact_sheet.png"
+ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
+"""The earliest time a zip entry can carry: every archive entry gets it."""
+
+
+@dataclass(frozen=True)
+class WorkItem:
+    index: int
+    clip_index: int
+    clip: Clip
+    times: tuple[float, ...]
+    views: tuple[RingView, ...]
+
+    @property
+    def name(self) -> str:
+        first = self.views[0].index
+        return f"{self.clip_index:02d}_{self.clip.name}_t{self.times[0]:08.1f}_v{first:03d}"
+
+    @property
+    def samples(self) -> int:
+        return len(self.times) * len(self.views)
+
+
+def view_groups(views: list[RingView], settings: CaptureSettings) -> list[tuple[RingView, ...]]:
+    """Views grouped by ring: each elevation's training views, then its held-out views."""
+    groups: dict[tuple[float, bool], list[RingView]] = {}
+    for view in views:
+        groups.setdefault((view.elevation, view.held_out), []).append(view)
+    return [tuple(g) for g in groups.values()]
+
+
+def work_items(settings: CaptureSettings) -> list[WorkItem]:
+    """Every work item of the capture, in dataset order."""
+    groups = view_groups(settings.views(), settings)
+    items: list[WorkItem] = []
+    for clip_index, clip in enumerate(settings.clips):
+        times = clip.times()
+        for start in range(0, len(times), settings.frames_per_item):
+            chunk = tuple(float(t) for t in times[start : start + settings.frames_per_item])
+            for group in groups:
+                if clip.held_out and group[0].held_out:
+                    continue  # held-out clips are seen from the training views only
+                items.append(WorkItem(len(items), clip_index, clip, chunk, group))
+    return items
+
+
+def shard_items(items: list[WorkItem], shard: tuple[int, int]) -> list[WorkItem]:
+    index, count = shard
+    return [item for item in items if item.index % count == index]
+
+
+def split_of(clip: Clip, view: RingView) -> str:
+    if clip.held_out:
+        return HELDOUT_CLIPS
+    return HELDOUT_VIEWS if view.held_out else TRAIN
+
+
+def sample_path(clip: Clip, time: float, view: RingView) -> str:
+    """A sample's EXR, relative to the dataset folder."""
+    return f"samples/{clip.name}/t{time:08.1f}_v{view.index:03d}.exr"
+
+
+def sha256_file(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    """An .npz (np.load reads it) with fixed zip timestamps, so equal arrays give equal bytes.
+
+    np.savez stamps each entry with the current time, which would make two captures of
+    the same data differ byte for byte.
+    """
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_STORED) as archive:
+        for name in sorted(arrays):
+            entry = zipfile.ZipInfo(f"{name}.npy", date_time=ZIP_EPOCH)
+            with archive.open(entry, "w", force_zip64=True) as stream:
+                np.lib.format.write_array(stream, np.asarray(arrays[name]), allow_pickle=False)
+    return buffer.getvalue()
+
+
+def save_record(folder: Path, item: WorkItem, columns: dict[str, np.ndarray]) -> None:
+    """Write an item's record (the commit point of the item)."""
+    write_atomic(folder / "items" / f"{item.name}.npz", npz_bytes(columns))
+
+
+def record_path(folder: Path, item: WorkItem) -> Path:
+    return folder / "items" / f"{item.name}.npz"
+
+
+def load_record(folder: Path, item: WorkItem) -> dict[str, np.ndarray]:
+    with np.load(record_path(folder, item), allow_pickle=False) as data:
+        return {k: data[k] for k in data.files}
+
+
+def clean_temporaries(folder: Path) -> int:
+    """Remove what killed runs left half-written (never a finished file)."""
+    removed = 0
+    for tmp in list(folder.rglob(".*.tmp*")):
+        tmp.unlink(missing_ok=True)
+        removed += 1
+    return removed
+
+
+def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> dict[str, Any]:
+    """Assemble params.npz and manifest.json from every item's record (all must exist)."""
+    records = [load_record(folder, item) for item in items]
+    table = {key: np.concatenate([r[key] for r in records]) for key in records[0]}
+    params_bytes = npz_bytes(table)
+    write_atomic(folder / PARAMS_FILE, params_bytes)
+    split_counts = {s: int(np.sum(table["split"] == i)) for i, s in enumerate(SPLITS)}
+    digest = hashlib.sha256()
+    for path, checksum in zip(table["path"], table["sha256"], strict=True):
+        digest.update(f"{path} {checksum}\n".encode())
+    digest.update(hashlib.sha256(params_bytes).digest())
+    total_bytes = int(sum((folder / str(p)).stat().st_size for p in table["path"]))
+    manifest = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "scene": settings.scene,
+        "scene_fingerprint": settings.scene_fingerprint,
+        "character": settings.character,
+        "skeleton": settings.skeleton,
+        "joints": list(settings.joints),
+        "look_at_joint": settings.look_at_joint,
+        "rotation_encoding": "rot6d",
+        "up_axis": settings.up_axis,
+        "meters_per_unit": settings.meters_per_unit,
+        "clips": [
+            {"name": c.name, "first": c.first, "last": c.last, "held_out": c.held_out}
+            for c in settings.clips
+        ],
+        "ring": {
+            "views_per_ring": settings.views_per_ring,
+            "elevations": list(settings.elevations),
+            "held_out_views_per_ring": settings.held_out_views_per_ring,
+            "held_out_elevations": list(settings.held_out_elevations),
+            "radius": settings.radius,
+            "focal_length": settings.focal_length,
+            "horizontal_aperture": settings.horizontal_aperture,
+            "clipping_range": list(settings.clipping_range),
+            "views": [
+                {
+                    "index": v.index,
+                    "azimuth": v.azimuth,
+                    "elevation": v.elevation,
+                    "held_out": v.held_out,
+                }
+                for v in settings.views()
+            ],
+        },
+        "resolution": settings.resolution,
+        "renderer": {"name": settings.renderer, "samples_per_axis": settings.samples_per_axis},
+        "channels": {
+            "R,G,B": "albedo, linear, premultiplied by A",
+            "A": "coverage mask in [0, 1]",
+            "Z": "camera-space depth along -Z, scene units, +inf where empty",
+            "N.X,N.Y,N.Z": "camera-space unit normal, 0 where empty",
+        },
+        "params": {
+            "file": PARAMS_FILE,
+            "rig": "per joint (skeleton order) the world rotation in the camera frame, 6D "
+            "(first two matrix columns)",
+            "columns": sorted(table),
+        },
+        "counts": {"samples": len(table["path"]), "items": len(items), **split_counts},
+        "splits": list(SPLITS),
+        "bytes": total_bytes,
+        "checksum": digest.hexdigest(),
+        "settings": settings.to_json(),
+    }
+    write_atomic(folder / MANIFEST_FILE, (json.dumps(manifest, indent=2) + "\n").encode())
+    return manifest

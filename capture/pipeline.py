@@ -1,0 +1,280 @@
+"""Run a capture: check the output folder, render the work items on every core, finalize.
+
+Each worker process opens the stage, poses the character with UsdSkel and renders with
+its own renderer (a GL context cannot cross a fork, so workers are spawned). The main
+process only hands out items and shows progress. See capture/dataset.py for the layout
+and the resume and shard guarantees.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from rigspace.capture import dataset as ds
+from rigspace.capture.contact import write_contact_sheet
+from rigspace.capture.exr import write_exr
+from rigspace.capture.settings import (
+    CaptureError,
+    CaptureOverrides,
+    CaptureSettings,
+    resolve_settings,
+)
+from rigspace.sdk.posing import CharacterRig
+from rigspace.sdk.render import RenderSettings, choose_renderer
+from rigspace.sdk.rotations import rig_parameters
+from rigspace.sdk.stage import open_stage
+
+STAGES = ("pose", "render", "write")
+
+
+@dataclass
+class CaptureResult:
+    folder: Path
+    settings: CaptureSettings
+    samples_total: int
+    samples_done: int
+    """Samples this run rendered (not counting items finished by earlier runs or other shards)."""
+    seconds: float
+    complete: bool
+    manifest: dict[str, Any] | None
+    timings: dict[str, float] = field(default_factory=dict)
+    """Seconds spent per stage (pose, render, write) summed over workers."""
+
+    def summary(self) -> str:
+        rate = self.samples_done / self.seconds if self.seconds > 0 else 0.0
+        text = (
+            f"captured {self.samples_done} samples in {self.seconds:.1f} s "
+            f"({rate:.1f} samples/s) into {self.folder}"
+        )
+        if self.timings and self.samples_done:
+            per = {k: 1e3 * v / self.samples_done for k, v in self.timings.items()}
+            text += " | per sample, one core: " + ", ".join(
+                f"{k} {v:.1f} ms" for k, v in per.items()
+            )
+        if self.manifest:
+            counts = self.manifest["counts"]
+            text += (
+                f"\ndataset complete: {counts['samples']} samples (train {counts['train']}, "
+                f"held-out views {counts['heldout-views']}, held-out clips "
+                f"{counts['heldout-clips']}), {self.manifest['bytes'] / 2**20:.1f} MiB, "
+                f"checksum {self.manifest['checksum'][:16]}"
+            )
+        else:
+            text += f"\n{self.samples_total - self.samples_done} samples remain for other shards"
+        return text
+
+
+class ItemWorker:
+    """Per-process state: the posed character and a renderer, reused for every item."""
+
+    def __init__(self, settings: CaptureSettings, folder: Path) -> None:
+        self.settings = settings
+        self.folder = folder
+        stage = open_stage(settings.scene)
+        self.rig = CharacterRig(stage.GetPrimAtPath(settings.character))
+        self.joint = self.rig.joints.index(settings.look_at_joint)
+        spec = choose_renderer(settings.renderer)
+        self.renderer = spec.create(RenderSettings(settings.samples_per_axis))
+        self.lens = settings.lens
+
+    def run(self, item: ds.WorkItem) -> tuple[int, dict[str, float]]:
+        timings = dict.fromkeys(STAGES, 0.0)
+        rows: dict[str, list[Any]] = {
+            k: []
+            for k in (
+                "path", "sha256", "rig", "joint_camera", "camera_to_world", "intrinsics",
+                "clip", "time", "view", "elevation", "azimuth", "split",
+            )
+        }  # fmt: skip
+        for t in item.times:
+            start = time.perf_counter()
+            world = self.rig.world_transforms(t)
+            meshes = self.rig.posed_meshes(t)
+            joint_position = world[self.joint][:3, 3]
+            timings["pose"] += time.perf_counter() - start
+            for view in item.views:
+                start = time.perf_counter()
+                camera = view.camera(joint_position, self.lens)
+                maps = self.renderer.render(meshes, camera)
+                timings["render"] += time.perf_counter() - start
+                start = time.perf_counter()
+                relative = ds.sample_path(item.clip, t, view)
+                path = self.folder / relative
+                path.parent.mkdir(parents=True, exist_ok=True)
+                write_exr(path, maps)
+                timings["write"] += time.perf_counter() - start
+                rows["path"].append(relative)
+                rows["sha256"].append(ds.sha256_file(path))
+                rows["rig"].append(rig_parameters(world, camera.camera_to_world))
+                rows["joint_camera"].append(camera.to_camera(joint_position[None])[0])
+                rows["camera_to_world"].append(camera.camera_to_world)
+                rows["intrinsics"].append([camera.fx, camera.fy, camera.cx, camera.cy])
+                rows["clip"].append(item.clip_index)
+                rows["time"].append(t)
+                rows["view"].append(view.index)
+                rows["elevation"].append(view.elevation)
+                rows["azimuth"].append(view.azimuth)
+                rows["split"].append(ds.SPLITS.index(ds.split_of(item.clip, view)))
+        columns = {
+            "path": np.array(rows["path"]),
+            "sha256": np.array(rows["sha256"]),
+            "rig": np.stack(rows["rig"]).astype(np.float32),
+            "joint_camera": np.array(rows["joint_camera"], dtype=np.float32),
+            "camera_to_world": np.array(rows["camera_to_world"], dtype=np.float64),
+            "intrinsics": np.array(rows["intrinsics"], dtype=np.float64),
+            "clip": np.array(rows["clip"], dtype=np.int16),
+            "time": np.array(rows["time"], dtype=np.float64),
+            "view": np.array(rows["view"], dtype=np.int16),
+            "elevation": np.array(rows["elevation"], dtype=np.float32),
+            "azimuth": np.array(rows["azimuth"], dtype=np.float32),
+            "split": np.array(rows["split"], dtype=np.int8),
+        }
+        ds.save_record(self.folder, item, columns)
+        return item.samples, timings
+
+    def close(self) -> None:
+        self.renderer.close()
+
+
+_worker: ItemWorker | None = None
+
+
+def _init_worker(settings_json: dict[str, Any], folder: str) -> None:
+    global _worker
+    _worker = ItemWorker(CaptureSettings.from_json(settings_json), Path(folder))
+
+
+def _run_item(item: ds.WorkItem) -> tuple[int, dict[str, float]]:
+    assert _worker is not None, "worker not initialised"
+    return _worker.run(item)
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    try:
+        index, count = (int(x) for x in text.split("/"))
+    except ValueError:
+        raise CaptureError(
+            f"--shard {text!r} is not i/n.", "write e.g. --shard 0/4 (shards 0 to 3 of 4)."
+        ) from None
+    if not 0 <= index < count:
+        raise CaptureError(
+            f"--shard {text}: i must be in 0 to n-1.", f"use 0/{count} to {count - 1}/{count}."
+        )
+    return index, count
+
+
+def prepare_folder(folder: Path, settings: CaptureSettings, resume: bool, sharded: bool) -> None:
+    """Check the output folder before any work; create it when it is new."""
+    if folder.exists() and not folder.is_dir():
+        raise CaptureError(f"--out {folder} is a file.", "choose a folder.")
+    settings_file = folder / ds.SETTINGS_FILE
+    if folder.is_dir() and any(folder.iterdir()):
+        if not settings_file.is_file():
+            raise CaptureError(
+                f"--out {folder} is not empty and is not a rigspace dataset.",
+                "choose a new or empty folder.",
+            )
+        existing = json.loads(settings_file.read_text())
+        wanted = json.loads(json.dumps(settings.to_json()))  # tuples become lists, as on disk
+        differs = sorted(k for k in set(existing) | set(wanted) if existing.get(k) != wanted.get(k))
+        if differs:
+            raise CaptureError(
+                f"--out {folder} holds a dataset captured with different settings "
+                f"({', '.join(differs)}).",
+                "capture into a new folder, or repeat the original command to resume it.",
+            )
+        if not (resume or sharded):
+            raise CaptureError(
+                f"--out {folder} already holds this capture.",
+                "pass --resume to finish it, or choose a new folder.",
+            )
+        return
+    parent = next(p for p in [folder, *folder.parents] if p.exists())
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise CaptureError(
+            f"--out {folder} cannot be created: {parent} is not writable.",
+            "choose a writable location.",
+        )
+    try:
+        (folder / "items").mkdir(parents=True, exist_ok=True)
+        ds.write_atomic(settings_file, (json.dumps(settings.to_json(), indent=2) + "\n").encode())
+    except OSError as exc:
+        raise CaptureError(
+            f"--out {folder} cannot be written: {exc}.", "choose a writable location."
+        ) from exc
+
+
+def capture(
+    scene: str | Path,
+    character: str,
+    out: str | Path,
+    overrides: CaptureOverrides | None = None,
+    *,
+    shard: tuple[int, int] = (0, 1),
+    resume: bool = False,
+    workers: int | None = None,
+    progress: bool = True,
+    on_item: Callable[[ds.WorkItem], None] | None = None,
+) -> CaptureResult:
+    """Capture a neural character's dataset (see the module and capture/dataset.py docs)."""
+    settings, _rig = resolve_settings(scene, character, overrides)
+    renderer = choose_renderer(settings.renderer)  # a concrete name, so the dataset records it
+    settings = replace(settings, renderer=renderer.name)
+    folder = Path(out)
+    prepare_folder(folder, settings, resume, sharded=shard[1] > 1)
+    (folder / "items").mkdir(exist_ok=True)
+    ds.clean_temporaries(folder)
+    items = ds.work_items(settings)
+    mine = [i for i in ds.shard_items(items, shard) if not ds.record_path(folder, i).is_file()]
+    workers = max(1, min(workers or os.cpu_count() or 1, len(mine) or 1))
+    total = sum(i.samples for i in mine)
+    timings = dict.fromkeys(STAGES, 0.0)
+    start = time.perf_counter()
+    bar = tqdm(
+        total=total, unit="sample", disable=not progress, file=sys.stderr, dynamic_ncols=True
+    )
+    done = 0
+    try:
+        if workers == 1:
+            worker = ItemWorker(settings, folder)
+            try:
+                for item in mine:
+                    count, spent = worker.run(item)
+                    done += count
+                    bar.update(count)
+                    for k in timings:
+                        timings[k] += spent[k]
+                    if on_item:
+                        on_item(item)
+            finally:
+                worker.close()
+        else:
+            context = multiprocessing.get_context("spawn")
+            with context.Pool(
+                workers, initializer=_init_worker, initargs=(settings.to_json(), str(folder))
+            ) as pool:
+                for count, spent in pool.imap_unordered(_run_item, mine):
+                    done += count
+                    bar.update(count)
+                    for k in timings:
+                        timings[k] += spent[k]
+    finally:
+        bar.close()
+    seconds = time.perf_counter() - start
+    complete = all(ds.record_path(folder, i).is_file() for i in items)
+    manifest = None
+    if complete:
+        manifest = ds.finalize(folder, settings, items)
+        write_contact_sheet(folder)
+    return CaptureResult(folder, settings, total, done, seconds, complete, manifest, timings)

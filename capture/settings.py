@@ -1,0 +1,317 @@
+"""Capture settings: the capture ring API's values, overridden by flags, checked before any work.
+
+`resolve_settings` reads the scene once, applies the overrides, derives what is left to
+derive (the ring radius from the character's bounds, the clips from the animation) and
+raises a `RigspaceError` naming the problem and the fix for every bad input, before
+anything is written. The result is saved in the dataset (`capture.json`, and inside
+manifest.json) and is what makes a resumed or sharded run provably the same capture.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pxr import Usd
+
+from rigspace.capture.ring import Lens, RingView, ring_views
+from rigspace.sdk import schema
+from rigspace.sdk.errors import RigspaceError, SceneError
+from rigspace.sdk.posing import CharacterRig
+from rigspace.sdk.stage import meters_per_unit, open_stage, up_axis
+from rigspace.sdk.validation import MAX_RESOLUTION, MIN_RESOLUTION
+
+BOUNDS_MARGIN = 1.1
+"""Radius derived from the bounds leaves 10% room around the character's farthest point."""
+TIME_TOLERANCE = 1e-9
+"""Time codes this close count as equal (float rounding of authored clip ranges)."""
+BOUNDS_FRAMES = 24
+"""Frames sampled across the clips to find the character's farthest point from the joint."""
+
+
+class CaptureError(RigspaceError):
+    """A capture request that cannot run as given."""
+
+
+@dataclass(frozen=True)
+class Clip:
+    name: str
+    first: float
+    """Stage time code of the first frame (inclusive)."""
+    last: float
+    """Stage time code of the last frame (inclusive)."""
+    held_out: bool = False
+
+    def times(self, step: float = 1.0) -> np.ndarray:
+        count = math.floor((self.last - self.first) / step + TIME_TOLERANCE) + 1
+        return self.first + step * np.arange(count)
+
+
+@dataclass(frozen=True)
+class CaptureOverrides:
+    """Command-line values that replace the capture ring API's (None: keep the scene's)."""
+
+    views: int | None = field(default=None, metadata={"help": "training views per ring"})
+    elevations: tuple[float, ...] | None = field(
+        default=None, metadata={"help": "ring elevations in degrees"}
+    )
+    resolution: int | None = field(
+        default=None, metadata={"help": "image width and height, a power of two"}
+    )
+    radius: float | None = field(default=None, metadata={"help": "camera distance, scene units"})
+    frames: tuple[float, float] | None = field(
+        default=None, metadata={"help": "capture time codes A:B (inclusive) as one clip"}
+    )
+    clips: tuple[str, ...] | None = field(
+        default=None, metadata={"help": "capture only these clips of the capture ring"}
+    )
+    renderer: str = field(default="auto", metadata={"help": "gl, embree or auto"})
+    samples_per_axis: int = field(
+        default=2, metadata={"help": "anti-aliasing: s x s samples per pixel"}
+    )
+    frames_per_item: int = field(
+        default=16, metadata={"help": "frames per work item (the unit of sharding and resume)"}
+    )
+
+
+@dataclass(frozen=True)
+class CaptureSettings:
+    """Everything that determines a dataset's content (saved as capture.json)."""
+
+    scene: str
+    scene_fingerprint: str
+    character: str
+    skeleton: str
+    animation: str
+    joints: tuple[str, ...]
+    look_at_joint: str
+    up_axis: str
+    meters_per_unit: float
+    clips: tuple[Clip, ...]
+    views_per_ring: int
+    elevations: tuple[float, ...]
+    held_out_views_per_ring: int
+    held_out_elevations: tuple[float, ...]
+    radius: float
+    focal_length: float
+    horizontal_aperture: float
+    resolution: int
+    clipping_range: tuple[float, float]
+    renderer: str
+    samples_per_axis: int
+    frames_per_item: int = 16
+
+    @property
+    def lens(self) -> Lens:
+        return Lens(
+            self.resolution,
+            self.focal_length,
+            self.horizontal_aperture,
+            self.clipping_range[0],
+            self.clipping_range[1],
+        )
+
+    def views(self) -> list[RingView]:
+        return ring_views(
+            self.views_per_ring,
+            self.elevations,
+            self.radius,
+            self.up_axis,
+            self.held_out_views_per_ring,
+            self.held_out_elevations,
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        data = asdict(self)
+        data["clips"] = [asdict(c) for c in self.clips]
+        return data
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> CaptureSettings:
+        names = {f.name for f in fields(cls)}
+        values = {k: v for k, v in data.items() if k in names}
+        values["clips"] = tuple(Clip(**c) for c in data["clips"])
+        for key in ("joints", "elevations", "held_out_elevations", "clipping_range"):
+            values[key] = tuple(values[key])
+        return cls(**values)
+
+
+def scene_fingerprint(stage: Usd.Stage) -> str:
+    """sha256 over the bytes of every layer the stage uses (a changed asset changes it)."""
+    digest = hashlib.sha256()
+    for layer in sorted(stage.GetUsedLayers(), key=lambda layer: layer.identifier):
+        if layer.anonymous:
+            continue
+        path = layer.realPath
+        digest.update(Path(layer.identifier).name.encode())
+        if path and os.path.isfile(path):
+            digest.update(Path(path).read_bytes())
+        else:  # a layer inside a package, or generated: its text stands in for its file
+            digest.update(layer.ExportToString().encode())
+    return digest.hexdigest()
+
+
+def _character_prim(stage: Usd.Stage, path: str) -> Usd.Prim:
+    prim = stage.GetPrimAtPath(path) if path.startswith("/") else Usd.Prim()
+    if not prim:
+        found = [str(p.GetPath()) for p in schema.neural_characters(stage)]
+        raise CaptureError(
+            f"There is no prim {path!r} in {stage.GetRootLayer().identifier}.",
+            f"pass --character with one of: {', '.join(found) or '(the scene has no neural characters)'}",
+        )
+    if not schema.is_neural_character(prim):
+        raise CaptureError(
+            f"{path} is a {prim.GetTypeName() or 'typeless prim'}, not a RigspaceNeuralCharacter.",
+            "pass the neural character prim (`rigspace inspect` lists them).",
+        )
+    return prim
+
+
+def _resolve_clips(
+    ring: schema.CaptureRing | None, overrides: CaptureOverrides, span: tuple[float, float]
+) -> tuple[Clip, ...]:
+    held = set(ring.held_out_clips) if ring else set()
+    if ring and ring.clip_names:
+        clips = [
+            Clip(n, a, b, n in held)
+            for n, (a, b) in zip(ring.clip_names, ring.clip_ranges, strict=True)
+        ]
+    else:
+        clips = [Clip("all", span[0], span[1])]
+    if overrides.clips is not None:
+        known = {c.name for c in clips}
+        unknown = [c for c in overrides.clips if c not in known]
+        if unknown:
+            raise CaptureError(
+                f"--clips names {', '.join(unknown)}, which the capture ring does not define.",
+                f"use some of: {', '.join(sorted(known))}",
+            )
+        clips = [c for c in clips if c.name in overrides.clips]
+    if overrides.frames is not None:
+        first, last = overrides.frames
+        if first > last:
+            raise CaptureError(
+                f"--frames {first:g}:{last:g} ends before it starts.", "use A:B with A <= B."
+            )
+        clips = [Clip("frames", float(first), float(last))]
+    for clip in clips:
+        if clip.first < span[0] or clip.last > span[1]:
+            raise CaptureError(
+                f"Clip {clip.name!r} ({clip.first:g}-{clip.last:g}) lies outside the animation's "
+                f"time samples ({span[0]:g}-{span[1]:g}).",
+                "capture frames inside the animated range (--frames or the ring's clipRanges).",
+            )
+    return tuple(clips)
+
+
+def derive_radius(
+    rig: CharacterRig, joint: int, clips: tuple[Clip, ...], focal: float, aperture: float
+) -> float:
+    """A camera distance at which the character's farthest point stays inside the image."""
+    times = np.concatenate([c.times() for c in clips])
+    picks = times[np.linspace(0, len(times) - 1, min(BOUNDS_FRAMES, len(times))).astype(int)]
+    reach = 0.0
+    for t in picks:
+        centre = rig.world_transforms(float(t))[joint][:3, 3]
+        for mesh in rig.posed_meshes(float(t)):
+            reach = max(reach, float(np.linalg.norm(mesh.points - centre, axis=1).max()))
+    half_fov = math.atan(aperture / 2 / focal)
+    # A sphere of radius `reach` fits a cone of half-angle `half_fov` at distance reach / sin.
+    return BOUNDS_MARGIN * reach / math.sin(half_fov)
+
+
+def resolve_settings(
+    scene: str | Path, character: str, overrides: CaptureOverrides | None = None
+) -> tuple[CaptureSettings, CharacterRig]:
+    """The capture's settings with every bad input reported before any work."""
+    overrides = overrides or CaptureOverrides()
+    stage = open_stage(scene)
+    prim = _character_prim(stage, character)
+    rig = CharacterRig(prim)  # no skeleton, no animation, no skin weights: SceneError
+    span = rig.time_range()
+    if span is None:
+        raise SceneError(
+            f"Animation {rig.animation.GetPath()} has no time samples to capture.",
+            "author time-sampled rotations on the SkelAnimation.",
+        )
+    ring = schema.read_capture_ring(prim) if schema.has_capture_ring(prim) else None
+    info = schema.read_neural_character(prim)
+    defaults = ring or schema.CaptureRing(
+        12, (0.0,), 0.0, 50.0, 20.955, 128, (0.1, 1e4), "", (), (), (), 0, ()
+    )
+    resolution = defaults.resolution if overrides.resolution is None else overrides.resolution
+    if not (MIN_RESOLUTION <= resolution <= MAX_RESOLUTION and resolution & (resolution - 1) == 0):
+        raise CaptureError(
+            f"Resolution {resolution} is not a power of two from {MIN_RESOLUTION} to {MAX_RESOLUTION}.",
+            "use 64, 128, 256, ... (the network doubles its resolution block by block).",
+        )
+    views = defaults.views_per_ring if overrides.views is None else overrides.views
+    elevations = defaults.elevations if overrides.elevations is None else overrides.elevations
+    if not 1 <= views <= 360:
+        raise CaptureError(f"--views {views} is outside 1 to 360.", "use a count in 1 to 360.")
+    if not elevations or any(not abs(e) <= 89 for e in elevations):
+        raise CaptureError(
+            f"Elevations {list(elevations)} must be in [-89, 89] degrees.", "use such elevations."
+        )
+    near, far = defaults.clipping_range
+    if not 0 < near < far:
+        raise CaptureError(
+            f"Clipping range ({near:g}, {far:g}) is not 0 < near < far.",
+            "fix rigspace:captureRing:clippingRange.",
+        )
+    look_at = (ring.look_at_joint if ring else "") or info.look_at_joint or rig.joints[0]
+    try:
+        joint = schema.find_joint(look_at, rig.joints)
+    except schema.JointLookupError as exc:
+        raise CaptureError(
+            f"Look-at joint: {exc.args[0]}.", "name a joint of the skeleton."
+        ) from exc
+    clips = _resolve_clips(ring, overrides, span)
+    radius = overrides.radius or defaults.radius
+    if not radius:
+        radius = derive_radius(
+            rig, joint, clips, defaults.focal_length, defaults.horizontal_aperture
+        )
+    if not radius > near:
+        raise CaptureError(
+            f"Camera radius {radius:g} is not beyond the near clipping plane {near:g}.",
+            "raise the radius or lower the near clipping distance.",
+        )
+    if overrides.frames_per_item < 1:
+        raise CaptureError(
+            f"--frames-per-item {overrides.frames_per_item} must be at least 1.", "use e.g. 16."
+        )
+    if overrides.samples_per_axis < 1:
+        raise CaptureError(
+            f"--samples {overrides.samples_per_axis} must be at least 1.", "use 1, 2, 3 or 4."
+        )
+    settings = CaptureSettings(
+        scene=str(Path(scene).resolve()),
+        scene_fingerprint=scene_fingerprint(stage),
+        character=str(prim.GetPath()),
+        skeleton=str(rig.skeleton.GetPath()),
+        animation=str(rig.animation.GetPath()),
+        joints=tuple(rig.joints),
+        look_at_joint=rig.joints[joint],
+        up_axis=up_axis(stage),
+        meters_per_unit=meters_per_unit(stage),
+        clips=clips,
+        views_per_ring=views,
+        elevations=tuple(float(e) for e in elevations),
+        held_out_views_per_ring=min(defaults.held_out_views_per_ring, views),
+        held_out_elevations=tuple(defaults.held_out_elevations),
+        radius=float(radius),
+        focal_length=defaults.focal_length,
+        horizontal_aperture=defaults.horizontal_aperture,
+        resolution=resolution,
+        clipping_range=(float(near), float(far)),
+        renderer=overrides.renderer,
+        samples_per_axis=overrides.samples_per_axis,
+        frames_per_item=overrides.frames_per_item,
+    )
+    return settings, rig

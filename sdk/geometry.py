@@ -1,0 +1,227 @@
+"""Read USD meshes into what a renderer draws: triangles, per-corner UVs, and albedo.
+
+Albedo follows UsdPreviewSurface: `diffuseColor` connected to a UsdUVTexture (its file
+read through USD's asset resolver, so textures inside .usdz packages work; 8-bit images
+and sourceColorSpace "sRGB" are decoded to linear; scale and bias applied) with the UV
+set named by the UsdPrimvarReader_float2 feeding it, else `diffuseColor`'s value, else
+primvars:displayColor, else 18% grey. Textures wrap with repeat.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from pxr import Ar, Usd, UsdGeom, UsdShade
+
+from rigspace.sdk.errors import SceneError
+from rigspace.sdk.render import DrawMesh
+
+DEFAULT_ALBEDO = (0.18, 0.18, 0.18)
+"""Middle grey, for geometry with neither a material nor displayColor."""
+
+
+def triangulate(counts: np.ndarray, indices: np.ndarray, left_handed: bool = False):
+    """Fan-triangulate USD polygons.
+
+    Returns (triangles (T,3) point indices, corners (T,3) positions in faceVertexIndices,
+    faces (T,) the polygon of each triangle). Polygons with fewer than 3 vertices are
+    skipped; left-handed meshes get their winding flipped to counter-clockwise.
+    """
+    counts = np.asarray(counts, dtype=np.int64)
+    indices = np.asarray(indices, dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    per_face = np.where(counts >= 3, counts - 2, 0)
+    faces = np.repeat(np.arange(len(counts)), per_face)
+    k = np.arange(per_face.sum()) - np.repeat(np.cumsum(per_face) - per_face, per_face)
+    first = starts[faces]
+    corners = np.stack([first, first + k + 1, first + k + 2], axis=1)
+    if left_handed:
+        corners = corners[:, [0, 2, 1]]
+    return indices[corners].astype(np.int32), corners, faces
+
+
+def _primvar_per_corner(primvar: UsdGeom.Primvar, triangles, corners, faces, time=None):
+    """A primvar's values at every triangle corner, shape (T, 3, k), whatever its interpolation."""
+    values = primvar.ComputeFlattened(Usd.TimeCode.Default() if time is None else time)
+    if values is None or len(values) == 0:
+        return None
+    values = np.asarray(values, dtype=np.float32)
+    values = values.reshape(len(values), -1)
+    interpolation = primvar.GetInterpolation()
+    if interpolation == UsdGeom.Tokens.faceVarying:
+        index = corners
+    elif interpolation in (UsdGeom.Tokens.vertex, UsdGeom.Tokens.varying):
+        index = triangles
+    elif interpolation == UsdGeom.Tokens.uniform:
+        index = np.repeat(faces[:, None], 3, axis=1)
+    else:  # constant
+        index = np.zeros_like(triangles)
+    if index.max(initial=0) >= len(values):
+        raise SceneError(
+            f"Primvar {primvar.GetAttr().GetPath()} has {len(values)} values, too few for its "
+            f"{interpolation} interpolation.",
+            "re-export the mesh; its primvar does not match its topology.",
+        )
+    return values[index]
+
+
+def read_texture(asset, color_space: str = "auto") -> np.ndarray:
+    """A texture as linear float32 RGB (H, W, 3), read through USD's asset resolver."""
+    resolved = asset.resolvedPath if hasattr(asset, "resolvedPath") else str(asset)
+    if not resolved:
+        raise SceneError(
+            f"Texture @{getattr(asset, 'path', asset)}@ does not resolve.", "fix its path."
+        )
+    data = Ar.GetResolver().OpenAsset(Ar.ResolvedPath(resolved))
+    if data is None:
+        raise SceneError(f"Texture {resolved} cannot be opened.", "check that the file exists.")
+    image = cv2.imdecode(np.frombuffer(data.GetBuffer(), np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise SceneError(
+            f"Texture {resolved} is not an image OpenCV can decode.", "re-save it as PNG."
+        )
+    # OpenCV decodes to uint8, uint16, or float32 (EXR, HDR: already linear).
+    integer = image.dtype in (np.uint8, np.uint16)
+    image = image.astype(np.float32) / (
+        255.0 if image.dtype == np.uint8 else 65535.0 if integer else 1.0
+    )
+    if image.ndim == 2:
+        image = np.repeat(image[:, :, None], 3, axis=2)
+    image = image[:, :, 2::-1] if image.shape[2] >= 3 else np.repeat(image[:, :, :1], 3, axis=2)
+    if color_space == "sRGB" or (color_space == "auto" and integer):
+        image = srgb_to_linear(image)
+    return np.ascontiguousarray(image)
+
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB decoding."""
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+@dataclass
+class Albedo:
+    """Where a mesh's albedo comes from: a texture with a UV set, or colours."""
+
+    color: np.ndarray
+    """(3,) constant or (N, 3) per point, linear."""
+    texture: np.ndarray | None = None
+    """(H, W, 3) linear, UsdUVTexture scale and bias already applied."""
+    uv_set: str = "st"
+
+
+def _input_source(shader_input: UsdShade.Input):
+    """The shader and output an input is connected to, or None."""
+    if not shader_input or not shader_input.HasConnectedSource():
+        return None
+    source, _output, _kind = shader_input.GetConnectedSource()
+    return UsdShade.Shader(source.GetPrim())
+
+
+def _shader_id(shader: UsdShade.Shader) -> str:
+    return str(shader.GetIdAttr().Get() or "") if shader else ""
+
+
+def read_albedo(prim: Usd.Prim) -> Albedo:
+    """The albedo of a gprim per UsdPreviewSurface rules, falling back to displayColor."""
+    material, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
+    surface = material.ComputeSurfaceSource()[0] if material else None
+    if surface and _shader_id(surface) == "UsdPreviewSurface":
+        diffuse = surface.GetInput("diffuseColor")
+        texture = _input_source(diffuse)
+        if texture and _shader_id(texture) == "UsdUVTexture":
+            file_input = texture.GetInput("file")
+            color_space = texture.GetInput("sourceColorSpace")
+            reader = _input_source(texture.GetInput("st"))
+            uv_set = "st"
+            if reader and reader.GetInput("varname"):
+                uv_set = str(reader.GetInput("varname").Get() or "st")
+            image = read_texture(
+                file_input.Get(), str(color_space.Get()) if color_space else "auto"
+            )
+            scale, bias = texture.GetInput("scale"), texture.GetInput("bias")
+            if scale and scale.Get() is not None:
+                image = image * np.asarray(scale.Get(), np.float32)[:3]
+            if bias and bias.Get() is not None:
+                image = image + np.asarray(bias.Get(), np.float32)[:3]
+            return Albedo(
+                color=np.asarray(DEFAULT_ALBEDO, np.float32),
+                texture=np.ascontiguousarray(image, dtype=np.float32),
+                uv_set=uv_set,
+            )
+        if diffuse and diffuse.Get() is not None and not diffuse.HasConnectedSource():
+            return Albedo(color=np.asarray(diffuse.Get(), np.float32))
+    display = UsdGeom.PrimvarsAPI(prim).GetPrimvar("displayColor")
+    if display and display.HasValue():
+        values = np.asarray(display.ComputeFlattened(), np.float32).reshape(-1, 3)
+        if display.GetInterpolation() in (UsdGeom.Tokens.vertex, UsdGeom.Tokens.varying):
+            return Albedo(color=values)
+        # constant, uniform and faceVarying colours: their mean (renderers take point colours)
+        return Albedo(color=values.mean(axis=0))
+    return Albedo(color=np.asarray(DEFAULT_ALBEDO, np.float32))
+
+
+@dataclass
+class MeshSource:
+    """What does not change over time in a mesh: topology, UVs, albedo."""
+
+    path: str
+    rest_points: np.ndarray
+    triangles: np.ndarray
+    corner_uv: np.ndarray | None
+    albedo: Albedo
+
+    def draw_mesh(self, points: np.ndarray) -> DrawMesh:
+        """The mesh with these (posed, world-space) points, ready for a renderer."""
+        return DrawMesh(
+            points=points,
+            triangles=self.triangles,
+            corner_uv=self.corner_uv,
+            texture=self.albedo.texture,
+            color=self.albedo.color,
+            name=self.path,
+        )
+
+
+def read_mesh_source(prim: Usd.Prim, time: Usd.TimeCode | None = None) -> MeshSource:
+    """Topology, UVs and albedo of a UsdGeom.Mesh (points at `time`, default: the default time)."""
+    mesh = UsdGeom.Mesh(prim)
+    when = Usd.TimeCode.Default() if time is None else time
+    points = mesh.GetPointsAttr().Get(when)
+    counts = mesh.GetFaceVertexCountsAttr().Get(when)
+    indices = mesh.GetFaceVertexIndicesAttr().Get(when)
+    if points is None or counts is None or indices is None or len(points) == 0:
+        raise SceneError(
+            f"Mesh {prim.GetPath()} has no points or faces.",
+            "author points, faceVertexCounts and faceVertexIndices (or deactivate the prim).",
+        )
+    left = mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded
+    triangles, corners, faces = triangulate(counts, indices, left)
+    if len(indices) and int(np.max(indices)) >= len(points):
+        raise SceneError(
+            f"Mesh {prim.GetPath()} indexes point {int(np.max(indices))} of {len(points)}.",
+            "re-export the mesh; its faceVertexIndices are out of range.",
+        )
+    albedo = read_albedo(prim)
+    corner_uv = None
+    if albedo.texture is not None:
+        primvar = UsdGeom.PrimvarsAPI(prim).GetPrimvar(albedo.uv_set)
+        if primvar and primvar.HasValue():
+            corner_uv = _primvar_per_corner(primvar, triangles, corners, faces)
+        if corner_uv is None or corner_uv.shape[-1] != 2:
+            raise SceneError(
+                f"Mesh {prim.GetPath()} has a texture but no 2-component primvar "
+                f"{albedo.uv_set!r} to map it.",
+                f"author primvars:{albedo.uv_set} (texCoord2f[]) or change the UsdPrimvarReader's "
+                "varname to the mesh's UV set.",
+            )
+    if albedo.color.ndim == 2 and len(albedo.color) != len(points):
+        albedo.color = albedo.color.mean(axis=0)
+    return MeshSource(
+        path=str(prim.GetPath()),
+        rest_points=np.asarray(points, dtype=np.float32),
+        triangles=triangles,
+        corner_uv=corner_uv,
+        albedo=albedo,
+    )

@@ -1,0 +1,165 @@
+"""Pose a neural character's skeleton at a time: joint transforms and skinned meshes via UsdSkel.
+
+`CharacterRig` is the one place that turns "stage + character + time" into joint
+transforms. Local joint transforms come from a SkelAnimation (the character's
+rigspace:animationSource, else the skeleton's own binding) through UsdSkel's
+AnimQuery/AnimMapper, so a live source can later replace them before
+`UsdSkel.ConcatJointTransforms` (the seam the runtime uses). Skinning is USD's own
+`SkinningQuery.ComputeSkinnedPoints`. Matrices leave this module as numpy in the
+column-vector convention (p' = M @ p); Gf matrices are row-vector and are transposed here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pxr import Usd, UsdGeom, UsdSkel, Vt
+
+from rigspace.sdk import schema
+from rigspace.sdk.errors import SceneError
+from rigspace.sdk.geometry import MeshSource, read_mesh_source
+from rigspace.sdk.render import DrawMesh
+
+
+def gf_to_np(matrices) -> np.ndarray:
+    """Gf.Matrix4d (or an array of them, row-vector) -> (..., 4, 4) float64 column-vector."""
+    return np.swapaxes(np.asarray(matrices, dtype=np.float64), -1, -2)
+
+
+@dataclass
+class _SkinnedMesh:
+    query: UsdSkel.SkinningQuery
+    source: MeshSource
+
+
+class CharacterRig:
+    """A neural character's skeleton, animation and skinned meshes, ready to pose per time."""
+
+    def __init__(self, character: Usd.Prim) -> None:
+        info = schema.read_neural_character(character)
+        stage = character.GetStage()
+        where = f"Neural character {info.path}"
+        if info.skeleton is None:
+            raise SceneError(
+                f"{where} has no single rigspace:skeleton target.",
+                "point rigspace:skeleton at the Skeleton that drives it (see `rigspace inspect`).",
+            )
+        skel_prim = stage.GetPrimAtPath(info.skeleton)
+        if not skel_prim or not skel_prim.IsA(UsdSkel.Skeleton):
+            raise SceneError(
+                f"{where}: rigspace:skeleton {info.skeleton} is not a Skeleton prim.",
+                "target the UsdSkel Skeleton prim.",
+            )
+        self.character = character
+        self.stage = stage
+        self.skeleton = UsdSkel.Skeleton(skel_prim)
+        self.joints: list[str] = schema.skeleton_joints(skel_prim)
+        self._cache = UsdSkel.Cache()
+        root = UsdSkel.Root.Find(skel_prim)
+        if root:
+            self._cache.Populate(root, Usd.TraverseInstanceProxies())
+        self._skel_query = self._cache.GetSkelQuery(self.skeleton)
+        self._topology = UsdSkel.Topology(self.skeleton.GetJointsAttr().Get())
+        self._rest = self.skeleton.GetRestTransformsAttr().Get()
+        self.animation = self._find_animation(info, where)
+        self._anim_query = self._cache.GetAnimQuery(UsdSkel.Animation(self.animation))
+        self._mapper = UsdSkel.AnimMapper(self._anim_query.GetJointOrder(), self._topology_joints())
+        self._meshes = self._find_meshes(root, where) if root else []
+        if not self._meshes:
+            raise SceneError(
+                f"{where}: no skinned mesh is bound to skeleton {info.skeleton} (a Mesh under its "
+                "SkelRoot with primvars:skel:jointIndices and jointWeights).",
+                "bind the character's meshes to the skeleton with UsdSkelBindingAPI skin weights.",
+            )
+
+    def _topology_joints(self):
+        return self.skeleton.GetJointsAttr().Get()
+
+    def _find_animation(self, info: schema.NeuralCharacter, where: str) -> Usd.Prim:
+        if info.animation_targets:
+            anim = self.stage.GetPrimAtPath(info.animation_targets[0])
+            if not anim or not anim.IsA(UsdSkel.Animation):
+                raise SceneError(
+                    f"{where}: rigspace:animationSource {info.animation_targets[0]} is not a "
+                    "SkelAnimation.",
+                    "target a SkelAnimation prim, or clear the relationship.",
+                )
+            return anim
+        source = UsdSkel.BindingAPI(self.skeleton.GetPrim()).GetAnimationSource()
+        if not source or not source.IsA(UsdSkel.Animation):
+            raise SceneError(
+                f"{where}: skeleton {self.skeleton.GetPath()} has no animation (neither "
+                "rigspace:animationSource nor skel:animationSource names a SkelAnimation).",
+                "bind a SkelAnimation to the skeleton, or set rigspace:animationSource.",
+            )
+        return source
+
+    def _find_meshes(self, root: UsdSkel.Root, where: str) -> list[_SkinnedMesh]:
+        meshes = []
+        for binding in self._cache.ComputeSkelBindings(root, Usd.TraverseInstanceProxies()):
+            if binding.GetSkeleton().GetPrim() != self.skeleton.GetPrim():
+                continue
+            for query in binding.GetSkinningTargets():
+                prim = query.GetPrim()
+                if not prim.IsA(UsdGeom.Mesh) or not query.HasJointInfluences():
+                    continue
+                if UsdGeom.Imageable(prim).ComputeVisibility() == UsdGeom.Tokens.invisible:
+                    continue
+                meshes.append(_SkinnedMesh(query, read_mesh_source(prim)))
+        return meshes
+
+    # -- time range ---------------------------------------------------------------------
+
+    def time_range(self) -> tuple[float, float] | None:
+        """First and last time sample of the animation (None when it is not time-sampled)."""
+        samples: list[float] = []
+        anim = UsdSkel.Animation(self.animation)
+        for attr in (anim.GetRotationsAttr(), anim.GetTranslationsAttr()):
+            samples += attr.GetTimeSamples()
+        return (min(samples), max(samples)) if samples else None
+
+    # -- joint transforms ---------------------------------------------------------------
+
+    def local_transforms(self, time: float) -> Vt.Matrix4dArray:
+        """Joint-local transforms in skeleton order (rest transforms where the animation is sparse)."""
+        local = self._anim_query.ComputeJointLocalTransforms(Usd.TimeCode(time))
+        if not self._mapper.IsIdentity():
+            local = self._mapper.Remap(local, self._rest)
+        return local
+
+    def skeleton_to_world(self, time: float) -> np.ndarray:
+        """(4, 4) skeleton-space to world transform at `time`."""
+        xf = UsdGeom.XformCache(Usd.TimeCode(time))
+        return gf_to_np(xf.GetLocalToWorldTransform(self.skeleton.GetPrim()))
+
+    def skel_transforms(self, local: Vt.Matrix4dArray) -> Vt.Matrix4dArray:
+        """Joint transforms in skeleton space from local ones (the live-source seam)."""
+        return UsdSkel.ConcatJointTransforms(self._topology, local)
+
+    def world_transforms(self, time: float, local: Vt.Matrix4dArray | None = None) -> np.ndarray:
+        """(J, 4, 4) joint-to-world transforms at `time` (from `local` when given)."""
+        skel = self.skel_transforms(self.local_transforms(time) if local is None else local)
+        return self.skeleton_to_world(time) @ gf_to_np(skel)
+
+    # -- skinned meshes -----------------------------------------------------------------
+
+    def posed_meshes(self, time: float, local: Vt.Matrix4dArray | None = None) -> list[DrawMesh]:
+        """The character's meshes skinned by UsdSkel at `time`, in world space."""
+        skel = self.skel_transforms(self.local_transforms(time) if local is None else local)
+        bind_inverse = [m.GetInverse() for m in self.skeleton.GetBindTransformsAttr().Get()]
+        # UsdSkel skinning transforms: inverse(bind) * skel-space joint (row-vector order).
+        skinning = Vt.Matrix4dArray([b * s for b, s in zip(bind_inverse, skel, strict=True)])
+        to_world = self.skeleton_to_world(time)
+        meshes = []
+        for mesh in self._meshes:
+            points = Vt.Vec3fArray.FromNumpy(mesh.source.rest_points)
+            if not mesh.query.ComputeSkinnedPoints(skinning, points, Usd.TimeCode(time)):
+                raise SceneError(
+                    f"UsdSkel could not skin {mesh.query.GetPrim().GetPath()} at time {time}.",
+                    "check its jointIndices/jointWeights against the skeleton's joints.",
+                )
+            p = np.asarray(points, dtype=np.float64)
+            world = (p @ to_world[:3, :3].T + to_world[:3, 3]).astype(np.float32)
+            meshes.append(mesh.source.draw_mesh(world))
+        return meshes

@@ -1,0 +1,307 @@
+"""The renderer plugin kind: draw meshes for a camera into albedo, normal, depth and mask maps."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from importlib import import_module, metadata
+from typing import Any, Protocol
+
+import numpy as np
+
+from rigspace.sdk.camera import Camera
+from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.plugins import Kind, PluginSet, discover
+
+# Map conventions (docs/renderers.md): depth is the camera-space distance along -Z in scene
+# units, +inf where empty; normals are camera space, unit length, zero where empty; albedo is
+# linear RGB premultiplied by coverage; mask is coverage in [0, 1]. Every pixel is sampled on the
+# same s x s stratified grid, at (k + 0.5) / s within the pixel; albedo and mask average the
+# samples (an empty sample counts as 0), depth and normal come from the nearest hit sample.
+
+DEFAULT_COLOR = (0.18, 0.18, 0.18)
+"""Linear mid grey (18% reflectance), the albedo of a mesh with no colour or texture."""
+
+
+@dataclass
+class DrawMesh:
+    """One triangle mesh to draw, in world space.
+
+    Renderers re-read `points` and `normals` on every call (they may change every frame, in place
+    or not). `triangles`, `corner_uv`, `color` and `texture` are cached by array identity: to
+    change them, assign a new array rather than editing the old one in place.
+    """
+
+    points: np.ndarray
+    """(N,3) float32 world-space positions."""
+    triangles: np.ndarray
+    """(T,3) int32 vertex indices, counter-clockwise seen from outside."""
+    normals: np.ndarray | None = None
+    """(N,3) world-space vertex normals; None -> area-weighted normals from the points."""
+    corner_uv: np.ndarray | None = None
+    """(T,3,2) float32 faceVarying uv, USD st convention (v = 0 is the BOTTOM row of the texture)."""
+    texture: np.ndarray | None = None
+    """(H,W,3) float32 linear RGB, sampled bilinear with repeat wrap and no mipmaps."""
+    color: Any = DEFAULT_COLOR
+    """(3,) constant or (N,3) per-vertex linear RGB, used where there is no texture."""
+    name: str = ""
+
+
+@dataclass
+class MeshArrays:
+    """A DrawMesh's arrays checked and converted to the dtypes renderers upload."""
+
+    points: np.ndarray  # (N,3) float32
+    triangles: np.ndarray  # (T,3) int32
+    normals: np.ndarray  # (N,3) float32
+    corner_uv: np.ndarray | None  # (T,3,2) float32, only when there is a texture
+    texture: np.ndarray | None  # (H,W,3) float32
+    color: np.ndarray  # (3,) or (N,3) float32
+
+
+def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(N,3) float32 unit vertex normals, each the area-weighted mean of its faces' normals."""
+    p = np.asarray(points, dtype=np.float32)
+    t = np.asarray(triangles, dtype=np.intp)
+    # The cross product's length is twice the triangle's area: that is the area weighting.
+    face = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+    corners = t.reshape(-1)
+    n = np.stack(
+        [np.bincount(corners, np.repeat(face[:, c], 3), minlength=len(p)) for c in range(3)], 1
+    )
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    # Vertices with no (or only degenerate) faces keep a zero normal instead of NaN.
+    return np.divide(n, length, out=np.zeros_like(n), where=length > 0).astype(np.float32)
+
+
+def _array(mesh: DrawMesh, field_name: str, value: Any, dtype: type, shape: tuple) -> np.ndarray:
+    a: np.ndarray = np.ascontiguousarray(value, dtype=dtype)
+    if a.ndim != len(shape) or any(
+        s is not None and s != n for s, n in zip(shape, a.shape, strict=True)
+    ):
+        want = "(" + ",".join("?" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(
+            f"DrawMesh {mesh.name or '(unnamed)'}: {field_name} must have shape {want}, got {a.shape}."
+        )
+    if not np.all(np.isfinite(a)):
+        raise ValueError(
+            f"DrawMesh {mesh.name or '(unnamed)'}: {field_name} has non-finite values."
+        )
+    return a
+
+
+def mesh_arrays(mesh: DrawMesh) -> MeshArrays:
+    """Check a DrawMesh and convert its arrays (ValueError naming the mesh and field)."""
+    points = _array(mesh, "points", mesh.points, np.float32, (None, 3))
+    tris = _array(mesh, "triangles", mesh.triangles, np.int32, (None, 3))
+    n, t = len(points), len(tris)
+    if t and (tris.min() < 0 or tris.max() >= n):
+        raise ValueError(
+            f"DrawMesh {mesh.name or '(unnamed)'}: triangle indices must lie in [0, {n}), "
+            f"got [{tris.min()}, {tris.max()}]."
+        )
+    if mesh.normals is None:
+        normals = vertex_normals(points, tris)
+    else:
+        normals = _array(mesh, "normals", mesh.normals, np.float32, (n, 3))
+    uv = texture = None
+    if mesh.texture is not None:
+        texture = _array(mesh, "texture", mesh.texture, np.float32, (None, None, 3))
+        if mesh.corner_uv is None:
+            raise ValueError(
+                f"DrawMesh {mesh.name or '(unnamed)'} has a texture but no corner_uv to place it."
+            )
+        uv = _array(mesh, "corner_uv", mesh.corner_uv, np.float32, (t, 3, 2))
+    color = np.ascontiguousarray(mesh.color, dtype=np.float32)
+    if color.shape != (3,):
+        color = _array(mesh, "color", color, np.float32, (n, 3))
+    return MeshArrays(points, tris, normals, uv, texture, color)
+
+
+@dataclass
+class Maps:
+    """The maps of one rendered frame (conventions at the top of this module)."""
+
+    albedo: np.ndarray
+    """(H,W,3) float32 linear RGB, premultiplied by coverage."""
+    normal: np.ndarray
+    """(H,W,3) float32 camera-space unit normals, zero where empty."""
+    depth: np.ndarray
+    """(H,W) float32 distance along the camera's -Z in scene units, +inf where empty."""
+    mask: np.ndarray
+    """(H,W) float32 coverage in [0, 1]."""
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        return {
+            "albedo": self.albedo,
+            "normal": self.normal,
+            "depth": self.depth,
+            "mask": self.mask,
+        }
+
+
+def empty_maps(height: int, width: int) -> Maps:
+    """A frame with nothing in it: mask 0, depth +inf."""
+    return Maps(
+        np.zeros((height, width, 3), np.float32),
+        np.zeros((height, width, 3), np.float32),
+        np.full((height, width), np.inf, np.float32),
+        np.zeros((height, width), np.float32),
+    )
+
+
+def _pixel_samples(fine: np.ndarray, s: int) -> list[np.ndarray]:
+    """The s*s sub-sample images (H, W, ...) of a supersampled (H*s, W*s, ...) array, as views.
+
+    Reducing over these strided views is several times faster than numpy's reduce over the
+    non-adjacent axes of a (H, s, W, s, ...) reshape (measured: 0.9 ms vs 8 ms at 256^2, s=2).
+    """
+    return [fine[a::s, b::s] for a in range(s) for b in range(s)]
+
+
+def maps_from_samples(
+    samples_per_axis: int,
+    hit: np.ndarray,
+    albedo: np.ndarray,
+    normal: np.ndarray,
+    depth: np.ndarray,
+) -> Maps:
+    """Reduce a supersampled image, (H*s, W*s, ...) with row 0 at the top, to per-pixel maps.
+
+    `hit` (H*s,W*s) bool; `albedo` (H*s,W*s,3) must be zero where there is no hit; `normal`
+    (H*s,W*s,3) and `depth` (H*s,W*s) may hold anything there. Pixel (i, j)'s sub-sample (a, b)
+    is fine pixel (i*s + a, j*s + b). Both renderers reduce through here, so identically.
+    """
+    s = samples_per_axis
+    h, w = hit.shape[0] // s, hit.shape[1] // s
+    count = np.float32(s * s)
+    mask = np.zeros((h, w), np.float32)
+    out_albedo = np.zeros((h, w, 3), np.float32)
+    for sample_hit, sample_albedo in zip(
+        _pixel_samples(hit, s), _pixel_samples(albedo, s), strict=True
+    ):
+        mask += sample_hit
+        out_albedo += sample_albedo
+    mask /= count
+    out_albedo /= count
+    # Depth and normal from the nearest sample, never blended across a silhouette.
+    nearest = np.stack(_pixel_samples(np.where(hit, depth, np.float32(np.inf)), s))
+    k = nearest.argmin(axis=0)
+    out_depth = np.take_along_axis(nearest, k[None], axis=0)[0].astype(np.float32)
+    rows = np.arange(h)[:, None] * s + k // s
+    cols = np.arange(w)[None, :] * s + k % s
+    out_normal = np.where(np.isfinite(out_depth)[..., None], normal[rows, cols], np.float32(0))
+    return Maps(out_albedo, out_normal.astype(np.float32), out_depth, mask)
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How a renderer samples the image."""
+
+    samples_per_axis: int = 2
+    """Stratified samples per pixel along each axis (s x s per pixel), at (k + 0.5) / s."""
+
+    def __post_init__(self) -> None:
+        s = self.samples_per_axis
+        if isinstance(s, bool) or int(s) != s or s < 1:
+            raise ValueError(
+                f"RenderSettings.samples_per_axis must be a positive integer, got {s!r}."
+            )
+
+
+class Renderer(Protocol):
+    """A live renderer; keep it for many frames (it caches GPU state), then close() it."""
+
+    name: str
+
+    def render(self, meshes: Sequence[DrawMesh], camera: Camera) -> Maps: ...
+
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class RendererSpec:
+    """What a renderer plugin exports (entry-point group `rigspace.renderers`)."""
+
+    name: str
+    description: str
+    create: Callable[[RenderSettings], Renderer]
+    unavailable: Callable[[], str | None] = field(repr=False)
+    """None when usable on this machine, else the reason (with the original error)."""
+
+
+RENDERERS: Kind[RendererSpec] = Kind("renderer", "rigspace.renderers", RendererSpec)
+
+AUTO_ORDER = ("gl", "embree")
+"""Preference of choose_renderer("auto"): rasterising first, ray casting as the fallback."""
+
+_BUILTIN = {"gl": "rigspace.sdk.render.gl", "embree": "rigspace.sdk.render.embree"}
+
+
+def _builtin_loader(module: str) -> Callable[[], Any]:
+    return lambda: import_module(module).SPEC
+
+
+def renderer_plugins() -> PluginSet[RendererSpec]:
+    """Every renderer plugin, found with `discover(RENDERERS)`.
+
+    The built-ins are declared as entry points in pyproject.toml; an install whose metadata
+    predates that declaration (an editable install not re-run) still finds them by module.
+    """
+    declared = {ep.name for ep in metadata.entry_points(group=RENDERERS.group)}
+    extra = {n: _builtin_loader(m) for n, m in _BUILTIN.items() if n not in declared}
+    return discover(RENDERERS, extra)
+
+
+def choose_renderer(name: str | None = None) -> RendererSpec:
+    """The renderer called `name`, or for None / "auto" the first usable one of AUTO_ORDER.
+
+    Falling back prints one line to stderr saying why the preferred renderer was skipped. A
+    named renderer that cannot run here raises RigspaceError with the reason.
+    """
+    plugins = renderer_plugins()
+    if name is None or name == "auto":
+        order = [*AUTO_ORDER, *(n for n in plugins.specs if n not in AUTO_ORDER)]
+        skipped: list[str] = []
+        for candidate in order:
+            if candidate in plugins.specs:
+                reason = plugins.specs[candidate].unavailable()
+            else:
+                reason = plugins.failed.get(candidate, "not installed")
+            if reason is None:
+                if skipped:
+                    print(f"rigspace: {'; '.join(skipped)}; using {candidate}", file=sys.stderr)
+                return plugins.specs[candidate]
+            skipped.append(f"the {candidate} renderer is unavailable ({reason})")
+        raise RigspaceError(
+            f"No renderer can run here: {'; '.join(skipped)}.",
+            "install EGL (Mesa's libegl1) for gl, or embreex for embree.",
+        )
+    spec = plugins.get(name)
+    reason = spec.unavailable()
+    if reason is not None:
+        others = [n for n in plugins.specs if n != name]
+        raise RigspaceError(
+            f"The {name} renderer cannot run here: {reason}.",
+            f"fix what the reason names, or choose {' or '.join([*others, 'auto'])} instead.",
+        )
+    return spec
+
+
+__all__ = [
+    "AUTO_ORDER",
+    "RENDERERS",
+    "DrawMesh",
+    "Maps",
+    "MeshArrays",
+    "RenderSettings",
+    "Renderer",
+    "RendererSpec",
+    "choose_renderer",
+    "empty_maps",
+    "maps_from_samples",
+    "mesh_arrays",
+    "renderer_plugins",
+    "vertex_normals",
+]

@@ -1,0 +1,176 @@
+"""The embree renderer: embreex ray casting with numpy shading (pure pip, the fallback)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from rigspace.sdk.camera import Camera
+from rigspace.sdk.render import (
+    DrawMesh,
+    Maps,
+    MeshArrays,
+    RendererSpec,
+    RenderSettings,
+    empty_maps,
+    maps_from_samples,
+    mesh_arrays,
+)
+
+
+def unavailable() -> str | None:
+    """None when embreex imports here, else why not."""
+    try:
+        from embreex import rtcore_scene  # noqa: F401
+        from embreex.mesh_construction import TriangleMesh  # noqa: F401
+    except ImportError as exc:
+        return f"embreex could not be imported: {exc}; pip install embreex"
+    return None
+
+
+def sample_bilinear(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(N,3) bilinear samples of an (H,W,3) image at USD st coordinates (N,2), repeat wrap.
+
+    Matches GL's GL_LINEAR + GL_REPEAT on the texture the gl renderer uploads: texel k's centre
+    is at (k + 0.5) / size, and st v = 0 is the image's bottom row (row H-1).
+    """
+    h, w = texture.shape[:2]
+    texels = texture.reshape(-1, 3)
+    # float32 texture coordinates, as GL interpolates them.
+    x = uv[:, 0].astype(np.float32) * np.float32(w) - np.float32(0.5)
+    y = uv[:, 1].astype(np.float32) * np.float32(h) - np.float32(0.5)
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    ix, iy = x0.astype(np.intp), y0.astype(np.intp)
+    c0, c1 = ix % w, (ix + 1) % w
+    # Rows counted from the bottom (st) -> array rows counted from the top, as flat offsets.
+    r0, r1 = (h - 1 - iy % h) * w, (h - 1 - (iy + 1) % h) * w
+    lower = texels.take(r0 + c0, axis=0) * (1 - fx) + texels.take(r0 + c1, axis=0) * fx
+    upper = texels.take(r1 + c0, axis=0) * (1 - fx) + texels.take(r1 + c1, axis=0) * fx
+    return lower * (1 - fy) + upper * fy
+
+
+def _interpolate(corners: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """Barycentric mix of per-corner values (n,3,C) with weights (n,3): (n,C).
+
+    Written out rather than einsum, which measured ~5x slower for these shapes.
+    """
+    return (
+        corners[:, 0] * bary[:, 0:1] + corners[:, 1] * bary[:, 1:2] + corners[:, 2] * bary[:, 2:3]
+    )
+
+
+def _shade(
+    arrays: MeshArrays, prim: np.ndarray, bary: np.ndarray, normal_to_camera: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Albedo (n,3) and camera-space unit normals (n,3) at hits given triangle and barycentrics."""
+    tri = arrays.triangles.take(prim, axis=0)
+    n = _interpolate(arrays.normals.take(tri, axis=0), bary) @ normal_to_camera.T.astype(np.float32)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+    if arrays.texture is not None:
+        uv = _interpolate(arrays.corner_uv.take(prim, axis=0), bary)
+        albedo = sample_bilinear(arrays.texture, uv)
+    elif arrays.color.ndim == 2:
+        albedo = _interpolate(arrays.color.take(tri, axis=0), bary)
+    else:
+        albedo = np.broadcast_to(arrays.color, (len(prim), 3))
+    return albedo, n
+
+
+class EmbreeRenderer:
+    """Casts one ray per sub-sample through a fresh embree scene each call."""
+
+    name = "embree"
+
+    def __init__(self, settings: RenderSettings) -> None:
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+
+        self.settings = settings
+        self._rtcs = rtcore_scene
+        self._triangle_mesh = TriangleMesh
+        self._ray_key: tuple | None = None
+        self._ray_dirs: np.ndarray | None = None
+
+    def _camera_dirs(self, camera: Camera) -> np.ndarray:
+        """Camera-space unit ray directions, cached while the lens and image size stay the same."""
+        s = self.settings.samples_per_axis
+        key = (camera.width, camera.height, camera.fx, camera.fy, s)
+        if key != self._ray_key:
+            at_origin = Camera(
+                np.eye(4),
+                camera.width,
+                camera.height,
+                camera.focal_length,
+                camera.horizontal_aperture,
+                camera.vertical_aperture,
+            )
+            self._ray_dirs = at_origin.rays(s)[1]
+            self._ray_key = key
+        assert self._ray_dirs is not None
+        return self._ray_dirs
+
+    def render(self, meshes: Sequence[DrawMesh], camera: Camera) -> Maps:
+        s = self.settings.samples_per_axis
+        prepared = [a for a in (mesh_arrays(m) for m in meshes) if len(a.triangles)]
+        h, w = camera.height, camera.width
+        if not prepared:
+            return empty_maps(h, w)
+        dirs_cam = self._camera_dirs(camera)
+        cos = -dirs_cam[:, 2]  # distance along -Z per unit of ray length
+        dirs = dirs_cam @ camera.camera_to_world[:3, :3].T
+        # Start rays on the near plane and stop them at the far plane: GL's clipping.
+        t_near = camera.near / cos
+        origins = camera.position + dirs * t_near[:, None]
+        scene = self._rtcs.EmbreeScene()
+        for arrays in prepared:  # embree numbers them 0, 1, ... in this order (geomID)
+            self._triangle_mesh(scene, arrays.points, arrays.triangles)
+        hits = scene.run(
+            origins.astype(np.float32),
+            dirs.astype(np.float32),
+            dists=(camera.far / cos - t_near).astype(np.float32),
+            output=1,
+        )
+        geom = hits["geomID"]
+        hit = geom >= 0
+        count = len(geom)
+        albedo = np.zeros((count, 3), np.float32)
+        normal = np.zeros((count, 3), np.float32)
+        normal_to_camera = np.linalg.inv(camera.world_to_camera[:3, :3]).T
+        u, v = hits["u"], hits["v"]
+        for g, arrays in enumerate(prepared):  # a loop over meshes; the rays are vectorised
+            sel = np.flatnonzero(geom == g)
+            if not len(sel):
+                continue
+            # embree's barycentrics: p = (1 - u - v) p0 + u p1 + v p2.
+            bary = np.stack([1 - u[sel] - v[sel], u[sel], v[sel]], axis=1)
+            albedo[sel], normal[sel] = _shade(arrays, hits["primID"][sel], bary, normal_to_camera)
+        depth = (hits["tfar"].astype(np.float64) + t_near) * cos
+        fine = (h * s, w * s)
+        return maps_from_samples(
+            s,
+            hit.reshape(fine),
+            albedo.reshape(*fine, 3),
+            normal.reshape(*fine, 3),
+            depth.reshape(fine).astype(np.float32),
+        )
+
+    def close(self) -> None:
+        self._ray_dirs = None
+        self._ray_key = None
+
+    def __enter__(self) -> EmbreeRenderer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+SPEC = RendererSpec(
+    name="embree",
+    description="embreex ray casting, one ray per sub-sample, shaded in numpy (CPU)",
+    create=EmbreeRenderer,
+    unavailable=unavailable,
+)

@@ -1,0 +1,253 @@
+"""Capture end to end on CesiumMan: dataset contents, invariances, resume, shards, bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from rigspace.capture import dataset as ds
+from rigspace.capture.exr import CHANNELS, read_exr
+from rigspace.capture.pipeline import capture
+from rigspace.capture.settings import CaptureError, CaptureOverrides
+from rigspace.sdk import rotations
+from rigspace.sdk.errors import RigspaceError, SceneError
+from rigspace.sdk.posing import CharacterRig
+from rigspace.sdk.stage import open_stage
+from tests.conftest import REPO
+
+SCENE = REPO / "samples" / "scenes" / "cesium_man.usda"
+CHARACTER = "/World/CesiumMan"
+SMALL = CaptureOverrides(
+    views=4, elevations=(0.0,), resolution=32, frames=(1.0, 6.0), frames_per_item=3
+)
+ROTATION_TOLERANCE = 1e-4  # float32 parameters of float64 transforms
+IMAGE_TOLERANCE = 0.02  # mean abs albedo difference between views of a rotated character
+
+
+def small_capture(out: Path, **kwargs):
+    kwargs.setdefault("workers", 1)
+    kwargs.setdefault("progress", False)
+    return capture(SCENE, CHARACTER, out, kwargs.pop("overrides", SMALL), **kwargs)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    return small_capture(tmp_path_factory.mktemp("capture") / "ds")
+
+
+def test_dataset_layout_and_manifest(dataset):
+    folder = dataset.folder
+    manifest = json.loads((folder / ds.MANIFEST_FILE).read_text())
+    views = 4 + 4  # training views and their held-out midpoints (the ring holds out 12 -> 4)
+    assert manifest["counts"]["samples"] == 6 * views
+    assert manifest["counts"]["train"] == 6 * 4 and manifest["counts"]["heldout-views"] == 6 * 4
+    assert manifest["joints"][0] == "Skeleton_torso_joint_1" and len(manifest["joints"]) == 19
+    assert manifest["renderer"]["name"] in ("gl", "embree")
+    assert manifest["settings"]["resolution"] == 32
+    with np.load(folder / ds.PARAMS_FILE) as table:
+        assert table["rig"].shape == (48, 19, 6)
+        assert set(table["split"].tolist()) == {0, 1}
+        for path, checksum in zip(table["path"], table["sha256"], strict=True):
+            assert ds.sha256_file(folder / str(path)) == checksum
+        azimuths = table["azimuth"][table["split"] == 1]
+        assert np.allclose(np.sort(np.unique(azimuths)), [45, 135, 225, 315])  # halfway
+    assert not list(folder.rglob("*.tmp*"))
+
+
+def test_exr_channels_and_conventions(dataset):
+    import OpenImageIO as oiio
+
+    with np.load(dataset.folder / ds.PARAMS_FILE) as table:
+        first = dataset.folder / str(table["path"][0])
+    image = oiio.ImageInput.open(str(first))
+    assert set(image.spec().channelnames) == set(CHANNELS)
+    image.close()
+    maps = read_exr(first)
+    assert maps.mask.max() == 1 and 0 < maps.mask.mean() < 0.6
+    empty = maps.mask == 0
+    assert np.isinf(maps.depth[empty]).all() and np.isfinite(maps.depth[~empty]).all()
+    assert np.all(maps.albedo <= maps.mask[..., None] + 1e-3)  # premultiplied
+    norms = np.linalg.norm(maps.normal[maps.mask == 1], axis=-1)
+    assert np.allclose(norms, 1, atol=2e-3)  # unit normals (half precision)
+    # The look-at joint sits at the image centre, at the ring radius.
+    with np.load(dataset.folder / ds.PARAMS_FILE) as table:
+        joint = table["joint_camera"][0]
+    assert np.allclose(joint, [0, 0, -3.0], atol=1e-4)
+
+
+def test_contact_sheet_is_an_image(dataset):
+    sheet = cv2.imread(str(dataset.folder / ds.CONTACT_SHEET))
+    assert sheet is not None and sheet.shape[1] == 4 * 32 * 2 and sheet.mean() > 5
+
+
+def test_rot6d_reconstructs_the_joint_rotations(dataset):
+    stage = open_stage(SCENE)  # a prim does not keep its stage alive
+    rig = CharacterRig(stage.GetPrimAtPath(CHARACTER))
+    with np.load(dataset.folder / ds.PARAMS_FILE) as table:
+        for k in (0, 17, 40):
+            world = rig.world_transforms(float(table["time"][k]))
+            camera = table["camera_to_world"][k][:3, :3]
+            decoded = camera @ rotations.matrix_from_rot6d(table["rig"][k])
+            expected = rotations.orthonormalize(world[:, :3, :3])
+            assert np.abs(decoded - expected).max() < ROTATION_TOLERANCE
+
+
+def test_parameters_invariant_when_character_and_ring_rotate_together(tmp_path, dataset):
+    # Turn the character one view step (90 degrees) about the up axis: view k+1 of the turned
+    # character must see exactly what view k saw before.
+    text = SCENE.read_text().replace(
+        "        rel rigspace:skeleton",
+        "        float xformOp:rotateY = 90\n"
+        '        uniform token[] xformOpOrder = ["xformOp:rotateY"]\n'
+        "        rel rigspace:skeleton",
+    )
+    scene = SCENE.parent / f".turned_{os.getpid()}.usda"  # beside the original: same asset paths
+    scene.write_text(text)
+    try:
+        turned = capture(scene, CHARACTER, tmp_path / "turned", SMALL, workers=1, progress=False)
+    finally:
+        scene.unlink()
+    with (
+        np.load(dataset.folder / ds.PARAMS_FILE) as a,
+        np.load(turned.folder / ds.PARAMS_FILE) as b,
+    ):
+        for time_code in (1.0, 4.0):
+            for view in range(4):
+                i = np.flatnonzero((a["time"] == time_code) & (a["view"] == view))[0]
+                j = np.flatnonzero((b["time"] == time_code) & (b["view"] == (view + 1) % 4))[0]
+                assert np.abs(a["rig"][i] - b["rig"][j]).max() < ROTATION_TOLERANCE
+                before = read_exr(dataset.folder / str(a["path"][i]))
+                after = read_exr(turned.folder / str(b["path"][j]))
+                assert np.abs(before.albedo - after.albedo).mean() < IMAGE_TOLERANCE
+
+
+def checksum(folder: Path) -> str:
+    return json.loads((folder / ds.MANIFEST_FILE).read_text())["checksum"]
+
+
+def test_shards_merge_to_the_same_dataset(tmp_path, dataset):
+    out = tmp_path / "sharded"
+    first = small_capture(out, shard=(0, 2))
+    assert not first.complete and not (out / ds.MANIFEST_FILE).exists()
+    second = small_capture(out, shard=(1, 2))
+    assert second.complete
+    assert checksum(out) == checksum(dataset.folder)
+
+
+def test_multiprocess_capture_matches(tmp_path, dataset):
+    result = small_capture(tmp_path / "two", workers=2)
+    assert result.complete and checksum(result.folder) == checksum(dataset.folder)
+
+
+def test_kill_9_then_resume_gives_the_same_dataset(tmp_path, dataset):
+    out = tmp_path / "killed"
+    cmd = [
+        sys.executable, "-m", "rigspace.sdk", "capture", str(SCENE), "--out", str(out),
+        "--views", "4", "--elevations", "0", "--resolution", "32", "--frames", "1:6",
+        "--frames-per-item", "1", "--workers", "1", "--renderer", dataset.settings.renderer,
+    ]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and len(list((out / "items").glob("*.npz"))) < 3:
+        time.sleep(0.02)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done = len(list((out / "items").glob("*.npz")))
+    assert 3 <= done < 12, "the kill should land mid-capture"
+    assert not (out / ds.MANIFEST_FILE).exists()
+    # Same settings as the fixture except the item size, so compare with a fresh run of it.
+    overrides = CaptureOverrides(**{**SMALL.__dict__, "frames_per_item": 1})
+    resumed = capture(SCENE, CHARACTER, out, overrides, resume=True, workers=1, progress=False)
+    assert resumed.complete and resumed.samples_done == (12 - done) * 4
+    reference = capture(SCENE, CHARACTER, tmp_path / "ref", overrides, workers=1, progress=False)
+    assert checksum(out) == checksum(reference.folder)
+
+
+# -- bad input: a clear error before anything is written ---------------------------------
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (CaptureOverrides(resolution=100), "not a power of two"),
+        (CaptureOverrides(frames=(40.0, 90.0)), "outside the animation"),
+        (CaptureOverrides(frames=(9.0, 3.0)), "ends before it starts"),
+        (CaptureOverrides(clips=("run",)), "does not define"),
+        (CaptureOverrides(views=0), "outside 1 to 360"),
+    ],
+)
+def test_bad_settings(tmp_path, overrides, message):
+    with pytest.raises(CaptureError, match=message):
+        capture(SCENE, CHARACTER, tmp_path / "out", overrides, workers=1, progress=False)
+    assert not (tmp_path / "out").exists()
+
+
+def test_not_a_character(tmp_path):
+    with pytest.raises(CaptureError, match="not a RigspaceNeuralCharacter"):
+        capture(SCENE, "/World/ShotCam", tmp_path / "out", SMALL, workers=1, progress=False)
+    with pytest.raises(CaptureError, match="/World/CesiumMan"):
+        capture(SCENE, "/World/Nobody", tmp_path / "out", SMALL, workers=1, progress=False)
+    assert not (tmp_path / "out").exists()
+
+
+def test_character_without_skeleton_animation_or_skin(tmp_path, tiny_scene):
+    path = tiny_scene()  # its SkelRoot has no mesh at all
+    with pytest.raises(SceneError, match="no skinned mesh"):
+        capture(path, "/World/Hero", tmp_path / "out", SMALL, workers=1, progress=False)
+    text = path.read_text()
+    path.write_text(text.replace("rel rigspace:skeleton = </World/Asset/Skel>", ""))
+    with pytest.raises(SceneError, match="no single rigspace:skeleton"):
+        capture(path, "/World/Hero", tmp_path / "out", SMALL, workers=1, progress=False)
+    path.write_text(text.replace("rel skel:animationSource = </World/Asset/Skel/Anim>", ""))
+    with pytest.raises(SceneError, match="has no animation"):
+        capture(path, "/World/Hero", tmp_path / "out", SMALL, workers=1, progress=False)
+    assert not (tmp_path / "out").exists()
+
+
+def test_unwritable_output(tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    with pytest.raises(CaptureError, match="cannot be"):
+        small_capture(blocker / "out")
+    with pytest.raises(CaptureError, match="is a file"):
+        small_capture(blocker)
+
+
+def test_existing_dataset_with_other_settings(tmp_path, dataset):
+    out = tmp_path / "ds"
+    small_capture(out)
+    before = checksum(out)
+    with pytest.raises(CaptureError, match=r"different settings .*resolution"):
+        small_capture(out, overrides=CaptureOverrides(**{**SMALL.__dict__, "resolution": 64}))
+    with pytest.raises(CaptureError, match="--resume"):
+        small_capture(out)
+    again = small_capture(out, resume=True)  # a complete dataset: nothing to do, same result
+    assert again.samples_done == 0 and checksum(out) == before
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    with pytest.raises(CaptureError, match="not a rigspace dataset"):
+        small_capture(tmp_path / "other")
+    assert (tmp_path / "other" / "notes.txt").read_text() == "mine"
+
+
+def test_cli_errors_are_one_line(tmp_path):
+    result = subprocess.run(
+        [sys.executable, "-m", "rigspace.sdk", "capture", str(SCENE), "--out", str(tmp_path / "o"),
+         "--resolution", "100"],
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    assert result.returncode == 2
+    assert "not a power of two" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_rigspace_error_is_the_base():
+    assert issubclass(CaptureError, RigspaceError)
