@@ -13,7 +13,6 @@ import multiprocessing
 import os
 import sys
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -108,6 +107,8 @@ class ItemWorker:
                 camera = view.camera(joint_position, self.lens)
                 maps = self.renderer.render(meshes, camera)
                 timings["render"] += time.perf_counter() - start
+                for phase, seconds in getattr(self.renderer, "last_timings", {}).items():
+                    timings[f"render.{phase}"] = timings.get(f"render.{phase}", 0.0) + seconds
                 start = time.perf_counter()
                 relative = ds.sample_path(item.clip, t, view)
                 path = self.folder / relative
@@ -225,7 +226,6 @@ def capture(
     resume: bool = False,
     workers: int | None = None,
     progress: bool = True,
-    on_item: Callable[[ds.WorkItem], None] | None = None,
 ) -> CaptureResult:
     """Capture a neural character's dataset (see the module and capture/dataset.py docs)."""
     settings, _rig = resolve_settings(scene, character, overrides)
@@ -253,10 +253,8 @@ def capture(
                     count, spent = worker.run(item)
                     done += count
                     bar.update(count)
-                    for k in timings:
-                        timings[k] += spent[k]
-                    if on_item:
-                        on_item(item)
+                    for k, v in spent.items():
+                        timings[k] = timings.get(k, 0.0) + v
             finally:
                 worker.close()
         else:
@@ -267,8 +265,8 @@ def capture(
                 for count, spent in pool.imap_unordered(_run_item, mine):
                     done += count
                     bar.update(count)
-                    for k in timings:
-                        timings[k] += spent[k]
+                    for k, v in spent.items():
+                        timings[k] = timings.get(k, 0.0) + v
     finally:
         bar.close()
     seconds = time.perf_counter() - start

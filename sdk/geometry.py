@@ -16,10 +16,9 @@ import numpy as np
 from pxr import Ar, Usd, UsdGeom, UsdShade
 
 from rigspace.sdk.errors import SceneError
-from rigspace.sdk.render import DrawMesh
+from rigspace.sdk.render import DEFAULT_COLOR, DrawMesh
 
-DEFAULT_ALBEDO = (0.18, 0.18, 0.18)
-"""Middle grey, for geometry with neither a material nor displayColor."""
+DEFAULT_ALBEDO = DEFAULT_COLOR
 
 
 def triangulate(counts: np.ndarray, indices: np.ndarray, left_handed: bool = False):
@@ -172,10 +171,11 @@ class MeshSource:
     corner_uv: np.ndarray | None
     albedo: Albedo
 
-    def draw_mesh(self, points: np.ndarray) -> DrawMesh:
+    def draw_mesh(self, points: np.ndarray, normals: np.ndarray | None = None) -> DrawMesh:
         """The mesh with these (posed, world-space) points, ready for a renderer."""
         return DrawMesh(
             points=points,
+            normals=normals,
             triangles=self.triangles,
             corner_uv=self.corner_uv,
             texture=self.albedo.texture,

@@ -141,6 +141,7 @@ def describe_prim(prim: Usd.Prim) -> dict[str, Any] | None:
             entry["influences"] = binding.GetJointIndicesPrimvar().GetElementSize()
     elif prim.IsA(UsdGeom.Gprim):
         entry["kind"] = "geometry"
+        entry["animated"] = UsdGeom.Xformable(prim).TransformMightBeTimeVarying()
     elif prim.IsA(UsdGeom.Camera):
         entry["kind"] = "camera"
         entry.update(_camera_info(prim))
@@ -185,6 +186,8 @@ def _details(info: dict[str, Any]) -> str:
     if kind in ("skinnedMesh", "mesh"):
         text = f"{info['points']} points, {info['triangles']} triangles"
         return text + (f", {info['influences']} influences" if kind == "skinnedMesh" else "")
+    if kind == "geometry":
+        return info["type"] + (", animated" if info["animated"] else "")
     if kind == "camera":
         near, far = info["clippingRange"]
         moving = ", animated" if info["animated"] else ""

@@ -19,7 +19,7 @@ from pxr import Usd, UsdGeom, UsdSkel, Vt
 from rigspace.sdk import schema
 from rigspace.sdk.errors import SceneError
 from rigspace.sdk.geometry import MeshSource, read_mesh_source
-from rigspace.sdk.render import DrawMesh
+from rigspace.sdk.render import DrawMesh, vertex_normals
 
 
 def gf_to_np(matrices) -> np.ndarray:
@@ -161,5 +161,8 @@ class CharacterRig:
                 )
             p = np.asarray(points, dtype=np.float64)
             world = (p @ to_world[:3, :3].T + to_world[:3, 3]).astype(np.float32)
-            meshes.append(mesh.source.draw_mesh(world))
+            # Normals once per pose, not once per camera that renders it.
+            meshes.append(
+                mesh.source.draw_mesh(world, vertex_normals(world, mesh.source.triangles))
+            )
         return meshes

@@ -309,8 +309,8 @@ def check_capture_ring(prim: Usd.Prim) -> Iterator[Issue]:
 
     def out_of_range(prop: str, value, allowed: str) -> str:
         return (
-            f"Capture ring on {path}: {ns}{prop} is {value}, outside {allowed}. Fix: author a "
-            f"value in {allowed}."
+            f"Capture ring on {path}: {ns}{prop} is {value}; allowed: {allowed}. Fix: author a "
+            "value that is allowed."
         )
 
     yield from _range_issue(
@@ -325,7 +325,7 @@ def check_capture_ring(prim: Usd.Prim) -> Iterator[Issue]:
         out_of_range(
             "elevations",
             list(ring.elevations),
-            f"[-{MAX_ELEVATION_DEG:g}, {MAX_ELEVATION_DEG:g}] degrees with at least one ring",
+            f"[-{MAX_ELEVATION_DEG:g}, {MAX_ELEVATION_DEG:g}] degrees, at least one ring",
         ),
     )
     bad_held = [e for e in ring.held_out_elevations if not abs(e) <= MAX_ELEVATION_DEG]
@@ -339,7 +339,7 @@ def check_capture_ring(prim: Usd.Prim) -> Iterator[Issue]:
     yield from _range_issue(
         math.isfinite(ring.radius) and ring.radius >= 0,
         "RadiusOutOfRange",
-        out_of_range("radius", ring.radius, "> 0 scene units (0: derived from the bounds)"),
+        out_of_range("radius", ring.radius, "> 0 scene units, or 0 to derive it from the bounds"),
     )
     for prop, value in (
         ("focalLength", ring.focal_length),
@@ -354,7 +354,9 @@ def check_capture_ring(prim: Usd.Prim) -> Iterator[Issue]:
     yield from _range_issue(
         MIN_RESOLUTION <= res <= MAX_RESOLUTION and res & (res - 1) == 0,
         "ResolutionNotPowerOfTwo",
-        out_of_range("resolution", res, f"powers of two from {MIN_RESOLUTION} to {MAX_RESOLUTION}"),
+        out_of_range(
+            "resolution", res, f"a power of two from {MIN_RESOLUTION} to {MAX_RESOLUTION}"
+        ),
     )
     near, far = ring.clipping_range
     yield from _range_issue(
@@ -511,8 +513,8 @@ def check_live_binding(prim: Usd.Prim) -> Iterator[Issue]:
             if not ok:
                 yield error(
                     "ValueOutOfRange",
-                    f"{where}: {ns}{prop} is {value}, outside {allowed}. Fix: author a value in "
-                    f"{allowed}.",
+                    f"{where}: {ns}{prop} is {value}; allowed: {allowed}. Fix: author a value "
+                    "that is allowed.",
                 )
 
 

@@ -211,7 +211,11 @@ class RenderSettings:
 
 
 class Renderer(Protocol):
-    """A live renderer; keep it for many frames (it caches GPU state), then close() it."""
+    """A live renderer; keep it for many frames (it caches GPU state), then close() it.
+
+    A renderer may also keep `last_timings`, a dict of seconds per phase of its last
+    render (gl: draw, readback), which benchmarks report.
+    """
 
     name: str
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -159,6 +160,8 @@ class GLRenderer:
         self._targets: list[Any] = []
         self._fine_size: tuple[int, int] = (0, 0)
         self._fine = np.empty((2, 0, 0, 4), np.float32)
+        self.last_timings: dict[str, float] = {}
+        """Seconds of the last render: draw (upload, rasterise) and readback (read, reduce)."""
 
     # --- resources ------------------------------------------------------------------------------
     def _framebuffer(self, width: int, height: int) -> Any:
@@ -237,6 +240,7 @@ class GLRenderer:
     def render(self, meshes: Sequence[DrawMesh], camera: Camera) -> Maps:
         if self._ctx is None:
             raise RuntimeError("gl renderer: render() after close().")
+        started = time.perf_counter()
         s = self.settings.samples_per_axis
         width, height = camera.width * s, camera.height * s
         prepared = [(m, mesh_arrays(m)) for m in meshes]
@@ -273,14 +277,18 @@ class GLRenderer:
             # Slots not drawn this call are released so changing scenes do not grow GPU memory.
             for key in [k for k in self._slots if k not in used]:
                 self._slots.pop(key).release()
+            self._ctx.finish()  # GL is asynchronous: wait here so the timings split honestly
+            drawn = time.perf_counter()
             fine = self._fine
             fbo.read_into(fine[0], components=4, attachment=0, dtype="f4")
             fbo.read_into(fine[1], components=4, attachment=1, dtype="f4")
         # GL's rows run bottom-up: flip (a view) so row 0 is the top.
         albedo, geometry = fine[0, ::-1], fine[1, ::-1]
-        return maps_from_samples(
+        maps = maps_from_samples(
             s, albedo[..., 3] > 0, albedo[..., :3], geometry[..., :3], geometry[..., 3]
         )
+        self.last_timings = {"draw": drawn - started, "readback": time.perf_counter() - drawn}
+        return maps
 
     def close(self) -> None:
         if self._ctx is None:

@@ -199,11 +199,29 @@ def test_not_a_character(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+UNWEIGHTED_MESH = """
+        def Mesh "Body"
+        {
+            int[] faceVertexCounts = [3]
+            int[] faceVertexIndices = [0, 1, 2]
+            point3f[] points = [(0, 0, 0), (1, 0, 0), (0, 1, 0)]
+        }
+"""
+
+
 def test_character_without_skeleton_animation_or_skin(tmp_path, tiny_scene):
-    path = tiny_scene()  # its SkelRoot has no mesh at all
-    with pytest.raises(SceneError, match="no skinned mesh"):
-        capture(path, "/World/Hero", tmp_path / "out", SMALL, workers=1, progress=False)
+    path = tiny_scene()
     text = path.read_text()
+    # A mesh under the SkelRoot, bound to nothing: no jointIndices / jointWeights.
+    path.write_text(
+        text.replace(
+            '    def SkelRoot "Asset"\n    {\n',
+            '    def SkelRoot "Asset"\n    {\n' + UNWEIGHTED_MESH,
+        )
+    )
+    assert 'def Mesh "Body"' in path.read_text()
+    with pytest.raises(SceneError, match=r"no skinned mesh is bound .*jointWeights"):
+        capture(path, "/World/Hero", tmp_path / "out", SMALL, workers=1, progress=False)
     path.write_text(text.replace("rel rigspace:skeleton = </World/Asset/Skel>", ""))
     with pytest.raises(SceneError, match="no single rigspace:skeleton"):
         capture(path, "/World/Hero", tmp_path / "out", SMALL, workers=1, progress=False)
@@ -251,3 +269,26 @@ def test_cli_errors_are_one_line(tmp_path):
 
 def test_rigspace_error_is_the_base():
     assert issubclass(CaptureError, RigspaceError)
+
+
+def test_the_sample_character_captures(tmp_path):
+    previs = REPO / "samples" / "scenes" / "previs.usda"
+    overrides = CaptureOverrides(views=3, resolution=32, frames=(600.0, 605.0))
+    result = capture(previs, "/World/Hero", tmp_path / "ds", overrides, progress=False)
+    manifest = result.manifest
+    assert result.complete and manifest is not None
+    # 3 views x 2 elevations, and the ring's 4 held-out views per ring capped at 3.
+    assert manifest["counts"]["train"] == 6 * 6
+    assert manifest["counts"]["heldout-views"] == 6 * 6
+    with np.load(result.folder / ds.PARAMS_FILE) as table:
+        assert table["rig"].shape[1:] == (22, 6)
+        first = read_exr(result.folder / str(table["path"][0]))
+    assert 0.02 < first.mask.mean() < 0.5
+
+
+def test_held_out_clips_are_seen_from_training_views_only(tmp_path):
+    previs = REPO / "samples" / "scenes" / "previs.usda"
+    overrides = CaptureOverrides(views=1, elevations=(0.0,), resolution=16, clips=("wave",))
+    result = capture(previs, "/World/Hero", tmp_path / "ds", overrides, progress=False)
+    counts = result.manifest["counts"]
+    assert (counts["heldout-clips"], counts["train"], counts["heldout-views"]) == (240, 0, 0)
