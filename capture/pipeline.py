@@ -8,11 +8,13 @@ and the resume and shard guarantees.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import multiprocessing
 import os
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -245,30 +247,24 @@ def capture(
         total=total, unit="sample", disable=not progress, file=sys.stderr, dynamic_ncols=True
     )
     done = 0
-    try:
+    with contextlib.ExitStack() as stack:
+        stack.callback(bar.close)
         if workers == 1:
             worker = ItemWorker(settings, folder)
-            try:
-                for item in mine:
-                    count, spent = worker.run(item)
-                    done += count
-                    bar.update(count)
-                    for k, v in spent.items():
-                        timings[k] = timings.get(k, 0.0) + v
-            finally:
-                worker.close()
+            stack.callback(worker.close)
+            results: Iterator[tuple[int, dict[str, float]]] = map(worker.run, mine)
         else:
-            context = multiprocessing.get_context("spawn")
-            with context.Pool(
-                workers, initializer=_init_worker, initargs=(settings.to_json(), str(folder))
-            ) as pool:
-                for count, spent in pool.imap_unordered(_run_item, mine):
-                    done += count
-                    bar.update(count)
-                    for k, v in spent.items():
-                        timings[k] = timings.get(k, 0.0) + v
-    finally:
-        bar.close()
+            pool = stack.enter_context(
+                multiprocessing.get_context("spawn").Pool(
+                    workers, initializer=_init_worker, initargs=(settings.to_json(), str(folder))
+                )
+            )
+            results = pool.imap_unordered(_run_item, mine)
+        for count, spent in results:
+            done += count
+            bar.update(count)
+            for k, v in spent.items():
+                timings[k] = timings.get(k, 0.0) + v
     seconds = time.perf_counter() - start
     complete = all(ds.record_path(folder, i).is_file() for i in items)
     manifest = None

@@ -202,10 +202,11 @@ def _details(info: dict[str, Any]) -> str:
     return ""
 
 
-def format_report(report: dict[str, Any]) -> str:
+def format_report(report: dict[str, Any], shown_path: str | None = None) -> str:
+    """The report as text; `shown_path` replaces the stage's absolute path in the title."""
     s = report["stage"]
     lines = [
-        f"Stage {s['path']}",
+        f"Stage {shown_path or s['path']}",
         f"  upAxis {s['upAxis']}, metersPerUnit {s['metersPerUnit']:g}, "
         f"time {s['startTimeCode']:g}-{s['endTimeCode']:g} at {s['timeCodesPerSecond']:g} "
         f"timecodes/s ({s['framesPerSecond']:g} fps), defaultPrim {s['defaultPrim']}, "
@@ -252,7 +253,7 @@ def run(args: argparse.Namespace) -> int:
         json.dump(report, sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:
-        print(format_report(report))
+        print(format_report(report, shown_path=args.scene))
     return 1 if report["errors"] else 0
 
 

@@ -120,3 +120,10 @@ def test_console_script(tmp_path):
     )
     assert result.returncode == 1
     assert json.loads(result.stdout)["stage"]["upAxis"] == "Y"
+
+
+def test_the_readme_broken_fixture(capsys):
+    code, report = inspect_json(REPO / "tests" / "fixtures" / "broken_character.usda", capsys)
+    assert code == 1
+    ours = {e["code"] for e in report["errors"] if e["validator"].startswith("rigspace:")}
+    assert ours == {"NotASkeleton", "ModelNotFound", "ResolutionNotPowerOfTwo", "BadUrl"}
