@@ -1,0 +1,143 @@
+"""Run a model bundle with onnxruntime: the trunk once, then only the branches and level asked for.
+
+Shared by `rigspace eval` and the runtime; imports no torch. Sessions are created lazily
+per graph, so a frame that needs only albedo at 32x32 never loads the other graphs.
+CUDA is used when onnxruntime offers it, the CPU otherwise.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rigspace.sdk.bundle import BundleError, ModelManifest, read_manifest
+
+BRANCH_OUTPUTS = {"albedo": ("albedo",), "geometry": ("depth", "normal", "mask")}
+
+
+def default_providers() -> list[str]:
+    import onnxruntime as ort
+
+    available = ort.get_available_providers()
+    return [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in available]
+
+
+class BundleModel:
+    """A loaded model bundle: `predict(rig, resolution, branches)` -> named maps (NCHW)."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        precision: str = "fp32",
+        providers: list[str] | None = None,
+        threads: int = 0,
+    ) -> None:
+        self.manifest: ModelManifest = read_manifest(path)
+        raw = self.manifest.raw
+        if "trunk" not in raw or "levels" not in raw:
+            raise BundleError(
+                f"{self.manifest.path} lists no trunk or levels.",
+                "re-export the bundle with `rigspace train` from this rigspace version.",
+            )
+        if precision not in ("fp32", "int8"):
+            raise ValueError(f"precision must be 'fp32' or 'int8', got {precision!r}")
+        self.precision = precision
+        self.providers = providers or default_providers()
+        self.threads = threads
+        self.levels: dict[int, dict[str, str]] = {}
+        for level in raw["levels"]:
+            graphs = level["int8"] if precision == "int8" else level["graphs"]
+            if precision == "int8" and not graphs:
+                raise BundleError(
+                    f"{self.manifest.path} has no int8 graphs.",
+                    "evaluate the fp32 graphs, or export with int8 (drop --no-int8).",
+                )
+            self.levels[int(level["resolution"])] = graphs
+        trunk = raw["trunk"]["int8" if precision == "int8" else "graphs"]["trunk"]
+        self._trunk_file = trunk
+        self._sessions: dict[str, Any] = {}
+        self.depth_scale = float(raw["depth"]["scale"])
+        self.joints = list(self.manifest.joints)
+
+    @property
+    def resolutions(self) -> list[int]:
+        return sorted(self.levels)
+
+    def level_for(self, pixels: float) -> int:
+        """The smallest level whose resolution covers `pixels` (else the largest level)."""
+        for r in self.resolutions:
+            if r >= pixels:
+                return r
+        return self.resolutions[-1]
+
+    def _session(self, name: str):
+        if name not in self._sessions:
+            import onnxruntime as ort
+
+            path = self.manifest.folder / name
+            if not path.is_file():
+                raise BundleError(
+                    f"Model file {path} is missing from the bundle.",
+                    "re-export the bundle, or restore the file.",
+                )
+            options = ort.SessionOptions()
+            if self.threads:
+                options.intra_op_num_threads = self.threads
+            try:
+                self._sessions[name] = ort.InferenceSession(
+                    str(path), options, providers=self.providers
+                )
+            except Exception as exc:  # onnxruntime raises its own types for bad files
+                raise BundleError(
+                    f"Model file {path} cannot be loaded ({type(exc).__name__}: "
+                    f"{str(exc).splitlines()[0][:200]}).",
+                    "the file is damaged: re-export the bundle with `rigspace train`.",
+                ) from exc
+        return self._sessions[name]
+
+    def check_rig(self, rig: np.ndarray) -> np.ndarray:
+        rig = np.ascontiguousarray(rig, dtype=np.float32)
+        expected = len(self.joints) * 6
+        if rig.ndim != 2 or rig.shape[1] != expected:
+            raise BundleError(
+                f"Rig parameters have shape {rig.shape}; the model reads (N, {expected}) "
+                f"({len(self.joints)} joints x 6).",
+                "map the skeleton's joints to the manifest's joint order first.",
+            )
+        if not np.all(np.isfinite(rig)):
+            bad = np.argwhere(~np.isfinite(rig))[0]
+            raise BundleError(
+                f"Rig parameters hold NaN or Inf (sample {bad[0]}, joint "
+                f"{self.joints[bad[1] // 6]}).",
+                "check the animation or live source feeding this character.",
+            )
+        return rig
+
+    def features(self, rig: np.ndarray) -> np.ndarray:
+        """The trunk's 8x8 features for rig parameters (N, joints * 6)."""
+        return self._session(self._trunk_file).run(None, {"rig": self.check_rig(rig)})[0]
+
+    def branch(self, features: np.ndarray, branch: str, resolution: int) -> dict[str, np.ndarray]:
+        if resolution not in self.levels:
+            raise BundleError(
+                f"The model has no level {resolution}; it has {self.resolutions}.",
+                "ask for one of those resolutions.",
+            )
+        outputs = self._session(self.levels[resolution][branch]).run(None, {"features": features})
+        return dict(zip(BRANCH_OUTPUTS[branch], outputs, strict=True))
+
+    def predict(
+        self, rig: np.ndarray, resolution: int, branches: tuple[str, ...] = ("albedo", "geometry")
+    ) -> dict[str, np.ndarray]:
+        """Maps at `resolution` for (N, joints * 6) rig parameters, only of `branches`."""
+        features = self.features(rig)
+        out: dict[str, np.ndarray] = {}
+        for branch in branches:
+            out.update(self.branch(features, branch, resolution))
+        return out
+
+    def footprint_bytes(self) -> int:
+        files = {self._trunk_file, *(g for level in self.levels.values() for g in level.values())}
+        return sum((self.manifest.folder / f).stat().st_size for f in files)

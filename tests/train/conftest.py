@@ -1,0 +1,37 @@
+"""Shared fixtures for the train tests: one tiny CesiumMan dataset per session."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from rigspace.capture.pipeline import capture
+from rigspace.capture.settings import CaptureOverrides
+from tests.conftest import REPO
+
+SCENE = REPO / "samples" / "scenes" / "cesium_man.usda"
+CHARACTER = "/World/CesiumMan"
+VIEWS = 8
+FRAMES = (1.0, 4.0)
+TINY = CaptureOverrides(views=VIEWS, elevations=(0.0,), resolution=32, frames=FRAMES)
+
+_captured: dict[str, Path] = {}
+
+
+def captured_dataset(tmp_path_factory) -> Path:
+    """The tiny dataset, captured once per session (test_baselines uses it too).
+
+    8 training views at elevation 0 and their 8 held-out midpoints, 4 frames, 32^2: 64
+    samples; one clip and no held-out clip, so "heldout-clips" is empty.
+    """
+    if "tiny" not in _captured:
+        out = tmp_path_factory.mktemp("eval") / "ds"
+        capture(SCENE, CHARACTER, out, TINY, workers=1, progress=False)
+        _captured["tiny"] = out
+    return _captured["tiny"]
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory) -> Path:
+    return captured_dataset(tmp_path_factory)

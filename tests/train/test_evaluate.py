@@ -1,0 +1,148 @@
+"""Evaluation on a tiny CesiumMan capture: perfect predictor, sample choice, PNGs, tables, errors."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.posing import CharacterRig
+from rigspace.sdk.render import Maps
+from rigspace.sdk.stage import open_stage
+from rigspace.train import evaluate as ev
+from tests.train.conftest import CHARACTER, FRAMES, SCENE, VIEWS, captured_dataset
+
+HEIGHT_TOLERANCE = 0.1
+"""Relative: the mask estimate is off by up to a pixel at each end (0.06 units at 32^2)."""
+
+
+@pytest.fixture(scope="session")
+def table(tmp_path_factory) -> ev.DatasetTable:
+    return ev.DatasetTable(captured_dataset(tmp_path_factory))
+
+
+class Truth:
+    """Predicts the dataset's own maps."""
+
+    name = "truth"
+
+    def __init__(self, table: ev.DatasetTable) -> None:
+        self.table = table
+
+    def predict(self, indices: np.ndarray) -> list[Maps]:
+        return [self.table.maps(int(i)) for i in indices]
+
+
+class Blank:
+    """Predicts nothing at all, at a chosen size."""
+
+    name = "blank"
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+
+    def predict(self, indices: np.ndarray) -> list[Maps]:
+        from rigspace.sdk.render import empty_maps
+
+        return [empty_maps(self.size, self.size) for _ in indices]
+
+
+def test_table_reads_splits_and_maps(table):
+    train, held = table.indices("train"), table.indices("heldout-views")
+    assert len(train) == len(held) == VIEWS * 4 and len(table) == 64
+    assert np.all(table.column("split")[held] == 1)
+    maps = table.maps(int(held[0]))
+    assert maps.albedo.shape == (32, 32, 3) and maps.mask.max() > 0
+
+
+def test_character_height_matches_the_posed_mesh(table):
+    stage = open_stage(SCENE)  # kept alive: the rig's prims expire with their stage
+    rig = CharacterRig(stage.GetPrimAtPath(CHARACTER))
+    extents = []
+    for time in np.arange(FRAMES[0], FRAMES[1] + 1):
+        points = np.concatenate([m.points for m in rig.posed_meshes(float(time))])
+        extents.append(np.ptp(points[:, 1]))  # Y up; the ring at elevation 0 sees it upright
+    assert table.character_height == pytest.approx(max(extents), rel=HEIGHT_TOLERANCE)
+
+
+def test_perfect_predictor_scores_perfectly(table):
+    report = ev.evaluate(Truth(table), table, "heldout-views", limit=6)
+    assert report["samples"] == 6 and len(report["per_sample"]) == 6
+    m = report["metrics"]
+    assert m["albedo_psnr"]["mean"] == math.inf
+    assert m["albedo_ssim"]["mean"] == 1.0 and m["mask_iou"]["mean"] == 1.0
+    for key in ("depth_mae", "depth_mae_pct", "normal_mean_deg", "normal_median_deg"):
+        assert m[key]["mean"] == 0.0 and m[key]["median"] == 0.0
+    json.loads(ev.to_json(report))  # strict JSON: inf becomes null
+
+
+def test_limit_takes_a_fixed_evenly_spaced_subset(table):
+    held = table.indices("heldout-views")
+    chosen = ev.evenly_spaced(held, 5)
+    assert len(chosen) == 5 and chosen[0] == held[0] and chosen[-1] == held[-1]
+    assert np.all(np.diff(chosen) > 0)
+    again = ev.evaluate(Truth(table), table, "heldout-views", limit=5)
+    assert again["indices"] == chosen.tolist()
+    assert ev.evenly_spaced(held, None) is held and len(ev.evenly_spaced(held, 1000)) == len(held)
+
+
+def test_error_map_images_are_written_for_the_worst_samples(table, tmp_path, monkeypatch):
+    monkeypatch.setattr(ev, "PREDICT_BATCH", 3)  # the worst are kept across batches
+    report = ev.evaluate(Blank(32), table, "heldout-views", limit=8, worst=2, out_dir=tmp_path)
+    assert len(report["worst"]) == 2
+    psnrs = sorted(s["albedo_psnr"] for s in report["per_sample"])
+    assert [w["albedo_psnr"] for w in report["worst"]] == psnrs[:2]
+    for entry in report["worst"]:
+        image = cv2.imread(entry["image"])
+        assert image is not None and image.shape[2] == 3
+        tiles = 4 * 32 * (ev.TILE_MIN // 32)  # 32^2 maps upscaled x4 to TILE_MIN
+        assert image.shape[1] == ev.ROW_LABEL_WIDTH + tiles
+        assert image.std() > 0  # something is drawn
+    saved = json.loads((tmp_path / "blank_heldout-views_report.json").read_text())
+    assert saved["samples"] == 8 and saved["metrics"]["mask_iou"]["mean"] == 0.0
+
+
+def test_compare_runs_every_predictor_on_the_same_samples(table):
+    result = ev.compare([Truth(table), Blank(32)], table, "heldout-views", limit=4)
+    assert [r["predictor"] for r in result["rows"]] == ["truth", "blank"]
+    for report in result["reports"].values():
+        assert report["indices"] == result["indices"]
+    text = ev.format_table(result)
+    lines = text.strip().splitlines()
+    assert lines[2].startswith("| predictor | albedo PSNR (dB)")
+    assert lines[4].startswith("| truth | inf | 1.0000 | 1.0000 | 0.0000")
+    assert lines[5].startswith("| blank |") and "n/a" in lines[5]  # no depth to compare
+
+
+def test_bad_inputs_name_the_thing_and_the_fix(table, tmp_path):
+    with pytest.raises(ev.DatasetError, match="does not exist"):
+        ev.DatasetTable(tmp_path / "nowhere")
+    with pytest.raises(ev.DatasetError, match=r"has no manifest.json.*Fix: point at a dataset"):
+        ev.DatasetTable(tmp_path)
+    partial = tmp_path / "partial"
+    partial.mkdir()
+    shutil.copy(table.folder / "manifest.json", partial)
+    with pytest.raises(ev.DatasetError, match=r"has no params.npz.*--resume"):
+        ev.DatasetTable(partial)
+    with pytest.raises(ev.DatasetError, match=r"Unknown split 'test'.*heldout-views"):
+        table.indices("test")
+    with pytest.raises(ev.DatasetError, match=r"'heldout-clips' .* is empty.*Fix: capture"):
+        ev.evaluate(Truth(table), table, "heldout-clips")
+    with pytest.raises(ev.DatasetError, match=r"returns 16x16 maps.*32x32"):
+        ev.evaluate(Blank(16), table, "heldout-views", limit=1)
+    assert issubclass(ev.DatasetError, RigspaceError)
+
+
+def test_evaluation_imports_no_torch():
+    code = (
+        "import sys, rigspace.train.evaluate, rigspace.train.baselines, rigspace.train.metrics;"
+        "sys.exit('torch' in sys.modules)"
+    )
+    assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0

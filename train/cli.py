@@ -1,0 +1,138 @@
+"""`rigspace train` and `rigspace eval`: thin wrappers over train.loop, train.export, train.evaluate."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+from rigspace.sdk.cli import CommandSpec
+
+TRAINING = "training"
+"""Subfolder of a model bundle holding the run: run.json, checkpoint.pt, log, previews."""
+
+
+def _add_config_flags(parser: argparse.ArgumentParser) -> None:
+    from rigspace.train.config import TrainConfig
+
+    group = parser.add_argument_group("training options (override the preset)")
+    for f in dataclasses.fields(TrainConfig):
+        if f.name == "preset":
+            continue
+        flag = "--" + f.name.replace("_", "-")
+        if f.type in (bool, "bool"):
+            group.add_argument(
+                flag, action=argparse.BooleanOptionalAction, default=None, help=f.metadata["help"]
+            )
+        else:
+            kind = {"int": int, "float": float}.get(str(f.type), str)
+            group.add_argument(flag, type=kind, default=None, help=f.metadata["help"])
+
+
+def add_train_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dataset", help="a dataset folder written by `rigspace capture`")
+    parser.add_argument(
+        "--out", required=True, help="model bundle folder (training state in its training/)"
+    )
+    parser.add_argument(
+        "--preset", default="small", help="tiny (seconds), small (the sample model), paper (GPU)"
+    )
+    budget = parser.add_mutually_exclusive_group()
+    budget.add_argument("--steps", type=int, help="stop after this many steps (checkpointed)")
+    budget.add_argument("--minutes", type=float, help="stop after this many minutes (checkpointed)")
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out")
+    parser.add_argument("--no-int8", action="store_true", help="export fp32 graphs only")
+    _add_config_flags(parser)
+
+
+def run_train(args: argparse.Namespace) -> int:
+    from rigspace.train.config import TrainConfig, preset
+    from rigspace.train.export import export_bundle
+    from rigspace.train.loop import train
+
+    names = [f.name for f in dataclasses.fields(TrainConfig) if f.name != "preset"]
+    try:
+        config = preset(args.preset, **{n: getattr(args, n) for n in names})
+    except KeyError as exc:
+        from rigspace.sdk.errors import RigspaceError
+
+        raise RigspaceError(str(exc.args[0]), "pass --preset tiny, small or paper.") from None
+    out = Path(args.out)
+    result = train(
+        args.dataset,
+        out / TRAINING,
+        config,
+        steps=args.steps,
+        minutes=args.minutes,
+        resume=args.resume,
+    )
+    print(
+        f"trained {result.step} steps in {result.seconds:.0f} s ({result.images_per_second:.1f} images/s), "
+        f"stopped: {result.stopped}, last loss {result.last_loss:.4f}"
+    )
+    manifest = export_bundle(out / TRAINING, out, int8=not args.no_int8)
+    size = sum(v["bytes"] for v in manifest["files"].values())
+    print(f"exported {len(manifest['files'])} graphs ({size / 2**20:.1f} MiB) to {out}")
+    return 0
+
+
+TRAIN_COMMAND = CommandSpec(
+    name="train",
+    help="train a Rig2Image model on a capture dataset and export its bundle",
+    description=(
+        "Train the Rig2Image network progressively (16x16 first, then one block at a time with a\n"
+        "linear fade-in) on a dataset from `rigspace capture`, then export the model bundle:\n"
+        "one ONNX graph per (branch, level), static int8 variants, manifest.json. Ctrl-C stops\n"
+        "with a usable checkpoint; --resume continues exactly."
+    ),
+    add_arguments=add_train_arguments,
+    run=run_train,
+)
+
+
+def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("model", help="a model bundle folder")
+    parser.add_argument("dataset", help="a dataset folder written by `rigspace capture`")
+    parser.add_argument(
+        "--split", default="heldout-views", help="heldout-views, heldout-clips or train"
+    )
+    parser.add_argument(
+        "--limit", type=int, default=200, help="samples evaluated (evenly spaced; 0: all)"
+    )
+    parser.add_argument("--int8", action="store_true", help="evaluate the int8 graphs")
+    parser.add_argument(
+        "--no-baselines", action="store_true", help="skip nearest-view and interpolation"
+    )
+    parser.add_argument("--errors", help="folder for error-map images of the worst samples")
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    from rigspace.train.evaluate import DatasetTable, compare, format_table
+    from rigspace.train.predictor import BundlePredictor
+
+    table = DatasetTable(Path(args.dataset))
+    predictors = [BundlePredictor(Path(args.model), table, int8=args.int8)]
+    if not args.no_baselines:
+        from rigspace.train.baselines import BaselinePredictor
+
+        predictors += [
+            BaselinePredictor(Path(args.dataset), kind) for kind in ("nearest", "linear")
+        ]
+    result = compare(predictors, table, args.split, limit=args.limit or None, out_dir=args.errors)
+    if args.json:
+        json.dump(result, sys.stdout, indent=2, default=float)
+        sys.stdout.write("\n")
+    else:
+        print(format_table(result))
+    return 0
+
+
+EVAL_COMMAND = CommandSpec(
+    name="eval",
+    help="measure a model bundle on a dataset split against the captured-view baselines",
+    add_arguments=add_eval_arguments,
+    run=run_eval,
+)

@@ -1,0 +1,188 @@
+"""Read a capture dataset for training: rig parameters in, target maps out, streamed from disk.
+
+Samples are read from their EXRs when needed (a background thread reads the next batch
+while the current one trains), so a dataset of any size trains in bounded memory.
+Targets: premultiplied albedo, mask, camera-space normals, and depth relative to the
+look-at joint in units of the dataset's `depth_scale` (below), 0 where empty.
+"""
+
+from __future__ import annotations
+
+import json
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rigspace.capture.exr import read_exr
+from rigspace.sdk.errors import RigspaceError
+
+SPLITS = ("train", "heldout-views", "heldout-clips")
+
+
+class DatasetError(RigspaceError):
+    """A dataset folder that training cannot use."""
+
+
+def depth_scale(manifest: dict[str, Any]) -> float:
+    """Depth unit for training: half the visible extent at the joint's distance, scene units.
+
+    S = radius * tan(half field of view) = radius * (aperture / 2) / focal length. Relative
+    depth (depth - joint depth) / S is then about [-1, 1] across the character whatever
+    the scene's units, as the paper's 1/s depth scaling at run time expects.
+    """
+    ring = manifest["ring"]
+    return float(ring["radius"] * (ring["horizontal_aperture"] / 2.0) / ring["focal_length"])
+
+
+def load_manifest(folder: Path) -> dict[str, Any]:
+    path = Path(folder) / "manifest.json"
+    if not path.is_file():
+        raise DatasetError(
+            f"{folder} has no manifest.json, so it is not a finished capture dataset.",
+            "run `rigspace capture` into it (add --resume if it was interrupted).",
+        )
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DatasetError(
+            f"{path} is not readable JSON ({exc}).",
+            "re-run `rigspace capture --resume` to rewrite it.",
+        ) from exc
+    if manifest.get("format") != "rigspace.dataset" or manifest.get("format_version") != 1:
+        raise DatasetError(
+            f"{path} is not a rigspace dataset manifest (format {manifest.get('format')!r}, "
+            f"version {manifest.get('format_version')!r}).",
+            "point at a folder written by `rigspace capture`.",
+        )
+    if not (Path(folder) / "params.npz").is_file():
+        raise DatasetError(f"{folder} has no params.npz.", "re-run `rigspace capture --resume`.")
+    return manifest
+
+
+def area_downsample(x: np.ndarray, factor: int) -> np.ndarray:
+    """(..., H, W) -> (..., H/f, W/f) by box averaging."""
+    if factor == 1:
+        return x
+    *lead, h, w = x.shape
+    return x.reshape(*lead, h // factor, factor, w // factor, factor).mean(axis=(-3, -1))
+
+
+def targets_at(
+    albedo: np.ndarray, mask: np.ndarray, normal: np.ndarray, depth: np.ndarray, factor: int
+) -> tuple[np.ndarray, ...]:
+    """Channel-first targets box-downsampled by `factor`.
+
+    Albedo (premultiplied) and mask average over the box; depth and normals average over
+    the covered part of the box only (mask-weighted), so empty pixels never leak in.
+    """
+    if factor == 1:
+        return albedo, mask, normal, depth
+    m = area_downsample(mask, factor)
+    weight = np.maximum(m, 1e-6)
+    depth_d = area_downsample(depth * mask, factor) / weight
+    normal_d = area_downsample(normal * mask, factor) / weight
+    length = np.linalg.norm(normal_d, axis=0, keepdims=True)
+    normal_d = np.where(length > 0, normal_d / np.maximum(length, 1e-6), 0.0)
+    return (
+        area_downsample(albedo, factor),
+        m,
+        normal_d.astype(np.float32),
+        depth_d.astype(np.float32),
+    )
+
+
+class SampleSet:
+    """One split of a dataset at a training resolution."""
+
+    def __init__(self, folder: str | Path, split: str, resolution: int | None = None) -> None:
+        self.folder = Path(folder)
+        if split not in SPLITS:
+            raise DatasetError(f"Unknown split {split!r}.", f"use one of {', '.join(SPLITS)}.")
+        self.manifest = load_manifest(self.folder)
+        with np.load(self.folder / "params.npz", allow_pickle=False) as table:
+            self.rows = np.flatnonzero(table["split"] == SPLITS.index(split))
+            self.rig = table["rig"].reshape(len(table["rig"]), -1).astype(np.float32)
+            self.paths = table["path"]
+            self.joint_depth = -table["joint_camera"][:, 2].astype(np.float32)
+        self.split = split
+        self.dataset_resolution = int(self.manifest["resolution"])
+        self.resolution = resolution or self.dataset_resolution
+        if self.resolution > self.dataset_resolution or self.dataset_resolution % self.resolution:
+            raise DatasetError(
+                f"Training resolution {self.resolution} does not divide the dataset's "
+                f"{self.dataset_resolution}.",
+                f"use --resolution {self.dataset_resolution} or a power of two below it.",
+            )
+        self.depth_scale = depth_scale(self.manifest)
+        self.joints = list(self.manifest["joints"])
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def item(self, k: int) -> dict[str, np.ndarray]:
+        """Sample k of the split: rig (J*6,), albedo (3,R,R), mask (1,R,R), normal (3,R,R), depth (1,R,R)."""
+        row = int(self.rows[k])
+        maps = read_exr(self.folder / str(self.paths[row]))
+        mask = maps.mask[None]
+        hit = mask > 0
+        depth = np.where(hit, (maps.depth[None] - self.joint_depth[row]) / self.depth_scale, 0.0)
+        albedo, mask, normal, depth = targets_at(
+            np.moveaxis(maps.albedo, -1, 0),
+            mask,
+            np.moveaxis(maps.normal, -1, 0),
+            depth.astype(np.float32),
+            self.dataset_resolution // self.resolution,
+        )
+        return {
+            "rig": self.rig[row],
+            "albedo": albedo.astype(np.float32),
+            "mask": mask.astype(np.float32),
+            "normal": normal.astype(np.float32),
+            "depth": depth.astype(np.float32),
+        }
+
+    def batch(self, ks: np.ndarray) -> dict[str, np.ndarray]:
+        items = [self.item(int(k)) for k in ks]
+        return {key: np.stack([it[key] for it in items]) for key in items[0]}
+
+
+def batch_indices(n: int, batch: int, step: int, seed: int) -> np.ndarray:
+    """The sample indices of a step: epochs of seeded permutations, a pure function of step.
+
+    Resuming at step s therefore continues exactly where an uninterrupted run would be.
+    """
+    start = step * batch
+    out = np.empty(batch, dtype=np.int64)
+    filled = 0
+    while filled < batch:
+        epoch, offset = divmod(start + filled, n)
+        perm = np.random.default_rng([seed, epoch]).permutation(n)
+        take = min(batch - filled, n - offset)
+        out[filled : filled + take] = perm[offset : offset + take]
+        filled += take
+    return out
+
+
+class Prefetcher:
+    """Reads the batch of step s + 1 on a background thread while step s trains."""
+
+    def __init__(self, samples: SampleSet, batch: int, seed: int) -> None:
+        self.samples, self.batch, self.seed = samples, batch, seed
+        self._pool = ThreadPoolExecutor(max_workers=1)
+        self._pending: dict[int, Future] = {}
+
+    def _submit(self, step: int) -> None:
+        if step not in self._pending:
+            ks = batch_indices(len(self.samples), self.batch, step, self.seed)
+            self._pending[step] = self._pool.submit(self.samples.batch, ks)
+
+    def get(self, step: int) -> dict[str, np.ndarray]:
+        self._submit(step)
+        result = self._pending.pop(step).result()
+        self._submit(step + 1)
+        return result
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=False, cancel_futures=True)

@@ -1,0 +1,518 @@
+"""Evaluate any predictor of maps against a captured dataset split: metrics, error maps, tables."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Sequence
+from functools import cached_property
+from pathlib import Path
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+
+from rigspace.capture.dataset import FORMAT, FORMAT_VERSION, MANIFEST_FILE, PARAMS_FILE
+from rigspace.capture.exr import ExrError, read_exr
+from rigspace.capture.ring import SPLITS, TRAIN
+from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.render import Maps
+from rigspace.train.metrics import MASK_THRESHOLD, METRICS, map_metrics
+
+HEIGHT_SAMPLES = 16
+"""Training samples (evenly spaced) whose masks estimate the character's height."""
+PREDICT_BATCH = 32
+"""Samples per predict() call: bounds the maps held at once, whatever the split's size."""
+
+# Error-map images: each map becomes a tile at least TILE_MIN pixels wide (nearest upscaling).
+TILE_MIN = 128
+LABEL_HEIGHT = 18
+ROW_LABEL_WIDTH = 44
+ALBEDO_ERROR_RANGE = 0.25
+"""Albedo |error| (mean over R,G,B) shown full scale: a quarter of the range is a gross error."""
+DEPTH_ERROR_PCT_RANGE = 5.0
+"""Depth |error| shown full scale, % of the character's height."""
+NORMAL_ERROR_RANGE_DEG = 45.0
+"""Normal angle error shown full scale."""
+DISPLAY_GAMMA = 1 / 2.2
+"""Albedo is linear; a display gamma makes dark albedo readable in the PNG (display only)."""
+
+
+class DatasetError(RigspaceError):
+    """A dataset folder or split that cannot be evaluated as asked."""
+
+
+class Predictor(Protocol):
+    """Anything that predicts a dataset's maps from its rows (rig parameters, camera).
+
+    `predict` gets row indices into the dataset's params.npz and returns one Maps per row,
+    at the dataset's resolution, in the dataset's conventions (capture/exr.py). A predictor
+    may also expose `footprint_bytes: int`, what it keeps in memory to predict (a model:
+    the size of its .onnx files; a baseline: its captured maps); tables report it.
+    """
+
+    name: str
+
+    def predict(self, indices: np.ndarray) -> list[Maps]: ...
+
+
+class DatasetTable:
+    """A captured dataset's manifest and parameter table, and its maps read on demand.
+
+    Columns of params.npz load on first use (`column`) and stay cached; maps are read from
+    their EXRs each time (datasets are far larger than memory at the paper's scale).
+    """
+
+    def __init__(self, folder: str | Path) -> None:
+        self.folder = Path(folder)
+        fix = "point at a dataset folder written by `rigspace capture SCENE --out DIR`."
+        if not self.folder.is_dir():
+            raise DatasetError(f"Dataset folder {self.folder} does not exist.", fix)
+        for name in (MANIFEST_FILE, PARAMS_FILE):
+            if not (self.folder / name).is_file():
+                raise DatasetError(
+                    f"{self.folder} has no {name}, so it is not a finished dataset.",
+                    f"{fix} An interrupted capture finishes with `rigspace capture ... --resume`.",
+                )
+        try:
+            self.manifest: dict[str, Any] = json.loads((self.folder / MANIFEST_FILE).read_text())
+        except (OSError, ValueError) as exc:
+            raise DatasetError(
+                f"{self.folder / MANIFEST_FILE} cannot be read: {exc}.", fix
+            ) from exc
+        if self.manifest.get("format") != FORMAT or self.manifest.get("format_version") != (
+            FORMAT_VERSION
+        ):
+            raise DatasetError(
+                f"{self.folder / MANIFEST_FILE} is not a {FORMAT} manifest of version "
+                f"{FORMAT_VERSION} (format {self.manifest.get('format')!r}, version "
+                f"{self.manifest.get('format_version')!r}).",
+                "re-capture the dataset with this version of rigspace.",
+            )
+        self._params = np.load(self.folder / PARAMS_FILE, allow_pickle=False)
+        self._columns: dict[str, np.ndarray] = {}
+
+    def column(self, name: str) -> np.ndarray:
+        """One params.npz column (docs/capture.md lists them), one row per sample."""
+        if name not in self._columns:
+            if name not in self._params.files:
+                raise DatasetError(
+                    f"{self.folder / PARAMS_FILE} has no column {name!r} "
+                    f"(it has {', '.join(sorted(self._params.files))}).",
+                    "re-capture the dataset with this version of rigspace.",
+                )
+            self._columns[name] = self._params[name]
+        return self._columns[name]
+
+    def __len__(self) -> int:
+        return len(self.column("path"))
+
+    @property
+    def resolution(self) -> int:
+        return int(self.manifest["resolution"])
+
+    def indices(self, split: str) -> np.ndarray:
+        """Row indices of a split ("train", "heldout-views", "heldout-clips"), ascending."""
+        if split not in SPLITS:
+            raise DatasetError(f"Unknown split {split!r}.", f"choose one of {', '.join(SPLITS)}.")
+        rows = np.flatnonzero(self.column("split") == SPLITS.index(split))
+        if rows.size == 0:
+            counts = ", ".join(f"{s} {self.manifest['counts'].get(s, 0)}" for s in SPLITS)
+            raise DatasetError(
+                f"Split {split!r} of {self.folder} is empty (samples per split: {counts}).",
+                "capture with held-out views (the ring's heldOutViewsPerRing or "
+                "heldOutElevations) or held-out clips (heldOutClips), or evaluate another split.",
+            )
+        return rows
+
+    def path(self, index: int) -> Path:
+        return self.folder / str(self.column("path")[index])
+
+    def maps(self, index: int) -> Maps:
+        """The captured maps of row `index`."""
+        path = self.path(index)
+        if not path.is_file():
+            raise DatasetError(
+                f"Sample {path} of the dataset is missing.",
+                "re-run the capture into this folder with --resume to redo its work item.",
+            )
+        try:
+            return read_exr(path)
+        except ExrError as exc:
+            raise DatasetError(
+                str(exc), "delete the file and re-run the capture with --resume."
+            ) from exc
+
+    @cached_property
+    def character_height(self) -> float:
+        """The character's height in scene units, estimated once from the captured maps.
+
+        The masked pixels of HEIGHT_SAMPLES evenly spaced training samples are unprojected
+        with their depth and the intrinsics to camera space (Y = (cy - y) depth / fy); the
+        height is the largest vertical extent (max Y - min Y) found. Samples seen from a
+        ring at elevation 0 see the character upright, so the maximum is its standing
+        height (or its tallest pose's) to within a pixel.
+        """
+        rows = self.indices(TRAIN)
+        rows = rows[np.unique(np.linspace(0, len(rows) - 1, HEIGHT_SAMPLES).round().astype(int))]
+        intrinsics = self.column("intrinsics")
+        height = 0.0
+        for index in rows:
+            maps = self.maps(int(index))
+            inside = (maps.mask >= MASK_THRESHOLD) & np.isfinite(maps.depth)
+            if not inside.any():
+                continue
+            _fx, fy, _cx, cy = intrinsics[index]
+            y = np.nonzero(inside)[0] + 0.5  # pixel centres, rows counted down from the top
+            vertical = (cy - y) * maps.depth[inside] / fy
+            height = max(height, float(vertical.max() - vertical.min()))
+        if height <= 0.0:
+            raise DatasetError(
+                f"The character covers no pixel in the training samples of {self.folder}.",
+                "check the capture ring's radius and look-at joint (see contact_sheet.png).",
+            )
+        return height
+
+
+def evenly_spaced(indices: np.ndarray, limit: int | None) -> np.ndarray:
+    """`limit` of the indices, evenly spaced from the first to the last (all when None)."""
+    if limit is None or limit >= len(indices):
+        return indices
+    if limit < 1:
+        raise DatasetError(f"limit must be at least 1, got {limit}.", "pass a positive limit.")
+    return indices[np.unique(np.linspace(0, len(indices) - 1, limit).round().astype(int))]
+
+
+def _summary(values: np.ndarray) -> dict[str, float]:
+    """Mean and median over the samples where the metric is defined (not nan)."""
+    defined = values[~np.isnan(values)]
+    if defined.size == 0:
+        return {"mean": math.nan, "median": math.nan, "count": 0}
+    # +inf PSNR (an exact match) makes the mean +inf; the median stays informative.
+    return {
+        "mean": float(defined.mean()),
+        "median": float(np.median(defined)),
+        "count": int(defined.size),
+    }
+
+
+def _predict(predictor: Predictor, rows: np.ndarray, table: DatasetTable) -> list[Maps]:
+    maps = predictor.predict(rows)
+    if len(maps) != len(rows):
+        raise RuntimeError(
+            f"predictor {predictor.name} returned {len(maps)} maps for {len(rows)} indices."
+        )
+    size = table.resolution
+    for m in maps:
+        if m.mask.shape != (size, size):
+            raise DatasetError(
+                f"Predictor {predictor.name} returns {m.mask.shape[1]}x{m.mask.shape[0]} maps; "
+                f"the dataset {table.folder} is {size}x{size}.",
+                "evaluate against a dataset captured at the model's resolution "
+                "(or the model level of detail that matches it).",
+            )
+    return maps
+
+
+def evaluate(
+    predictor: Predictor,
+    table: DatasetTable,
+    split: str,
+    limit: int | None = None,
+    worst: int = 4,
+    out_dir: str | Path | None = None,
+    indices: np.ndarray | None = None,
+) -> dict[str, Any]:
+    """Metrics of `predictor` on a split: per sample, aggregated, and the worst samples.
+
+    Samples: the split's rows, or `limit` of them evenly spaced (evenly_spaced), or exactly
+    `indices` when given. Every metric (metrics.METRICS) gets its mean and median over the
+    samples where it is defined. With `out_dir`, the `worst` samples by albedo PSNR get an
+    error-map PNG each (error_map_image) and the report is saved as report JSON (to_json).
+    Values may be +inf (PSNR of an exact match) or nan (no pixel to measure); json.dumps
+    writes them as Infinity/NaN, to_json as null.
+    """
+    rows = table.indices(split) if indices is None else np.asarray(indices, dtype=np.int64)
+    rows = evenly_spaced(rows, limit) if indices is None else rows
+    height = table.character_height
+    per_sample: list[dict[str, Any]] = []
+    kept: dict[int, tuple[dict[str, Any], Maps, Maps]] = {}  # worst so far: record, pred, truth
+    seconds = 0.0
+    for start in range(0, len(rows), PREDICT_BATCH):
+        batch = rows[start : start + PREDICT_BATCH]
+        begin = time.perf_counter()
+        predicted = _predict(predictor, batch, table)
+        seconds += time.perf_counter() - begin
+        for index, pred in zip(batch, predicted, strict=True):
+            record = _sample_info(table, int(index))
+            target = table.maps(int(index))
+            record.update(map_metrics(pred, target, height))
+            per_sample.append(record)
+            kept[int(index)] = (record, pred, target)
+        # Keep only the worst so far, so memory stays at `worst` samples' maps.
+        worst_now = _worst_first([k[0] for k in kept.values()])[:worst]
+        kept = {r["index"]: kept[r["index"]] for r in worst_now}
+    report: dict[str, Any] = {
+        "predictor": predictor.name,
+        "dataset": str(table.folder),
+        "dataset_checksum": table.manifest.get("checksum"),
+        "split": split,
+        "samples": len(per_sample),
+        "indices": [int(i) for i in rows],
+        "character_height": height,
+        "seconds_per_sample": seconds / max(len(per_sample), 1),
+        "footprint_bytes": getattr(predictor, "footprint_bytes", None),
+        "metrics": {
+            key: _summary(np.array([s[key] for s in per_sample], dtype=np.float64))
+            for key in METRICS
+        },
+        "per_sample": per_sample,
+        "worst": [
+            {"index": s["index"], "path": s["path"], "albedo_psnr": s["albedo_psnr"]}
+            for s in _worst_first(per_sample)[:worst]
+        ],
+    }
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        prefix = f"{_safe(predictor.name)}_{split}"
+        for rank, entry in enumerate(report["worst"]):
+            _, pred, target = kept[entry["index"]]
+            path = out / f"{prefix}_worst{rank}_{entry['index']:06d}_{Path(entry['path']).stem}.png"
+            title = f"{predictor.name}  {entry['path']}  PSNR {entry['albedo_psnr']:.1f} dB"
+            write_png(path, error_map_image(pred, target, height, title))
+            entry["image"] = str(path)
+        (out / f"{prefix}_report.json").write_text(to_json(report))
+    return report
+
+
+def _worst_first(per_sample: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Samples by albedo PSNR, lowest first; ties (and nan, sorted last) by row index."""
+    return sorted(
+        per_sample, key=lambda s: (np.nan_to_num(s["albedo_psnr"], nan=np.inf), s["index"])
+    )
+
+
+def _sample_info(table: DatasetTable, index: int) -> dict[str, Any]:
+    return {
+        "index": index,
+        "path": str(table.column("path")[index]),
+        "clip": int(table.column("clip")[index]),
+        "time": float(table.column("time")[index]),
+        "view": int(table.column("view")[index]),
+        "azimuth": float(table.column("azimuth")[index]),
+        "elevation": float(table.column("elevation")[index]),
+    }
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+
+
+def compare(
+    predictors: Sequence[Predictor],
+    table: DatasetTable,
+    split: str,
+    limit: int | None = None,
+    out_dir: str | Path | None = None,
+    worst: int = 4,
+) -> dict[str, Any]:
+    """Evaluate several predictors on the SAME samples; one summary row per predictor.
+
+    Rows hold each metric's mean (and normal_median_deg's median), the predict time per
+    sample and the footprint; `reports` keeps each predictor's full evaluate() report.
+    """
+    rows = evenly_spaced(table.indices(split), limit)
+    reports = {
+        p.name: evaluate(p, table, split, worst=worst, out_dir=out_dir, indices=rows)
+        for p in predictors
+    }
+    table_rows = []
+    for name, report in reports.items():
+        row: dict[str, Any] = {"predictor": name}
+        row.update({key: report["metrics"][key]["mean"] for key in METRICS})
+        row["normal_median_deg"] = report["metrics"]["normal_median_deg"]["median"]
+        row["seconds_per_sample"] = report["seconds_per_sample"]
+        row["footprint_bytes"] = report["footprint_bytes"]
+        table_rows.append(row)
+    return {
+        "dataset": str(table.folder),
+        "split": split,
+        "samples": len(rows),
+        "indices": [int(i) for i in rows],
+        "rows": table_rows,
+        "reports": reports,
+    }
+
+
+COLUMNS = (
+    ("predictor", "predictor", "{}"),
+    ("albedo_psnr", "albedo PSNR (dB)", "{:.2f}"),
+    ("albedo_ssim", "albedo SSIM", "{:.4f}"),
+    ("mask_iou", "mask IoU", "{:.4f}"),
+    ("depth_mae", "depth MAE", "{:.4f}"),
+    ("depth_mae_pct", "depth MAE (% height)", "{:.2f}"),
+    ("normal_mean_deg", "normal mean (deg)", "{:.2f}"),
+    ("normal_median_deg", "normal median (deg)", "{:.2f}"),
+    ("seconds_per_sample", "ms/sample", "ms"),
+    ("footprint_bytes", "footprint (MiB)", "MiB"),
+)
+"""format_table's columns: key, header, format."""
+
+
+def _cell(value: Any, fmt: str) -> str:
+    if value is None:
+        return "-"
+    if fmt == "ms":
+        return f"{1000 * value:.2f}"
+    if fmt == "MiB":
+        return f"{value / 2**20:.2f}"
+    if isinstance(value, float) and not math.isfinite(value):
+        return "inf" if value > 0 else ("-inf" if value < 0 else "n/a")
+    return fmt.format(value)
+
+
+def format_table(result: dict[str, Any]) -> str:
+    """A compare() result as a Markdown table (means over the samples; normal median: median)."""
+    lines = [
+        f"{result['split']}: {result['samples']} samples of {result['dataset']}",
+        "",
+        "| " + " | ".join(header for _, header, _ in COLUMNS) + " |",
+        "|" + "|".join("---" for _ in COLUMNS) + "|",
+    ]
+    for row in result["rows"]:
+        lines.append("| " + " | ".join(_cell(row[k], f) for k, _, f in COLUMNS) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _strict(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _strict(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_strict(v) for v in value]
+    return value
+
+
+def to_json(report: dict[str, Any]) -> str:
+    """A report as strict JSON: non-finite numbers (+inf PSNR, nan) become null."""
+    return json.dumps(_strict(report), indent=2, allow_nan=False) + "\n"
+
+
+# --- error-map images ---------------------------------------------------------------------------
+
+
+def _heat(values: np.ndarray, full_scale: float, valid: np.ndarray) -> np.ndarray:
+    """(H,W) values -> (H,W,3) uint8 BGR inferno colours, 0..full_scale; black where not valid."""
+    scaled = np.clip(np.nan_to_num(values / full_scale), 0.0, 1.0)
+    image = cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
+    image[~valid] = 0
+    return image
+
+
+def _gray(values: np.ndarray) -> np.ndarray:
+    return np.repeat((np.clip(values, 0.0, 1.0) * 255).astype(np.uint8)[..., None], 3, axis=-1)
+
+
+def _rgb(values: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray((np.clip(values, 0.0, 1.0) * 255).astype(np.uint8)[..., ::-1])
+
+
+def _map_tiles(maps: Maps, near: float, far: float) -> list[np.ndarray]:
+    """Albedo, mask, depth (near white .. far dark, empty black), normals (n/2 + 1/2)."""
+    finite = np.isfinite(maps.depth)
+    depth = np.where(finite, 1.0 - 0.8 * (maps.depth - near) / max(far - near, 1e-12), 0.0)
+    normal = np.where(
+        np.linalg.norm(maps.normal, axis=-1, keepdims=True) > 0, maps.normal * 0.5 + 0.5, 0.0
+    )
+    return [
+        _rgb(np.clip(maps.albedo, 0.0, None) ** DISPLAY_GAMMA),
+        _gray(maps.mask),
+        _gray(depth),
+        _rgb(normal),
+    ]
+
+
+def _error_tiles(pred: Maps, target: Maps, character_height: float) -> list[np.ndarray]:
+    everywhere = np.ones(target.mask.shape, bool)
+    albedo = np.abs(pred.albedo - target.albedo).mean(axis=-1)
+    xor = (pred.mask >= MASK_THRESHOLD) != (target.mask >= MASK_THRESHOLD)
+    both = np.isfinite(pred.depth) & np.isfinite(target.depth)
+    depth = np.abs(np.where(both, pred.depth, 0.0) - np.where(both, target.depth, 0.0))
+    lp = np.linalg.norm(pred.normal, axis=-1)
+    lt = np.linalg.norm(target.normal, axis=-1)
+    normals = (lp > 0) & (lt > 0)
+    a = pred.normal / np.where(normals, lp, 1.0)[..., None]
+    b = target.normal / np.where(normals, lt, 1.0)[..., None]
+    angle = np.degrees(
+        np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.einsum("...i,...i", a, b))
+    )
+    return [
+        _heat(albedo, ALBEDO_ERROR_RANGE, everywhere),
+        _gray(xor.astype(np.float32)),
+        _heat(depth, DEPTH_ERROR_PCT_RANGE / 100.0 * character_height, both),
+        _heat(angle, NORMAL_ERROR_RANGE_DEG, normals),
+    ]
+
+
+def _label(image: np.ndarray, text: str, x: int, y: int, scale: float = 0.4) -> None:
+    cv2.putText(
+        image, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA
+    )
+
+
+def error_map_image(
+    pred: Maps, target: Maps, character_height: float, title: str = ""
+) -> np.ndarray:
+    """(H,W,3) uint8 BGR picture of one sample: rows prediction | ground truth | error.
+
+    Columns: albedo (display gamma), mask, depth, normals. The error row shows the albedo
+    |error| (mean over R,G,B; inferno, full scale ALBEDO_ERROR_RANGE), the mask XOR at
+    coverage MASK_THRESHOLD (white = disagree), the depth |error| where both are finite
+    (full scale DEPTH_ERROR_PCT_RANGE % of the character's height) and the normal angle
+    error (full scale NORMAL_ERROR_RANGE_DEG). Small maps are upscaled by nearest neighbour
+    to at least TILE_MIN pixels so every pixel stays visible.
+    """
+    finite = np.concatenate(
+        [target.depth[np.isfinite(target.depth)], pred.depth[np.isfinite(pred.depth)]]
+    )
+    near, far = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    grid = [
+        _map_tiles(pred, near, far),
+        _map_tiles(target, near, far),
+        _error_tiles(pred, target, character_height),
+    ]
+    h, w = target.mask.shape
+    factor = max(1, -(-TILE_MIN // min(h, w)))  # ceil
+    th, tw = h * factor, w * factor
+    headers = ["albedo", "mask", "depth", "normal"]
+    error_headers = [
+        f"|albedo| 0-{ALBEDO_ERROR_RANGE:g}",
+        "mask xor",
+        f"|depth| 0-{DEPTH_ERROR_PCT_RANGE:g}%h",
+        f"angle 0-{NORMAL_ERROR_RANGE_DEG:g}deg",
+    ]
+    row_names = ["pred", "truth", "error"]
+    width = ROW_LABEL_WIDTH + 4 * tw
+    height = LABEL_HEIGHT + 3 * (LABEL_HEIGHT + th)  # title, then per row: header and tiles
+    image = np.zeros((height, width, 3), np.uint8)
+    _label(image, title, 4, LABEL_HEIGHT - 5)
+    for r, tiles in enumerate(grid):
+        top = LABEL_HEIGHT * 2 + r * (th + LABEL_HEIGHT)
+        names = error_headers if r == 2 else headers
+        for c, tile in enumerate(tiles):
+            left = ROW_LABEL_WIDTH + c * tw
+            _label(image, names[c], left + 2, top - 5)
+            image[top : top + th, left : left + tw] = cv2.resize(
+                tile, (tw, th), interpolation=cv2.INTER_NEAREST
+            )
+        _label(image, row_names[r], 2, top + th // 2)
+    return image
+
+
+def write_png(path: str | Path, image: np.ndarray) -> None:
+    """Write a BGR uint8 image; an unwritable path is a DatasetError naming it."""
+    if not cv2.imwrite(str(path), image):
+        raise DatasetError(f"cannot write {path}.", "choose a writable --out folder.")

@@ -1,0 +1,303 @@
+"""The training loop: progressive levels with fade-in, checkpoints, evaluation, previews.
+
+    run = train(dataset, out, config, steps=None, minutes=None, resume=False)
+
+The run folder holds run.json (the config and the dataset it trained on), checkpoints
+(loadable with torch.load(weights_only=True): tensors, numbers and strings only),
+log.jsonl, and previews/level_<R>.png (prediction | ground truth | error). Every step's
+batch is a pure function of (seed, step) and the RNG state is checkpointed, so a resumed
+run continues exactly where it stopped. Ctrl-C saves a checkpoint and returns; a
+non-finite loss stops with the step and the last good checkpoint named.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from rigspace.sdk.errors import RigspaceError
+from rigspace.train.config import TrainConfig
+from rigspace.train.data import Prefetcher, SampleSet, load_manifest
+from rigspace.train.loss import targets_for, total_loss
+from rigspace.train.network import Rig2Image, Shape, albedo_maps, geometry_maps
+
+CHECKPOINT = "checkpoint.pt"
+RUN_FILE = "run.json"
+
+
+class TrainingError(RigspaceError):
+    """Training cannot start or cannot go on."""
+
+
+@dataclass
+class Schedule:
+    """Where a global step falls in the progressive schedule."""
+
+    level: int
+    """Index into config.levels()."""
+    resolution: int
+    alpha: float
+    """Fade-in weight of the newest block, 0 -> 1 linearly over the fade steps."""
+    first_step_of_level: bool
+
+
+def schedule(config: TrainConfig, step: int) -> Schedule:
+    levels = config.levels()
+    level = min(step // config.steps_per_level, len(levels) - 1)
+    local = step - level * config.steps_per_level
+    fade_steps = max(1, int(config.fade_fraction * config.steps_per_level))
+    alpha = 1.0 if level == 0 else min(1.0, local / fade_steps)
+    return Schedule(level, levels[level], alpha, local == 0)
+
+
+@dataclass
+class TrainResult:
+    folder: Path
+    step: int
+    seconds: float
+    stopped: str
+    """'done', 'time budget', 'step budget' or 'interrupted'."""
+    last_loss: float
+    images_per_second: float
+
+
+def make_optimizer(model: torch.nn.Module, config: TrainConfig) -> torch.optim.Optimizer:
+    return torch.optim.Adam(
+        model.parameters(), lr=config.lr, betas=(config.adam_beta1, config.adam_beta2)
+    )
+
+
+def _to_torch(batch: dict[str, np.ndarray], channels_last: bool) -> dict[str, torch.Tensor]:
+    out = {k: torch.from_numpy(v) for k, v in batch.items()}
+    if channels_last:
+        for k, v in out.items():
+            if v.ndim == 4:
+                out[k] = v.contiguous(memory_format=torch.channels_last)
+    return out
+
+
+def save_checkpoint(folder: Path, model, optimizer, step: int, level: int) -> Path:
+    path = folder / CHECKPOINT
+    tmp = folder / f".{CHECKPOINT}.{os.getpid()}.tmp"
+    torch.save(
+        {
+            "model": model.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "step": step,
+            "level": level,
+            "torch_rng": torch.get_rng_state(),
+        },
+        tmp,
+    )
+    os.replace(tmp, path)
+    return path
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    """A checkpoint, read without unpickling arbitrary objects (weights_only=True)."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # corrupt, truncated, or not ours: say which file and why
+        raise TrainingError(
+            f"Checkpoint {path} cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0]}).",
+            "delete it to start over, or restore it from a backup.",
+        ) from exc
+
+
+def _preview(model, samples: SampleSet, resolution: int, path: Path) -> dict[str, float]:
+    """Prediction | ground truth | error for a few held-out samples; returns quick metrics."""
+    ks = np.linspace(0, len(samples) - 1, min(4, len(samples))).astype(int)
+    batch = samples.batch(ks)
+    with torch.no_grad():
+        heads = model(torch.from_numpy(batch["rig"]), resolution)
+        albedo = albedo_maps(heads["albedo"][-1]).numpy()
+        mask = geometry_maps(heads["geometry"][-1])[2].numpy()
+        target = targets_for({k: torch.from_numpy(v) for k, v in batch.items()}, resolution)
+    target_albedo, target_mask = target["albedo"].numpy(), target["mask"].numpy()
+    mse = float(np.mean((albedo - target_albedo) ** 2))
+    inter = np.logical_and(mask > 0.5, target_mask > 0.5).sum()
+    union = np.logical_or(mask > 0.5, target_mask > 0.5).sum()
+    rows = []
+    for p, t in zip(albedo, target_albedo, strict=True):
+        err = np.abs(p - t).mean(axis=0, keepdims=True).repeat(3, axis=0) * 4
+        tiles = [np.clip(x, 0, 1) ** (1 / 2.2) for x in (p, t, err)]
+        rows.append(np.concatenate([np.moveaxis(x, 0, -1) for x in tiles], axis=1))
+    pixels = (np.concatenate(rows, axis=0) * 255 + 0.5).astype(np.uint8)[..., ::-1]
+    scale = max(1, 128 // resolution)
+    image: np.ndarray = cv2.resize(
+        pixels, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), image)
+    return {
+        "albedo_psnr": 10 * math.log10(1.0 / max(mse, 1e-12)),
+        "mask_iou": float(inter / max(union, 1)),
+    }
+
+
+def prepare_run(dataset: Path, out: Path, config: TrainConfig, resume: bool) -> dict[str, Any]:
+    """Check the dataset and the run folder before any work; write run.json."""
+    manifest = load_manifest(dataset)
+    if config.resolution > manifest["resolution"]:
+        raise TrainingError(
+            f"--resolution {config.resolution} is above the dataset's {manifest['resolution']}.",
+            f"train at {manifest['resolution']} or below, or capture at a higher resolution.",
+        )
+    run = {
+        "config": config.to_json(),
+        "dataset": str(Path(dataset).resolve()),
+        "dataset_checksum": manifest["checksum"],
+        "joints": manifest["joints"],
+    }
+    run_file = out / RUN_FILE
+    if run_file.exists():
+        existing = json.loads(run_file.read_text())
+        if not resume:
+            raise TrainingError(
+                f"{out} already holds a training run.",
+                "pass --resume to continue it, or choose a new --out.",
+            )
+        if existing != json.loads(json.dumps(run)):
+            differs = sorted(k for k in run if existing.get(k) != json.loads(json.dumps(run))[k])
+            raise TrainingError(
+                f"{out} holds a run with other settings or another dataset ({', '.join(differs)}).",
+                "resume with the original options, or choose a new --out.",
+            )
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+        run_file.write_text(json.dumps(run, indent=2) + "\n")
+    return manifest
+
+
+def train(
+    dataset: str | Path,
+    out: str | Path,
+    config: TrainConfig,
+    *,
+    steps: int | None = None,
+    minutes: float | None = None,
+    resume: bool = False,
+    progress: bool = True,
+) -> TrainResult:
+    """Train Rig2Image on a capture dataset (see the module doc)."""
+    dataset, out = Path(dataset), Path(out)
+    prepare_run(dataset, out, config, resume)
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed)
+    samples = SampleSet(dataset, "train", config.resolution)
+    held_out = SampleSet(dataset, "heldout-views", config.resolution)
+    if len(samples) == 0:
+        raise TrainingError(
+            f"{dataset} has no training samples.", "capture with some non-held-out views."
+        )
+    model = Rig2Image(Shape(len(samples.joints)), config)
+    if config.channels_last:
+        model = model.to(memory_format=torch.channels_last)
+    start, optimizer = 0, make_optimizer(model, config)
+    checkpoint_path = out / CHECKPOINT
+    if resume and checkpoint_path.exists():
+        state = load_checkpoint(checkpoint_path)
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        torch.set_rng_state(state["torch_rng"])
+        start = int(state["step"])
+    total = config.total_steps() if steps is None else min(steps, config.total_steps())
+    deadline = time.monotonic() + 60 * minutes if minutes else math.inf
+    prefetch = Prefetcher(samples, config.batch, config.seed)
+    log = (out / "log.jsonl").open("a")
+    bar = tqdm(
+        initial=start,
+        total=total,
+        unit="step",
+        disable=not progress,
+        file=sys.stderr,
+        dynamic_ncols=True,
+    )
+    step, stopped, last_loss, t0 = start, "done", math.nan, time.monotonic()
+    last_good = checkpoint_path if checkpoint_path.exists() else None
+    try:
+        while step < total:
+            if time.monotonic() > deadline:
+                stopped = "time budget"
+                break
+            where = schedule(config, step)
+            if where.first_step_of_level and step > start:
+                # A new block joins: fresh optimizer state (the paper resets per level).
+                optimizer = make_optimizer(model, config)
+            batch = _to_torch(prefetch.get(step), config.channels_last)
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=config.bf16):
+                heads = model(batch["rig"], where.resolution)
+                loss, terms = total_loss(heads, batch, where.alpha, config)
+            if not torch.isfinite(loss):
+                raise TrainingError(
+                    f"The loss became {float(loss)} at step {step} (level {where.resolution}x"
+                    f"{where.resolution}, alpha {where.alpha:.2f}); training stopped. Last good "
+                    f"checkpoint: {last_good or 'none yet'}.",
+                    "lower --lr, or resume from the last good checkpoint with --resume.",
+                )
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            if config.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+            optimizer.step()
+            step += 1
+            last_loss = float(loss.detach())
+            elapsed = time.monotonic() - t0
+            rate = (step - start) * config.batch / max(elapsed, 1e-9)
+            bar.set_postfix(loss=f"{last_loss:.4f}", res=where.resolution, img_s=f"{rate:.1f}")
+            bar.update(1)
+            record: dict[str, Any] = {
+                "step": step,
+                "loss": last_loss,
+                **terms,
+                "alpha": where.alpha,
+                "resolution": where.resolution,
+            }
+            if step % config.eval_every == 0 or step == total:
+                record["heldout"] = _preview(
+                    model,
+                    held_out if len(held_out) else samples,
+                    where.resolution,
+                    out / "previews" / f"level_{where.resolution}.png",
+                )
+            log.write(json.dumps(record) + "\n")
+            if step % config.checkpoint_every == 0 or step == total:
+                last_good = save_checkpoint(out, model, optimizer, step, where.level)
+    except KeyboardInterrupt:
+        stopped = "interrupted"
+    finally:
+        bar.close()
+        log.close()
+        prefetch.close()
+    if stopped != "done" or steps is not None:
+        if stopped == "done":
+            stopped = "step budget"
+        if step > start and torch.isfinite(torch.tensor(last_loss)):
+            save_checkpoint(out, model, optimizer, step, schedule(config, max(step - 1, 0)).level)
+    seconds = time.monotonic() - t0
+    return TrainResult(
+        out, step, seconds, stopped, last_loss, (step - start) * config.batch / max(seconds, 1e-9)
+    )
+
+
+def build_model(run_folder: Path) -> tuple[Rig2Image, dict[str, Any], int]:
+    """The trained model of a run folder, its run.json, and the step it reached."""
+    run = json.loads((run_folder / RUN_FILE).read_text())
+    config = TrainConfig.from_json(run["config"])
+    model = Rig2Image(Shape(len(run["joints"])), replace(config, channels_last=False))
+    state = load_checkpoint(run_folder / CHECKPOINT)
+    model.load_state_dict(state["model"])
+    model.eval()
+    return model, run, int(state["step"])
