@@ -72,6 +72,12 @@ def run_train(args: argparse.Namespace) -> int:
         f"trained {result.step} steps in {result.seconds:.0f} s ({result.images_per_second:.1f} images/s), "
         f"stopped: {result.stopped}, last loss {result.last_loss:.4f}"
     )
+    if result.stopped == "interrupted":
+        print(
+            f"checkpoint saved in {out / TRAINING}; continue with the same command and --resume "
+            "(no bundle exported from an interrupted run)"
+        )
+        return 130
     manifest = export_bundle(out / TRAINING, out, int8=not args.no_int8)
     size = sum(v["bytes"] for v in manifest["files"].values())
     print(f"exported {len(manifest['files'])} graphs ({size / 2**20:.1f} MiB) to {out}")

@@ -292,3 +292,69 @@ def test_held_out_clips_are_seen_from_training_views_only(tmp_path):
     result = capture(previs, "/World/Hero", tmp_path / "ds", overrides, progress=False)
     counts = result.manifest["counts"]
     assert (counts["heldout-clips"], counts["train"], counts["heldout-views"]) == (240, 0, 0)
+
+
+def _variant(text_edit, name: str) -> Path:
+    """A copy of the CesiumMan scene beside it (same asset paths) with `text_edit` applied."""
+    scene = SCENE.parent / f".{name}_{os.getpid()}.usda"
+    scene.write_text(text_edit(SCENE.read_text()))
+    return scene
+
+
+def test_z_up_stage_gives_the_same_parameters(tmp_path, dataset):
+    # Z up, the character turned +90 degrees about X (its Y becomes Z): the ring's up axis and
+    # front (-Y) turn the same way, so every view sees exactly what it saw on the Y-up stage.
+    scene = _variant(
+        lambda t: t.replace('upAxis = "Y"', 'upAxis = "Z"').replace(
+            "        rel rigspace:skeleton",
+            "        float xformOp:rotateX = 90\n"
+            '        uniform token[] xformOpOrder = ["xformOp:rotateX"]\n'
+            "        rel rigspace:skeleton",
+        ),
+        "zup",
+    )
+    try:
+        z_up = capture(scene, CHARACTER, tmp_path / "zup", SMALL, workers=1, progress=False)
+    finally:
+        scene.unlink()
+    assert z_up.settings.up_axis == "Z"
+    with np.load(dataset.folder / ds.PARAMS_FILE) as a, np.load(z_up.folder / ds.PARAMS_FILE) as b:
+        assert np.abs(a["rig"] - b["rig"]).max() < ROTATION_TOLERANCE
+        first_a, first_b = (
+            read_exr(dataset.folder / str(a["path"][0])),
+            read_exr(z_up.folder / str(b["path"][0])),
+        )
+    assert np.abs(first_a.mask - first_b.mask).mean() < IMAGE_TOLERANCE
+
+
+def test_centimetre_stage_scales_depth_not_parameters(tmp_path, dataset):
+    # The same character on a centimetre stage (scaled x100, ring radius x100): parameters
+    # and masks are unchanged, depth is in the stage's units (x100).
+    scene = _variant(
+        lambda t: (
+            t.replace("metersPerUnit = 1", "metersPerUnit = 0.01")
+            .replace("rigspace:captureRing:radius = 3", "rigspace:captureRing:radius = 300")
+            .replace("clippingRange = (0.05, 100)", "clippingRange = (5, 10000)")
+            .replace(
+                "        rel rigspace:skeleton",
+                "        float3 xformOp:scale = (100, 100, 100)\n"
+                '        uniform token[] xformOpOrder = ["xformOp:scale"]\n'
+                "        rel rigspace:skeleton",
+            )
+        ),
+        "cm",
+    )
+    try:
+        cm = capture(scene, CHARACTER, tmp_path / "cm", SMALL, workers=1, progress=False)
+    finally:
+        scene.unlink()
+    assert cm.settings.meters_per_unit == pytest.approx(0.01)
+    with np.load(dataset.folder / ds.PARAMS_FILE) as a, np.load(cm.folder / ds.PARAMS_FILE) as b:
+        assert np.abs(a["rig"] - b["rig"]).max() < ROTATION_TOLERANCE
+        metres, centimetres = (
+            read_exr(dataset.folder / str(a["path"][3])),
+            read_exr(cm.folder / str(b["path"][3])),
+        )
+    both = (metres.mask == 1) & (centimetres.mask == 1)
+    assert np.array_equal(metres.mask > 0, centimetres.mask > 0)
+    assert np.allclose(centimetres.depth[both], 100 * metres.depth[both], rtol=1e-3)

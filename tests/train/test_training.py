@@ -235,3 +235,28 @@ def test_presets_are_consistent():
             and config.levels()[-1] == config.resolution
         )
         assert TrainConfig.from_json(config.to_json()) == config
+
+
+def test_ctrl_c_stops_with_a_usable_checkpoint(tmp_path, tiny_dataset):
+    import os
+    import signal
+    import time
+
+    out = tmp_path / "model"
+    cmd = [sys.executable, "-m", "rigspace.sdk", "train", str(tiny_dataset), "--out", str(out),
+           "--preset", "tiny", "--steps-per-level", "100000"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    log_file = out / "training" / "log.jsonl"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        if log_file.exists() and len(log_file.read_text().splitlines()) >= 30:
+            break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130, stderr
+    assert "stopped: interrupted" in stdout and "--resume" in stdout
+    state = torch.load(out / "training" / loop.CHECKPOINT, weights_only=True)
+    assert state["step"] >= 30
+    assert not (out / "manifest.json").exists()
+    assert os.path.getsize(log_file) > 0
