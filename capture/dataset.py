@@ -31,6 +31,7 @@ import numpy as np
 
 from rigspace.capture.ring import HELDOUT_CLIPS, HELDOUT_VIEWS, SPLITS, TRAIN, RingView
 from rigspace.capture.settings import CaptureSettings, Clip
+from rigspace.sdk.errors import RigspaceError
 
 FORMAT = "rigspace.dataset"
 FORMAT_VERSION = 1
@@ -40,6 +41,42 @@ PARAMS_FILE = "params.npz"
 CONTACT_SHEET = "contact_sheet.png"
 ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
 """The earliest time a zip entry can carry: every archive entry gets it."""
+
+
+class DatasetError(RigspaceError):
+    """A dataset folder that cannot be read as asked."""
+
+
+def read_manifest(folder: str | Path) -> dict[str, Any]:
+    """A finished dataset's manifest, checked: the one reader that training and eval share."""
+    folder = Path(folder)
+    fix = "point at a dataset folder written by `rigspace capture SCENE --out DIR`."
+    if not folder.is_dir():
+        raise DatasetError(f"Dataset folder {folder} does not exist.", fix)
+    for name in (MANIFEST_FILE, PARAMS_FILE):
+        if not (folder / name).is_file():
+            raise DatasetError(
+                f"{folder} has no {name}, so it is not a finished dataset.",
+                f"{fix} An interrupted capture finishes with `rigspace capture ... --resume`.",
+            )
+    try:
+        manifest = json.loads((folder / MANIFEST_FILE).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DatasetError(
+            f"{folder / MANIFEST_FILE} is not readable JSON ({exc}).",
+            "re-run `rigspace capture ... --resume` to rewrite it.",
+        ) from exc
+    if not isinstance(manifest, dict) or (
+        manifest.get("format"),
+        manifest.get("format_version"),
+    ) != (FORMAT, FORMAT_VERSION):
+        found = manifest if not isinstance(manifest, dict) else manifest.get("format")
+        raise DatasetError(
+            f"{folder / MANIFEST_FILE} is not a {FORMAT} manifest of version {FORMAT_VERSION} "
+            f"(found {found!r}).",
+            "re-capture the dataset with this version of rigspace.",
+        )
+    return manifest
 
 
 @dataclass(frozen=True)

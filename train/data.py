@@ -8,21 +8,16 @@ look-at joint in units of the dataset's `depth_scale` (below), 0 where empty.
 
 from __future__ import annotations
 
-import json
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from rigspace.capture.dataset import DatasetError, read_manifest
 from rigspace.capture.exr import read_exr
-from rigspace.sdk.errors import RigspaceError
 
 SPLITS = ("train", "heldout-views", "heldout-clips")
-
-
-class DatasetError(RigspaceError):
-    """A dataset folder that training cannot use."""
 
 
 def depth_scale(manifest: dict[str, Any]) -> float:
@@ -34,31 +29,6 @@ def depth_scale(manifest: dict[str, Any]) -> float:
     """
     ring = manifest["ring"]
     return float(ring["radius"] * (ring["horizontal_aperture"] / 2.0) / ring["focal_length"])
-
-
-def load_manifest(folder: Path) -> dict[str, Any]:
-    path = Path(folder) / "manifest.json"
-    if not path.is_file():
-        raise DatasetError(
-            f"{folder} has no manifest.json, so it is not a finished capture dataset.",
-            "run `rigspace capture` into it (add --resume if it was interrupted).",
-        )
-    try:
-        manifest = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DatasetError(
-            f"{path} is not readable JSON ({exc}).",
-            "re-run `rigspace capture --resume` to rewrite it.",
-        ) from exc
-    if manifest.get("format") != "rigspace.dataset" or manifest.get("format_version") != 1:
-        raise DatasetError(
-            f"{path} is not a rigspace dataset manifest (format {manifest.get('format')!r}, "
-            f"version {manifest.get('format_version')!r}).",
-            "point at a folder written by `rigspace capture`.",
-        )
-    if not (Path(folder) / "params.npz").is_file():
-        raise DatasetError(f"{folder} has no params.npz.", "re-run `rigspace capture --resume`.")
-    return manifest
 
 
 def area_downsample(x: np.ndarray, factor: int) -> np.ndarray:
@@ -100,7 +70,7 @@ class SampleSet:
         self.folder = Path(folder)
         if split not in SPLITS:
             raise DatasetError(f"Unknown split {split!r}.", f"use one of {', '.join(SPLITS)}.")
-        self.manifest = load_manifest(self.folder)
+        self.manifest = read_manifest(self.folder)
         with np.load(self.folder / "params.npz", allow_pickle=False) as table:
             self.rows = np.flatnonzero(table["split"] == SPLITS.index(split))
             self.rig = table["rig"].reshape(len(table["rig"]), -1).astype(np.float32)

@@ -13,10 +13,9 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from rigspace.capture.dataset import FORMAT, FORMAT_VERSION, MANIFEST_FILE, PARAMS_FILE
+from rigspace.capture.dataset import PARAMS_FILE, DatasetError, read_manifest
 from rigspace.capture.exr import ExrError, read_exr
 from rigspace.capture.ring import SPLITS, TRAIN
-from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.render import Maps
 from rigspace.train.metrics import MASK_THRESHOLD, METRICS, map_metrics
 
@@ -37,10 +36,6 @@ NORMAL_ERROR_RANGE_DEG = 45.0
 """Normal angle error shown full scale."""
 DISPLAY_GAMMA = 1 / 2.2
 """Albedo is linear; a display gamma makes dark albedo readable in the PNG (display only)."""
-
-
-class DatasetError(RigspaceError):
-    """A dataset folder or split that cannot be evaluated as asked."""
 
 
 class Predictor(Protocol):
@@ -66,30 +61,7 @@ class DatasetTable:
 
     def __init__(self, folder: str | Path) -> None:
         self.folder = Path(folder)
-        fix = "point at a dataset folder written by `rigspace capture SCENE --out DIR`."
-        if not self.folder.is_dir():
-            raise DatasetError(f"Dataset folder {self.folder} does not exist.", fix)
-        for name in (MANIFEST_FILE, PARAMS_FILE):
-            if not (self.folder / name).is_file():
-                raise DatasetError(
-                    f"{self.folder} has no {name}, so it is not a finished dataset.",
-                    f"{fix} An interrupted capture finishes with `rigspace capture ... --resume`.",
-                )
-        try:
-            self.manifest: dict[str, Any] = json.loads((self.folder / MANIFEST_FILE).read_text())
-        except (OSError, ValueError) as exc:
-            raise DatasetError(
-                f"{self.folder / MANIFEST_FILE} cannot be read: {exc}.", fix
-            ) from exc
-        if self.manifest.get("format") != FORMAT or self.manifest.get("format_version") != (
-            FORMAT_VERSION
-        ):
-            raise DatasetError(
-                f"{self.folder / MANIFEST_FILE} is not a {FORMAT} manifest of version "
-                f"{FORMAT_VERSION} (format {self.manifest.get('format')!r}, version "
-                f"{self.manifest.get('format_version')!r}).",
-                "re-capture the dataset with this version of rigspace.",
-            )
+        self.manifest: dict[str, Any] = read_manifest(self.folder)
         self._params = np.load(self.folder / PARAMS_FILE, allow_pickle=False)
         self._columns: dict[str, np.ndarray] = {}
 

@@ -35,8 +35,9 @@ import numpy as np
 import torch
 from torch import nn
 
+from rigspace.capture.dataset import read_manifest
 from rigspace.sdk.bundle import FORMAT, FORMAT_VERSION
-from rigspace.train.data import SampleSet, depth_scale, load_manifest
+from rigspace.train.data import SampleSet, depth_scale
 from rigspace.train.loop import build_model
 from rigspace.train.network import Rig2Image, albedo_maps, geometry_maps
 
@@ -155,7 +156,7 @@ def export_bundle(
     run_folder, out = Path(run_folder), Path(out)
     model, run, step = build_model(run_folder)
     dataset = Path(run["dataset"])
-    data_manifest = load_manifest(dataset)
+    data_manifest = read_manifest(dataset)
     out.mkdir(parents=True, exist_ok=True)
     rig_calibration = features_calibration = None
     if int8:

@@ -26,9 +26,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from rigspace.capture.dataset import read_manifest
 from rigspace.sdk.errors import RigspaceError
 from rigspace.train.config import TrainConfig
-from rigspace.train.data import Prefetcher, SampleSet, load_manifest
+from rigspace.train.data import Prefetcher, SampleSet
 from rigspace.train.loss import targets_for, total_loss
 from rigspace.train.network import Rig2Image, Shape, albedo_maps, geometry_maps
 
@@ -148,7 +149,7 @@ def _preview(model, samples: SampleSet, resolution: int, path: Path) -> dict[str
 
 def prepare_run(dataset: Path, out: Path, config: TrainConfig, resume: bool) -> dict[str, Any]:
     """Check the dataset and the run folder before any work; write run.json."""
-    manifest = load_manifest(dataset)
+    manifest = read_manifest(dataset)
     if config.resolution > manifest["resolution"]:
         raise TrainingError(
             f"--resolution {config.resolution} is above the dataset's {manifest['resolution']}.",
