@@ -1,0 +1,111 @@
+"""UsdLux lights at a time code and the deferred shading shared by characters and prims."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pxr import Gf, Usd, UsdGeom, UsdLux
+
+from rigspace.runtime.lights import AMBIENT, DISTANT, POINT, scene_lights
+from rigspace.runtime.shading import SPECULAR, shade
+from rigspace.sdk.camera import Camera
+from tests.conftest import REPO
+
+SHADE_TOLERANCE = 1e-5
+
+
+def stage(meters_per_unit: float = 1.0) -> Usd.Stage:
+    s = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageMetersPerUnit(s, meters_per_unit)
+    UsdGeom.SetStageUpAxis(s, "Y")
+    return s
+
+
+def test_distant_light_shines_along_its_minus_z_with_exposure_and_color():
+    s = stage()
+    sun = UsdLux.DistantLight.Define(s, "/Sun")
+    sun.CreateIntensityAttr(2.0)
+    sun.CreateExposureAttr(1.0)
+    sun.CreateColorAttr(Gf.Vec3f(1.0, 0.5, 0.25))
+    sun.AddRotateXOp().Set(-90.0)  # -Z turned to point down
+    (light,) = scene_lights(s, 0)
+    assert light.kind == DISTANT
+    assert np.allclose(light.direction, [0, -1, 0], atol=1e-6)
+    assert np.allclose(light.radiance, [4.0, 2.0, 1.0])
+
+
+def test_lights_follow_time_samples_and_visibility():
+    s = stage()
+    lamp = UsdLux.SphereLight.Define(s, "/Lamp")
+    lamp.CreateRadiusAttr(0.5)
+    lamp.CreateIntensityAttr().Set(1.0, 0)
+    lamp.GetIntensityAttr().Set(3.0, 10)
+    op = lamp.AddTranslateOp()
+    op.Set(Gf.Vec3d(0, 0, 0), 0)
+    op.Set(Gf.Vec3d(0, 4, 0), 10)
+    (at_10,) = scene_lights(s, 10)
+    assert at_10.kind == POINT and np.allclose(at_10.position, [0, 4, 0])
+    assert np.allclose(at_10.radiance, 3.0) and at_10.area == pytest.approx(np.pi * 0.25)
+    UsdGeom.Imageable(lamp.GetPrim()).MakeInvisible()
+    assert scene_lights(s, 10) == []
+    UsdLux.DomeLight.Define(s, "/Sky").CreateIntensityAttr(0.2)
+    (sky,) = scene_lights(s, 0)
+    assert sky.kind == AMBIENT and np.allclose(sky.radiance, 0.2)
+
+
+def test_previs_scene_lights():
+    s = Usd.Stage.Open(str(REPO / "samples" / "scenes" / "previs.usda"))
+    kinds = sorted(light.kind for light in scene_lights(s, 0))
+    assert kinds == [DISTANT, POINT]
+
+
+def facing_plane(depth: float = 2.0, size: int = 8):
+    """A camera at the origin looking down -Z at a plane facing it."""
+    camera = Camera(np.eye(4), size, size, focal_length=50.0, horizontal_aperture=20.0)
+    albedo = np.full((size, size, 3), 0.5, np.float32)
+    normal = np.zeros((size, size, 3), np.float32)
+    normal[..., 2] = 1.0
+    return (
+        albedo,
+        normal,
+        np.full((size, size), depth, np.float32),
+        np.ones((size, size), np.float32),
+        camera,
+    )
+
+
+def test_head_on_distant_light_is_albedo_times_radiance_plus_a_highlight():
+    albedo, normal, depth, mask, camera = facing_plane()
+    s = stage()
+    UsdLux.DistantLight.Define(s, "/Sun").CreateIntensityAttr(2.0)  # shines along -Z: head on
+    lit = shade(albedo, normal, depth, mask, camera, scene_lights(s, 0))
+    centre = lit[4, 4]
+    # n.l = 1 and n.h ~ 1 near the centre: diffuse 0.5 * 2, specular ~ 0.04 * 2.
+    assert np.allclose(centre, 0.5 * 2 + SPECULAR * 2, atol=2e-3)
+
+
+def test_no_lights_is_black_and_coverage_scales_everything():
+    albedo, normal, depth, mask, camera = facing_plane()
+    assert np.all(shade(albedo, normal, depth, mask, camera, []) == 0)
+    s = stage()
+    UsdLux.DomeLight.Define(s, "/Sky").CreateIntensityAttr(1.0)
+    half = shade(albedo * 0.5, normal, depth, mask * 0.5, camera, scene_lights(s, 0))
+    assert np.allclose(half, 0.25, atol=SHADE_TOLERANCE)  # premultiplied in, premultiplied out
+
+
+@pytest.mark.parametrize("meters_per_unit", [1.0, 0.01])
+def test_point_light_falls_off_with_the_square_and_ignores_units(meters_per_unit):
+    unit = 1.0 / meters_per_unit  # one metre in scene units
+    results = []
+    for distance_m in (1.0, 2.0):
+        albedo, normal, depth, mask, camera = facing_plane(depth=3.0 * unit)
+        s = stage(meters_per_unit)
+        lamp = UsdLux.SphereLight.Define(s, "/Lamp")
+        lamp.CreateRadiusAttr(0.1 * unit)
+        lamp.CreateIntensityAttr(100.0)
+        lamp.AddTranslateOp().Set(Gf.Vec3d(0, 0, -(3.0 - distance_m) * unit))
+        results.append(shade(albedo, normal, depth, mask, camera, scene_lights(s, 0))[4, 4])
+    near, far = results
+    assert np.allclose(near / far, 4.0, rtol=0.05)
+    expected = 0.5 * 100 * np.pi * 0.01 / 1.0  # albedo * radiance * area / d^2, metres
+    assert np.allclose(near, expected, rtol=0.06)
