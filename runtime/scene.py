@@ -1,0 +1,199 @@
+"""The scene's other prims as renderer meshes: UsdGeom gprims tessellated and placed at a time.
+
+Mesh, Cube, Sphere, Cylinder, Cone, Capsule and Plane are supported, coloured by their
+UsdPreviewSurface diffuse colour or texture, else displayColor (rigspace.sdk.geometry).
+Prims under a neural character are its source asset and are not drawn (the network draws
+the character). Invisible prims and prims whose purpose is guide or proxy are skipped. A
+prim whose world transform and points did not change since the last call returns the very
+same DrawMesh, so renderers reuse what they uploaded and the engine can tell that nothing
+moved.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pxr import Usd, UsdGeom
+
+from rigspace.sdk import schema
+from rigspace.sdk.geometry import MeshSource, read_albedo, read_mesh_source
+from rigspace.sdk.render import DrawMesh, vertex_normals
+
+SEGMENTS = 48
+"""Around the axis of spheres, cylinders, cones and capsules."""
+RINGS = 24
+"""Along the axis of spheres and capsule caps."""
+DRAWN_PURPOSES = (UsdGeom.Tokens.default_, UsdGeom.Tokens.render)
+
+
+def _axis_frame(axis: str) -> np.ndarray:
+    """Columns map local (x, y, z) with the shape's axis along local Z onto the prim's axis."""
+    if axis == "X":
+        return np.array([[0, 0, 1], [1, 0, 0], [0, 1, 0]], dtype=np.float64)
+    if axis == "Y":
+        return np.array([[0, 1, 0], [0, 0, 1], [1, 0, 0]], dtype=np.float64)
+    return np.eye(3)
+
+
+def _grid(rings: int, segments: int, profile_z: np.ndarray, profile_r: np.ndarray):
+    """A surface of revolution about Z from a profile (z, r) of rings + 1 samples."""
+    phi = np.linspace(0, 2 * np.pi, segments, endpoint=False)
+    points = np.stack(
+        [
+            profile_r[:, None] * np.cos(phi)[None, :],
+            profile_r[:, None] * np.sin(phi)[None, :],
+            np.broadcast_to(profile_z[:, None], (rings + 1, segments)),
+        ],
+        axis=-1,
+    ).reshape(-1, 3)
+    i, j = np.mgrid[:rings, :segments]
+    a = i * segments + j
+    b = i * segments + (j + 1) % segments
+    c, d = a + segments, b + segments
+    triangles = np.concatenate([np.stack([a, b, d], -1), np.stack([a, d, c], -1)]).reshape(-1, 3)
+    return points, triangles
+
+
+def _cap(points: np.ndarray, ring: np.ndarray, z: float, up: bool):
+    """A fan closing a ring of point indices at height z, on copies of the ring's points so
+    the cap's edge stays sharp in shading."""
+    copies = np.arange(len(points), len(points) + len(ring))
+    centre = len(points) + len(ring)
+    points = np.vstack([points, points[ring], [[0.0, 0.0, z]]])
+    ring = copies
+    nxt = np.roll(ring, -1)
+    fan = (
+        np.stack([np.full_like(ring, centre), ring, nxt], -1)
+        if up
+        else np.stack([np.full_like(ring, centre), nxt, ring], -1)
+    )
+    return points, fan
+
+
+def tessellate(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[np.ndarray, np.ndarray]:
+    """Local-space (points, triangles) of an implicit UsdGeom shape."""
+    if prim.IsA(UsdGeom.Cube):
+        h = float(UsdGeom.Cube(prim).GetSizeAttr().Get(time)) / 2
+        corners = np.array([[x, y, z] for x in (-h, h) for y in (-h, h) for z in (-h, h)])
+        faces = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+        # Flat shading needs its own vertices per face.
+        points = np.concatenate([corners[list(f)] for f in faces])
+        quads = np.arange(24).reshape(6, 4)
+        triangles = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+        return points, triangles
+    if prim.IsA(UsdGeom.Sphere):
+        r = float(UsdGeom.Sphere(prim).GetRadiusAttr().Get(time))
+        theta = np.linspace(np.pi, 0, RINGS + 1)
+        points, triangles = _grid(RINGS, SEGMENTS, r * np.cos(theta), r * np.sin(theta))
+        return points, triangles
+    if prim.IsA(UsdGeom.Plane):
+        plane = UsdGeom.Plane(prim)
+        w = float(plane.GetWidthAttr().Get(time)) / 2
+        length = float(plane.GetLengthAttr().Get(time)) / 2
+        # The plane's normal is its axis; width along the next axis, length along the one after.
+        local = np.array([[-w, -length, 0], [w, -length, 0], [w, length, 0], [-w, length, 0]])
+        frame = _axis_frame(str(plane.GetAxisAttr().Get(time)))
+        return local @ frame.T, np.array([[0, 1, 2], [0, 2, 3]])
+    for kind in (UsdGeom.Cylinder, UsdGeom.Cone, UsdGeom.Capsule):
+        if prim.IsA(kind):
+            shape = kind(prim)
+            r = float(shape.GetRadiusAttr().Get(time))
+            h = float(shape.GetHeightAttr().Get(time)) / 2
+            frame = _axis_frame(str(shape.GetAxisAttr().Get(time)))
+            if kind is UsdGeom.Capsule:
+                cap = np.linspace(np.pi, np.pi / 2, RINGS // 2 + 1)
+                z = np.concatenate([-h + r * np.cos(cap), (h - r * np.cos(cap))[::-1]])
+                rad = np.concatenate([r * np.sin(cap), (r * np.sin(cap))[::-1]])
+                points, triangles = _grid(len(z) - 1, SEGMENTS, z, rad)
+                return points @ frame.T, triangles
+            top_r = 0.0 if kind is UsdGeom.Cone else r
+            points, triangles = _grid(1, SEGMENTS, np.array([-h, h]), np.array([r, top_r]))
+            ring = np.arange(SEGMENTS)
+            points, bottom = _cap(points, ring, -h, up=False)
+            caps = [bottom]
+            if top_r > 0:
+                points, top = _cap(points, ring + SEGMENTS, h, up=True)
+                caps.append(top)
+            return points @ frame.T, np.concatenate([triangles, *caps])
+    raise TypeError(f"{prim.GetPath()} ({prim.GetTypeName()}) is not a supported gprim")
+
+
+SHAPES = (
+    UsdGeom.Cube,
+    UsdGeom.Sphere,
+    UsdGeom.Plane,
+    UsdGeom.Cylinder,
+    UsdGeom.Cone,
+    UsdGeom.Capsule,
+)
+
+
+@dataclass
+class _Cached:
+    key: bytes
+    mesh: DrawMesh
+
+
+class SceneGeometry:
+    """The stage's drawable prims other than neural characters, posed per time code."""
+
+    def __init__(self, stage: Usd.Stage) -> None:
+        self.stage = stage
+        characters = [str(p.GetPath()) for p in schema.neural_characters(stage)]
+        self.prims: list[Usd.Prim] = []
+        for prim in stage.Traverse():
+            path = str(prim.GetPath())
+            if any(path == c or path.startswith(c + "/") for c in characters):
+                continue
+            if prim.IsA(UsdGeom.Mesh) or any(prim.IsA(t) for t in SHAPES):
+                self.prims.append(prim)
+        self._sources: dict[str, MeshSource] = {}
+        self._cache: dict[str, _Cached] = {}
+
+    def _drawn(self, prim: Usd.Prim, time: Usd.TimeCode) -> bool:
+        imageable = UsdGeom.Imageable(prim)
+        return (
+            imageable.ComputeVisibility(time) != UsdGeom.Tokens.invisible
+            and imageable.ComputePurpose() in DRAWN_PURPOSES
+        )
+
+    def meshes(self, time: float) -> list[DrawMesh]:
+        """World-space meshes at `time`; unchanged prims give the same DrawMesh object."""
+        when = Usd.TimeCode(time)
+        xf_cache = UsdGeom.XformCache(when)
+        out = []
+        for prim in self.prims:
+            if not self._drawn(prim, when):
+                continue
+            path = str(prim.GetPath())
+            to_world = np.array(xf_cache.GetLocalToWorldTransform(prim), dtype=np.float64).T
+            if prim.IsA(UsdGeom.Mesh):
+                points_attr = UsdGeom.Mesh(prim).GetPointsAttr()
+                moving = points_attr.ValueMightBeTimeVarying()
+                source = self._sources.get(path)
+                if source is None or moving:
+                    source = read_mesh_source(prim, when)
+                    self._sources[path] = source
+                local, triangles = source.rest_points, source.triangles
+            else:
+                local_pts, tris = tessellate(prim, when)
+                local, triangles = local_pts.astype(np.float32), tris.astype(np.int32)
+                moving = False
+            key = to_world.tobytes() + (local.tobytes() if moving else b"")
+            cached = self._cache.get(path)
+            if cached is not None and cached.key == key:
+                out.append(cached.mesh)
+                continue
+            world = (local @ to_world[:3, :3].T + to_world[:3, 3]).astype(np.float32)
+            if prim.IsA(UsdGeom.Mesh):
+                mesh = self._sources[path].draw_mesh(world, vertex_normals(world, triangles))
+            else:
+                albedo = read_albedo(prim)
+                color = albedo.color if albedo.color.ndim == 1 else albedo.color.mean(axis=0)
+                mesh = DrawMesh(
+                    world, triangles, vertex_normals(world, triangles), color=color, name=path
+                )
+            self._cache[path] = _Cached(key, mesh)
+            out.append(mesh)
+        return out
