@@ -101,3 +101,11 @@ def tiny_scene(tmp_path: Path):
         return write_tiny_scene(tmp_path, **kwargs)
 
     return make
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory) -> Path:
+    """A 64-sample CesiumMan dataset at 32x32, captured once per session (tests/train/conftest.py)."""
+    from tests.train.conftest import captured_dataset
+
+    return captured_dataset(tmp_path_factory)

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import pytest
-
 from rigspace.capture.pipeline import capture
 from rigspace.capture.settings import CaptureOverrides
 from tests.conftest import REPO
@@ -30,8 +28,3 @@ def captured_dataset(tmp_path_factory) -> Path:
         capture(SCENE, CHARACTER, out, TINY, workers=1, progress=False)
         _captured["tiny"] = out
     return _captured["tiny"]
-
-
-@pytest.fixture(scope="session")
-def tiny_dataset(tmp_path_factory) -> Path:
-    return captured_dataset(tmp_path_factory)

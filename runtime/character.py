@@ -1,0 +1,172 @@
+"""One neural character per frame: pose -> rig parameters -> network -> maps in the frame.
+
+The steps of the paper's scene composition, for one character and one camera:
+1. joint world rotations at time t from the stage (CharacterRig), in the model's joint
+   order; a live source may pass its own local transforms instead (the seam);
+2. the billboard at the look-at joint (runtime/billboard.py) and the virtual camera C R;
+3. rig parameters q^ in that frame, 6D; the smallest level of detail that covers the
+   billboard's on-screen size; only the branches the frame needs;
+4. the maps warped into the frame through the billboard's homography, mask-aware:
+   albedo stays premultiplied, normals and depth are warped premultiplied by coverage
+   and divided back, so empty pixels never bleed in; normals rotated by R into the
+   render camera's frame; depth = the billboard plane plus the network's offset.
+Only the billboard's screen bounding box is computed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from pxr import Usd, Vt
+
+from rigspace.runtime.billboard import Billboard, TrainingView, place
+from rigspace.sdk import schema
+from rigspace.sdk.camera import Camera
+from rigspace.sdk.errors import SceneError
+from rigspace.sdk.model import BundleModel
+from rigspace.sdk.posing import CharacterRig
+from rigspace.sdk.rotations import rig_parameters
+
+COVERAGE_EPSILON = 1e-4
+"""Warped coverage below this counts as empty (divisions by coverage are guarded by it)."""
+
+
+@dataclass
+class Layer:
+    """A character's maps in a frame region [y0:y0+h, x0:x0+w]; albedo is premultiplied."""
+
+    x0: int
+    y0: int
+    albedo: np.ndarray | None
+    mask: np.ndarray
+    depth: np.ndarray | None
+    normal: np.ndarray | None
+    level: int
+    branches: tuple[str, ...]
+    info: dict = field(default_factory=dict)
+
+
+def joint_order(model_joints: list[str], skeleton_joints: list[str], where: str) -> np.ndarray:
+    """Indices into the skeleton's joints of the model's joints, or a SceneError naming the missing."""
+    order, missing = [], []
+    for name in model_joints:
+        try:
+            order.append(schema.find_joint(name, skeleton_joints))
+        except schema.JointLookupError:
+            missing.append(name)
+    if missing:
+        raise SceneError(
+            f"{where}: the model reads joints the skeleton lacks: {', '.join(missing)}.",
+            "bind the skeleton the model was trained on, or retrain on this skeleton.",
+        )
+    return np.asarray(order)
+
+
+class NeuralCharacter:
+    """A RigspaceNeuralCharacter prim with its loaded model, evaluated per frame."""
+
+    def __init__(self, prim: Usd.Prim, model: BundleModel) -> None:
+        self.prim = prim
+        self.path = str(prim.GetPath())
+        self.model = model
+        self.rig = CharacterRig(prim)
+        raw = model.manifest.raw
+        self.order = joint_order(model.joints, self.rig.joints, f"Neural character {self.path}")
+        self.look_at = schema.find_joint(
+            raw.get("look_at_joint") or self.rig.joints[0], self.rig.joints
+        )
+        tc = raw["training_camera"]
+        self.view = TrainingView(tc["distance"], tc["focal_length"], tc["horizontal_aperture"])
+        self.training_resolution = int(tc.get("resolution", max(model.resolutions)))
+
+    def pose(self, time: float, local: Vt.Matrix4dArray | None = None) -> np.ndarray:
+        """(J, 4, 4) joint-to-world transforms at `time` (from `local` when a source gives it)."""
+        world = self.rig.world_transforms(time, local)
+        if not np.all(np.isfinite(world)):
+            raise SceneError(
+                f"Neural character {self.path}: the animation gives NaN or Inf joint transforms at "
+                f"time {time:g}.",
+                "fix the SkelAnimation's values at that time (or the live source's data).",
+            )
+        return world
+
+    def place(self, world: np.ndarray, camera: Camera) -> Billboard:
+        scale = float(np.cbrt(abs(np.linalg.det(world[self.look_at][:3, :3]))))
+        # Joint scale is the character's own world scale (the rig has no joint scaling).
+        return place(world[self.look_at][:3, 3], camera, self.view, scale)
+
+    def parameters(self, world: np.ndarray, billboard: Billboard, camera: Camera) -> np.ndarray:
+        virtual = np.eye(4)
+        virtual[:3, :3] = billboard.virtual_camera_to_world(camera)
+        return rig_parameters(world[self.order], virtual).reshape(1, -1)
+
+    def evaluate(
+        self,
+        world: np.ndarray,
+        billboard: Billboard,
+        camera: Camera,
+        branches: tuple[str, ...],
+        level: int | None = None,
+    ) -> Layer:
+        """The character's maps in the frame, for a visible billboard."""
+        level = level or self.model.level_for(billboard.size_px)
+        rig = self.parameters(world, billboard, camera)
+        out = self.model.predict(rig, level, branches)
+        return self.resample(out, billboard, camera, level, branches, world)
+
+    def resample(
+        self, out, billboard: Billboard, camera: Camera, level: int, branches, world
+    ) -> Layer:
+        out = {name: value[0] for name, value in out.items()}  # the batch of one
+        lo = np.floor(billboard.corners.min(axis=0)).astype(int)
+        hi = np.ceil(billboard.corners.max(axis=0)).astype(int)
+        x0, y0 = max(lo[0], 0), max(lo[1], 0)
+        x1, y1 = min(hi[0], camera.width), min(hi[1], camera.height)
+        w, h = max(x1 - x0, 1), max(y1 - y0, 1)
+        shift = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1]], dtype=np.float64)
+        homography = shift @ billboard.homography(level)
+
+        def warp(image: np.ndarray) -> np.ndarray:
+            """(C, R, R) network map -> (h, w, C) frame region; pixel centres at +0.5."""
+            hwc = np.ascontiguousarray(np.moveaxis(image, 0, -1), dtype=np.float32)
+            # OpenCV maps pixel centres at integer coordinates; ours sit at +0.5.
+            centre = np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1]])
+            matrix = np.linalg.inv(centre) @ homography @ centre
+            warped = cv2.warpPerspective(
+                hwc,
+                matrix,
+                (w, h),
+                flags=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=0,
+            )
+            return warped.reshape(h, w, -1)
+
+        mask = None
+        albedo = depth = normal = None
+        if "geometry" in branches:
+            coverage = warp(out["mask"])[..., 0]
+            mask = np.clip(coverage, 0.0, 1.0)
+            weight = np.maximum(coverage, COVERAGE_EPSILON)[..., None]
+            has = coverage > COVERAGE_EPSILON
+            normal_v = warp(out["normal"] * out["mask"]) / weight
+            normal_r = normal_v @ billboard.rotation.T  # virtual camera frame -> render frame
+            length = np.linalg.norm(normal_r, axis=-1, keepdims=True)
+            normal = np.where(has[..., None], normal_r / np.maximum(length, COVERAGE_EPSILON), 0.0)
+            scale = billboard.side / self.view.side
+            offset = warp(out["depth"] * out["mask"])[..., 0] / weight[..., 0]
+            offset = offset * self.model.depth_scale * scale
+            full_offset = np.zeros((camera.height, camera.width), np.float32)
+            full_offset[y0 : y0 + h, x0 : x0 + w] = offset
+            plane = billboard.plane_depth(camera, full_offset)[y0 : y0 + h, x0 : x0 + w]
+            depth = np.where(has, plane, np.inf).astype(np.float32)
+            normal = normal.astype(np.float32)
+        if "albedo" in branches:
+            albedo = np.clip(warp(out["albedo"]), 0.0, 1.0)
+        if mask is None:
+            # Coverage comes from the geometry branch in bundle format 1, so every frame runs it
+            # (an albedo-branch alpha head, letting unlit frames skip geometry, is planned).
+            raise ValueError("the geometry branch (it carries the mask) is needed in every frame")
+        return Layer(x0, y0, albedo, mask.astype(np.float32), depth, normal, level, tuple(branches))
