@@ -90,8 +90,8 @@ TRAIN_COMMAND = CommandSpec(
     description=(
         "Train the Rig2Image network progressively (16x16 first, then one block at a time with a\n"
         "linear fade-in) on a dataset from `rigspace capture`, then export the model bundle:\n"
-        "one ONNX graph per (branch, level), static int8 variants, manifest.json. Ctrl-C stops\n"
-        "with a usable checkpoint; --resume continues exactly."
+        "a shared trunk graph and one ONNX graph per (branch, level), static int8 variants,\n"
+        "manifest.json. Ctrl-C stops with a usable checkpoint; --resume continues exactly."
     ),
     add_arguments=add_train_arguments,
     run=run_train,
@@ -113,6 +113,9 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--errors", help="folder for error-map images of the worst samples")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument(
+        "--record", action="store_true", help="store the model's metrics in the bundle manifest"
+    )
 
 
 def run_eval(args: argparse.Namespace) -> int:
@@ -121,19 +124,43 @@ def run_eval(args: argparse.Namespace) -> int:
 
     table = DatasetTable(Path(args.dataset))
     predictors = [BundlePredictor(Path(args.model), table, int8=args.int8)]
-    if not args.no_baselines:
+    if args.split == "heldout-clips" and not args.no_baselines:
+        # Held-out clips were never captured from training views: nothing to interpolate.
+        print(
+            "note: the captured-view baselines need training views of the same frame; a "
+            "held-out clip has none, so only the model is measured",
+            file=sys.stderr,
+        )
+    elif not args.no_baselines:
         from rigspace.train.baselines import BaselinePredictor
 
         predictors += [
             BaselinePredictor(Path(args.dataset), kind) for kind in ("nearest", "linear")
         ]
     result = compare(predictors, table, args.split, limit=args.limit or None, out_dir=args.errors)
+    if args.record:
+        record_metrics(Path(args.model), args.split, "int8" if args.int8 else "fp32", result)
     if args.json:
         json.dump(result, sys.stdout, indent=2, default=float)
         sys.stdout.write("\n")
     else:
         print(format_table(result))
     return 0
+
+
+def record_metrics(model: Path, split: str, precision: str, result: dict) -> None:
+    """Write the evaluation's aggregated rows into the bundle manifest's metrics."""
+    import os
+
+    from rigspace.train.evaluate import to_json
+
+    path = model / "manifest.json"
+    manifest = json.loads(path.read_text())
+    rows = json.loads(to_json({"samples": result["samples"], "rows": result["rows"]}))
+    manifest.setdefault("metrics", {}).setdefault(split, {})[precision] = rows
+    tmp = path.with_name(f".manifest.json.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
+    os.replace(tmp, path)
 
 
 EVAL_COMMAND = CommandSpec(
