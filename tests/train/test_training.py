@@ -206,11 +206,16 @@ def test_bundle_errors(bundle, tmp_path):
 def test_eval_command(bundle, tiny_dataset, tmp_path, capsys):
     from rigspace.sdk.cli import main
 
-    assert main(["eval", str(bundle), str(tiny_dataset), "--errors", str(tmp_path / "err")]) == 0
+    copy = tmp_path / "bundle"
+    shutil.copytree(bundle, copy)
+    args = ["eval", str(copy), str(tiny_dataset), "--errors", str(tmp_path / "err"), "--record"]
+    assert main(args) == 0
     out = capsys.readouterr().out
     for name in ("| model |", "| nearest |", "| linear |"):
         assert name in out
     assert list((tmp_path / "err").glob("model_*worst0*.png"))
+    recorded = json.loads((copy / "manifest.json").read_text())["metrics"]["heldout-views"]["fp32"]
+    assert recorded["samples"] == 32 and recorded["rows"][0]["predictor"] == "model"
 
 
 def test_model_runner_imports_no_torch(bundle):
