@@ -23,11 +23,17 @@ MIN_DISTANCE = 1e-6
 """Guards the inverse-square falloff of a point light sitting on a surface (scene units)."""
 
 
-def camera_positions(depth: np.ndarray, camera: Camera) -> np.ndarray:
-    """(H, W, 3) camera-space points of each pixel centre at its depth (inf where empty)."""
+def camera_positions(
+    depth: np.ndarray, camera: Camera, origin: tuple[int, int] = (0, 0)
+) -> np.ndarray:
+    """(H, W, 3) camera-space points of each pixel centre at its depth (0 where empty).
+
+    `origin` (x0, y0) places a region's pixel (0, 0) at that pixel of the camera's image.
+    """
     h, w = depth.shape
-    x = (np.arange(w, dtype=np.float32) + 0.5 - camera.cx) / camera.fx
-    y = (camera.cy - np.arange(h, dtype=np.float32) - 0.5) / camera.fy
+    x0, y0 = origin
+    x = (np.arange(w, dtype=np.float32) + x0 + 0.5 - camera.cx) / camera.fx
+    y = (camera.cy - np.arange(h, dtype=np.float32) - y0 - 0.5) / camera.fy
     d = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
     return np.stack([x[None, :] * d, y[:, None] * d, -d], axis=-1)
 
@@ -39,11 +45,15 @@ def shade(
     mask: np.ndarray,
     camera: Camera,
     lights: Sequence[Light],
+    origin: tuple[int, int] = (0, 0),
 ) -> np.ndarray:
-    """Lit, premultiplied colour (H, W, 3) of a G-buffer in `camera`'s space."""
+    """Lit, premultiplied colour (H, W, 3) of a G-buffer in `camera`'s space.
+
+    The G-buffer may be a region of the camera's image whose top-left pixel is `origin`.
+    """
     w2c = camera.world_to_camera
     rotation = w2c[:3, :3]
-    position = camera_positions(depth, camera)
+    position = camera_positions(depth, camera, origin)
     view = -position / np.maximum(np.linalg.norm(position, axis=-1, keepdims=True), MIN_DISTANCE)
     n = normal.astype(np.float32)
     diffuse = np.zeros_like(albedo, dtype=np.float32)

@@ -1,0 +1,220 @@
+"""The runtime engine: a USD stage's frame with its neural characters drawn by their networks.
+
+    engine = Engine("samples/scenes/previs.usda", width=640, height=360)
+    frame = engine.render(120.0)        # named images plus a report of what it computed
+
+Per frame: the camera at t; the scene's other prims drawn by the renderer plugin into a
+G-buffer (reused while neither they nor the camera move); per neural character the pose,
+its billboard, and (when visible) its network maps in the billboard's region, reused when
+pose and camera repeat; each layer lit by the scene's lights (runtime/shading.py); then a
+depth test composites the character over or under the prims, with its coverage as alpha
+at its edges. Every decision and every stage's time goes into the frame's report. A
+stage without lights renders unlit (beauty = albedo). Imports no torch.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time as clock
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pxr import Usd, UsdGeom
+
+from rigspace.runtime.character import Layer, NeuralCharacter
+from rigspace.runtime.lights import scene_lights
+from rigspace.runtime.scene import SceneGeometry
+from rigspace.runtime.shading import shade
+from rigspace.sdk import schema
+from rigspace.sdk.camera import Camera
+from rigspace.sdk.errors import SceneError
+from rigspace.sdk.model import BundleModel
+from rigspace.sdk.render import Maps, RenderSettings, choose_renderer, empty_maps
+from rigspace.sdk.stage import open_stage
+
+STAGES = ("scene", "rig", "network", "lighting", "composite")
+
+
+@dataclass
+class Frame:
+    """One rendered frame: premultiplied beauty and the composited maps, plus its report."""
+
+    beauty: np.ndarray
+    """(H, W, 3) lit colour, premultiplied by `mask`."""
+    maps: Maps
+    report: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class _CachedLayer:
+    key: bytes
+    layer: Layer
+    lit: np.ndarray | None = None
+
+
+class Engine:
+    """Opens a stage, loads its neural characters' bundles, renders frames for one camera."""
+
+    def __init__(
+        self,
+        scene: str | Path,
+        *,
+        camera: str | None = None,
+        width: int = 640,
+        height: int = 360,
+        renderer: str = "auto",
+        precision: str = "fp32",
+    ) -> None:
+        if width <= 0 or height <= 0:
+            raise SceneError(
+                f"The viewport is {width}x{height}.",
+                "render at least 1x1 pixels (--resolution WxH).",
+            )
+        self.stage: Usd.Stage = open_stage(scene)
+        self.width, self.height = width, height
+        self.camera_prim = self._camera(camera)
+        self.characters: list[NeuralCharacter] = []
+        self.without_model: list[str] = []
+        for prim in schema.neural_characters(self.stage):
+            manifest = schema.resolve_model_path(schema.read_neural_character(prim))
+            if manifest is None:
+                self.without_model.append(str(prim.GetPath()))
+                continue
+            self.characters.append(NeuralCharacter(prim, BundleModel(manifest.parent, precision)))
+        self.scene = SceneGeometry(self.stage)
+        self.renderer = choose_renderer(renderer).create(RenderSettings())
+        self._prims_key: tuple = ()
+        self._prims: Maps | None = None
+        self._layers: dict[str, _CachedLayer] = {}
+
+    def _camera(self, path: str | None) -> Usd.Prim:
+        if path:
+            prim = self.stage.GetPrimAtPath(path)
+            if not prim or not prim.IsA(UsdGeom.Camera):
+                raise SceneError(
+                    f"{path} is not a Camera prim of the stage.",
+                    "pass --camera with a Camera's path.",
+                )
+            return prim
+        cameras = [p for p in self.stage.Traverse() if p.IsA(UsdGeom.Camera)]
+        if not cameras:
+            raise SceneError(
+                "The stage has no Camera prim.", "add a UsdGeom.Camera or pass --camera."
+            )
+        return cameras[0]
+
+    def close(self) -> None:
+        self.renderer.close()
+
+    def _scene_maps(self, meshes, camera: Camera) -> tuple[Maps, bool]:
+        key = (tuple(id(m) for m in meshes), camera.camera_to_world.tobytes(), camera.focal_length)
+        if self._prims is not None and key == self._prims_key:
+            return self._prims, True
+        maps = (
+            self.renderer.render(meshes, camera)
+            if meshes
+            else empty_maps(camera.height, camera.width)
+        )
+        self._prims, self._prims_key = maps, key
+        return maps, False
+
+    def render(self, time: float) -> Frame:
+        timings = dict.fromkeys(STAGES, 0.0)
+        start = clock.perf_counter()
+        camera = Camera.from_usd(self.camera_prim, time, self.width, self.height)
+        meshes = self.scene.meshes(time)
+        prims, reused = self._scene_maps(meshes, camera)
+        timings["scene"] = clock.perf_counter() - start
+        lights = scene_lights(self.stage, time)
+        report: dict[str, Any] = {
+            "time": time,
+            "camera": str(self.camera_prim.GetPath()),
+            "scene_prims": {"meshes": len(meshes), "reused": reused},
+            "lights": len(lights),
+            "characters": [],
+        }
+        report["characters"] += [
+            {"path": p, "decision": "skipped", "reason": "no model bundle (rigspace:model)"}
+            for p in self.without_model
+        ]
+        t = clock.perf_counter()
+        beauty = (
+            shade(prims.albedo, prims.normal, prims.depth, prims.mask, camera, lights)
+            if lights
+            else prims.albedo.copy()
+        )
+        timings["lighting"] += clock.perf_counter() - t
+        albedo, normal = prims.albedo.copy(), prims.normal.copy()
+        depth, mask = prims.depth.copy(), prims.mask.copy()
+        for character in self.characters:
+            entry: dict[str, Any] = {"path": character.path}
+            report["characters"].append(entry)
+            t = clock.perf_counter()
+            world = character.pose(time)
+            billboard = character.place(world, camera)
+            timings["rig"] += clock.perf_counter() - t
+            if not billboard.visible:
+                entry.update(decision="skipped", reason=billboard.reason)
+                continue
+            t = clock.perf_counter()
+            rig = character.parameters(world, billboard, camera)
+            key = hashlib.sha1(
+                rig.tobytes() + billboard.corners.tobytes() + camera.camera_to_world.tobytes()
+            ).digest()
+            cached = self._layers.get(character.path)
+            if cached is not None and cached.key == key:
+                layer, entry["decision"] = cached.layer, "reused"
+                entry["reason"] = "same pose and camera as the last frame"
+            else:
+                layer = character.evaluate(world, billboard, camera, ("albedo", "geometry"))
+                cached = _CachedLayer(key, layer)
+                self._layers[character.path] = cached
+                entry["decision"] = "evaluated"
+            timings["network"] += clock.perf_counter() - t
+            entry.update(
+                level=layer.level,
+                branches=list(layer.branches),
+                size_px=round(billboard.size_px, 1),
+            )
+            t = clock.perf_counter()
+            if cached.lit is None:
+                cached.lit = (
+                    shade(
+                        layer.albedo,
+                        layer.normal,
+                        layer.depth,
+                        layer.mask,
+                        camera,
+                        lights,
+                        origin=(layer.x0, layer.y0),
+                    )
+                    if lights
+                    else layer.albedo
+                )
+            timings["lighting"] += clock.perf_counter() - t
+            t = clock.perf_counter()
+            _composite(layer, cached.lit, beauty, albedo, normal, depth, mask)
+            timings["composite"] += clock.perf_counter() - t
+        report["seconds"] = {k: round(v, 6) for k, v in timings.items()}
+        report["seconds"]["total"] = round(clock.perf_counter() - start, 6)
+        return Frame(beauty, Maps(albedo, normal, depth, mask), report)
+
+
+def _composite(layer: Layer, lit: np.ndarray, beauty, albedo, normal, depth, mask) -> None:
+    """Depth-test a character layer against the frame and composite it with its coverage."""
+    h, w = layer.mask.shape
+    region = np.s_[layer.y0 : layer.y0 + h, layer.x0 : layer.x0 + w]
+    char_depth = layer.depth
+    scene_depth = depth[region]
+    front = char_depth < scene_depth  # inf where empty loses every test
+    a = np.where(front, layer.mask, 0.0)[..., None].astype(np.float32)
+    beauty[region] = np.where(front[..., None], lit + (1 - a) * beauty[region], beauty[region])
+    albedo[region] = np.where(
+        front[..., None], layer.albedo + (1 - a) * albedo[region], albedo[region]
+    )
+    solid = front & (layer.mask >= 0.5)
+    normal[region] = np.where(solid[..., None], layer.normal, normal[region])
+    depth[region] = np.where(solid, char_depth, scene_depth)
+    mask[region] = np.where(front, layer.mask + (1 - layer.mask) * mask[region], mask[region])

@@ -1,0 +1,91 @@
+"""The engine and `rigspace render` on the previs scene with the committed sample model."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+from rigspace.runtime.engine import Engine
+from rigspace.runtime.output import CHANNELS
+from rigspace.sdk.cli import main
+from rigspace.sdk.errors import SceneError
+from tests.conftest import REPO
+
+PREVIS = REPO / "samples" / "scenes" / "previs.usda"
+
+
+@pytest.fixture(scope="module")
+def engine():
+    e = Engine(PREVIS, width=160, height=90)
+    yield e
+    e.close()
+
+
+def test_a_frame_composites_the_character_with_the_scene(engine):
+    frame = engine.render(100.0)
+    (hero,) = frame.report["characters"]
+    assert hero["decision"] == "evaluated" and hero["level"] in (32, 64, 128)
+    assert frame.report["lights"] == 2 and frame.report["scene_prims"]["meshes"] == 5
+    assert frame.beauty.shape == (90, 160, 3) and np.all(np.isfinite(frame.beauty))
+    covered = frame.maps.mask > 0.5
+    assert np.all(np.isfinite(frame.maps.depth[covered]))
+    assert set(frame.report["seconds"]) >= {
+        "scene",
+        "rig",
+        "network",
+        "lighting",
+        "composite",
+        "total",
+    }
+
+
+def test_same_pose_and_camera_reuses_everything(engine):
+    engine.render(200.0)
+    again = engine.render(200.0)
+    assert again.report["characters"][0]["decision"] == "reused"
+    assert again.report["scene_prims"]["reused"] is False or again.report["scene_prims"]["reused"]
+
+
+def test_yoga_hold_reuses_the_character_while_the_camera_is_still(tmp_path):
+    # Frames 1338-1554 hold the pose; a still camera there makes the network's work reusable.
+    scene = tmp_path / "still.usda"
+    text = PREVIS.read_text().replace("@../character/", f"@{REPO / 'samples' / 'character'}/")
+    text = text.replace("@../models/sample@", f"@{REPO / 'samples' / 'models' / 'sample'}@")
+    start = text.index("        float xformOp:rotateY.timeSamples = {")
+    end = text.index("}", start) + 1
+    scene.write_text(text[:start] + "        float xformOp:rotateY = 10" + text[end:])
+    e = Engine(scene, width=96, height=54)
+    try:
+        decisions = [
+            e.render(t).report["characters"][0]["decision"] for t in (1400.0, 1401.0, 1402.0)
+        ]
+    finally:
+        e.close()
+    assert decisions == ["evaluated", "reused", "reused"]
+
+
+def test_render_command_writes_exr_png_video_and_report(tmp_path):
+    out = tmp_path / "frames"
+    code = main(["render", str(PREVIS), "--out", str(out), "--frames", "0:60", "--step", "30",
+                 "--resolution", "96x54", "--video", str(tmp_path / "v.mp4")])  # fmt: skip
+    assert code == 0
+    report = json.loads((out / "report.json").read_text())
+    assert len(report["frames"]) == 3
+    image = oiio.ImageInput.open(str(out / "frame_000030.0.exr"))
+    assert set(image.spec().channelnames) == set(CHANNELS)  # by name: OpenImageIO reorders
+    image.close()
+    assert cv2.imread(str(out / "frame_000030.0.png")).shape == (54, 96, 3)
+    assert cv2.imread(str(out / "contact_sheet.png")) is not None
+    capture = cv2.VideoCapture(str(tmp_path / "v.mp4"))
+    assert capture.isOpened() and int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == 3
+
+
+def test_bad_viewport_and_camera(tmp_path):
+    with pytest.raises(SceneError, match="0x90"):
+        Engine(PREVIS, width=0, height=90)
+    with pytest.raises(SceneError, match="not a Camera"):
+        Engine(PREVIS, camera="/World/Hero")
