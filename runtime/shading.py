@@ -50,14 +50,38 @@ def shade(
     """Lit, premultiplied colour (H, W, 3) of a G-buffer in `camera`'s space.
 
     The G-buffer may be a region of the camera's image whose top-left pixel is `origin`.
+    Only covered pixels are shaded (empty ones are black: premultiplied albedo is 0 there),
+    which halves the cost of a frame whose sky is empty.
     """
-    w2c = camera.world_to_camera
-    rotation = w2c[:3, :3]
-    position = camera_positions(depth, camera, origin)
+    out = np.zeros(albedo.shape, dtype=np.float32)
+    covered = mask > 0
+    if covered.any():
+        position = camera_positions(depth, camera, origin)[covered]
+        out[covered] = shade_pixels(
+            albedo[covered],
+            normal[covered],
+            position,
+            mask[covered],
+            camera.world_to_camera,
+            lights,
+        )
+    return out
+
+
+def shade_pixels(
+    albedo: np.ndarray,
+    normal: np.ndarray,
+    position: np.ndarray,
+    mask: np.ndarray,
+    world_to_camera: np.ndarray,
+    lights: Sequence[Light],
+) -> np.ndarray:
+    """The shading of pixels given as (..., 3) arrays: camera-space position, normal, albedo."""
+    rotation = world_to_camera[:3, :3]
     view = -position / np.maximum(np.linalg.norm(position, axis=-1, keepdims=True), MIN_DISTANCE)
     n = normal.astype(np.float32)
-    diffuse = np.zeros_like(albedo, dtype=np.float32)
-    specular = np.zeros_like(albedo, dtype=np.float32)
+    diffuse = np.zeros(albedo.shape, dtype=np.float32)
+    specular = np.zeros(albedo.shape, dtype=np.float32)
     for light in lights:
         radiance = light.radiance.astype(np.float32)
         if light.kind == AMBIENT:
@@ -67,7 +91,9 @@ def shade(
             to_light = np.broadcast_to(-(rotation @ light.direction).astype(np.float32), n.shape)
             irradiance = np.broadcast_to(radiance, n.shape)
         elif light.kind == POINT:
-            offset = (rotation @ light.position + w2c[:3, 3]).astype(np.float32) - position
+            offset = (rotation @ light.position + world_to_camera[:3, 3]).astype(
+                np.float32
+            ) - position
             distance = np.maximum(np.linalg.norm(offset, axis=-1, keepdims=True), MIN_DISTANCE)
             to_light = offset / distance
             irradiance = radiance * (light.area / distance**2)

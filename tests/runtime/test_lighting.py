@@ -109,3 +109,32 @@ def test_point_light_falls_off_with_the_square_and_ignores_units(meters_per_unit
     assert np.allclose(near / far, 4.0, rtol=0.05)
     expected = 0.5 * 100 * np.pi * 0.01 / 1.0  # albedo * radiance * area / d^2, metres
     assert np.allclose(near, expected, rtol=0.06)
+
+
+def test_shading_only_covered_pixels_equals_shading_every_pixel():
+    from rigspace.runtime.shading import camera_positions, shade_pixels
+
+    rng = np.random.default_rng(0)
+    h, w = 12, 16
+    camera = Camera.look_at(
+        (1, 2, 5), (0, 0, 0), width=w, height=h, focal_length=35, horizontal_aperture=20
+    )
+    mask = (rng.random((h, w)) > 0.4).astype(np.float32) * rng.uniform(0.2, 1, (h, w)).astype(
+        np.float32
+    )
+    albedo = rng.random((h, w, 3)).astype(np.float32) * mask[..., None]
+    normal = rng.normal(size=(h, w, 3)).astype(np.float32)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    depth = np.where(mask > 0, rng.uniform(3, 6, (h, w)), np.inf).astype(np.float32)
+    s = stage()
+    UsdLux.DistantLight.Define(s, "/Sun").CreateIntensityAttr(2.0)
+    lamp = UsdLux.SphereLight.Define(s, "/Lamp")
+    lamp.AddTranslateOp().Set(Gf.Vec3d(1, 1, 1))
+    UsdLux.DomeLight.Define(s, "/Sky").CreateIntensityAttr(0.1)
+    lights = scene_lights(s, 0)
+    fast = shade(albedo, normal, depth, mask, camera, lights)
+    every = shade_pixels(
+        albedo, normal, camera_positions(depth, camera), mask, camera.world_to_camera, lights
+    )
+    assert np.allclose(fast, every, atol=SHADE_TOLERANCE)
+    assert np.all(fast[mask == 0] == 0)
