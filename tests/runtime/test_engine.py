@@ -89,3 +89,21 @@ def test_bad_viewport_and_camera(tmp_path):
         Engine(PREVIS, width=0, height=90)
     with pytest.raises(SceneError, match="not a Camera"):
         Engine(PREVIS, camera="/World/Hero")
+
+
+def test_rendering_a_frame_loads_no_torch():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from rigspace.runtime.engine import Engine\n"
+        f"e = Engine({str(PREVIS)!r}, width=64, height=36)\n"
+        "frame = e.render(10.0)\n"
+        "assert frame.report['characters'][0]['decision'] == 'evaluated'\n"
+        "assert not any(m == 'torch' or m.startswith('torch.') for m in sys.modules), 'torch loaded'\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=False
+    )
+    assert result.returncode == 0, result.stderr
