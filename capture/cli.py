@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from rigspace.sdk.cli import CommandSpec
+from rigspace.sdk.cli import CommandSpec, time_range
 from rigspace.sdk.errors import RigspaceError
 
 DESCRIPTION = """\
@@ -16,14 +16,6 @@ with manifest.json and contact_sheet.png. Flags override the capture ring's valu
 resolved settings are saved. Resumable (--resume, also after kill -9) and shardable
 (--shard i/n: run n processes or machines on one folder, any order).
 """
-
-
-def _frames(text: str) -> tuple[float, float]:
-    try:
-        first, last = (float(x) for x in text.split(":"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not A:B (time codes)") from None
-    return first, last
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     choose = parser.add_mutually_exclusive_group()
     choose.add_argument(
-        "--frames", type=_frames, metavar="A:B", help="capture time codes A to B as one clip"
+        "--frames", type=time_range, metavar="A:B", help="capture time codes A to B as one clip"
     )
     choose.add_argument("--clips", nargs="+", help="capture only these clips of the ring")
     parser.add_argument(

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 
 from rigspace.capture import dataset as ds
-from rigspace.capture.exr import read_exr
+from rigspace.sdk.exr import read_exr
 from rigspace.sdk.render import Maps
 
 ROWS = 6

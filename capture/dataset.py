@@ -2,7 +2,7 @@
 
 Layout of a dataset folder:
     capture.json            resolved CaptureSettings (written first; resume checks it)
-    samples/<clip>/t<time>_v<view>.exr   one EXR per sample (capture/exr.py)
+    samples/<clip>/t<time>_v<view>.exr   one EXR per sample (sdk/exr.py)
     items/<item>.npz        one record per finished work item (written last, atomically)
     params.npz              the parameters table, every sample in dataset order (finalize)
     manifest.json           counts, splits, checksums, settings (finalize)

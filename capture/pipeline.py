@@ -24,13 +24,13 @@ from tqdm import tqdm
 
 from rigspace.capture import dataset as ds
 from rigspace.capture.contact import write_contact_sheet
-from rigspace.capture.exr import write_exr
 from rigspace.capture.settings import (
     CaptureError,
     CaptureOverrides,
     CaptureSettings,
     resolve_settings,
 )
+from rigspace.sdk.exr import write_exr
 from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.render import RenderSettings, choose_renderer
 from rigspace.sdk.rotations import rig_parameters

@@ -8,7 +8,7 @@ import os
 import sys
 from pathlib import Path
 
-from rigspace.sdk.cli import CommandSpec
+from rigspace.sdk.cli import CommandSpec, time_range
 from rigspace.sdk.errors import RigspaceError
 
 DESCRIPTION = """\
@@ -19,14 +19,6 @@ cost and what was skipped or reused, and why). --video adds an mp4; a contact sh
 a few frames is written as contact_sheet.png.
 """
 CONTACT_FRAMES = 6
-
-
-def _frames(text: str) -> tuple[float, float]:
-    try:
-        first, last = (float(x) for x in text.split(":"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not A:B (time codes)") from None
-    return first, last
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -44,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--camera", help="Camera prim path (default: the stage's first camera)")
     parser.add_argument(
-        "--frames", type=_frames, metavar="A:B", help="time codes (default: the stage's range)"
+        "--frames", type=time_range, metavar="A:B", help="time codes (default: the stage's range)"
     )
     parser.add_argument("--step", type=float, default=1.0, help="time codes between frames")
     parser.add_argument("--resolution", type=_resolution, default=(640, 360), metavar="WxH")

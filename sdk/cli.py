@@ -30,6 +30,15 @@ class CommandSpec:
     description: str = ""
 
 
+def time_range(text: str) -> tuple[float, float]:
+    """argparse type for A:B, a range of stage time codes (A and B included)."""
+    try:
+        first, last = (float(x) for x in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not A:B (time codes)") from None
+    return first, last
+
+
 COMMANDS: Kind[CommandSpec] = Kind("command", "rigspace.commands", CommandSpec)
 
 

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
-from rigspace.capture.exr import FORMATS
 from rigspace.capture.ring import TRAIN
+from rigspace.sdk.exr import FORMATS
 from rigspace.sdk.render import Maps
 from rigspace.train.evaluate import DatasetError, DatasetTable
 
@@ -84,7 +84,7 @@ def blend(maps: list[Maps], weights: np.ndarray) -> Maps:
 
 
 def bytes_per_pixel() -> int:
-    """Bytes one pixel of a sample takes at its stored precision (capture/exr.py FORMATS)."""
+    """Bytes one pixel of a sample takes at its stored precision (sdk/exr.py FORMATS)."""
     return int(sum(oiio.TypeDesc(f).size() for f in FORMATS))
 
 

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from rigspace.capture.dataset import DatasetError, read_manifest
-from rigspace.capture.exr import read_exr
+from rigspace.sdk.exr import read_exr
 
 SPLITS = ("train", "heldout-views", "heldout-clips")
 

@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 
 from rigspace.capture.dataset import PARAMS_FILE, DatasetError, read_manifest
-from rigspace.capture.exr import ExrError, read_exr
 from rigspace.capture.ring import SPLITS, TRAIN
+from rigspace.sdk.exr import ExrError, read_exr
 from rigspace.sdk.render import Maps
 from rigspace.train.metrics import MASK_THRESHOLD, METRICS, map_metrics
 
@@ -42,7 +42,7 @@ class Predictor(Protocol):
     """Anything that predicts a dataset's maps from its rows (rig parameters, camera).
 
     `predict` gets row indices into the dataset's params.npz and returns one Maps per row,
-    at the dataset's resolution, in the dataset's conventions (capture/exr.py). A predictor
+    at the dataset's resolution, in the dataset's conventions (sdk/exr.py). A predictor
     may also expose `footprint_bytes: int`, what it keeps in memory to predict (a model:
     the size of its .onnx files; a baseline: its captured maps); tables report it.
     """

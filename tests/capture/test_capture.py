@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 
 from rigspace.capture import dataset as ds
-from rigspace.capture.exr import CHANNELS, read_exr
 from rigspace.capture.pipeline import capture
 from rigspace.capture.settings import CaptureError, CaptureOverrides
 from rigspace.sdk import rotations
 from rigspace.sdk.errors import RigspaceError, SceneError
+from rigspace.sdk.exr import CHANNELS, read_exr
 from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.stage import open_stage
 from tests.conftest import REPO

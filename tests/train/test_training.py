@@ -29,7 +29,8 @@ TINY = preset("tiny")
 
 def test_shapes_at_every_level():
     model = Rig2Image(Shape(19), TINY)
-    heads = model(torch.randn(3, 19 * 6), 32)
+    with torch.no_grad():
+        heads = model(torch.randn(3, 19 * 6), 32)
     assert [h.shape[-1] for h in heads["albedo"]] == [8, 16, 32]
     assert [tuple(h.shape[:2]) for h in heads["geometry"]] == [(3, 5)] * 3
     _depth, normal, mask = geometry_maps(heads["geometry"][-1])

@@ -1,4 +1,4 @@
-"""One multi-channel EXR per sample, named so VFX tools read it: R,G,B,A, Z, N.X/N.Y/N.Z.
+"""Multi-channel EXRs named so VFX tools read them: R,G,B,A, Z, N.X/N.Y/N.Z (capture and runtime).
 
 R,G,B = albedo premultiplied by coverage, A = mask (coverage), Z = camera-space depth
 along -Z in scene units (+inf where empty), N = camera-space unit normals. Channel
@@ -41,18 +41,24 @@ def pack(maps: Maps) -> np.ndarray:
     )
 
 
-def write_exr(
-    path: str | Path, maps: Maps, attributes: dict[str, str | float] | None = None
+def write_channels(
+    path: str | Path,
+    pixels: np.ndarray,
+    channels: tuple[str, ...],
+    formats: tuple,
+    attributes: dict[str, str | float] | None = None,
 ) -> None:
-    """Write the maps to `path` atomically (a temporary file in the same folder, then rename)."""
+    """Write (H, W, C) float pixels as named channels, atomically (temporary file, rename)."""
     path = Path(path)
-    pixels = pack(maps)
+    pixels = np.ascontiguousarray(pixels, dtype=np.float32)
     height, width = pixels.shape[:2]
-    spec = oiio.ImageSpec(width, height, len(CHANNELS), oiio.FLOAT)
-    spec.channelnames = CHANNELS
-    spec.channelformats = FORMATS
-    spec.alpha_channel = CHANNELS.index("A")
-    spec.z_channel = CHANNELS.index("Z")
+    spec = oiio.ImageSpec(width, height, len(channels), oiio.FLOAT)
+    spec.channelnames = channels
+    spec.channelformats = formats
+    if "A" in channels:
+        spec.alpha_channel = channels.index("A")
+    if "Z" in channels:
+        spec.z_channel = channels.index("Z")
     spec.attribute("compression", COMPRESSION)
     spec.attribute("DateTime", DATE_TIME)
     for key, value in (attributes or {}).items():
@@ -69,6 +75,13 @@ def write_exr(
         tmp.unlink(missing_ok=True)
         raise ExrError(f"cannot write {path}: {error}")
     os.replace(tmp, path)
+
+
+def write_exr(
+    path: str | Path, maps: Maps, attributes: dict[str, str | float] | None = None
+) -> None:
+    """Write a sample's maps (CHANNELS, FORMATS) to `path` atomically."""
+    write_channels(path, pack(maps), CHANNELS, FORMATS, attributes)
 
 
 def read_exr(path: str | Path) -> Maps:
