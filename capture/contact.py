@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from rigspace.capture import dataset as ds
+from rigspace.sdk.color import linear_to_srgb
 from rigspace.sdk.exr import read_exr
 from rigspace.sdk.render import Maps
 
@@ -15,11 +16,6 @@ ROWS = 6
 BACKGROUND = 0.08
 """Linear grey behind the premultiplied albedo, dark enough that the silhouette reads."""
 LABEL_HEIGHT = 18
-
-
-def linear_to_srgb(c: np.ndarray) -> np.ndarray:
-    c = np.clip(c, 0.0, 1.0)
-    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
 
 
 def map_tiles(maps: Maps) -> list[np.ndarray]:

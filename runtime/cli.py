@@ -52,9 +52,9 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm import tqdm
 
-    from rigspace.capture.contact import linear_to_srgb
     from rigspace.runtime.engine import Engine
     from rigspace.runtime.output import write_frame_exr
+    from rigspace.sdk.color import linear_to_srgb
 
     out = Path(args.out)
     try:

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 from pxr import Ar, Usd, UsdGeom, UsdShade
 
+from rigspace.sdk.color import srgb_to_linear
 from rigspace.sdk.errors import SceneError
 from rigspace.sdk.render import DEFAULT_COLOR, DrawMesh
 
@@ -92,11 +93,6 @@ def read_texture(asset, color_space: str = "auto") -> np.ndarray:
     if color_space == "sRGB" or (color_space == "auto" and integer):
         image = srgb_to_linear(image)
     return np.ascontiguousarray(image)
-
-
-def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB decoding."""
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
 @dataclass
