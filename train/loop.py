@@ -243,7 +243,7 @@ def train(
                 loss, terms = total_loss(heads, batch, where.alpha, config)
             if not torch.isfinite(loss):
                 raise TrainingError(
-                    f"The loss became {float(loss)} at step {step} (level {where.resolution}x"
+                    f"The loss became {float(loss.detach())} at step {step} (level {where.resolution}x"
                     f"{where.resolution}, alpha {where.alpha:.2f}); training stopped. Last good "
                     f"checkpoint: {last_good or 'none yet'}.",
                     "lower --lr, or resume from the last good checkpoint with --resume.",
