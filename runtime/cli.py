@@ -45,6 +45,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--renderer", default="auto", help="renderer for the scene prims: gl, embree, auto"
     )
     parser.add_argument("--int8", action="store_true", help="evaluate the int8 graphs")
+    parser.add_argument(
+        "--reference",
+        action="store_true",
+        help="also render the real skinned mesh instead of the network; write neural | "
+        "reference | error images and each character region's PSNR",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -68,6 +74,10 @@ def run(args: argparse.Namespace) -> int:
         args.scene, camera=args.camera, width=width, height=height,
         renderer=args.renderer, precision="int8" if args.int8 else "fp32",
     )  # fmt: skip
+    truth = None
+    if args.reference:
+        truth = Engine(args.scene, camera=args.camera, width=width, height=height,
+                       renderer=args.renderer, reference=True)  # fmt: skip
     first, last = args.frames or (engine.stage.GetStartTimeCode(), engine.stage.GetEndTimeCode())
     if args.step <= 0 or last < first:
         raise RigspaceError(
@@ -102,9 +112,15 @@ def run(args: argparse.Namespace) -> int:
                 video.write(png)
             if k in picks:
                 thumbs.append(png)
+            if truth is not None:
+                frame.report["reference"] = compare_with_reference(
+                    frame, truth.render(float(t)), out / f"compare_{t:08.1f}.png"
+                )
             reports.append(frame.report)
     finally:
         engine.close()
+        if truth is not None:
+            truth.close()
         if video is not None:
             video.release()
     cv2.imwrite(str(out / "contact_sheet.png"), contact_sheet(thumbs))
@@ -119,12 +135,51 @@ def run(args: argparse.Namespace) -> int:
     totals = np.array([r["seconds"]["total"] for r in reports])
     evaluated = sum(c["decision"] == "evaluated" for r in reports for c in r["characters"])
     skipped = sum(c["decision"] != "evaluated" for r in reports for c in r["characters"])
+    if truth is not None:
+        scores = [c["psnr"] for r in reports for c in r["reference"] if c["psnr"] is not None]
+        if scores:
+            print(
+                f"reference: character-region beauty PSNR median {np.median(scores):.2f} dB, "
+                f"min {min(scores):.2f} dB over {len(scores)} character frames"
+            )
     print(
         f"rendered {len(reports)} frames at {width}x{height} into {out} "
         f"(median {1e3 * float(np.median(totals)):.1f} ms/frame; characters evaluated {evaluated}, "
         f"skipped or reused {skipped})" + (f"; video {args.video}" if args.video else "")
     )
     return 0
+
+
+def compare_with_reference(frame, truth, path: Path) -> list[dict]:
+    """PSNR of each evaluated character's region (lit beauty) against the reference frame,
+    and an image neural | reference | 4x error."""
+    import cv2
+    import numpy as np
+
+    from rigspace.sdk.color import linear_to_srgb
+
+    results = []
+    for entry in frame.report["characters"]:
+        if "region" not in entry:
+            results.append({"path": entry["path"], "psnr": None, "reason": entry.get("reason", "")})
+            continue
+        x, y, w, h = entry["region"]
+        a = np.clip(frame.beauty[y : y + h, x : x + w], 0, 1)
+        b = np.clip(truth.beauty[y : y + h, x : x + w], 0, 1)
+        mse = float(np.mean((a - b) ** 2))
+        results.append(
+            {
+                "path": entry["path"],
+                "region": entry["region"],
+                "psnr": 10 * np.log10(1 / max(mse, 1e-12)),
+            }
+        )
+    error = np.clip(4 * np.abs(frame.beauty - truth.beauty), 0, 1)
+    row = np.concatenate(
+        [linear_to_srgb(frame.beauty), linear_to_srgb(truth.beauty), error], axis=1
+    )
+    cv2.imwrite(str(path), (row * 255 + 0.5).astype(np.uint8)[..., ::-1])
+    return results
 
 
 def contact_sheet(images: list, columns: int = 3):

@@ -66,7 +66,10 @@ class Engine:
         height: int = 360,
         renderer: str = "auto",
         precision: str = "fp32",
+        reference: bool = False,
     ) -> None:
+        """`reference=True` draws each character's real skinned mesh with the renderer instead
+        of its network (the ground truth that `rigspace render --reference` compares with)."""
         if width <= 0 or height <= 0:
             raise SceneError(
                 f"The viewport is {width}x{height}.",
@@ -83,6 +86,7 @@ class Engine:
                 self.without_model.append(str(prim.GetPath()))
                 continue
             self.characters.append(NeuralCharacter(prim, BundleModel(manifest.parent, precision)))
+        self.reference = reference
         self.scene = SceneGeometry(self.stage)
         self.renderer = choose_renderer(renderer).create(RenderSettings())
         self._prims_key: tuple = ()
@@ -125,6 +129,8 @@ class Engine:
         start = clock.perf_counter()
         camera = Camera.from_usd(self.camera_prim, time, self.width, self.height)
         meshes = self.scene.meshes(time)
+        if self.reference:
+            meshes = meshes + [m for c in self.characters for m in c.rig.posed_meshes(time)]
         prims, reused = self._scene_maps(meshes, camera)
         timings["scene"] = clock.perf_counter() - start
         lights = scene_lights(self.stage, time)
@@ -151,6 +157,9 @@ class Engine:
         for character in self.characters:
             entry: dict[str, Any] = {"path": character.path}
             report["characters"].append(entry)
+            if self.reference:
+                entry.update(decision="reference", reason="the skinned mesh, drawn by the renderer")
+                continue
             t = clock.perf_counter()
             world = character.pose(time)
             billboard = character.place(world, camera)
@@ -177,6 +186,7 @@ class Engine:
                 level=layer.level,
                 branches=list(layer.branches),
                 size_px=round(billboard.size_px, 1),
+                region=[int(layer.x0), int(layer.y0), *map(int, layer.mask.shape[::-1])],
             )
             t = clock.perf_counter()
             if cached.lit is None:
