@@ -15,6 +15,7 @@ stage without lights renders unlit (beauty = albedo). Imports no torch.
 from __future__ import annotations
 
 import hashlib
+import sys
 import time as clock
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -85,7 +86,10 @@ class Engine:
             if manifest is None:
                 self.without_model.append(str(prim.GetPath()))
                 continue
-            self.characters.append(NeuralCharacter(prim, BundleModel(manifest.parent, precision)))
+            model = BundleModel(manifest.parent, precision)
+            if not reference:
+                model.preload()  # a damaged bundle fails here, not in the middle of a sequence
+            self.characters.append(NeuralCharacter(prim, model))
         self.reference = reference
         self.scene = SceneGeometry(self.stage)
         self.renderer = choose_renderer(renderer).create(RenderSettings())
@@ -161,7 +165,14 @@ class Engine:
                 entry.update(decision="reference", reason="the skinned mesh, drawn by the renderer")
                 continue
             t = clock.perf_counter()
-            world = character.pose(time)
+            try:
+                world = character.pose(time)
+            except SceneError as exc:
+                # One bad frame of animation must not end a sequence, nor draw a wrong image:
+                # the character is left out of this frame, loudly.
+                entry.update(decision="skipped", reason=exc.what)
+                print(f"rigspace render: warning: {exc}", file=sys.stderr)
+                continue
             billboard = character.place(world, camera)
             timings["rig"] += clock.perf_counter() - t
             if not billboard.visible:

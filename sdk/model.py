@@ -138,6 +138,13 @@ class BundleModel:
             out.update(self.branch(features, branch, resolution))
         return out
 
+    def preload(self) -> None:
+        """Load every graph now, so a missing or damaged file fails before a sequence starts."""
+        self._session(self._trunk_file)
+        for level in self.levels.values():
+            for name in level.values():
+                self._session(name)
+
     def footprint_bytes(self) -> int:
         files = {self._trunk_file, *(g for level in self.levels.values() for g in level.values())}
         return sum((self.manifest.folder / f).stat().st_size for f in files)

@@ -142,3 +142,39 @@ def test_reference_engine_draws_the_mesh_not_the_network():
     assert frame.report["characters"][0]["decision"] == "reference"
     assert frame.report["scene_prims"]["meshes"] == 6  # five prims and the character's mesh
     assert frame.maps.mask.max() == 1
+
+
+def test_nan_animation_skips_the_character_for_that_frame_only(monkeypatch, capsys):
+    e = Engine(PREVIS, width=64, height=36)
+    try:
+        (hero,) = e.characters
+        real = hero.rig.world_transforms
+
+        def broken(t, local=None):
+            world = real(t, local)
+            return world * np.nan if t == 11.0 else world
+
+        monkeypatch.setattr(hero.rig, "world_transforms", broken)
+        decisions = [e.render(t).report["characters"][0] for t in (10.0, 11.0, 12.0)]
+    finally:
+        e.close()
+    assert [d["decision"] for d in decisions] == ["evaluated", "skipped", "evaluated"]
+    assert "NaN or Inf joint transforms at time 11" in decisions[1]["reason"]
+    assert "warning" in capsys.readouterr().err
+
+
+def test_a_damaged_bundle_fails_before_the_first_frame(tmp_path):
+    import shutil
+
+    from rigspace.sdk.bundle import BundleError
+
+    bundle = tmp_path / "sample"
+    shutil.copytree(
+        REPO / "samples" / "models" / "sample", bundle, ignore=shutil.ignore_patterns("training")
+    )
+    (bundle / "geometry_64.onnx").write_bytes(b"damaged")
+    scene = tmp_path / "scene.usda"
+    text = PREVIS.read_text().replace("@../character/", f"@{REPO / 'samples' / 'character'}/")
+    scene.write_text(text.replace("@../models/sample@", f"@{bundle}@"))
+    with pytest.raises(BundleError, match=r"geometry_64\.onnx cannot be loaded"):
+        Engine(scene, width=64, height=36)
