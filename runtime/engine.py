@@ -96,6 +96,7 @@ class Engine:
         self._prims_key: tuple = ()
         self._prims: Maps | None = None
         self._layers: dict[str, _CachedLayer] = {}
+        self._lit_prims: tuple[bytes, np.ndarray] | None = None
 
     def _camera(self, path: str | None) -> Usd.Prim:
         if path:
@@ -150,11 +151,21 @@ class Engine:
             for p in self.without_model
         ]
         t = clock.perf_counter()
-        beauty = (
-            shade(prims.albedo, prims.normal, prims.depth, prims.mask, camera, lights)
-            if lights
-            else prims.albedo.copy()
+        light_key = b"".join(
+            light.radiance.tobytes() + light.direction.tobytes() + light.position.tobytes()
+            for light in lights
         )
+        lit_reused = reused and self._lit_prims is not None and self._lit_prims[0] == light_key
+        if lit_reused and self._lit_prims is not None:
+            beauty = self._lit_prims[1].copy()  # nothing moved and the lights did not change
+        else:
+            beauty = (
+                shade(prims.albedo, prims.normal, prims.depth, prims.mask, camera, lights)
+                if lights
+                else prims.albedo.copy()
+            )
+            self._lit_prims = (light_key, beauty.copy())
+        report["scene_prims"]["lit_reused"] = lit_reused
         timings["lighting"] += clock.perf_counter() - t
         albedo, normal = prims.albedo.copy(), prims.normal.copy()
         depth, mask = prims.depth.copy(), prims.mask.copy()

@@ -178,3 +178,11 @@ def test_a_damaged_bundle_fails_before_the_first_frame(tmp_path):
     scene.write_text(text.replace("@../models/sample@", f"@{bundle}@"))
     with pytest.raises(BundleError, match=r"geometry_64\.onnx cannot be loaded"):
         Engine(scene, width=64, height=36)
+
+
+def test_a_repeated_frame_reuses_the_lit_scene_too(engine):
+    first = engine.render(300.0)
+    again = engine.render(300.0)
+    assert again.report["scene_prims"] == {"meshes": 5, "reused": True, "lit_reused": True}
+    assert np.array_equal(first.beauty, again.beauty)
+    assert again.report["seconds"]["total"] < first.report["seconds"]["total"]
