@@ -114,11 +114,9 @@ class NeuralCharacter:
         level = level or self.model.level_for(billboard.size_px)
         rig = self.parameters(world, billboard, camera)
         out = self.model.predict(rig, level, branches)
-        return self.resample(out, billboard, camera, level, branches, world)
+        return self.resample(out, billboard, camera, level, branches)
 
-    def resample(
-        self, out, billboard: Billboard, camera: Camera, level: int, branches, world
-    ) -> Layer:
+    def resample(self, out, billboard: Billboard, camera: Camera, level: int, branches) -> Layer:
         out = {name: value[0] for name, value in out.items()}  # the batch of one
         lo = np.floor(billboard.corners.min(axis=0)).astype(int)
         hi = np.ceil(billboard.corners.max(axis=0)).astype(int)

@@ -81,15 +81,18 @@ class Engine:
         self.camera_prim = self._camera(camera)
         self.characters: list[NeuralCharacter] = []
         self.without_model: list[str] = []
+        models: dict[Path, BundleModel] = {}
         for prim in schema.neural_characters(self.stage):
             manifest = schema.resolve_model_path(schema.read_neural_character(prim))
             if manifest is None:
                 self.without_model.append(str(prim.GetPath()))
                 continue
-            model = BundleModel(manifest.parent, precision)
-            if not reference:
-                model.preload()  # a damaged bundle fails here, not in the middle of a sequence
-            self.characters.append(NeuralCharacter(prim, model))
+            folder = manifest.parent.resolve()
+            if folder not in models:  # characters sharing a bundle share its sessions
+                models[folder] = BundleModel(folder, precision)
+                if not reference:
+                    models[folder].preload()  # a damaged bundle fails here, not mid-sequence
+            self.characters.append(NeuralCharacter(prim, models[folder]))
         self.reference = reference
         self.scene = SceneGeometry(self.stage)
         self.renderer = choose_renderer(renderer).create(RenderSettings())
@@ -169,6 +172,10 @@ class Engine:
         timings["lighting"] += clock.perf_counter() - t
         albedo, normal = prims.albedo.copy(), prims.normal.copy()
         depth, mask = prims.depth.copy(), prims.mask.copy()
+        visible: list[tuple[NeuralCharacter, dict, Any, _CachedLayer | None]] = []
+        pending: dict[
+            tuple[int, int], list[tuple[NeuralCharacter, Any, Any, np.ndarray, bytes]]
+        ] = {}
         for character in self.characters:
             entry: dict[str, Any] = {"path": character.path}
             report["characters"].append(entry)
@@ -185,25 +192,39 @@ class Engine:
                 print(f"rigspace render: warning: {exc}", file=sys.stderr)
                 continue
             billboard = character.place(world, camera)
-            timings["rig"] += clock.perf_counter() - t
             if not billboard.visible:
+                timings["rig"] += clock.perf_counter() - t
                 entry.update(decision="skipped", reason=billboard.reason)
                 continue
-            t = clock.perf_counter()
             rig = character.parameters(world, billboard, camera)
+            timings["rig"] += clock.perf_counter() - t
             key = hashlib.sha1(
                 rig.tobytes() + billboard.corners.tobytes() + camera.camera_to_world.tobytes()
             ).digest()
             cached = self._layers.get(character.path)
             if cached is not None and cached.key == key:
-                layer, entry["decision"] = cached.layer, "reused"
-                entry["reason"] = "same pose and camera as the last frame"
-            else:
-                layer = character.evaluate(world, billboard, camera, ("albedo", "geometry"))
-                cached = _CachedLayer(key, layer)
-                self._layers[character.path] = cached
-                entry["decision"] = "evaluated"
-            timings["network"] += clock.perf_counter() - t
+                entry.update(decision="reused", reason="same pose and camera as the last frame")
+                visible.append((character, entry, billboard, cached))
+                continue
+            level = character.model.level_for(billboard.size_px)
+            pending.setdefault((id(character.model), level), []).append(
+                (character, entry, billboard, rig, key)
+            )
+            visible.append((character, entry, billboard, None))
+        # One network call per (model, level): characters sharing a bundle run as one batch.
+        t = clock.perf_counter()
+        for (_, level), group in pending.items():
+            model = group[0][0].model
+            out = model.predict(np.concatenate([g[3] for g in group]), level)
+            for k, (character, entry, billboard, _rig, key) in enumerate(group):
+                mine = {name: value[k : k + 1] for name, value in out.items()}
+                layer = character.resample(mine, billboard, camera, level, ("albedo", "geometry"))
+                self._layers[character.path] = _CachedLayer(key, layer)
+                entry.update(decision="evaluated", batch=len(group))
+        timings["network"] += clock.perf_counter() - t
+        for character, entry, billboard, _ in visible:
+            cached = self._layers[character.path]
+            layer = cached.layer
             entry.update(
                 level=layer.level,
                 branches=list(layer.branches),

@@ -186,3 +186,18 @@ def test_a_repeated_frame_reuses_the_lit_scene_too(engine):
     assert again.report["scene_prims"] == {"meshes": 5, "reused": True, "lit_reused": True}
     assert np.array_equal(first.beauty, again.beauty)
     assert again.report["seconds"]["total"] < first.report["seconds"]["total"]
+
+
+def test_characters_sharing_a_bundle_run_as_one_batch(tmp_path):
+    from rigspace.runtime.bench import crowd_scene
+
+    e = Engine(crowd_scene(tmp_path), width=128, height=72)
+    try:
+        assert len({id(c.model) for c in e.characters}) == 1  # one set of sessions
+        frame = e.render(700.0)
+    finally:
+        e.close()
+    evaluated = [c for c in frame.report["characters"] if c["decision"] == "evaluated"]
+    assert len(frame.report["characters"]) == 4 and evaluated
+    same_level = [c for c in evaluated if c["level"] == evaluated[0]["level"]]
+    assert all(c["batch"] == len(same_level) for c in same_level)
