@@ -93,15 +93,18 @@ class Billboard:
         )
         return cv2.getPerspectiveTransform(src, self.corners.astype(np.float32))
 
-    def plane_depth(self, camera: Camera, depth_offset: np.ndarray) -> np.ndarray:
-        """Render-camera depth of frame pixels given the network's depth offset there.
+    def plane_depth(
+        self, camera: Camera, depth_offset: np.ndarray, origin: tuple[int, int] = (0, 0)
+    ) -> np.ndarray:
+        """Render-camera depth of pixels given the network's depth offset there.
 
-        depth_offset (H, W) is in scene units along the virtual camera's viewing axis,
-        already resampled into the frame (0 outside the billboard).
+        depth_offset (h, w) is in scene units along the virtual camera's viewing axis, already
+        resampled into the frame; it covers the region whose top-left pixel is `origin`.
         """
-        h, w = camera.height, camera.width
-        x = (np.arange(w) + 0.5 - camera.cx) / camera.fx
-        y = (camera.cy - np.arange(h) - 0.5) / camera.fy
+        h, w = depth_offset.shape
+        x0, y0 = origin
+        x = (np.arange(w) + x0 + 0.5 - camera.cx) / camera.fx
+        y = (camera.cy - np.arange(h) - y0 - 0.5) / camera.fy
         rays = np.stack(np.broadcast_arrays(x[None, :], y[:, None], -np.ones((h, w))), axis=-1)
         normal = -self.rotation[:, 2]  # the virtual camera's viewing direction
         # Ray r with r_z = -1 hits the plane n.(X - p) = 0 at X = t r, depth = t.

@@ -156,9 +156,7 @@ class NeuralCharacter:
             scale = billboard.side / self.view.side
             offset = warp(out["depth"] * out["mask"])[..., 0] / weight[..., 0]
             offset = offset * self.model.depth_scale * scale
-            full_offset = np.zeros((camera.height, camera.width), np.float32)
-            full_offset[y0 : y0 + h, x0 : x0 + w] = offset
-            plane = billboard.plane_depth(camera, full_offset)[y0 : y0 + h, x0 : x0 + w]
+            plane = billboard.plane_depth(camera, offset, origin=(x0, y0))
             depth = np.where(has, plane, np.inf).astype(np.float32)
             normal = normal.astype(np.float32)
         if "albedo" in branches:

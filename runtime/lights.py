@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from pxr import Usd, UsdGeom, UsdLux
 
+from rigspace.sdk.camera import from_gf
+
 DISTANT = "distant"
 POINT = "point"
 AMBIENT = "ambient"
@@ -70,19 +72,22 @@ def emitting_area(
     )
 
 
-def scene_lights(stage: Usd.Stage, time: float) -> list[Light]:
-    """Every visible, active UsdLux light of the stage at `time`."""
+def light_prims(stage: Usd.Stage) -> list[Usd.Prim]:
+    """Every UsdLux light prim of the stage (found once; evaluate them per time with lights_at)."""
+    return [prim for prim in stage.Traverse() if prim.HasAPI(UsdLux.LightAPI)]
+
+
+def lights_at(prims: list[Usd.Prim], time: float) -> list[Light]:
+    """The visible lights among `prims` at `time`."""
     when = Usd.TimeCode(time)
     cache = UsdGeom.XformCache(when)
-    meters_per_unit = float(UsdGeom.GetStageMetersPerUnit(stage))
     lights: list[Light] = []
-    for prim in stage.Traverse():
-        if not prim.HasAPI(UsdLux.LightAPI):
-            continue
+    for prim in prims:
         if UsdGeom.Imageable(prim).ComputeVisibility(when) == UsdGeom.Tokens.invisible:
             continue
+        meters_per_unit = float(UsdGeom.GetStageMetersPerUnit(prim.GetStage()))
         radiance = _radiance(UsdLux.LightAPI(prim), when)
-        xf = np.array(cache.GetLocalToWorldTransform(prim), dtype=np.float64).T
+        xf = from_gf(cache.GetLocalToWorldTransform(prim))
         path = str(prim.GetPath())
         if prim.IsA(UsdLux.DistantLight):
             axis = xf[:3, :3] @ np.array([0.0, 0.0, -1.0])
@@ -96,3 +101,8 @@ def scene_lights(stage: Usd.Stage, time: float) -> list[Light]:
         elif prim.IsA(UsdLux.DomeLight):
             lights.append(Light(AMBIENT, radiance, path=path))
     return lights
+
+
+def scene_lights(stage: Usd.Stage, time: float) -> list[Light]:
+    """Every visible, active UsdLux light of the stage at `time`."""
+    return lights_at(light_prims(stage), time)

@@ -17,6 +17,7 @@ import numpy as np
 from pxr import Usd, UsdGeom
 
 from rigspace.sdk import schema
+from rigspace.sdk.camera import from_gf
 from rigspace.sdk.geometry import MeshSource, read_albedo, read_mesh_source
 from rigspace.sdk.render import DrawMesh, vertex_normals
 
@@ -130,6 +131,20 @@ SHAPES = (
 
 
 @dataclass
+class _Static:
+    """What is read once per prim: topology, UVs, albedo, and whether its shape is animated."""
+
+    triangles: np.ndarray
+    local: np.ndarray
+    """(N, 3) float32 local points at the default time (re-read per frame when animated)."""
+    animated: bool
+    source: MeshSource | None = None
+    """Meshes: UVs and albedo to draw with."""
+    color: np.ndarray | None = None
+    """Implicit shapes: their albedo colour."""
+
+
+@dataclass
 class _Cached:
     key: bytes
     mesh: DrawMesh
@@ -148,7 +163,7 @@ class SceneGeometry:
                 continue
             if prim.IsA(UsdGeom.Mesh) or any(prim.IsA(t) for t in SHAPES):
                 self.prims.append(prim)
-        self._sources: dict[str, MeshSource] = {}
+        self._statics: dict[str, _Static] = {}
         self._cache: dict[str, _Cached] = {}
 
     def _drawn(self, prim: Usd.Prim, time: Usd.TimeCode) -> bool:
@@ -157,6 +172,37 @@ class SceneGeometry:
             imageable.ComputeVisibility(time) != UsdGeom.Tokens.invisible
             and imageable.ComputePurpose() in DRAWN_PURPOSES
         )
+
+    def _static(self, prim: Usd.Prim) -> _Static:
+        path = str(prim.GetPath())
+        if path not in self._statics:
+            if prim.IsA(UsdGeom.Mesh):
+                source = read_mesh_source(prim)
+                animated = UsdGeom.Mesh(prim).GetPointsAttr().ValueMightBeTimeVarying()
+                self._statics[path] = _Static(
+                    source.triangles, source.rest_points, animated, source
+                )
+            else:
+                points, triangles = tessellate(prim, Usd.TimeCode.Default())
+                # Size, radius, height... animated: tessellate per frame; transforms are separate.
+                animated = any(
+                    a.ValueMightBeTimeVarying()
+                    for a in prim.GetAuthoredAttributes()
+                    if not a.GetName().startswith("xformOp")
+                )
+                albedo = read_albedo(prim)
+                color = albedo.color if albedo.color.ndim == 1 else albedo.color.mean(axis=0)
+                self._statics[path] = _Static(
+                    triangles.astype(np.int32), points.astype(np.float32), animated, color=color
+                )
+        return self._statics[path]
+
+    def _local_points(self, prim: Usd.Prim, static: _Static, when: Usd.TimeCode) -> np.ndarray:
+        if not static.animated:
+            return static.local
+        if prim.IsA(UsdGeom.Mesh):  # topology and UVs stay as read; points follow the time
+            return np.asarray(UsdGeom.Mesh(prim).GetPointsAttr().Get(when), dtype=np.float32)
+        return tessellate(prim, when)[0].astype(np.float32)
 
     def meshes(self, time: float) -> list[DrawMesh]:
         """World-space meshes at `time`; unchanged prims give the same DrawMesh object."""
@@ -167,33 +213,20 @@ class SceneGeometry:
             if not self._drawn(prim, when):
                 continue
             path = str(prim.GetPath())
-            to_world = np.array(xf_cache.GetLocalToWorldTransform(prim), dtype=np.float64).T
-            if prim.IsA(UsdGeom.Mesh):
-                points_attr = UsdGeom.Mesh(prim).GetPointsAttr()
-                moving = points_attr.ValueMightBeTimeVarying()
-                source = self._sources.get(path)
-                if source is None or moving:
-                    source = read_mesh_source(prim, when)
-                    self._sources[path] = source
-                local, triangles = source.rest_points, source.triangles
-            else:
-                local_pts, tris = tessellate(prim, when)
-                local, triangles = local_pts.astype(np.float32), tris.astype(np.int32)
-                moving = False
-            key = to_world.tobytes() + (local.tobytes() if moving else b"")
+            static = self._static(prim)
+            to_world = from_gf(xf_cache.GetLocalToWorldTransform(prim))
+            local = self._local_points(prim, static, when)
+            key = to_world.tobytes() + (local.tobytes() if static.animated else b"")
             cached = self._cache.get(path)
             if cached is not None and cached.key == key:
                 out.append(cached.mesh)
                 continue
             world = (local @ to_world[:3, :3].T + to_world[:3, 3]).astype(np.float32)
-            if prim.IsA(UsdGeom.Mesh):
-                mesh = self._sources[path].draw_mesh(world, vertex_normals(world, triangles))
+            normals = vertex_normals(world, static.triangles)
+            if static.source is not None:
+                mesh = static.source.draw_mesh(world, normals)
             else:
-                albedo = read_albedo(prim)
-                color = albedo.color if albedo.color.ndim == 1 else albedo.color.mean(axis=0)
-                mesh = DrawMesh(
-                    world, triangles, vertex_normals(world, triangles), color=color, name=path
-                )
+                mesh = DrawMesh(world, static.triangles, normals, color=static.color, name=path)
             self._cache[path] = _Cached(key, mesh)
             out.append(mesh)
         return out

@@ -28,9 +28,9 @@ CV_FROM_USD = np.diag([1.0, -1.0, -1.0])
 """Camera-space axes of the computer-vision convention (x right, y down, z forward) from USD's."""
 
 
-def from_gf(matrix: Gf.Matrix4d | Gf.Matrix4f) -> np.ndarray:
-    """A USD (row-vector) matrix as a numpy 4x4 float64 column-vector matrix."""
-    return np.array(matrix, dtype=np.float64).T.copy()
+def from_gf(matrix) -> np.ndarray:
+    """USD (row-vector) matrices, one or an array of them, as numpy float64 column-vector ones."""
+    return np.swapaxes(np.asarray(matrix, dtype=np.float64), -1, -2).copy()
 
 
 def to_gf(matrix: np.ndarray) -> Gf.Matrix4d:

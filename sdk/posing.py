@@ -6,7 +6,7 @@ rigspace:animationSource, else the skeleton's own binding) through UsdSkel's
 AnimQuery/AnimMapper, so a live source can later replace them before
 `UsdSkel.ConcatJointTransforms` (the seam the runtime uses). Skinning is USD's own
 `SkinningQuery.ComputeSkinnedPoints`. Matrices leave this module as numpy in the
-column-vector convention (p' = M @ p); Gf matrices are row-vector and are transposed here.
+column-vector convention (p' = M @ p); Gf matrices are row-vector (camera.from_gf).
 """
 
 from __future__ import annotations
@@ -17,14 +17,10 @@ import numpy as np
 from pxr import Usd, UsdGeom, UsdSkel, Vt
 
 from rigspace.sdk import schema
+from rigspace.sdk.camera import from_gf
 from rigspace.sdk.errors import SceneError
 from rigspace.sdk.geometry import MeshSource, read_mesh_source
 from rigspace.sdk.render import DrawMesh, vertex_normals
-
-
-def gf_to_np(matrices) -> np.ndarray:
-    """Gf.Matrix4d (or an array of them, row-vector) -> (..., 4, 4) float64 column-vector."""
-    return np.swapaxes(np.asarray(matrices, dtype=np.float64), -1, -2)
 
 
 @dataclass
@@ -64,7 +60,11 @@ class CharacterRig:
         self._rest = self.skeleton.GetRestTransformsAttr().Get()
         self.animation = self._find_animation(info, where)
         self._anim_query = self._cache.GetAnimQuery(UsdSkel.Animation(self.animation))
-        self._mapper = UsdSkel.AnimMapper(self._anim_query.GetJointOrder(), self._topology_joints())
+        self._mapper = UsdSkel.AnimMapper(
+            self._anim_query.GetJointOrder(), self.skeleton.GetJointsAttr().Get()
+        )
+        # Constant per skeleton: inverted once, not per pose.
+        self._bind_inverse = [m.GetInverse() for m in self.skeleton.GetBindTransformsAttr().Get()]
         self._meshes = self._find_meshes(root, where) if root else []
         if not self._meshes:
             raise SceneError(
@@ -72,9 +72,6 @@ class CharacterRig:
                 "SkelRoot with primvars:skel:jointIndices and jointWeights).",
                 "bind the character's meshes to the skeleton with UsdSkelBindingAPI skin weights.",
             )
-
-    def _topology_joints(self):
-        return self.skeleton.GetJointsAttr().Get()
 
     def _find_animation(self, info: schema.NeuralCharacter, where: str) -> Usd.Prim:
         if info.animation_targets:
@@ -131,7 +128,7 @@ class CharacterRig:
     def skeleton_to_world(self, time: float) -> np.ndarray:
         """(4, 4) skeleton-space to world transform at `time`."""
         xf = UsdGeom.XformCache(Usd.TimeCode(time))
-        return gf_to_np(xf.GetLocalToWorldTransform(self.skeleton.GetPrim()))
+        return from_gf(xf.GetLocalToWorldTransform(self.skeleton.GetPrim()))
 
     def skel_transforms(self, local: Vt.Matrix4dArray) -> Vt.Matrix4dArray:
         """Joint transforms in skeleton space from local ones (the live-source seam)."""
@@ -140,16 +137,15 @@ class CharacterRig:
     def world_transforms(self, time: float, local: Vt.Matrix4dArray | None = None) -> np.ndarray:
         """(J, 4, 4) joint-to-world transforms at `time` (from `local` when given)."""
         skel = self.skel_transforms(self.local_transforms(time) if local is None else local)
-        return self.skeleton_to_world(time) @ gf_to_np(skel)
+        return self.skeleton_to_world(time) @ from_gf(skel)
 
     # -- skinned meshes -----------------------------------------------------------------
 
     def posed_meshes(self, time: float, local: Vt.Matrix4dArray | None = None) -> list[DrawMesh]:
         """The character's meshes skinned by UsdSkel at `time`, in world space."""
         skel = self.skel_transforms(self.local_transforms(time) if local is None else local)
-        bind_inverse = [m.GetInverse() for m in self.skeleton.GetBindTransformsAttr().Get()]
         # UsdSkel skinning transforms: inverse(bind) * skel-space joint (row-vector order).
-        skinning = Vt.Matrix4dArray([b * s for b, s in zip(bind_inverse, skel, strict=True)])
+        skinning = Vt.Matrix4dArray([b * s for b, s in zip(self._bind_inverse, skel, strict=True)])
         to_world = self.skeleton_to_world(time)
         meshes = []
         for mesh in self._meshes:

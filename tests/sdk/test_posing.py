@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom, UsdSkel
 
+from rigspace.sdk.camera import from_gf
 from rigspace.sdk.errors import SceneError
 from rigspace.sdk.geometry import read_albedo, read_mesh_source, triangulate
-from rigspace.sdk.posing import CharacterRig, gf_to_np
+from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.stage import open_stage
 from tests.conftest import REPO
 
@@ -40,9 +41,9 @@ def test_rig_matches_usdskel(cesium_rig):
     for time in (1.0, 17.5, 48.0):
         ours = rig.skel_transforms(rig.local_transforms(time))
         usd = rig._skel_query.ComputeJointSkelTransforms(Usd.TimeCode(time))
-        np.testing.assert_allclose(gf_to_np(ours), gf_to_np(usd), atol=1e-9)
+        np.testing.assert_allclose(from_gf(ours), from_gf(usd), atol=1e-9)
         world = rig._skel_query.ComputeJointWorldTransforms(UsdGeom.XformCache(Usd.TimeCode(time)))
-        np.testing.assert_allclose(rig.world_transforms(time), gf_to_np(world), atol=1e-6)
+        np.testing.assert_allclose(rig.world_transforms(time), from_gf(world), atol=1e-6)
 
 
 def test_skinned_points_match_an_independent_lbs(cesium_rig):
@@ -57,10 +58,10 @@ def test_skinned_points_match_an_independent_lbs(cesium_rig):
     joint_order = rig._meshes[0].query.GetJointOrder()
     skel_order = list(rig.skeleton.GetJointsAttr().Get())
     remap = np.array([skel_order.index(j) for j in joint_order]) if joint_order else None
-    bind = gf_to_np(rig.skeleton.GetBindTransformsAttr().Get())
-    skel = gf_to_np(rig.skel_transforms(rig.local_transforms(time)))
+    bind = from_gf(rig.skeleton.GetBindTransformsAttr().Get())
+    skel = from_gf(rig.skel_transforms(rig.local_transforms(time)))
     skinning = skel @ np.linalg.inv(bind)  # column-vector: skel-space joint * inverse bind
-    geom_bind = gf_to_np(binding.GetGeomBindTransformAttr().Get() or np.eye(4))
+    geom_bind = from_gf(binding.GetGeomBindTransformAttr().Get() or np.eye(4))
     rest_h = np.c_[rest, np.ones(len(rest))] @ geom_bind.T
     joint = remap[indices] if remap is not None else indices
     posed = np.einsum("nk,nkij,nj->ni", weights, skinning[joint], rest_h)[:, :3]
