@@ -25,7 +25,7 @@ import numpy as np
 from pxr import Usd, UsdGeom
 
 from rigspace.runtime.character import Layer, NeuralCharacter
-from rigspace.runtime.lights import scene_lights
+from rigspace.runtime.lights import light_prims, lights_at
 from rigspace.runtime.scene import SceneGeometry
 from rigspace.runtime.shading import shade
 from rigspace.sdk import schema
@@ -53,6 +53,8 @@ class _CachedLayer:
     key: bytes
     layer: Layer
     lit: np.ndarray | None = None
+    lit_key: bytes = b""
+    """The lights `lit` was shaded with: lights that change re-light a reused layer."""
 
 
 class Engine:
@@ -95,6 +97,7 @@ class Engine:
             self.characters.append(NeuralCharacter(prim, models[folder]))
         self.reference = reference
         self.scene = SceneGeometry(self.stage)
+        self.light_prims = light_prims(self.stage)
         self.renderer = choose_renderer(renderer).create(RenderSettings())
         self._prims_key: tuple = ()
         self._prims: Maps | None = None
@@ -121,7 +124,7 @@ class Engine:
         self.renderer.close()
 
     def _scene_maps(self, meshes, camera: Camera) -> tuple[Maps, bool]:
-        key = (tuple(id(m) for m in meshes), camera.camera_to_world.tobytes(), camera.focal_length)
+        key = (tuple(id(m) for m in meshes), _camera_key(camera))
         if self._prims is not None and key == self._prims_key:
             return self._prims, True
         maps = (
@@ -141,7 +144,7 @@ class Engine:
             meshes = meshes + [m for c in self.characters for m in c.rig.posed_meshes(time)]
         prims, reused = self._scene_maps(meshes, camera)
         timings["scene"] = clock.perf_counter() - start
-        lights = scene_lights(self.stage, time)
+        lights = lights_at(self.light_prims, time)
         report: dict[str, Any] = {
             "time": time,
             "camera": str(self.camera_prim.GetPath()),
@@ -172,7 +175,7 @@ class Engine:
         timings["lighting"] += clock.perf_counter() - t
         albedo, normal = prims.albedo.copy(), prims.normal.copy()
         depth, mask = prims.depth.copy(), prims.mask.copy()
-        visible: list[tuple[NeuralCharacter, dict, Any, _CachedLayer | None]] = []
+        visible: list[tuple[NeuralCharacter, dict, Any]] = []
         pending: dict[
             tuple[int, int], list[tuple[NeuralCharacter, Any, Any, np.ndarray, bytes]]
         ] = {}
@@ -199,18 +202,18 @@ class Engine:
             rig = character.parameters(world, billboard, camera)
             timings["rig"] += clock.perf_counter() - t
             key = hashlib.sha1(
-                rig.tobytes() + billboard.corners.tobytes() + camera.camera_to_world.tobytes()
+                rig.tobytes() + billboard.corners.tobytes() + _camera_key(camera)
             ).digest()
             cached = self._layers.get(character.path)
             if cached is not None and cached.key == key:
                 entry.update(decision="reused", reason="same pose and camera as the last frame")
-                visible.append((character, entry, billboard, cached))
+                visible.append((character, entry, billboard))
                 continue
             level = character.model.level_for(billboard.size_px)
             pending.setdefault((id(character.model), level), []).append(
                 (character, entry, billboard, rig, key)
             )
-            visible.append((character, entry, billboard, None))
+            visible.append((character, entry, billboard))
         # One network call per (model, level): characters sharing a bundle run as one batch.
         t = clock.perf_counter()
         for (_, level), group in pending.items():
@@ -222,7 +225,7 @@ class Engine:
                 self._layers[character.path] = _CachedLayer(key, layer)
                 entry.update(decision="evaluated", batch=len(group))
         timings["network"] += clock.perf_counter() - t
-        for character, entry, billboard, _ in visible:
+        for character, entry, billboard in visible:
             cached = self._layers[character.path]
             layer = cached.layer
             entry.update(
@@ -232,7 +235,8 @@ class Engine:
                 region=[int(layer.x0), int(layer.y0), *map(int, layer.mask.shape[::-1])],
             )
             t = clock.perf_counter()
-            if cached.lit is None:
+            if cached.lit is None or cached.lit_key != light_key:
+                cached.lit_key = light_key
                 cached.lit = (
                     shade(
                         layer.albedo,
@@ -253,6 +257,21 @@ class Engine:
         report["seconds"] = {k: round(v, 6) for k, v in timings.items()}
         report["seconds"]["total"] = round(clock.perf_counter() - start, 6)
         return Frame(beauty, Maps(albedo, normal, depth, mask), report)
+
+
+def _camera_key(camera: Camera) -> bytes:
+    """Everything about a camera that changes what it sees."""
+    lens = (
+        camera.width,
+        camera.height,
+        camera.fx,
+        camera.fy,
+        camera.cx,
+        camera.cy,
+        camera.near,
+        camera.far,
+    )
+    return camera.camera_to_world.tobytes() + np.asarray(lens, dtype=np.float64).tobytes()
 
 
 def _composite(layer: Layer, lit: np.ndarray, beauty, albedo, normal, depth, mask) -> None:

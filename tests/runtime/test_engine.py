@@ -201,3 +201,33 @@ def test_characters_sharing_a_bundle_run_as_one_batch(tmp_path):
     assert len(frame.report["characters"]) == 4 and evaluated
     same_level = [c for c in evaluated if c["level"] == evaluated[0]["level"]]
     assert all(c["batch"] == len(same_level) for c in same_level)
+
+
+def test_a_reused_character_is_relit_when_a_light_changes(tmp_path, monkeypatch):
+    # The yoga hold with a still camera reuses the character's maps; the sun brightens over
+    # those frames, so the character must be re-lit, not shown with the old light.
+    scene = tmp_path / "still.usda"
+    text = PREVIS.read_text().replace("@../character/", f"@{REPO / 'samples' / 'character'}/")
+    text = text.replace("@../models/sample@", f"@{REPO / 'samples' / 'models' / 'sample'}@")
+    start = text.index("        float xformOp:rotateY.timeSamples = {")
+    end = text.index("}", start) + 1
+    text = text[:start] + "        float xformOp:rotateY = 10" + text[end:]
+    text = text.replace(
+        "            float inputs:intensity = 2.5\n",
+        "            float inputs:intensity.timeSamples = {1400: 1, 1402: 4}\n",
+    )
+    scene.write_text(text)
+    e = Engine(scene, width=96, height=54)
+    try:
+        first, second = e.render(1400.0), e.render(1402.0)
+        layer = e._layers["/World/Hero"].layer
+        assert e._prims is not None
+        x, y, w, h = second.report["characters"][0]["region"]
+        # Only the character's own pixels: covered by it and in front of the prims.
+        hero = (layer.mask > 0.5) & (layer.depth < e._prims.depth[y : y + h, x : x + w])
+    finally:
+        e.close()
+    assert second.report["characters"][0]["decision"] == "reused" and hero.sum() > 20
+    before = first.beauty[y : y + h, x : x + w][hero].mean()
+    after = second.beauty[y : y + h, x : x + w][hero].mean()
+    assert after > 1.5 * before
