@@ -19,8 +19,6 @@ from rigspace.sdk.color import srgb_to_linear
 from rigspace.sdk.errors import SceneError
 from rigspace.sdk.render import DEFAULT_COLOR, DrawMesh
 
-DEFAULT_ALBEDO = DEFAULT_COLOR
-
 
 def triangulate(counts: np.ndarray, indices: np.ndarray, left_handed: bool = False):
     """Fan-triangulate USD polygons.
@@ -141,7 +139,7 @@ def read_albedo(prim: Usd.Prim) -> Albedo:
             if bias and bias.Get() is not None:
                 image = image + np.asarray(bias.Get(), np.float32)[:3]
             return Albedo(
-                color=np.asarray(DEFAULT_ALBEDO, np.float32),
+                color=np.asarray(DEFAULT_COLOR, np.float32),
                 texture=np.ascontiguousarray(image, dtype=np.float32),
                 uv_set=uv_set,
             )
@@ -154,7 +152,7 @@ def read_albedo(prim: Usd.Prim) -> Albedo:
             return Albedo(color=values)
         # constant, uniform and faceVarying colours: their mean (renderers take point colours)
         return Albedo(color=values.mean(axis=0))
-    return Albedo(color=np.asarray(DEFAULT_ALBEDO, np.float32))
+    return Albedo(color=np.asarray(DEFAULT_COLOR, np.float32))
 
 
 @dataclass

@@ -169,8 +169,9 @@ def prepare_run(dataset: Path, out: Path, config: TrainConfig, resume: bool) -> 
                 f"{out} already holds a training run.",
                 "pass --resume to continue it, or choose a new --out.",
             )
-        if existing != json.loads(json.dumps(run)):
-            differs = sorted(k for k in run if existing.get(k) != json.loads(json.dumps(run))[k])
+        wanted = json.loads(json.dumps(run))  # tuples become lists, as on disk
+        if existing != wanted:
+            differs = sorted(k for k in wanted if existing.get(k) != wanted[k])
             raise TrainingError(
                 f"{out} holds a run with other settings or another dataset ({', '.join(differs)}).",
                 "resume with the original options, or choose a new --out.",

@@ -5,7 +5,6 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from importlib import import_module, metadata
 from typing import Any, Protocol
 
 import numpy as np
@@ -240,22 +239,10 @@ RENDERERS: Kind[RendererSpec] = Kind("renderer", "rigspace.renderers", RendererS
 AUTO_ORDER = ("gl", "embree")
 """Preference of choose_renderer("auto"): rasterising first, ray casting as the fallback."""
 
-_BUILTIN = {"gl": "rigspace.sdk.render.gl", "embree": "rigspace.sdk.render.embree"}
-
-
-def _builtin_loader(module: str) -> Callable[[], Any]:
-    return lambda: import_module(module).SPEC
-
 
 def renderer_plugins() -> PluginSet[RendererSpec]:
-    """Every renderer plugin, found with `discover(RENDERERS)`.
-
-    The built-ins are declared as entry points in pyproject.toml; an install whose metadata
-    predates that declaration (an editable install not re-run) still finds them by module.
-    """
-    declared = {ep.name for ep in metadata.entry_points(group=RENDERERS.group)}
-    extra = {n: _builtin_loader(m) for n, m in _BUILTIN.items() if n not in declared}
-    return discover(RENDERERS, extra)
+    """Every renderer plugin (entry-point group rigspace.renderers; the built-ins included)."""
+    return discover(RENDERERS)
 
 
 def choose_renderer(name: str | None = None) -> RendererSpec:
