@@ -101,21 +101,31 @@ def test_rot6d_reconstructs_the_joint_rotations(dataset):
             assert np.abs(decoded - expected).max() < ROTATION_TOLERANCE
 
 
+def with_character_ops(text: str, *ops: str) -> str:
+    """The scene text with xformOp lines (and their order) added to the character prim."""
+    names = ", ".join(f'"{op.split(" = ")[0].split()[-1]}"' for op in ops)
+    lines = "".join(f"        {op}\n" for op in ops)
+    return text.replace(
+        "        rel rigspace:skeleton",
+        f"{lines}        uniform token[] xformOpOrder = [{names}]\n        rel rigspace:skeleton",
+    )
+
+
+def capture_variant(tmp_path: Path, name: str, text: str):
+    """Capture (SMALL) a variant of the CesiumMan scene written beside it (same asset paths)."""
+    scene = SCENE.parent / f".{name}_{os.getpid()}.usda"
+    scene.write_text(text)
+    try:
+        return capture(scene, CHARACTER, tmp_path / name, SMALL, workers=1, progress=False)
+    finally:
+        scene.unlink()
+
+
 def test_parameters_invariant_when_character_and_ring_rotate_together(tmp_path, dataset):
     # Turn the character one view step (90 degrees) about the up axis: view k+1 of the turned
     # character must see exactly what view k saw before.
-    text = SCENE.read_text().replace(
-        "        rel rigspace:skeleton",
-        "        float xformOp:rotateY = 90\n"
-        '        uniform token[] xformOpOrder = ["xformOp:rotateY"]\n'
-        "        rel rigspace:skeleton",
-    )
-    scene = SCENE.parent / f".turned_{os.getpid()}.usda"  # beside the original: same asset paths
-    scene.write_text(text)
-    try:
-        turned = capture(scene, CHARACTER, tmp_path / "turned", SMALL, workers=1, progress=False)
-    finally:
-        scene.unlink()
+    text = with_character_ops(SCENE.read_text(), "float xformOp:rotateY = 90")
+    turned = capture_variant(tmp_path, "turned", text)
     with (
         np.load(dataset.folder / ds.PARAMS_FILE) as a,
         np.load(turned.folder / ds.PARAMS_FILE) as b,
@@ -294,29 +304,11 @@ def test_held_out_clips_are_seen_from_training_views_only(tmp_path):
     assert (counts["heldout-clips"], counts["train"], counts["heldout-views"]) == (240, 0, 0)
 
 
-def _variant(text_edit, name: str) -> Path:
-    """A copy of the CesiumMan scene beside it (same asset paths) with `text_edit` applied."""
-    scene = SCENE.parent / f".{name}_{os.getpid()}.usda"
-    scene.write_text(text_edit(SCENE.read_text()))
-    return scene
-
-
 def test_z_up_stage_gives_the_same_parameters(tmp_path, dataset):
     # Z up, the character turned +90 degrees about X (its Y becomes Z): the ring's up axis and
     # front (-Y) turn the same way, so every view sees exactly what it saw on the Y-up stage.
-    scene = _variant(
-        lambda t: t.replace('upAxis = "Y"', 'upAxis = "Z"').replace(
-            "        rel rigspace:skeleton",
-            "        float xformOp:rotateX = 90\n"
-            '        uniform token[] xformOpOrder = ["xformOp:rotateX"]\n'
-            "        rel rigspace:skeleton",
-        ),
-        "zup",
-    )
-    try:
-        z_up = capture(scene, CHARACTER, tmp_path / "zup", SMALL, workers=1, progress=False)
-    finally:
-        scene.unlink()
+    text = SCENE.read_text().replace('upAxis = "Y"', 'upAxis = "Z"')
+    z_up = capture_variant(tmp_path, "zup", with_character_ops(text, "float xformOp:rotateX = 90"))
     assert z_up.settings.up_axis == "Z"
     with np.load(dataset.folder / ds.PARAMS_FILE) as a, np.load(z_up.folder / ds.PARAMS_FILE) as b:
         assert np.abs(a["rig"] - b["rig"]).max() < ROTATION_TOLERANCE
@@ -330,24 +322,14 @@ def test_z_up_stage_gives_the_same_parameters(tmp_path, dataset):
 def test_centimetre_stage_scales_depth_not_parameters(tmp_path, dataset):
     # The same character on a centimetre stage (scaled x100, ring radius x100): parameters
     # and masks are unchanged, depth is in the stage's units (x100).
-    scene = _variant(
-        lambda t: (
-            t.replace("metersPerUnit = 1", "metersPerUnit = 0.01")
-            .replace("rigspace:captureRing:radius = 3", "rigspace:captureRing:radius = 300")
-            .replace("clippingRange = (0.05, 100)", "clippingRange = (5, 10000)")
-            .replace(
-                "        rel rigspace:skeleton",
-                "        float3 xformOp:scale = (100, 100, 100)\n"
-                '        uniform token[] xformOpOrder = ["xformOp:scale"]\n'
-                "        rel rigspace:skeleton",
-            )
-        ),
-        "cm",
+    text = (
+        SCENE.read_text()
+        .replace("metersPerUnit = 1", "metersPerUnit = 0.01")
+        .replace("rigspace:captureRing:radius = 3", "rigspace:captureRing:radius = 300")
+        .replace("clippingRange = (0.05, 100)", "clippingRange = (5, 10000)")
     )
-    try:
-        cm = capture(scene, CHARACTER, tmp_path / "cm", SMALL, workers=1, progress=False)
-    finally:
-        scene.unlink()
+    scaled = with_character_ops(text, "float3 xformOp:scale = (100, 100, 100)")
+    cm = capture_variant(tmp_path, "cm", scaled)
     assert cm.settings.meters_per_unit == pytest.approx(0.01)
     with np.load(dataset.folder / ds.PARAMS_FILE) as a, np.load(cm.folder / ds.PARAMS_FILE) as b:
         assert np.abs(a["rig"] - b["rig"]).max() < ROTATION_TOLERANCE
