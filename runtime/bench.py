@@ -18,9 +18,10 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from pxr import Gf, Sdf, Usd, UsdGeom
+from pxr import Gf, Usd, UsdGeom
 
 from rigspace.runtime.engine import STAGES, Engine
+from rigspace.sdk.stage import overlay_layer
 
 ROOT = Path(__file__).resolve().parents[1]
 PREVIS = ROOT / "samples" / "scenes" / "previs.usda"
@@ -29,8 +30,7 @@ TIMES = np.linspace(100.0, 1500.0, 64)
 
 def crowd_scene(folder: Path, extra: int = 3) -> Path:
     """A layer over the previs scene with `extra` more heroes beside the first."""
-    layer = Sdf.Layer.CreateNew(str(folder / "crowd.usda"))
-    layer.subLayerPaths.append(str(PREVIS))
+    layer = overlay_layer(folder / "crowd.usda", PREVIS)
     stage = Usd.Stage.Open(layer)
     for k in range(extra):
         prim = stage.DefinePrim(f"/World/Hero{k + 1}")

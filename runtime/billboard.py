@@ -80,6 +80,14 @@ class Billboard:
         span = self.corners.max(axis=0) - self.corners.min(axis=0)
         return float(span.max())
 
+    def region(self, camera: Camera) -> tuple[int, int, int, int]:
+        """(x0, y0, w, h): the frame pixels the billboard's square covers, clipped to the view."""
+        lo = np.floor(self.corners.min(axis=0)).astype(int)
+        hi = np.ceil(self.corners.max(axis=0)).astype(int)
+        x0, y0 = max(int(lo[0]), 0), max(int(lo[1]), 0)
+        x1, y1 = min(int(hi[0]), camera.width), min(int(hi[1]), camera.height)
+        return x0, y0, max(x1 - x0, 1), max(y1 - y0, 1)
+
     def virtual_camera_to_world(self, camera: Camera) -> np.ndarray:
         """(3, 3) rotation of the virtual training camera in world space (C R)."""
         return camera.camera_to_world[:3, :3] @ self.rotation

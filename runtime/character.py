@@ -6,7 +6,8 @@ The steps of the paper's scene composition, for one character and one camera:
 2. the billboard at the look-at joint (runtime/billboard.py) and the virtual camera C R;
 3. rig parameters q^ in that frame, 6D; the smallest level of detail that covers the
    billboard's on-screen size; only the branches the frame needs;
-4. the maps warped into the frame through the billboard's homography, mask-aware:
+4. the maps warped into the frame through the billboard's homography, mask-aware (the
+   unlit mode runs the albedo branch alone and takes coverage from its alpha):
    albedo stays premultiplied, normals and depth are warped premultiplied by coverage
    and divided back, so empty pixels never bleed in; normals rotated by R into the
    render camera's frame; depth = the billboard plane plus the network's offset.
@@ -118,11 +119,7 @@ class NeuralCharacter:
 
     def resample(self, out, billboard: Billboard, camera: Camera, level: int, branches) -> Layer:
         out = {name: value[0] for name, value in out.items()}  # the batch of one
-        lo = np.floor(billboard.corners.min(axis=0)).astype(int)
-        hi = np.ceil(billboard.corners.max(axis=0)).astype(int)
-        x0, y0 = max(lo[0], 0), max(lo[1], 0)
-        x1, y1 = min(hi[0], camera.width), min(hi[1], camera.height)
-        w, h = max(x1 - x0, 1), max(y1 - y0, 1)
+        x0, y0, w, h = billboard.region(camera)
         shift = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1]], dtype=np.float64)
         homography = shift @ billboard.homography(level)
 
@@ -161,8 +158,10 @@ class NeuralCharacter:
             normal = normal.astype(np.float32)
         if "albedo" in branches:
             albedo = np.clip(warp(out["albedo"]), 0.0, 1.0)
+            if mask is None and "alpha" in out:  # the unlit mode: coverage from the albedo branch
+                mask = np.clip(warp(out["alpha"])[..., 0], 0.0, 1.0)
         if mask is None:
-            # Coverage comes from the geometry branch in bundle format 1, so every frame runs it
-            # (an albedo-branch alpha head, letting unlit frames skip geometry, is planned).
-            raise ValueError("the geometry branch (it carries the mask) is needed in every frame")
+            raise ValueError(
+                "no coverage: run the geometry branch, or the albedo branch of a format-2 bundle"
+            )
         return Layer(x0, y0, albedo, mask.astype(np.float32), depth, normal, level, tuple(branches))

@@ -29,6 +29,18 @@ def _resolution(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _aovs(text: str) -> tuple[str, ...]:
+    from rigspace.runtime.engine import AOVS
+
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    unknown = [n for n in names if n not in AOVS]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: choose a comma-separated list from {', '.join(AOVS)}"
+        )
+    return names
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scene", help="the .usd* stage to render")
     parser.add_argument(
@@ -46,6 +58,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--int8", action="store_true", help="evaluate the int8 graphs")
     parser.add_argument(
+        "--aovs",
+        type=_aovs,
+        default=None,
+        metavar="LIST",
+        help="images written to the EXRs, comma-separated from beauty, albedo, normal, depth, "
+        "mask (default: all). Without normal and depth, unlit characters that nothing "
+        "overlaps run their albedo branch only",
+    )
+    parser.add_argument(
         "--reference",
         action="store_true",
         help="also render the real skinned mesh instead of the network; write neural | "
@@ -58,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm import tqdm
 
-    from rigspace.runtime.engine import Engine
+    from rigspace.runtime.engine import AOVS, Engine
     from rigspace.runtime.output import write_frame_exr
     from rigspace.sdk.color import linear_to_srgb
 
@@ -70,9 +91,10 @@ def run(args: argparse.Namespace) -> int:
             f"--out {out} cannot be created ({exc}).", "choose a writable folder."
         ) from exc
     width, height = args.resolution
+    aovs = args.aovs or AOVS
     engine = Engine(
         args.scene, camera=args.camera, width=width, height=height,
-        renderer=args.renderer, precision="int8" if args.int8 else "fp32",
+        renderer=args.renderer, precision="int8" if args.int8 else "fp32", aovs=aovs,
     )  # fmt: skip
     truth = None
     if args.reference:
@@ -105,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
         for k, t in enumerate(tqdm(times, unit="frame", file=sys.stderr, dynamic_ncols=True)):
             frame = engine.render(float(t))
             stem = f"frame_{t:08.1f}"
-            write_frame_exr(out / f"{stem}.exr", frame)
+            write_frame_exr(out / f"{stem}.exr", frame, aovs)
             png = (linear_to_srgb(frame.beauty) * 255 + 0.5).astype(np.uint8)[..., ::-1]
             cv2.imwrite(str(out / f"{stem}.png"), png)
             if video is not None:
@@ -133,8 +155,7 @@ def run(args: argparse.Namespace) -> int:
     )
     os.replace(tmp, out / "report.json")
     totals = np.array([r["seconds"]["total"] for r in reports])
-    evaluated = sum(c["decision"] == "evaluated" for r in reports for c in r["characters"])
-    skipped = sum(c["decision"] != "evaluated" for r in reports for c in r["characters"])
+    counts = {k: sum(r["counts"][k] for r in reports) for k in reports[0]["counts"]}
     if truth is not None:
         scores = [c["psnr"] for r in reports for c in r["reference"] if c["psnr"] is not None]
         if scores:
@@ -144,8 +165,12 @@ def run(args: argparse.Namespace) -> int:
             )
     print(
         f"rendered {len(reports)} frames at {width}x{height} into {out} "
-        f"(median {1e3 * float(np.median(totals)):.1f} ms/frame; characters evaluated {evaluated}, "
-        f"skipped or reused {skipped})" + (f"; video {args.video}" if args.video else "")
+        f"(median {1e3 * float(np.median(totals)):.1f} ms/frame)"
+        + (f"; video {args.video}" if args.video else "")
+    )
+    print(
+        "characters: "
+        + ", ".join(f"{k} {v}" for k, v in counts.items() if v or k in ("evaluated", "reused"))
     )
     return 0
 

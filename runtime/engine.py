@@ -22,10 +22,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pxr import Usd, UsdGeom
+from pxr import Tf, Usd, UsdGeom
 
+from rigspace.runtime.billboard import Billboard
 from rigspace.runtime.character import Layer, NeuralCharacter
-from rigspace.runtime.lights import light_prims, lights_at
+from rigspace.runtime.lights import Light, light_prims, lights_at
 from rigspace.runtime.scene import SceneGeometry
 from rigspace.runtime.shading import shade
 from rigspace.sdk import schema
@@ -33,9 +34,12 @@ from rigspace.sdk.camera import Camera
 from rigspace.sdk.errors import SceneError
 from rigspace.sdk.model import BundleModel
 from rigspace.sdk.render import Maps, RenderSettings, choose_renderer, empty_maps
-from rigspace.sdk.stage import open_stage
+from rigspace.sdk.stage import might_vary, open_stage
 
 STAGES = ("scene", "rig", "network", "lighting", "composite")
+AOVS = ("beauty", "albedo", "normal", "depth", "mask")
+"""The images a frame can give (Frame.beauty and Frame.maps)."""
+BOTH = ("albedo", "geometry")
 
 
 @dataclass
@@ -70,9 +74,18 @@ class Engine:
         renderer: str = "auto",
         precision: str = "fp32",
         reference: bool = False,
+        aovs: tuple[str, ...] = AOVS,
     ) -> None:
         """`reference=True` draws each character's real skinned mesh with the renderer instead
-        of its network (the ground truth that `rigspace render --reference` compares with)."""
+        of its network (the ground truth that `rigspace render --reference` compares with).
+        `aovs` are the images the caller will read: without `normal` and `depth`, a character
+        with no lights on it and nothing overlapping its billboard runs its albedo branch only."""
+        unknown = sorted(set(aovs) - set(AOVS))
+        if unknown:
+            raise SceneError(
+                f"Unknown AOV {', '.join(unknown)}.", f"choose from {', '.join(AOVS)}."
+            )
+        self.aovs = tuple(aovs)
         if width <= 0 or height <= 0:
             raise SceneError(
                 f"The viewport is {width}x{height}.",
@@ -103,6 +116,13 @@ class Engine:
         self._prims: Maps | None = None
         self._layers: dict[str, _CachedLayer] = {}
         self._lit_prims: tuple[bytes, np.ndarray] | None = None
+        self._frame: tuple[tuple, Frame] | None = None
+        self._still_camera: tuple[Camera, bytes] | None = None
+        self._still_lights: list[Light] | None = None
+        self._camera_varies: bool | None = None
+        self._lights_vary: bool | None = None
+        # Edits to the stage (a live session, a script) invalidate what was read as still.
+        self._listener = Tf.Notice.Register(Usd.Notice.ObjectsChanged, self._changed, self.stage)
 
     def _camera(self, path: str | None) -> Usd.Prim:
         if path:
@@ -121,10 +141,11 @@ class Engine:
         return cameras[0]
 
     def close(self) -> None:
+        self._listener.Revoke()
         self.renderer.close()
 
-    def _scene_maps(self, meshes, camera: Camera) -> tuple[Maps, bool]:
-        key = (tuple(id(m) for m in meshes), _camera_key(camera))
+    def _scene_maps(self, meshes, camera: Camera, camera_key: bytes) -> tuple[Maps, bool]:
+        key = (tuple(id(m) for m in meshes), camera_key)
         if self._prims is not None and key == self._prims_key:
             return self._prims, True
         maps = (
@@ -135,16 +156,69 @@ class Engine:
         self._prims, self._prims_key = maps, key
         return maps, False
 
+    def _branches(
+        self,
+        c: _Candidate,
+        candidates: list[_Candidate],
+        scene_mask: np.ndarray,
+        lit: bool,
+    ) -> tuple[tuple[str, ...], str]:
+        """The branches a character needs this frame, and why (the unlit mode's decision)."""
+        if lit:
+            return BOTH, "lights reach it: normals and depth are shaded"
+        if {"normal", "depth"} & set(self.aovs):
+            return BOTH, "the normal or depth AOV is asked for"
+        if not c.character.model.albedo_has_alpha:
+            return BOTH, "its bundle (format 1) takes coverage from the geometry branch"
+        x0, y0, w, h = c.region
+        if np.any(scene_mask[y0 : y0 + h, x0 : x0 + w] > 0):
+            return BOTH, "a scene prim overlaps its billboard: depth-tested"
+        if any(_overlaps(c.region, o.region) for o in candidates if o is not c):
+            return BOTH, "another character overlaps its billboard: depth-tested"
+        return ("albedo",), "no lights and nothing overlapping its billboard"
+
+    def _changed(self, notice, sender) -> None:
+        """The stage was edited: nothing read from it so far can be trusted to be still."""
+        self._still_camera = self._still_lights = None
+        self._camera_varies = self._lights_vary = None
+        self.scene.forget()
+        self._frame = None
+
+    def _camera_at(self, time: float) -> tuple[Camera, bytes]:
+        if self._still_camera is not None:
+            return self._still_camera
+        camera = Camera.from_usd(self.camera_prim, time, self.width, self.height)
+        key = _camera_key(camera)
+        if self._camera_varies is None:
+            self._camera_varies = might_vary(self.camera_prim)
+        if not self._camera_varies:  # the same at every time: read it once
+            self._still_camera = (camera, key)
+        return camera, key
+
+    def _lights_at(self, time: float) -> list[Light]:
+        if "beauty" not in self.aovs:
+            return []  # without a beauty AOV nothing is shaded
+        if self._still_lights is not None:
+            return self._still_lights
+        lights = lights_at(self.light_prims, time)
+        if self._lights_vary is None:
+            self._lights_vary = any(might_vary(p) for p in self.light_prims)
+        if not self._lights_vary:
+            self._still_lights = lights
+        return lights
+
     def render(self, time: float) -> Frame:
+        """The frame at stage time `time`. Its arrays may be shared with later frames that
+        change nothing (the frame cache): they are read-only; copy them to edit."""
         timings = dict.fromkeys(STAGES, 0.0)
         start = clock.perf_counter()
-        camera = Camera.from_usd(self.camera_prim, time, self.width, self.height)
+        camera, camera_key = self._camera_at(time)
         meshes = self.scene.meshes(time)
         if self.reference:
             meshes = meshes + [m for c in self.characters for m in c.rig.posed_meshes(time)]
-        prims, reused = self._scene_maps(meshes, camera)
+        prims, reused = self._scene_maps(meshes, camera, camera_key)
         timings["scene"] = clock.perf_counter() - start
-        lights = lights_at(self.light_prims, time)
+        lights = self._lights_at(time)
         report: dict[str, Any] = {
             "time": time,
             "camera": str(self.camera_prim.GetPath()),
@@ -156,29 +230,11 @@ class Engine:
             {"path": p, "decision": "skipped", "reason": "no model bundle (rigspace:model)"}
             for p in self.without_model
         ]
-        t = clock.perf_counter()
         light_key = b"".join(
             light.radiance.tobytes() + light.direction.tobytes() + light.position.tobytes()
             for light in lights
         )
-        lit_reused = reused and self._lit_prims is not None and self._lit_prims[0] == light_key
-        if lit_reused and self._lit_prims is not None:
-            beauty = self._lit_prims[1].copy()  # nothing moved and the lights did not change
-        else:
-            beauty = (
-                shade(prims.albedo, prims.normal, prims.depth, prims.mask, camera, lights)
-                if lights
-                else prims.albedo.copy()
-            )
-            self._lit_prims = (light_key, beauty.copy())
-        report["scene_prims"]["lit_reused"] = lit_reused
-        timings["lighting"] += clock.perf_counter() - t
-        albedo, normal = prims.albedo.copy(), prims.normal.copy()
-        depth, mask = prims.depth.copy(), prims.mask.copy()
-        visible: list[tuple[NeuralCharacter, dict, Any]] = []
-        pending: dict[
-            tuple[int, int], list[tuple[NeuralCharacter, Any, Any, np.ndarray, bytes]]
-        ] = {}
+        candidates: list[_Candidate] = []
         for character in self.characters:
             entry: dict[str, Any] = {"path": character.path}
             report["characters"].append(entry)
@@ -199,41 +255,79 @@ class Engine:
                 timings["rig"] += clock.perf_counter() - t
                 entry.update(decision="skipped", reason=billboard.reason)
                 continue
-            rig = character.parameters(world, billboard, camera)
-            timings["rig"] += clock.perf_counter() - t
+            # The joints' world transforms and the camera determine the rig parameters and
+            # the billboard, so they key the reuse without computing the parameters.
             key = hashlib.sha1(
-                rig.tobytes() + billboard.corners.tobytes() + _camera_key(camera)
+                world[character.order].tobytes() + billboard.corners.tobytes() + camera_key
             ).digest()
-            cached = self._layers.get(character.path)
-            if cached is not None and cached.key == key:
-                entry.update(decision="reused", reason="same pose and camera as the last frame")
-                visible.append((character, entry, billboard))
+            timings["rig"] += clock.perf_counter() - t
+            candidates.append(
+                _Candidate(character, entry, billboard, world, key, billboard.region(camera))
+            )
+        pending: dict[tuple[int, int, tuple[str, ...]], list[_Candidate]] = {}
+        for c in candidates:
+            branches, why = self._branches(c, candidates, prims.mask, bool(lights))
+            cached = self._layers.get(c.character.path)
+            c.entry["mode"] = "lit" if "geometry" in branches else "unlit"
+            c.entry["mode_reason"] = why
+            if (
+                cached is not None
+                and cached.key == c.key
+                and set(branches) <= set(cached.layer.branches)
+            ):
+                c.entry.update(decision="reused", reason="same pose and camera as the last frame")
                 continue
-            level = character.model.level_for(billboard.size_px)
-            pending.setdefault((id(character.model), level), []).append(
-                (character, entry, billboard, rig, key)
-            )
-            visible.append((character, entry, billboard))
-        # One network call per (model, level): characters sharing a bundle run as one batch.
+            level = c.character.model.level_for(c.billboard.size_px)
+            pending.setdefault((id(c.character.model), level, branches), []).append(c)
         t = clock.perf_counter()
-        for (_, level), group in pending.items():
-            model = group[0][0].model
-            out = model.predict(np.concatenate([g[3] for g in group]), level)
-            for k, (character, entry, billboard, _rig, key) in enumerate(group):
+        for c in (c for group in pending.values() for c in group):
+            c.rig = c.character.parameters(c.world, c.billboard, camera)
+        timings["rig"] += clock.perf_counter() - t
+        # One network call per (model, level, branches): characters sharing a bundle batch.
+        t = clock.perf_counter()
+        for (_, level, branches), group in pending.items():
+            model = group[0].character.model
+            out = model.predict(np.concatenate([c.rig for c in group]), level, branches)
+            for k, c in enumerate(group):
                 mine = {name: value[k : k + 1] for name, value in out.items()}
-                layer = character.resample(mine, billboard, camera, level, ("albedo", "geometry"))
-                self._layers[character.path] = _CachedLayer(key, layer)
-                entry.update(decision="evaluated", batch=len(group))
+                layer = c.character.resample(mine, c.billboard, camera, level, branches)
+                self._layers[c.character.path] = _CachedLayer(c.key, layer)
+                c.entry.update(decision="evaluated", batch=len(group))
         timings["network"] += clock.perf_counter() - t
-        for character, entry, billboard in visible:
-            cached = self._layers[character.path]
-            layer = cached.layer
-            entry.update(
-                level=layer.level,
-                branches=list(layer.branches),
-                size_px=round(billboard.size_px, 1),
-                region=[int(layer.x0), int(layer.y0), *map(int, layer.mask.shape[::-1])],
+        for c in candidates:
+            self._describe(c, self._layers[c.character.path].layer)
+        report["counts"] = _counts(report["characters"])
+        # Nothing changed since the last frame: the same prims, lights and character layers.
+        frame_key = (
+            self._prims_key,
+            light_key,
+            tuple((c.character.path, self._layers[c.character.path].key) for c in candidates),
+        )
+        if self._frame is not None and self._frame[0] == frame_key:
+            report["composite_reused"] = True
+            report["scene_prims"]["lit_reused"] = True
+            report["seconds"] = {k: round(v, 6) for k, v in timings.items()}
+            report["seconds"]["total"] = round(clock.perf_counter() - start, 6)
+            return Frame(self._frame[1].beauty, self._frame[1].maps, report)
+        report["composite_reused"] = False
+        t = clock.perf_counter()
+        lit_reused = reused and self._lit_prims is not None and self._lit_prims[0] == light_key
+        if lit_reused and self._lit_prims is not None:
+            beauty = self._lit_prims[1].copy()  # nothing moved and the lights did not change
+        else:
+            beauty = (
+                shade(prims.albedo, prims.normal, prims.depth, prims.mask, camera, lights)
+                if lights
+                else prims.albedo.copy()
             )
+            self._lit_prims = (light_key, beauty.copy())
+        report["scene_prims"]["lit_reused"] = lit_reused
+        timings["lighting"] += clock.perf_counter() - t
+        albedo, normal = prims.albedo.copy(), prims.normal.copy()
+        depth, mask = prims.depth.copy(), prims.mask.copy()
+        for c in candidates:
+            cached = self._layers[c.character.path]
+            layer = cached.layer
             t = clock.perf_counter()
             if cached.lit is None or cached.lit_key != light_key:
                 cached.lit_key = light_key
@@ -254,9 +348,63 @@ class Engine:
             t = clock.perf_counter()
             _composite(layer, cached.lit, beauty, albedo, normal, depth, mask)
             timings["composite"] += clock.perf_counter() - t
+        for array in (beauty, albedo, normal, depth, mask):
+            array.flags.writeable = False  # shared with the frame cache
+        frame = Frame(beauty, Maps(albedo, normal, depth, mask), report)
+        self._frame = (frame_key, frame)
         report["seconds"] = {k: round(v, 6) for k, v in timings.items()}
         report["seconds"]["total"] = round(clock.perf_counter() - start, 6)
-        return Frame(beauty, Maps(albedo, normal, depth, mask), report)
+        return frame
+
+    def _describe(self, c: _Candidate, layer: Layer) -> None:
+        top = max(c.character.model.resolutions)
+        c.entry.update(
+            level=layer.level,
+            top_level=top,
+            level_reason=(
+                f"the largest level, upsampled to its {c.billboard.size_px:.0f} px"
+                if c.billboard.size_px > top
+                else f"the smallest level covering its {c.billboard.size_px:.0f} px"
+            ),
+            branches=list(layer.branches),
+            size_px=round(c.billboard.size_px, 1),
+            region=[int(layer.x0), int(layer.y0), *map(int, layer.mask.shape[::-1])],
+        )
+
+
+@dataclass
+class _Candidate:
+    """A character whose billboard is in view this frame, before its maps are known."""
+
+    character: NeuralCharacter
+    entry: dict[str, Any]
+    billboard: Billboard
+    world: np.ndarray
+    """(J, 4, 4) joint-to-world transforms."""
+    key: bytes
+    region: tuple[int, int, int, int]
+    """(x0, y0, w, h) of the billboard in the frame."""
+    rig: np.ndarray | None = None
+    """Rig parameters, computed only for the characters evaluated this frame."""
+
+
+def _overlaps(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
+    return a[0] < b[0] + b[2] and b[0] < a[0] + a[2] and a[1] < b[1] + b[3] and b[1] < a[1] + a[3]
+
+
+def _counts(entries: list[dict[str, Any]]) -> dict[str, int]:
+    """How many characters each decision applied to in a frame (the report's summary)."""
+    counts = dict.fromkeys(("evaluated", "reused", "skipped", "reference"), 0)
+    counts |= {"outside the view": 0, "unlit": 0, "below the largest level": 0}
+    for e in entries:
+        counts[e["decision"]] += 1
+        if e.get("reason") == "outside the view":
+            counts["outside the view"] += 1
+        if e.get("mode") == "unlit":
+            counts["unlit"] += 1
+        if "level" in e and e["level"] < e["top_level"]:
+            counts["below the largest level"] += 1
+    return counts
 
 
 def _camera_key(camera: Camera) -> bytes:
@@ -275,18 +423,31 @@ def _camera_key(camera: Camera) -> bytes:
 
 
 def _composite(layer: Layer, lit: np.ndarray, beauty, albedo, normal, depth, mask) -> None:
-    """Depth-test a character layer against the frame and composite it with its coverage."""
+    """Depth-test a character layer against the frame and composite it with its coverage.
+
+    Where the character is in front: colour = its premultiplied colour + (1 - a) * frame,
+    a its coverage; elsewhere the frame is unchanged (a = 0 and nothing added). Normals and
+    depth take the character's where it is in front and at least half covers the pixel.
+    In place, on the region only.
+    """
     h, w = layer.mask.shape
     region = np.s_[layer.y0 : layer.y0 + h, layer.x0 : layer.x0 + w]
-    char_depth = layer.depth
-    scene_depth = depth[region]
-    front = char_depth < scene_depth  # inf where empty loses every test
-    a = np.where(front, layer.mask, 0.0)[..., None].astype(np.float32)
-    beauty[region] = np.where(front[..., None], lit + (1 - a) * beauty[region], beauty[region])
-    albedo[region] = np.where(
-        front[..., None], layer.albedo + (1 - a) * albedo[region], albedo[region]
-    )
-    solid = front & (layer.mask >= 0.5)
-    normal[region] = np.where(solid[..., None], layer.normal, normal[region])
-    depth[region] = np.where(solid, char_depth, scene_depth)
-    mask[region] = np.where(front, layer.mask + (1 - layer.mask) * mask[region], mask[region])
+    if layer.depth is None:
+        # The unlit mode, chosen only when nothing overlaps the billboard: no depth test, and
+        # the normal and depth maps (not asked for) keep the scene's values.
+        a = layer.mask
+        front = None
+    else:
+        front = layer.depth < depth[region]  # inf where empty loses every test
+        a = layer.mask * front
+    keep = (1.0 - a)[..., None]
+    for target, colour in ((beauty, lit), (albedo, layer.albedo)):
+        out = target[region]
+        out *= keep
+        out += colour if front is None else colour * front[..., None]
+    out = mask[region]
+    out += a * (1.0 - out)
+    if front is not None and layer.normal is not None:
+        solid = front & (layer.mask >= 0.5)
+        np.copyto(normal[region], layer.normal, where=solid[..., None])
+        np.copyto(depth[region], layer.depth, where=solid)

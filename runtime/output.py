@@ -14,11 +14,24 @@ CHANNELS = ("R", "G", "B", "A", "albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y"
 N.*: camera-space normals; Z: camera depth along -Z in scene units, +inf where empty."""
 
 
-def write_frame_exr(path: str | Path, frame) -> None:
-    """Write a runtime Frame as one EXR (float16 colour and normals, float32 Z), atomically."""
+AOV_CHANNELS = {
+    "beauty": ("R", "G", "B", "A"),
+    "mask": ("A",),
+    "albedo": ("albedo.R", "albedo.G", "albedo.B"),
+    "normal": ("N.X", "N.Y", "N.Z"),
+    "depth": ("Z",),
+}
+
+
+def write_frame_exr(path: str | Path, frame, aovs: tuple[str, ...] = tuple(AOV_CHANNELS)) -> None:
+    """Write a runtime Frame's AOVs as one EXR (float16 colour and normals, float32 Z),
+    atomically; the channels keep CHANNELS' order."""
     maps = frame.maps
     pixels = np.concatenate(
         [frame.beauty, maps.mask[..., None], maps.albedo, maps.normal, maps.depth[..., None]],
         axis=-1,
     )
-    write_channels(path, pixels, CHANNELS, (oiio.HALF,) * 10 + (oiio.FLOAT,))
+    wanted = {c for aov in aovs for c in AOV_CHANNELS[aov]}
+    keep = [k for k, c in enumerate(CHANNELS) if c in wanted]
+    formats = tuple(oiio.FLOAT if CHANNELS[k] == "Z" else oiio.HALF for k in keep)
+    write_channels(path, pixels[..., keep], tuple(CHANNELS[k] for k in keep), formats)

@@ -20,6 +20,7 @@ from rigspace.sdk import schema
 from rigspace.sdk.camera import from_gf
 from rigspace.sdk.geometry import MeshSource, read_albedo, read_mesh_source
 from rigspace.sdk.render import DrawMesh, vertex_normals
+from rigspace.sdk.stage import might_vary
 
 SEGMENTS = 48
 """Around the axis of spheres, cylinders, cones and capsules."""
@@ -147,7 +148,8 @@ class _Static:
 @dataclass
 class _Cached:
     key: bytes
-    mesh: DrawMesh
+    mesh: DrawMesh | None
+    """None: not drawn (invisible, or a guide) at that time."""
 
 
 class SceneGeometry:
@@ -165,6 +167,14 @@ class SceneGeometry:
                 self.prims.append(prim)
         self._statics: dict[str, _Static] = {}
         self._cache: dict[str, _Cached] = {}
+        self._still: dict[str, bool] = {}
+        """Per prim: nothing of it or its ancestors is time-varying (read once, then reused)."""
+
+    def forget(self) -> None:
+        """Drop everything read from the stage (call after the stage is edited)."""
+        self._statics.clear()
+        self._cache.clear()
+        self._still.clear()
 
     def _drawn(self, prim: Usd.Prim, time: Usd.TimeCode) -> bool:
         imageable = UsdGeom.Imageable(prim)
@@ -210,15 +220,23 @@ class SceneGeometry:
         xf_cache = UsdGeom.XformCache(when)
         out = []
         for prim in self.prims:
-            if not self._drawn(prim, when):
-                continue
             path = str(prim.GetPath())
+            still = self._still.get(path)
+            if still is None:
+                still = self._still[path] = not might_vary(prim)
+            cached = self._cache.get(path)
+            if still and cached is not None:  # the same at every time: no stage reads at all
+                if cached.mesh is not None:
+                    out.append(cached.mesh)
+                continue
+            if not self._drawn(prim, when):
+                self._cache[path] = _Cached(b"", None)
+                continue
             static = self._static(prim)
             to_world = from_gf(xf_cache.GetLocalToWorldTransform(prim))
             local = self._local_points(prim, static, when)
             key = to_world.tobytes() + (local.tobytes() if static.animated else b"")
-            cached = self._cache.get(path)
-            if cached is not None and cached.key == key:
+            if cached is not None and cached.key == key and cached.mesh is not None:
                 out.append(cached.mesh)
                 continue
             world = (local @ to_world[:3, :3].T + to_world[:3, 3]).astype(np.float32)

@@ -15,7 +15,9 @@ from typing import Any
 from rigspace.sdk.errors import RigspaceError
 
 FORMAT = "rigspace.bundle"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""Written by this rigspace. Version 2 added the albedo graphs' `alpha` (coverage) output."""
+READABLE_VERSIONS = (1, 2)
 ENCODINGS = ("rot6d", "quaternion")
 
 
@@ -25,7 +27,7 @@ class BundleError(RigspaceError):
 
 @dataclass(frozen=True)
 class ModelManifest:
-    """What a model bundle's manifest.json declares (format version 1)."""
+    """What a model bundle's manifest.json declares (format versions 1 and 2)."""
 
     path: Path
     """The manifest file."""
@@ -37,6 +39,7 @@ class ModelManifest:
     training_distance: float = 0.0
     training_focal_length: float = 0.0
     training_aperture: float = 0.0
+    format_version: int = FORMAT_VERSION
     raw: dict[str, Any] = field(default_factory=dict, repr=False)
     """The whole manifest, for the fields the train and runtime packages own."""
 
@@ -73,10 +76,10 @@ def read_manifest(path: str | Path) -> ModelManifest:
             "point rigspace:model at a folder written by `rigspace train`.",
         )
     version = data.get("format_version")
-    if version != FORMAT_VERSION:
+    if version not in READABLE_VERSIONS:
         raise BundleError(
-            f"{file} has bundle format version {version!r}; this rigspace reads version "
-            f"{FORMAT_VERSION}.",
+            f"{file} has bundle format version {version!r}; this rigspace reads versions "
+            f"{', '.join(map(str, READABLE_VERSIONS))}.",
             "re-export the bundle with this version of rigspace, or install the rigspace "
             "version that wrote it.",
         )
@@ -102,5 +105,6 @@ def read_manifest(path: str | Path) -> ModelManifest:
         training_distance=float(camera.get("distance", 0.0)),
         training_focal_length=float(camera.get("focal_length", 0.0)),
         training_aperture=float(camera.get("horizontal_aperture", 0.0)),
+        format_version=int(version),
         raw=data,
     )

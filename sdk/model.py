@@ -2,7 +2,9 @@
 
 Shared by `rigspace eval` and the runtime; imports no torch. Sessions are created lazily
 per graph, so a frame that needs only albedo at 32x32 never loads the other graphs.
-CUDA is used when onnxruntime offers it, the CPU otherwise.
+CUDA is used when onnxruntime offers it, the CPU otherwise. Outputs are named by the
+graphs themselves: albedo graphs give `albedo` and (bundle format 2) `alpha`, geometry
+graphs `depth`, `normal` and `mask`.
 """
 
 from __future__ import annotations
@@ -13,8 +15,6 @@ from typing import Any
 import numpy as np
 
 from rigspace.sdk.bundle import BundleError, ModelManifest, read_manifest
-
-BRANCH_OUTPUTS = {"albedo": ("albedo",), "geometry": ("depth", "normal", "mask")}
 
 
 def default_providers() -> list[str]:
@@ -59,6 +59,8 @@ class BundleModel:
         self._trunk_file = trunk
         self._sessions: dict[str, Any] = {}
         self.depth_scale = float(raw["depth"]["scale"])
+        self.albedo_has_alpha = self.manifest.format_version >= 2
+        """Whether the albedo branch alone gives coverage (lets unlit frames skip geometry)."""
         self.joints = list(self.manifest.joints)
 
     @property
@@ -125,8 +127,9 @@ class BundleModel:
                 f"The model has no level {resolution}; it has {self.resolutions}.",
                 "ask for one of those resolutions.",
             )
-        outputs = self._session(self.levels[resolution][branch]).run(None, {"features": features})
-        return dict(zip(BRANCH_OUTPUTS[branch], outputs, strict=True))
+        session = self._session(self.levels[resolution][branch])
+        outputs = session.run(None, {"features": features})
+        return dict(zip((o.name for o in session.get_outputs()), outputs, strict=True))
 
     def predict(
         self, rig: np.ndarray, resolution: int, branches: tuple[str, ...] = ("albedo", "geometry")

@@ -53,3 +53,51 @@ def up_axis(stage: Usd.Stage) -> str:
 
 def meters_per_unit(stage: Usd.Stage) -> float:
     return float(UsdGeom.GetStageMetersPerUnit(stage))
+
+
+STAGE_METADATA = (
+    "timeCodesPerSecond",
+    "framesPerSecond",
+    "startTimeCode",
+    "endTimeCode",
+    "upAxis",
+    "metersPerUnit",
+)
+"""Root-layer metadata a stage reads from its root layer only: an overlay must repeat them."""
+
+
+def overlay_layer(path: str | Path, scene: str | Path) -> Sdf.Layer:
+    """A new layer at `path` whose only sublayer is `scene`, with the scene's stage metadata.
+
+    USD reads time codes per second, frames per second, the time range, the up axis and
+    metersPerUnit from the root layer alone, and rescales a sublayer whose time codes per
+    second differ from the root's; an overlay without them would shift the scene's times
+    and change its units.
+    """
+    source = Sdf.Layer.FindOrOpen(str(scene))
+    if source is None:
+        raise SceneError(f"Scene {scene} could not be read as USD.", "check the path.")
+    layer = Sdf.Layer.Find(str(path))  # still open from an earlier overlay: start it over
+    if layer is not None:
+        layer.Clear()
+    else:
+        layer = Sdf.Layer.CreateNew(str(path))
+    layer.subLayerPaths.append(str(Path(scene).resolve()))
+    for key in STAGE_METADATA:
+        if source.pseudoRoot.HasInfo(key):
+            layer.pseudoRoot.SetInfo(key, source.pseudoRoot.GetInfo(key))
+    return layer
+
+
+def might_vary(prim: Usd.Prim) -> bool:
+    """Whether any attribute of `prim` or of its ancestors may change with time.
+
+    USD's ValueMightBeTimeVarying: true for more than one time sample (or value clips),
+    so a prim for which this is false looks the same at every time code (until the stage
+    is edited).
+    """
+    while prim and not prim.IsPseudoRoot():
+        if any(a.ValueMightBeTimeVarying() for a in prim.GetAttributes()):
+            return True
+        prim = prim.GetParent()
+    return False

@@ -39,7 +39,7 @@ from rigspace.capture.dataset import read_manifest
 from rigspace.sdk.bundle import FORMAT, FORMAT_VERSION
 from rigspace.train.data import SampleSet, depth_scale
 from rigspace.train.loop import build_model
-from rigspace.train.network import Rig2Image, albedo_maps, geometry_maps
+from rigspace.train.network import Rig2Image, albedo_alpha, albedo_maps, geometry_maps
 
 OPSET = 17
 CALIBRATION_SAMPLES = 128
@@ -68,11 +68,15 @@ class BranchAtLevel(nn.Module):
     def forward(self, features: torch.Tensor):
         head = self.branch(features, self.resolution)[-1]
         if self.name == "albedo":
-            return albedo_maps(head)
+            return albedo_maps(head), albedo_alpha(head)
         return geometry_maps(head)
 
 
-OUTPUTS = {"trunk": ["features"], "albedo": ["albedo"], "geometry": ["depth", "normal", "mask"]}
+OUTPUTS = {
+    "trunk": ["features"],
+    "albedo": ["albedo", "alpha"],
+    "geometry": ["depth", "normal", "mask"],
+}
 INPUTS = {"trunk": "rig", "albedo": "features", "geometry": "features"}
 
 
@@ -208,6 +212,8 @@ def export_bundle(
             "depth": "float32 (N,1,R,R) (camera depth along -Z - joint depth) / depth.scale",
             "normal": "float32 (N,3,R,R) camera-space unit normals",
             "mask": "float32 (N,1,R,R) coverage in [0,1]",
+            "alpha": "float32 (N,1,R,R) coverage in [0,1] from the albedo branch (for frames "
+            "that run the albedo branch alone)",
         },
         "depth": {
             "encoding": "relative-to-look-at-joint",

@@ -300,6 +300,16 @@ def build_model(run_folder: Path) -> tuple[Rig2Image, dict[str, Any], int]:
     config = TrainConfig.from_json(run["config"])
     model = Rig2Image(Shape(len(run["joints"])), replace(config, channels_last=False))
     state = load_checkpoint(run_folder / CHECKPOINT)
-    model.load_state_dict(state["model"])
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as exc:
+        if "size mismatch for albedo.heads." in str(exc):
+            raise TrainingError(
+                f"The run in {run_folder} was trained before the albedo branch predicted "
+                "coverage (bundle format 2).",
+                "add it with `rigspace train DATASET --out MODEL --upgrade` (minutes; every "
+                "other output stays identical).",
+            ) from exc
+        raise
     model.eval()
     return model, run, int(state["step"])

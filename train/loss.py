@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 
 from rigspace.train.config import TrainConfig
-from rigspace.train.network import albedo_maps, fade, geometry_maps
+from rigspace.train.network import albedo_alpha, albedo_maps, fade, geometry_maps
 
 
 def mixed(pred: torch.Tensor, target: torch.Tensor, a: float, weight: torch.Tensor | None = None):
@@ -49,6 +49,7 @@ def level_loss(
     return {
         "albedo": mixed(albedo_maps(albedo_head), target["albedo"], a),
         "mask": config.mask_weight * mixed(mask, target["mask"], a),
+        "alpha": config.mask_weight * mixed(albedo_alpha(albedo_head), target["mask"], a),
         "depth": config.depth_weight * mixed(depth, target["depth"], a, inside),
         "normal": config.normal_weight * mixed(normal, target["normal"], a, inside),
     }

@@ -4,8 +4,10 @@ q~ (per-joint 6D rotations) -> fully connected layers -> a 4x4 grid -> a shared 
 block to 8x8 -> two branches, albedo and geometry, of blocks that each double the
 resolution (upsample x2, 3x3 conv, activation, 3x3 conv, activation; no transposed
 convolutions). Both branches keep 1x1 output heads at every resolution from 8x8 up
-(toRGB; toDepth, toNormals, toMask), so every level is a usable output: the runtime's
-level of detail, and the progressive schedule's fade-in.
+(toRGB plus coverage; toDepth, toNormals, toMask), so every level is a usable output: the
+runtime's level of detail, and the progressive schedule's fade-in. The albedo branch
+predicts coverage too (its alpha), so a frame that needs no lighting and no depth test
+runs the albedo branch alone (the runtime's unlit mode).
 """
 
 from __future__ import annotations
@@ -81,7 +83,7 @@ class Branch(nn.Module):
         return outs
 
 
-ALBEDO_CHANNELS = 3
+ALBEDO_CHANNELS = 4  # premultiplied RGB 3, coverage (alpha) 1
 GEOMETRY_CHANNELS = 5  # depth 1, normal 3, mask 1
 
 
@@ -129,7 +131,12 @@ def fade(levels: list[torch.Tensor], alpha: float) -> torch.Tensor:
 
 def albedo_maps(head: torch.Tensor) -> torch.Tensor:
     """Premultiplied linear albedo in [0, 1]."""
-    return torch.sigmoid(head)
+    return torch.sigmoid(head[:, 0:3])
+
+
+def albedo_alpha(head: torch.Tensor) -> torch.Tensor:
+    """The albedo branch's coverage in [0, 1] (trained against the same target as the mask)."""
+    return torch.sigmoid(head[:, 3:4])
 
 
 def geometry_maps(head: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

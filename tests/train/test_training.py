@@ -184,7 +184,8 @@ def test_bundle_manifest_and_levels(bundle):
     model = BundleModel(bundle)
     assert model.level_for(20) == 32 and model.level_for(3) == 8 and model.level_for(999) == 32
     out = model.predict(np.zeros((2, 19 * 6), np.float32), 16, branches=("albedo",))
-    assert set(out) == {"albedo"} and out["albedo"].shape == (2, 3, 16, 16)
+    assert set(out) == {"albedo", "alpha"} and out["albedo"].shape == (2, 3, 16, 16)
+    assert out["alpha"].shape == (2, 1, 16, 16)
 
 
 def test_bundle_errors(bundle, tmp_path):
@@ -266,3 +267,32 @@ def test_ctrl_c_stops_with_a_usable_checkpoint(tmp_path, tiny_dataset):
     assert state["step"] >= 30
     assert not (out / "manifest.json").exists()
     assert os.path.getsize(log_file) > 0
+
+
+def test_upgrade_adds_the_alpha_heads_and_changes_nothing_else(tmp_path, tiny_run, tiny_dataset):
+    import torch
+
+    from rigspace.train.upgrade import upgrade
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    state = loop.load_checkpoint(run / loop.CHECKPOINT)
+    # A run from before bundle format 2: 3-channel albedo heads.
+    for name in [k for k in state["model"] if k.startswith("albedo.heads.")]:
+        state["model"][name] = state["model"][name][:3].clone()
+    torch.save(state, run / loop.CHECKPOINT)
+    with pytest.raises(loop.TrainingError, match="--upgrade"):
+        export_bundle(run, tmp_path / "bundle")
+    result = upgrade(tiny_dataset, run, steps=30, progress=False)
+    assert result.stopped == "upgraded" and np.isfinite(result.last_loss)
+    before, _, _ = loop.build_model(tiny_run)
+    after, _, _ = loop.build_model(run)
+    for name, value in after.state_dict().items():
+        old = before.state_dict()[name]
+        if name.startswith("albedo.heads."):
+            # Colour rows bit-identical; only the alpha row (re-trained from zero) differs.
+            assert torch.equal(value[:3], old[:3]) and not torch.equal(value[3:], old[3:])
+        else:
+            assert torch.equal(value, old), name
+    with pytest.raises(loop.TrainingError, match="nothing to upgrade"):
+        upgrade(tiny_dataset, run, steps=1, progress=False)
