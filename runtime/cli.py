@@ -58,6 +58,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--int8", action="store_true", help="evaluate the int8 graphs")
     parser.add_argument(
+        "--prim-samples",
+        type=int,
+        default=2,
+        metavar="N",
+        help="N x N samples per pixel for the scene prims (default 2; 1: no anti-aliasing, faster)",
+    )
+    parser.add_argument(
         "--aovs",
         type=_aovs,
         default=None,
@@ -95,11 +102,13 @@ def run(args: argparse.Namespace) -> int:
     engine = Engine(
         args.scene, camera=args.camera, width=width, height=height,
         renderer=args.renderer, precision="int8" if args.int8 else "fp32", aovs=aovs,
+        prim_samples=args.prim_samples,
     )  # fmt: skip
     truth = None
     if args.reference:
         truth = Engine(args.scene, camera=args.camera, width=width, height=height,
-                       renderer=args.renderer, reference=True)  # fmt: skip
+                       renderer=args.renderer, reference=True, aovs=aovs,
+                       prim_samples=args.prim_samples)  # fmt: skip
     first, last = args.frames or (engine.stage.GetStartTimeCode(), engine.stage.GetEndTimeCode())
     if args.step <= 0 or last < first:
         raise RigspaceError(

@@ -173,6 +173,10 @@ def maps_from_samples(
     is fine pixel (i*s + a, j*s + b). Both renderers reduce through here, so identically.
     """
     s = samples_per_axis
+    if s == 1:  # one sample per pixel: nothing to reduce
+        depth = np.where(hit, depth, np.float32(np.inf)).astype(np.float32)
+        normal = np.where(hit[..., None], normal, np.float32(0)).astype(np.float32)
+        return Maps(albedo.astype(np.float32), normal, depth, hit.astype(np.float32))
     h, w = hit.shape[0] // s, hit.shape[1] // s
     count = np.float32(s * s)
     mask = np.zeros((h, w), np.float32)
