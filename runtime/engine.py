@@ -14,7 +14,7 @@ stage without lights renders unlit (beauty = albedo). Imports no torch.
 
 from __future__ import annotations
 
-import hashlib
+import itertools
 import sys
 import time as clock
 from dataclasses import dataclass, field
@@ -52,13 +52,33 @@ class Frame:
     report: dict[str, Any] = field(default_factory=dict)
 
 
+POSE_TOLERANCE = 1e-5
+"""Joint rotations (matrix entries) and translations (in billboard sides) closer than this
+to the cached pose count as the same pose: a hold interpolated at fractional times differs
+by rounding only (3e-5 measured), far below a pixel at any level (1e-5 of 128 pixels)."""
+
+_serials = itertools.count()
+
+
 @dataclass
 class _CachedLayer:
-    key: bytes
+    pose: np.ndarray
+    """(J, 4, 4) the model's joints' world transforms the layer was evaluated for."""
+    view: bytes
+    """The camera and billboard corners it was evaluated for (exact)."""
     layer: Layer
     lit: np.ndarray | None = None
     lit_key: bytes = b""
     """The lights `lit` was shaded with: lights that change re-light a reused layer."""
+    serial: int = field(default_factory=lambda: next(_serials))
+    """Identifies this evaluation in the frame cache's key."""
+
+    def matches(self, pose: np.ndarray, view: bytes, side: float) -> bool:
+        if view != self.view:
+            return False
+        rotation = np.abs(pose[:, :3, :3] - self.pose[:, :3, :3]).max()
+        translation = np.abs(pose[:, :3, 3] - self.pose[:, :3, 3]).max() / side
+        return bool(rotation < POSE_TOLERANCE and translation < POSE_TOLERANCE)
 
 
 class Engine:
@@ -76,19 +96,22 @@ class Engine:
         reference: bool = False,
         aovs: tuple[str, ...] = AOVS,
         prim_samples: int = 2,
+        max_level: int | None = None,
     ) -> None:
         """`reference=True` draws each character's real skinned mesh with the renderer instead
         of its network (the ground truth that `rigspace render --reference` compares with).
         `aovs` are the images the caller will read: without `normal` and `depth`, a character
         with no lights on it and nothing overlapping its billboard runs its albedo branch only.
         `prim_samples` per axis anti-alias the scene prims (2: 2x2 per pixel; 1: none, about
-        twice as fast on a software renderer)."""
+        twice as fast on a software renderer). `max_level` caps the level of detail (the
+        network's output resolution) to trade detail for time."""
         unknown = sorted(set(aovs) - set(AOVS))
         if unknown:
             raise SceneError(
                 f"Unknown AOV {', '.join(unknown)}.", f"choose from {', '.join(AOVS)}."
             )
         self.aovs = tuple(aovs)
+        self.max_level = max_level
         if width <= 0 or height <= 0:
             raise SceneError(
                 f"The viewport is {width}x{height}.",
@@ -259,13 +282,11 @@ class Engine:
                 entry.update(decision="skipped", reason=billboard.reason)
                 continue
             # The joints' world transforms and the camera determine the rig parameters and
-            # the billboard, so they key the reuse without computing the parameters.
-            key = hashlib.sha1(
-                world[character.order].tobytes() + billboard.corners.tobytes() + camera_key
-            ).digest()
+            # the billboard, so they decide the reuse without computing the parameters.
+            view = billboard.corners.round(3).tobytes() + camera_key
             timings["rig"] += clock.perf_counter() - t
             candidates.append(
-                _Candidate(character, entry, billboard, world, key, billboard.region(camera))
+                _Candidate(character, entry, billboard, world, view, billboard.region(camera))
             )
         pending: dict[tuple[int, int, tuple[str, ...]], list[_Candidate]] = {}
         for c in candidates:
@@ -275,12 +296,17 @@ class Engine:
             c.entry["mode_reason"] = why
             if (
                 cached is not None
-                and cached.key == c.key
+                and cached.matches(c.world[c.character.order], c.view, c.billboard.side)
                 and set(branches) <= set(cached.layer.branches)
             ):
                 c.entry.update(decision="reused", reason="same pose and camera as the last frame")
                 continue
             level = c.character.model.level_for(c.billboard.size_px)
+            if self.max_level is not None:
+                level = max(
+                    [r for r in c.character.model.resolutions if r <= self.max_level]
+                    or c.character.model.resolutions[:1]
+                )
             pending.setdefault((id(c.character.model), level, branches), []).append(c)
         t = clock.perf_counter()
         for c in (c for group in pending.values() for c in group):
@@ -294,7 +320,9 @@ class Engine:
             for k, c in enumerate(group):
                 mine = {name: value[k : k + 1] for name, value in out.items()}
                 layer = c.character.resample(mine, c.billboard, camera, level, branches)
-                self._layers[c.character.path] = _CachedLayer(c.key, layer)
+                self._layers[c.character.path] = _CachedLayer(
+                    c.world[c.character.order], c.view, layer
+                )
                 c.entry.update(decision="evaluated", batch=len(group))
         timings["network"] += clock.perf_counter() - t
         for c in candidates:
@@ -304,7 +332,7 @@ class Engine:
         frame_key = (
             self._prims_key,
             light_key,
-            tuple((c.character.path, self._layers[c.character.path].key) for c in candidates),
+            tuple((c.character.path, self._layers[c.character.path].serial) for c in candidates),
         )
         if self._frame is not None and self._frame[0] == frame_key:
             report["composite_reused"] = True
@@ -365,7 +393,10 @@ class Engine:
             level=layer.level,
             top_level=top,
             level_reason=(
-                f"the largest level, upsampled to its {c.billboard.size_px:.0f} px"
+                f"capped by max_level {self.max_level}, upsampled to its "
+                f"{c.billboard.size_px:.0f} px"
+                if self.max_level is not None and layer.level < c.billboard.size_px
+                else f"the largest level, upsampled to its {c.billboard.size_px:.0f} px"
                 if c.billboard.size_px > top
                 else f"the smallest level covering its {c.billboard.size_px:.0f} px"
             ),
@@ -384,7 +415,7 @@ class _Candidate:
     billboard: Billboard
     world: np.ndarray
     """(J, 4, 4) joint-to-world transforms."""
-    key: bytes
+    view: bytes
     region: tuple[int, int, int, int]
     """(x0, y0, w, h) of the billboard in the frame."""
     rig: np.ndarray | None = None
