@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pxr import Usd
+from pxr import Usd, UsdSkel
 
 from rigspace.capture.ring import Lens, RingView, ring_views
 from rigspace.sdk import schema
@@ -225,6 +225,21 @@ def derive_radius(
     return BOUNDS_MARGIN * reach / math.sin(half_fov)
 
 
+def _check_finite(rig: CharacterRig) -> None:
+    """Every authored value of the animation finite, checked before any work (a NaN or Inf
+    would otherwise surface mid-capture, from inside a worker)."""
+    anim = UsdSkel.Animation(rig.animation)
+    for attr in (anim.GetTranslationsAttr(), anim.GetRotationsAttr(), anim.GetScalesAttr()):
+        for t in attr.GetTimeSamples() or [Usd.TimeCode.Default()]:
+            value = attr.Get(t)
+            if value is not None and not np.all(np.isfinite(np.asarray(value, dtype=float))):
+                raise CaptureError(
+                    f"Animation {rig.animation.GetPath()} has NaN or Inf in {attr.GetName()} "
+                    f"at time {t}.",
+                    "fix or delete that time sample (capture renders every time code).",
+                )
+
+
 def resolve_settings(
     scene: str | Path, character: str, overrides: CaptureOverrides | None = None
 ) -> tuple[CaptureSettings, CharacterRig]:
@@ -239,6 +254,7 @@ def resolve_settings(
             f"Animation {rig.animation.GetPath()} has no time samples to capture.",
             "author time-sampled rotations on the SkelAnimation.",
         )
+    _check_finite(rig)
     ring = schema.read_capture_ring(prim) if schema.has_capture_ring(prim) else None
     info = schema.read_neural_character(prim)
     defaults = ring or schema.CaptureRing(

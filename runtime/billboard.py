@@ -6,9 +6,14 @@ centred on the joint, perpendicular to the line of sight. At run time the same s
 placed at the joint, perpendicular to the ray from the render camera through the joint:
 
 - the virtual camera that "took" the network's image is the render camera rotated by R,
-  the minimal rotation from the camera's centre ray (-Z) to the ray through the joint
-  (the paper's off-centre correction q^ = R q~): rig parameters are expressed in the
-  frame C R, and predicted normals come back as R n;
+  a rotation taking the camera's centre ray (-Z) to the ray through the joint (the paper's
+  off-centre correction q^ = R q~): rig parameters are expressed in the frame C R, and
+  predicted normals come back as R n. The paper's R is the minimal such rotation; it
+  leaves the virtual camera rolled about the ray (by about 1 degree for a character 15
+  degrees right and 10 up of centre), a roll the training ring (cameras upright, looking
+  at the joint) never showed the network. Here R keeps the stage's up axis upright, as
+  the ring did, and the roll goes into the billboard's corners instead (measured in
+  docs/runtime.md: the off-centre loss halves);
 - projecting the square's corners gives the exact homography from the network's image to
   the frame (a tilted plane is not a screen-space square off-centre);
 - the plane's depth at each pixel is a ray-plane intersection; the network's depth offset
@@ -25,6 +30,10 @@ import numpy as np
 
 from rigspace.sdk.camera import Camera
 
+UPRIGHT_LIMIT = 0.05
+"""Below this sine of the angle between the joint ray and the up axis (within 3 degrees of
+looking straight up or down) the upright virtual camera is undefined: R falls back to the
+minimal rotation."""
 MIN_DEPTH_FACTOR = 1.0
 """A joint closer than near * this (or behind the camera) cannot be drawn as a billboard."""
 
@@ -120,10 +129,30 @@ class Billboard:
         return (plane + depth_offset * (-normal[2])).astype(np.float32)
 
 
+def upright_rotation(ray: np.ndarray, up: np.ndarray) -> np.ndarray | None:
+    """Axes (columns X, Y, Z) of a camera looking along `ray` with `up` upright, or None when
+    the ray is (nearly) parallel to up. Both in the same frame."""
+    forward = ray / np.linalg.norm(ray)
+    right = np.cross(forward, up)
+    norm = np.linalg.norm(right)
+    if norm < UPRIGHT_LIMIT:
+        return None
+    right /= norm
+    return np.stack([right, np.cross(right, forward), -forward], axis=-1)
+
+
 def place(
-    joint_world: np.ndarray, camera: Camera, view: TrainingView, scale: float = 1.0
+    joint_world: np.ndarray,
+    camera: Camera,
+    view: TrainingView,
+    scale: float = 1.0,
+    up: np.ndarray | None = None,
 ) -> Billboard:
-    """The billboard of a character whose look-at joint is at `joint_world`."""
+    """The billboard of a character whose look-at joint is at `joint_world`.
+
+    With `up` (the stage's up axis, world space) the virtual camera keeps it upright, as
+    the training ring's cameras did; without it, or looking along it, R is the minimal
+    rotation from the centre ray (the paper's)."""
     p = camera.to_camera(np.asarray(joint_world, dtype=np.float64)[None])[0]
     side = view.side * scale
     if not -p[2] > camera.near * MIN_DEPTH_FACTOR:
@@ -134,6 +163,9 @@ def place(
             p, np.eye(3), np.zeros((4, 2)), side, False, "the camera is inside the billboard"
         )
     rotation = rotation_between(np.array([0.0, 0.0, -1.0]), p / np.linalg.norm(p))
+    if up is not None:
+        upright = upright_rotation(p, camera.world_to_camera[:3, :3] @ np.asarray(up, float))
+        rotation = rotation if upright is None else upright
     right, up = rotation[:, 0], rotation[:, 1]
     half = side / 2
     corners_cam = np.stack(
@@ -141,8 +173,10 @@ def place(
          p + half * right - half * up, p - half * right - half * up]
     )  # fmt: skip
     if np.any(-corners_cam[:, 2] <= camera.near):
+        # The square reaches behind the near plane although the joint is more than half a side
+        # away: seen edge-on, far off-centre (at 89 degrees off-axis, 1000 units away, say).
         return Billboard(
-            p, rotation, np.zeros((4, 2)), side, False, "the camera is inside the billboard"
+            p, rotation, np.zeros((4, 2)), side, False, "the billboard crosses the near plane"
         )
     xy = np.stack(
         [camera.cx + camera.fx * corners_cam[:, 0] / -corners_cam[:, 2],

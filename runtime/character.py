@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from pxr import Usd, Vt
+from pxr import Usd, UsdGeom, Vt
 
 from rigspace.runtime.billboard import Billboard, TrainingView, place
 from rigspace.sdk import schema
@@ -30,6 +30,8 @@ from rigspace.sdk.model import BundleModel
 from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.rotations import rig_parameters
 
+WARP_INTERPOLATION = cv2.INTER_LINEAR
+"""How the network's maps are resampled into the frame."""
 COVERAGE_EPSILON = 1e-4
 """Warped coverage below this counts as empty (divisions by coverage are guarded by it)."""
 
@@ -81,6 +83,11 @@ class NeuralCharacter:
         tc = raw["training_camera"]
         self.view = TrainingView(tc["distance"], tc["focal_length"], tc["horizontal_aperture"])
         self.training_resolution = int(tc.get("resolution", max(model.resolutions)))
+        axis = UsdGeom.GetStageUpAxis(prim.GetStage())
+        self.up = (
+            np.array([0.0, 0.0, 1.0]) if axis == UsdGeom.Tokens.z else np.array([0.0, 1.0, 0.0])
+        )
+        """The stage's up axis: the training ring kept it upright in every view."""
 
     def pose(self, time: float, local: Vt.Matrix4dArray | None = None) -> np.ndarray:
         """(J, 4, 4) joint-to-world transforms at `time` (from `local` when a source gives it)."""
@@ -96,7 +103,7 @@ class NeuralCharacter:
     def place(self, world: np.ndarray, camera: Camera) -> Billboard:
         scale = float(np.cbrt(abs(np.linalg.det(world[self.look_at][:3, :3]))))
         # Joint scale is the character's own world scale (the rig has no joint scaling).
-        return place(world[self.look_at][:3, 3], camera, self.view, scale)
+        return place(world[self.look_at][:3, 3], camera, self.view, scale, self.up)
 
     def parameters(self, world: np.ndarray, billboard: Billboard, camera: Camera) -> np.ndarray:
         virtual = np.eye(4)
@@ -133,7 +140,7 @@ class NeuralCharacter:
                 hwc,
                 matrix,
                 (w, h),
-                flags=cv2.INTER_LINEAR,
+                flags=WARP_INTERPOLATION,
                 borderMode=cv2.BORDER_CONSTANT,
                 borderValue=0,
             )

@@ -143,6 +143,7 @@ class Engine:
         self._layers: dict[str, _CachedLayer] = {}
         self._lit_prims: tuple[bytes, np.ndarray] | None = None
         self._frame: tuple[tuple, Frame] | None = None
+        self._light_problems: list[str] = []
         self._still_camera: tuple[Camera, bytes] | None = None
         self._still_lights: list[Light] | None = None
         self._camera_varies: bool | None = None
@@ -226,18 +227,23 @@ class Engine:
             return []  # without a beauty AOV nothing is shaded
         if self._still_lights is not None:
             return self._still_lights
-        lights = lights_at(self.light_prims, time)
+        lights = lights_at(self.light_prims, time, self._light_problem)
         if self._lights_vary is None:
             self._lights_vary = any(might_vary(p) for p in self.light_prims)
         if not self._lights_vary:
             self._still_lights = lights
         return lights
 
+    def _light_problem(self, problem: SceneError) -> None:
+        print(f"rigspace render: warning: {problem} The light is left out.", file=sys.stderr)
+        self._light_problems.append(problem.what)
+
     def render(self, time: float) -> Frame:
         """The frame at stage time `time`. Its arrays may be shared with later frames that
         change nothing (the frame cache): they are read-only; copy them to edit."""
         timings = dict.fromkeys(STAGES, 0.0)
         start = clock.perf_counter()
+        self._light_problems = []
         camera, camera_key = self._camera_at(time)
         meshes = self.scene.meshes(time)
         if self.reference:
@@ -252,6 +258,8 @@ class Engine:
             "lights": len(lights),
             "characters": [],
         }
+        if self._light_problems:
+            report["lights_left_out"] = self._light_problems
         report["characters"] += [
             {"path": p, "decision": "skipped", "reason": "no model bundle (rigspace:model)"}
             for p in self.without_model

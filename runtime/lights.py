@@ -13,16 +13,20 @@ uniform ambient light. Invisible and deactivated lights are left out.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 from pxr import Usd, UsdGeom, UsdLux
 
 from rigspace.sdk.camera import from_gf
+from rigspace.sdk.errors import SceneError
 
 DISTANT = "distant"
 POINT = "point"
 AMBIENT = "ambient"
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+"""The largest radiance shading can hold (it is float32); NaN compares false with it too."""
 POINT_LIGHT_TYPES = (UsdLux.SphereLight, UsdLux.RectLight, UsdLux.DiskLight, UsdLux.CylinderLight)
 
 
@@ -77,8 +81,14 @@ def light_prims(stage: Usd.Stage) -> list[Usd.Prim]:
     return [prim for prim in stage.Traverse() if prim.HasAPI(UsdLux.LightAPI)]
 
 
-def lights_at(prims: list[Usd.Prim], time: float) -> list[Light]:
-    """The visible lights among `prims` at `time`."""
+def lights_at(
+    prims: list[Usd.Prim], time: float, on_problem: Callable[[SceneError], None] | None = None
+) -> list[Light]:
+    """The visible lights among `prims` at `time`.
+
+    A light with a NaN, Inf or float32-overflowing radiance or transform is a SceneError;
+    with `on_problem`, it is passed there and the light is left out instead (the runtime:
+    one bad light must not end a sequence, nor turn a frame into NaN)."""
     when = Usd.TimeCode(time)
     cache = UsdGeom.XformCache(when)
     lights: list[Light] = []
@@ -89,6 +99,19 @@ def lights_at(prims: list[Usd.Prim], time: float) -> list[Light]:
         radiance = _radiance(UsdLux.LightAPI(prim), when)
         xf = from_gf(cache.GetLocalToWorldTransform(prim))
         path = str(prim.GetPath())
+        # Shading is float32: a radiance beyond its range is Inf there, and Inf * 0 is NaN.
+        if not (np.all(np.abs(radiance) <= FLOAT32_MAX) and np.all(np.isfinite(xf))):
+            problem = SceneError(
+                f"Light {path} at time {time:g}: intensity * 2^exposure * color is "
+                f"{radiance.tolist()} and its transform is "
+                f"{'finite' if np.all(np.isfinite(xf)) else 'not finite'}.",
+                "give inputs:intensity, inputs:exposure, inputs:color and the xformOps finite "
+                "values (radiance below 3e38).",
+            )
+            if on_problem is None:
+                raise problem
+            on_problem(problem)
+            continue
         if prim.IsA(UsdLux.DistantLight):
             axis = xf[:3, :3] @ np.array([0.0, 0.0, -1.0])
             lights.append(

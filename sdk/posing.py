@@ -119,8 +119,16 @@ class CharacterRig:
     # -- joint transforms ---------------------------------------------------------------
 
     def local_transforms(self, time: float) -> Vt.Matrix4dArray:
-        """Joint-local transforms in skeleton order (rest transforms where the animation is sparse)."""
-        local = self._anim_query.ComputeJointLocalTransforms(Usd.TimeCode(time))
+        """Joint-local transforms in skeleton order (rest transforms where the animation is sparse).
+
+        Rotations are normalised first, as sdk/rotations does: UsdSkel builds a joint's matrix as
+        if its quaternion were unit, so 3q would shear and scale the joint (and its children).
+        """
+        translations, rotations, scales = self._anim_query.ComputeJointLocalTransformComponents(
+            Usd.TimeCode(time)
+        )
+        rotations = Vt.QuatfArray([q.GetNormalized() for q in rotations])
+        local = UsdSkel.MakeTransforms(translations, rotations, scales)
         if not self._mapper.IsIdentity():
             local = self._mapper.Remap(local, self._rest)
         return local

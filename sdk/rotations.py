@@ -17,7 +17,17 @@ _EPS = 1e-12  # guards divisions by a norm that is zero only for invalid input
 
 def orthonormalize(m: np.ndarray) -> np.ndarray:
     """The rotation nearest to each 3x3 matrix (polar decomposition), stripping scale and shear."""
-    u, _, vt = np.linalg.svd(np.asarray(m, dtype=np.float64))
+    m = np.asarray(m, dtype=np.float64)
+    if not np.all(np.isfinite(m)):
+        # LAPACK's SVD never returns on an Inf entry (OpenBLAS 0.3.31) and fails with "SVD did
+        # not converge" on NaN: name the matrix instead.
+        flat = m.reshape(-1, 9)
+        bad = int(np.flatnonzero(~np.isfinite(flat).all(axis=1))[0])
+        raise ValueError(
+            f"orthonormalize: matrix {bad} of {len(flat)} holds NaN or Inf; check the joint and "
+            "camera transforms before building rig parameters."
+        )
+    u, _, vt = np.linalg.svd(m)
     r = u @ vt
     flip = np.linalg.det(r) < 0  # a mirror: flip the least significant axis
     if np.any(flip):

@@ -340,3 +340,24 @@ def test_centimetre_stage_scales_depth_not_parameters(tmp_path, dataset):
     both = (metres.mask == 1) & (centimetres.mask == 1)
     assert np.array_equal(metres.mask > 0, centimetres.mask > 0)
     assert np.allclose(centimetres.depth[both], 100 * metres.depth[both], rtol=1e-3)
+
+
+def test_nan_in_the_animation_is_refused_before_any_work(tmp_path):
+    from pxr import Usd, UsdSkel
+
+    from rigspace.sdk.stage import overlay_layer
+
+    layer = overlay_layer(tmp_path / "nan.usda", SCENE)
+    stage = Usd.Stage.Open(layer)
+    rig = CharacterRig(stage.GetPrimAtPath(CHARACTER))
+    rotations_attr = UsdSkel.Animation(rig.animation).GetRotationsAttr()
+    time_code = rotations_attr.GetTimeSamples()[3]
+    values = np.array(rotations_attr.Get(time_code))
+    values[0, 0] = np.nan
+    rotations_attr.Set(values, time_code)
+    layer.Save()
+    with pytest.raises(CaptureError, match=rf"NaN or Inf in rotations at time {time_code:g}"):
+        capture(
+            tmp_path / "nan.usda", CHARACTER, tmp_path / "out", SMALL, workers=1, progress=False
+        )
+    assert not (tmp_path / "out").exists()

@@ -190,9 +190,9 @@ def test_a_repeated_frame_reuses_the_lit_scene_too(engine):
 
 
 def test_characters_sharing_a_bundle_run_as_one_batch(tmp_path):
-    from rigspace.runtime.bench import crowd_scene
+    from rigspace.bench.scenes import crowd_scene
 
-    e = Engine(crowd_scene(tmp_path), width=128, height=72)
+    e = Engine(crowd_scene(tmp_path, 4), width=128, height=72)
     try:
         assert len({id(c.model) for c in e.characters}) == 1  # one set of sessions
         frame = e.render(700.0)
@@ -312,3 +312,22 @@ def test_aovs_choose_the_exr_channels_and_bad_names_are_refused(tmp_path):
         Engine(PREVIS, width=8, height=8, aovs=("beauty", "specular"))
     with pytest.raises(SystemExit):
         main([*args, "--aovs", "beauty,specular"])
+
+
+def test_a_light_with_a_nan_intensity_is_left_out_loudly(tmp_path, capsys):
+    from pxr import Usd, UsdLux
+
+    scene = _overlay(tmp_path)
+    stage = Usd.Stage.Open(str(scene))
+    UsdLux.LightAPI(stage.GetPrimAtPath("/World/Lights/Lamp")).GetIntensityAttr().Set(float("nan"))
+    stage.GetRootLayer().Save()
+    e = Engine(scene, width=64, height=36)
+    try:
+        frame = e.render(700.0)
+    finally:
+        e.close()
+    assert (
+        frame.report["lights"] == 1 and "/World/Lights/Lamp" in frame.report["lights_left_out"][0]
+    )
+    assert np.all(np.isfinite(frame.beauty))
+    assert "left out" in capsys.readouterr().err

@@ -41,9 +41,12 @@ def test_rig_matches_usdskel(cesium_rig):
     for time in (1.0, 17.5, 48.0):
         ours = rig.skel_transforms(rig.local_transforms(time))
         usd = rig._skel_query.ComputeJointSkelTransforms(Usd.TimeCode(time))
-        np.testing.assert_allclose(from_gf(ours), from_gf(usd), atol=1e-9)
+        # rigspace normalises each quaternion first (UsdSkel builds a non-unit one into a
+        # sheared, scaled joint); CesiumMan's authored quaternions are unit to about 1e-5,
+        # which is what separates the two here (7e-6 at most).
+        np.testing.assert_allclose(from_gf(ours), from_gf(usd), atol=1e-5)
         world = rig._skel_query.ComputeJointWorldTransforms(UsdGeom.XformCache(Usd.TimeCode(time)))
-        np.testing.assert_allclose(rig.world_transforms(time), from_gf(world), atol=1e-6)
+        np.testing.assert_allclose(rig.world_transforms(time), from_gf(world), atol=1e-5)
 
 
 def test_skinned_points_match_an_independent_lbs(cesium_rig):

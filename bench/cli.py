@@ -1,0 +1,355 @@
+"""`rigspace bench`: run time against error, skip costs, memory and stability, in one run.
+
+    rigspace bench --quick --out /tmp/bench          # a few minutes
+    rigspace bench --out docs/bench --dataset /tmp/sample_ds
+
+Writes results.json (every raw number, the command line and the machine), README.md
+(the summary tables) and PNG plots (pareto.png, skips.png) into --out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from rigspace.sdk.cli import CommandSpec
+
+DESCRIPTION = """\
+Measure the whole pipeline side by side in one run and write the results: run time
+against error for every model variant (levels of detail, fp32 and int8), the
+ground-truth renderers and (with --dataset) the captured-view baselines; the runtime
+against the model (per map, three framings); per-frame time by stage for 1 and 4
+characters; what each skip costs; the network's FLOPs against this machine's measured
+peak; capture and training throughput; peak memory with 1 and 8 characters; and
+numerical stability (adversarial rigs through the network, fp32 against int8). Every
+timing is a median after a warm-up, with min and max. --quick takes a few minutes; the
+full run about half an hour on 2 cores.
+"""
+
+
+@dataclass(frozen=True)
+class Plan:
+    """How much of each measurement a run does."""
+
+    per_split: int
+    repeats: int
+    frames: int
+    accuracy_samples: int
+    frame_sizes: tuple[int, ...]
+    skip_frames: int
+    levels: tuple[int, ...]
+    capture_resolutions: tuple[int, ...]
+    capture_frames: tuple[float, float]
+    capture_views: int
+    presets: tuple[str, ...]
+    training_steps: int
+    memory_frames: int
+    stress_rigs: int
+    drift_rigs: int
+    stability_steps: int
+
+
+QUICK = Plan(
+    per_split=6, repeats=5, frames=4, accuracy_samples=6, frame_sizes=(256,), skip_frames=8,
+    levels=(32, 128), capture_resolutions=(128,), capture_frames=(0.0, 7.0), capture_views=4,
+    presets=("tiny", "small"), training_steps=3, memory_frames=2, stress_rigs=2_000,
+    drift_rigs=32, stability_steps=0,
+)  # fmt: skip
+FULL = Plan(
+    per_split=48, repeats=20, frames=12, accuracy_samples=24, frame_sizes=(256, 512),
+    skip_frames=24, levels=(8, 16, 32, 64, 128), capture_resolutions=(64, 128, 256),
+    capture_frames=(0.0, 31.0), capture_views=12, presets=("tiny", "small", "paper"),
+    training_steps=4, memory_frames=8, stress_rigs=100_000, drift_rigs=256, stability_steps=400,
+)  # fmt: skip
+
+
+def machine() -> dict[str, Any]:
+    """What the numbers were measured on."""
+    import numpy as np
+    import onnxruntime as ort
+    from pxr import Usd
+
+    cpu = ""
+    info = Path("/proc/cpuinfo")
+    if info.is_file():
+        for line in info.read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    memory = ""
+    meminfo = Path("/proc/meminfo")
+    if meminfo.is_file():
+        kib = int(meminfo.read_text().split("MemTotal:")[1].split()[0])
+        memory = f"{kib / 2**20:.1f} GiB"
+    versions = {
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "onnxruntime": ort.__version__,
+        "usd": ".".join(map(str, Usd.GetVersion())),
+    }
+    try:
+        import torch
+
+        versions["torch"] = torch.__version__
+    except ImportError:
+        versions["torch"] = "not installed"
+    return {
+        "cpu": cpu or platform.processor(),
+        "cores": os.cpu_count(),
+        "memory": memory,
+        "platform": platform.platform(),
+        "onnxruntime_providers": ort.get_available_providers(),
+        "versions": versions,
+        "gpu": "none" if "CUDAExecutionProvider" not in ort.get_available_providers() else "CUDA",
+    }
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--quick", action="store_true", help="a few minutes: fewer samples")
+    parser.add_argument(
+        "--out", default="docs/bench", help="folder for results (default docs/bench)"
+    )
+    parser.add_argument(
+        "--dataset",
+        help="a capture of the sample scene (`rigspace capture samples/scenes/previs.usda`): "
+        "adds the captured-view baselines and a training-stability run on it",
+    )
+    parser.add_argument(
+        "--only",
+        nargs="+",
+        metavar="PART",
+        help=f"run only these parts: {', '.join(PARTS)}",
+    )
+
+
+PARTS = (
+    "pareto", "accuracy", "frames", "skips", "efficiency", "capture", "training", "memory",
+    "stability",
+)  # fmt: skip
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from rigspace.sdk.errors import RigspaceError
+
+    plan = QUICK if args.quick else FULL
+    parts = tuple(args.only or PARTS)
+    unknown = sorted(set(parts) - set(PARTS))
+    if unknown:
+        raise RigspaceError(
+            f"Unknown bench part {', '.join(unknown)}.", f"choose from {', '.join(PARTS)}."
+        )
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    dataset = Path(args.dataset) if args.dataset else None
+    result: dict[str, Any] = {
+        "command": "rigspace " + " ".join(sys.argv[1:]) if sys.argv else "rigspace bench",
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "mode": "quick" if args.quick else "full",
+        "machine": machine(),
+        "seconds": {},
+    }
+    with tempfile.TemporaryDirectory() as tmp:
+        bar = tqdm(parts, unit="part", file=sys.stderr, dynamic_ncols=True)
+        for part in bar:
+            bar.set_postfix_str(part)
+            start = time.monotonic()
+            result[part] = MEASURE[part](plan, Path(tmp), dataset)
+            result["seconds"][part] = round(time.monotonic() - start, 1)
+            _plot(part, result[part], out)
+            _write(out, result)  # every part is kept even if a later one fails
+    _write(out, result)
+    print(f"bench results in {out}: results.json, README.md" + _pngs(out))
+    return 0
+
+
+def _plot(part: str, value: Any, out: Path) -> None:
+    if part == "pareto":
+        from rigspace.bench import pareto
+
+        pareto.plot(value, out / "pareto.png")
+    elif part == "skips":
+        from rigspace.bench import skips
+
+        skips.plot(value["int8"], out / "skips.png")
+
+
+def _pngs(out: Path) -> str:
+    names = sorted(p.name for p in out.glob("*.png"))
+    return (", " + ", ".join(names)) if names else ""
+
+
+def _write(out: Path, result: dict[str, Any]) -> None:
+    from rigspace.bench.report import markdown
+
+    tmp = out / f".results.json.{os.getpid()}.tmp"
+    tmp.write_text(json.dumps(result, indent=1, default=_plain) + "\n")
+    os.replace(tmp, out / "results.json")
+    (out / "README.md").write_text(markdown(result))
+
+
+def _plain(value: Any) -> Any:
+    import numpy as np
+
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"{type(value).__name__} is not JSON")
+
+
+# -- the parts ------------------------------------------------------------------------------
+
+
+def _pareto(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
+    from rigspace.bench import pareto
+
+    result = pareto.measure(plan.per_split, plan.repeats, 256, plan.frames, dataset)
+    return result
+
+
+def _accuracy(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
+    from rigspace.bench import accuracy
+
+    return accuracy.measure(samples=plan.accuracy_samples)
+
+
+def _frames(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
+    from rigspace.bench import frames
+
+    return frames.measure(tmp, plan.frame_sizes, (1, 4), plan.frames)
+
+
+def _skips(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
+    from rigspace.bench import skips
+
+    return {
+        precision: skips.measure(tmp, 256, precision, plan.skip_frames)
+        for precision in ("int8", "fp32")
+    }
+
+
+def _efficiency(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
+    from rigspace.bench import flops
+    from rigspace.bench.scenes import ROOT
+
+    bundle = ROOT / "samples" / "models" / "sample"
+    rows = [
+        flops.efficiency(bundle, level, precision, threads=threads, repeats=plan.repeats)
+        for threads in (1, 0)
+        for level in plan.levels
+        for precision in ("fp32", "int8")
+    ]
+    return {"peak": flops.peak_flops(repeats=plan.repeats), "rows": rows}
+
+
+def _capture(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
+    from rigspace.bench import throughput
+
+    return throughput.capture_throughput(
+        ("gl", "embree"), plan.capture_resolutions, plan.capture_frames, plan.capture_views
+    )
+
+
+def _training(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
+    from rigspace.bench import throughput
+
+    rows = throughput.training_throughput(plan.presets, plan.training_steps)
+    result: dict[str, Any] = {"throughput": rows}
+    if dataset is not None and plan.stability_steps:
+        result["stability"] = training_stability(dataset, tmp, plan.stability_steps)
+    return result
+
+
+def training_stability(dataset: Path, tmp: Path, steps: int) -> dict[str, Any]:
+    """The `small` preset's real loop on the sample dataset, every level in `steps` steps:
+    the loss of every step, checked finite."""
+    from dataclasses import replace
+
+    from rigspace.train.config import preset
+    from rigspace.train.loop import train
+
+    config = replace(preset("small"), steps_per_level=steps // 4, eval_every=10**9)
+    run_folder = tmp / "stability_run"
+    result = train(dataset, run_folder, config, steps=steps, progress=False)
+    losses = [json.loads(line)["loss"] for line in (run_folder / "log.jsonl").open()]
+    import math
+
+    return {
+        "preset": "small",
+        "steps": result.step,
+        "levels": list(config.levels()),
+        "finite": all(math.isfinite(x) for x in losses),
+        "first_loss": losses[0],
+        "last_loss": losses[-1],
+        "max_loss": max(losses),
+        "images_per_s": result.images_per_second,
+    }
+
+
+def _memory(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
+    from rigspace.bench import memory
+
+    return [memory.peak_rss(n, 256, "fp32", plan.memory_frames) for n in (1, 8)]
+
+
+def _stability(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
+    import numpy as np
+
+    from rigspace.bench import stability
+    from rigspace.bench.scenes import PREVIS, ROOT
+    from rigspace.sdk.model import BundleModel
+
+    bundle = ROOT / "samples" / "models" / "sample"
+    fp32, int8 = BundleModel(bundle), BundleModel(bundle, "int8")
+    result: dict[str, Any] = {
+        "stress": stability.stress(fp32, plan.stress_rigs, 0, stability.LONG_LEVEL)
+    }
+    rng = np.random.default_rng(0)
+    sets = {
+        "random rotations": stability.rigs(
+            stability.haar(rng, plan.drift_rigs, len(fp32.joints)),
+            stability.camera_frames(rng, plan.drift_rigs),
+        ),
+        "animation": stability.animation_rigs(PREVIS, "/World/Hero", fp32, plan.drift_rigs),
+    }
+    result["drift"] = {
+        f"{name}, level {level}": stability.drift(fp32, int8, rigs, level)
+        for name, rigs in sets.items()
+        for level in plan.levels
+    }
+    return result
+
+
+MEASURE = {
+    "pareto": _pareto,
+    "accuracy": _accuracy,
+    "frames": _frames,
+    "skips": _skips,
+    "efficiency": _efficiency,
+    "capture": _capture,
+    "training": _training,
+    "memory": _memory,
+    "stability": _stability,
+}
+
+
+COMMAND = CommandSpec(
+    name="bench",
+    help="benchmark run time against error, skips, memory and stability; write JSON, Markdown, plots",
+    description=DESCRIPTION,
+    add_arguments=add_arguments,
+    run=run,
+)

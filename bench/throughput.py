@@ -1,0 +1,204 @@
+"""Capture samples/s per renderer and resolution; training images/s per preset, with stability.
+
+    capture_throughput(("gl", "embree"), (64, 128, 256), frames=(0.0, 31.0))
+    training_throughput(("tiny", "small", "paper"), steps=5, dataset=None)
+
+Capture rows come from capture/bench.py's `run` (real captures of the previs sample's
+/World/Hero into a temporary folder). Training rows time real steps of the training loop's
+own parts (Rig2Image, Prefetcher, total_loss, the Adam optimizer, each preset's batch,
+widths, bf16 and channels_last) at the preset's final level with the fade-in complete,
+after warm-up steps, on a dataset captured on the fly at the preset's resolution unless
+one is given. Every function returns a list of plain JSON-able dicts, one per row.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import statistics
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from rigspace.capture import bench as capture_bench
+from rigspace.capture.dataset import read_manifest
+from rigspace.capture.pipeline import capture
+from rigspace.capture.settings import CaptureOverrides
+from rigspace.sdk.render import renderer_plugins
+
+SCENE = capture_bench.DEFAULT_SCENE
+CHARACTER = capture_bench.DEFAULT_CHARACTER
+DATASET_FRAMES = (0.0, 3.0)
+"""Time codes of the on-the-fly training dataset (the walk clip's first four frames)."""
+DATASET_VIEWS = 4
+"""Training views at elevation 0 (the scene adds its held-out views, unused here)."""
+
+
+def capture_throughput(
+    renderers: tuple[str, ...] = ("gl", "embree"),
+    resolutions: tuple[int, ...] = (64, 128, 256),
+    frames: tuple[float, float] = (0.0, 31.0),
+    views: int = 12,
+) -> list[dict[str, Any]]:
+    """samples/s per renderer and resolution; an unusable renderer gets a row saying why.
+
+    Work items split by 16-frame chunks and by view group (training, held-out views), so
+    even a small capture runs in worker processes whose start-up (about 2 s on 2 cores) is
+    in `seconds`: a quick run (e.g. frames=(0, 1), views=2) gives a lower bound of samples/s,
+    while its per-sample split (ms_per_sample_one_core) is unaffected.
+    """
+    plugins = renderer_plugins()
+    rows: list[dict[str, Any]] = []
+    for renderer in renderers:
+        if renderer not in plugins:
+            why = plugins.failed.get(renderer, "no such renderer plugin")
+            rows.append({"renderer": renderer, "skipped": why})
+            continue
+        reason = plugins.specs[renderer].unavailable()
+        if reason:
+            rows.append({"renderer": renderer, "skipped": reason})
+            continue
+        with contextlib.redirect_stdout(io.StringIO()):  # run() prints a markdown row each
+            measured = capture_bench.run(SCENE, CHARACTER, frames, views, resolutions, [renderer])
+        for row in measured:
+            rows.append(
+                {
+                    **row,
+                    "scene": SCENE.name,
+                    "character": CHARACTER,
+                    "frames": list(frames),
+                    "views": views,
+                }
+            )
+    return rows
+
+
+def capture_dataset(out: Path, resolution: int, frames=DATASET_FRAMES, views=DATASET_VIEWS) -> Path:
+    """A small previs dataset for timing training (not for training a usable model)."""
+    overrides = CaptureOverrides(
+        views=views, elevations=(0.0,), resolution=resolution, frames=frames
+    )
+    capture(SCENE, CHARACTER, out, overrides, progress=False)
+    return out
+
+
+def _step_rate(name: str, folder: Path, steps: int, warmup: int) -> dict[str, Any]:
+    """Time `warmup + steps` training steps of preset `name` on the dataset in `folder`."""
+    import torch  # here, not at the top: capture rows need no torch
+
+    from rigspace.train.config import preset
+    from rigspace.train.data import Prefetcher, SampleSet
+    from rigspace.train.loop import make_optimizer
+    from rigspace.train.loss import total_loss
+    from rigspace.train.network import Rig2Image, Shape
+
+    config = preset(name)
+    have = int(read_manifest(folder)["resolution"])
+    row: dict[str, Any] = {
+        "preset": name,
+        "resolution": config.resolution,
+        "batch": config.batch,
+        "latent": config.latent,
+        "base_width": config.base_width,
+        "min_width": config.min_width,
+        "bf16": config.bf16,
+        "channels_last": config.channels_last,
+        "dataset": str(folder),
+        "dataset_resolution": have,
+    }
+    if config.resolution > have:
+        row["skipped"] = (
+            f"preset {name} trains at {config.resolution}x{config.resolution}; the dataset "
+            f"holds {have}x{have} (capture at {config.resolution} or more)"
+        )
+        return row
+    samples = SampleSet(folder, "train", config.resolution)
+    if len(samples) == 0:
+        row["skipped"] = "the dataset has no training samples"
+        return row
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed)
+    model = Rig2Image(Shape(len(samples.joints)), config)
+    if config.channels_last:
+        model = model.to(memory_format=torch.channels_last)
+    optimizer = make_optimizer(model, config)
+    prefetch = Prefetcher(samples, config.batch, config.seed)
+    losses: list[float] = []
+    seconds: list[float] = []
+    try:
+        for step in range(warmup + steps):
+            start = time.perf_counter()
+            batch = {k: torch.from_numpy(v) for k, v in prefetch.get(step).items()}
+            if config.channels_last:
+                batch = {
+                    k: v.contiguous(memory_format=torch.channels_last) if v.ndim == 4 else v
+                    for k, v in batch.items()
+                }
+            # One step of train.loop.train at the final level, fade-in done (alpha 1).
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=config.bf16):
+                heads = model(batch["rig"], config.resolution)
+                loss, _terms = total_loss(heads, batch, 1.0, config)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            if config.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+            optimizer.step()
+            losses.append(float(loss.detach()))
+            if step >= warmup:
+                seconds.append(time.perf_counter() - start)
+    finally:
+        prefetch.close()
+    bad = [k for k, v in enumerate(losses) if not math.isfinite(v)]
+    return {
+        **row,
+        "samples": len(samples),
+        "parameters": sum(p.numel() for p in model.parameters()),
+        "warmup_steps": warmup,
+        "steps": steps,
+        "images_per_s": config.batch * steps / sum(seconds),
+        "median_step_ms": 1e3 * statistics.median(seconds),
+        "losses": losses,
+        "finite": not bad,
+        "first_nonfinite_step": bad[0] if bad else None,
+    }
+
+
+def training_throughput(
+    presets: tuple[str, ...] = ("tiny", "small", "paper"),
+    steps: int = 5,
+    dataset: str | Path | None = None,
+    warmup: int = 2,
+) -> list[dict[str, Any]]:
+    """Training images/s per preset and whether every step's loss was finite.
+
+    Without `dataset`, each preset's resolution is captured once (DATASET_FRAMES x
+    DATASET_VIEWS at elevation 0) into a temporary folder. With one, a preset that trains
+    above the dataset's resolution gets a row saying so instead of a measurement.
+    """
+    if steps < 1 or warmup < 0:
+        raise ValueError(f"steps must be >= 1 and warmup >= 0, got {steps} and {warmup}")
+    from rigspace.train.config import preset
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        captured: dict[int, Path] = {}
+        for name in presets:
+            if dataset is not None:
+                folder = Path(dataset)
+            else:
+                resolution = preset(name).resolution
+                if resolution not in captured:
+                    captured[resolution] = capture_dataset(
+                        Path(tmp) / f"ds_{resolution}", resolution
+                    )
+                folder = captured[resolution]
+            row = _step_rate(name, folder, steps, warmup)
+            if dataset is None:
+                row["dataset"] = (
+                    f"previs {CHARACTER}, frames {DATASET_FRAMES}, {DATASET_VIEWS} views"
+                )
+            rows.append(row)
+    return rows
