@@ -156,7 +156,12 @@ class NeuralCharacter:
             normal_v = warp(out["normal"] * out["mask"]) / weight
             normal_r = normal_v @ billboard.rotation.T  # virtual camera frame -> render frame
             length = np.linalg.norm(normal_r, axis=-1, keepdims=True)
-            normal = np.where(has[..., None], normal_r / np.maximum(length, COVERAGE_EPSILON), 0.0)
+            # A zero-length prediction (int8 graphs round all three components to zero on a
+            # few covered pixels) faces the camera rather than shading black.
+            facing = np.array([0.0, 0.0, 1.0], dtype=normal_r.dtype)
+            valid = length > COVERAGE_EPSILON
+            normal_r = np.where(valid, normal_r, facing)
+            normal = np.where(has[..., None], normal_r / np.where(valid, length, 1.0), 0.0)
             scale = billboard.side / self.view.side
             offset = warp(out["depth"] * out["mask"])[..., 0] / weight[..., 0]
             offset = offset * self.model.depth_scale * scale

@@ -1,0 +1,34 @@
+"""`rigspace bench --quick`: every part runs and writes its numbers, tables and plots."""
+
+from __future__ import annotations
+
+import json
+
+from rigspace.bench.cli import PARTS
+from rigspace.sdk.cli import main
+
+
+def test_quick_bench_writes_json_markdown_and_plots(tmp_path):
+    out = tmp_path / "bench"
+    assert main(["bench", "--quick", "--out", str(out)]) == 0
+    result = json.loads((out / "results.json").read_text())
+    assert result["mode"] == "quick" and set(PARTS) <= set(result)
+    assert result["machine"]["cores"] >= 1 and result["command"].startswith("rigspace")
+    # Ratios measured side by side: every skip is cheaper than the full frame it is a part of.
+    rows = result["skips"]["int8"]["rows"]
+    assert rows["full, still camera"]["fraction_of_full"] == 1.0
+    for case in ("off-screen", "unchanged", "far away", "unlit and unoccluded"):
+        assert rows[case]["fraction_of_full"] < 1.0, case
+    assert rows["unlit and unoccluded"]["branches"] == ["albedo"]
+    assert result["stability"]["stress"]["violations"] == {}
+    variants = {r["variant"] for r in result["pareto"]["rows"]}
+    assert {"fp32 level 128", "int8 level 8", "gl 2x2"} <= variants
+    text = (out / "README.md").read_text()
+    for heading in ("Run time against error", "What each skip costs", "Numerical stability"):
+        assert heading in text
+    assert (out / "pareto.png").stat().st_size > 10_000 and (out / "skips.png").is_file()
+
+
+def test_an_unknown_part_is_refused(tmp_path, capsys):
+    assert main(["bench", "--quick", "--out", str(tmp_path), "--only", "speed"]) != 0
+    assert "Unknown bench part speed" in capsys.readouterr().err
