@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import math
 import statistics
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +25,7 @@ import numpy as np
 import onnx
 from onnx import helper, shape_inference
 
+from rigspace.bench.timing import repeat
 from rigspace.sdk.bundle import read_manifest
 from rigspace.sdk.model import BundleModel, default_providers
 
@@ -169,17 +168,6 @@ def bundle_flops(
     }
 
 
-def _timed(run: Callable[[], Any], repeats: int) -> list[float]:
-    for _ in range(WARMUP):
-        run()
-    seconds = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        run()
-        seconds.append(time.perf_counter() - start)
-    return seconds
-
-
 def _rate(flops: float, seconds: list[float]) -> dict[str, float]:
     """GFLOP/s statistics; the fastest run gives the maximum."""
     return {
@@ -227,8 +215,8 @@ def peak_flops(threads: int = 0, size: int = 2048, repeats: int = 10) -> dict[st
     session = ort.InferenceSession(
         matmul_graph(size).SerializeToString(), options, providers=providers
     )
-    ort_seconds = _timed(lambda: session.run(None, {"a": a, "b": b}), repeats)
-    np_seconds = _timed(lambda: a @ b, repeats)
+    ort_seconds = repeat(lambda: session.run(None, {"a": a, "b": b}), repeats, WARMUP)
+    np_seconds = repeat(lambda: a @ b, repeats, WARMUP)
     return {
         "size": size,
         "repeats": repeats,
@@ -264,7 +252,7 @@ def efficiency(
     model = BundleModel(bundle_folder, precision, threads=threads)
     rig = np.random.default_rng(0).standard_normal((batch, len(model.joints) * 6))
     rig = (0.1 * rig).astype(np.float32)
-    seconds = _timed(lambda: model.predict(rig, level, branches), repeats)
+    seconds = repeat(lambda: model.predict(rig, level, branches), repeats, WARMUP)
     peak = peak_flops(threads, peak_size, max(repeats, PEAK_REPEATS))
     gflops = flops["total"] / statistics.median(seconds) / 1e9
     # The peak is the fastest product (a busy machine slows some runs, never speeds one up),

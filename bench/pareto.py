@@ -24,8 +24,6 @@ normal mean angle; times are medians after a warm-up, with min and max.
 from __future__ import annotations
 
 import statistics
-import time as clock
-from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -33,6 +31,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from rigspace.bench.timing import timed
 from rigspace.capture.settings import resolve_settings
 from rigspace.runtime.engine import Engine
 from rigspace.sdk import schema
@@ -48,18 +47,6 @@ TRUTH_SAMPLES = 4
 """Samples per axis of the ground truth (4x4 per pixel)."""
 SPLITS = ("heldout-views", "heldout-clip")
 KEYS = ("albedo_psnr", "albedo_ssim", "mask_iou", "depth_mae_pct", "normal_mean_deg")
-
-
-def timed(fn: Callable[[], Any], repeats: int, warmup: int = 1) -> dict[str, float]:
-    """Median, min and max milliseconds of `fn` after `warmup` calls."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        t = clock.perf_counter()
-        fn()
-        times.append(1e3 * (clock.perf_counter() - t))
-    return {"median_ms": statistics.median(times), "min_ms": min(times), "max_ms": max(times)}
 
 
 class Samples:

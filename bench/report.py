@@ -128,8 +128,10 @@ def _efficiency(r: dict[str, Any]) -> list[str]:
         f"Peak float32 matrix product ({peak['size']}^2): onnxruntime "
         f"{_f(peak['onnxruntime']['median_gflops'])} GFLOP/s, numpy "
         f"{_f(peak['numpy']['median_gflops'])} GFLOP/s. The network's FLOPs (trunk and both "
-        "branches, convolutions and matrix products) per evaluation over its time; int8 "
-        "counts the same FLOPs, so its fraction is against the float32 peak.",
+        "branches, convolutions and matrix products) per evaluation (batch 1) over its time, "
+        "as a fraction of the float32 peak measured with the same threads in the same run. "
+        "int8 rows count the same FLOPs: their fraction above 1 says int8 arithmetic has a "
+        "higher peak than float32 (not measured here), not that the limit was passed.",
         "",
         "| threads | level | precision | MFLOP | ms | GFLOP/s | fraction of peak |",
         "|---|---|---|---|---|---|---|",

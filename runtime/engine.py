@@ -144,6 +144,9 @@ class Engine:
         self._lit_prims: tuple[bytes, np.ndarray] | None = None
         self._frame: tuple[tuple, Frame] | None = None
         self._light_problems: list[str] = []
+        self._edited = False
+        self._frame_at: float | None = None
+        """The time code of the last frame (the frame cache answers it again at once)."""
         self._still_camera: tuple[Camera, bytes] | None = None
         self._still_lights: list[Light] | None = None
         self._camera_varies: bool | None = None
@@ -208,8 +211,8 @@ class Engine:
         """The stage was edited: nothing read from it so far can be trusted to be still."""
         self._still_camera = self._still_lights = None
         self._camera_varies = self._lights_vary = None
-        self.scene.forget()
         self._frame = None
+        self._edited = True  # prims and lights are found again before the next frame
 
     def _camera_at(self, time: float) -> tuple[Camera, bytes]:
         if self._still_camera is not None:
@@ -241,8 +244,18 @@ class Engine:
     def render(self, time: float) -> Frame:
         """The frame at stage time `time`. Its arrays may be shared with later frames that
         change nothing (the frame cache): they are read-only; copy them to edit."""
-        timings = dict.fromkeys(STAGES, 0.0)
         start = clock.perf_counter()
+        if self._frame is not None and self._frame_at == time:
+            # The same time code and no edit to the stage since (the listener clears _frame):
+            # every value read at this time is the same, so is the frame (a viewer redrawing).
+            return self._repeat(self._frame[1], start)
+        if self._edited:
+            self._edited = False
+            self.scene = SceneGeometry(self.stage)
+            self.light_prims = light_prims(self.stage)
+            # The G-buffer is keyed on its meshes' identities, which new meshes may reuse.
+            self._prims, self._lit_prims = None, None
+        timings = dict.fromkeys(STAGES, 0.0)
         self._light_problems = []
         camera, camera_key = self._camera_at(time)
         meshes = self.scene.meshes(time)
@@ -347,6 +360,7 @@ class Engine:
             report["scene_prims"]["lit_reused"] = True
             report["seconds"] = {k: round(v, 6) for k, v in timings.items()}
             report["seconds"]["total"] = round(clock.perf_counter() - start, 6)
+            self._frame_at = time
             return Frame(self._frame[1].beauty, self._frame[1].maps, report)
         report["composite_reused"] = False
         t = clock.perf_counter()
@@ -391,9 +405,28 @@ class Engine:
             array.flags.writeable = False  # shared with the frame cache
         frame = Frame(beauty, Maps(albedo, normal, depth, mask), report)
         self._frame = (frame_key, frame)
+        self._frame_at = time
         report["seconds"] = {k: round(v, 6) for k, v in timings.items()}
         report["seconds"]["total"] = round(clock.perf_counter() - start, 6)
         return frame
+
+    def _repeat(self, last: Frame, start: float) -> Frame:
+        """The last frame again, its report saying so."""
+        report = {**last.report, "repeat_of_last_frame": True, "composite_reused": True}
+        report["characters"] = [
+            {
+                **e,
+                "decision": "reused",
+                "reason": "same time code as the last frame, stage unedited",
+            }
+            if e["decision"] in ("evaluated", "reused")
+            else e
+            for e in last.report["characters"]
+        ]
+        report["counts"] = _counts(report["characters"])
+        report["seconds"] = dict.fromkeys(STAGES, 0.0)
+        report["seconds"]["total"] = round(clock.perf_counter() - start, 6)
+        return Frame(last.beauty, last.maps, report)
 
     def _describe(self, c: _Candidate, layer: Layer) -> None:
         top = max(c.character.model.resolutions)

@@ -170,12 +170,6 @@ class SceneGeometry:
         self._still: dict[str, bool] = {}
         """Per prim: nothing of it or its ancestors is time-varying (read once, then reused)."""
 
-    def forget(self) -> None:
-        """Drop everything read from the stage (call after the stage is edited)."""
-        self._statics.clear()
-        self._cache.clear()
-        self._still.clear()
-
     def _drawn(self, prim: Usd.Prim, time: Usd.TimeCode) -> bool:
         imageable = UsdGeom.Imageable(prim)
         return (

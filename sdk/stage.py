@@ -97,7 +97,15 @@ def might_vary(prim: Usd.Prim) -> bool:
     is edited).
     """
     while prim and not prim.IsPseudoRoot():
-        if any(a.ValueMightBeTimeVarying() for a in prim.GetAttributes()):
+        xformable = UsdGeom.Xformable(prim)
+        if xformable and xformable.TransformMightBeTimeVarying():
             return True
+        for attr in prim.GetAttributes():
+            # The transform is decided above from the ops in xformOpOrder: an op left out of
+            # the order (a stronger layer replacing an animated one) changes nothing.
+            if xformable and attr.GetName().startswith("xformOp"):
+                continue
+            if attr.ValueMightBeTimeVarying():
+                return True
         prim = prim.GetParent()
     return False

@@ -180,13 +180,28 @@ def test_a_damaged_bundle_fails_before_the_first_frame(tmp_path):
         Engine(scene, width=64, height=36)
 
 
-def test_a_repeated_frame_reuses_the_lit_scene_too(engine):
+def test_a_repeated_frame_is_answered_from_the_frame_cache(engine):
     first = engine.render(300.0)
     again = engine.render(300.0)
-    assert again.report["scene_prims"] == {"meshes": 5, "reused": True, "lit_reused": True}
-    assert again.report["composite_reused"] and not first.report["composite_reused"]
+    assert again.report["repeat_of_last_frame"] and again.report["counts"]["reused"] == 1
     assert np.array_equal(first.beauty, again.beauty)
     assert again.report["seconds"]["total"] < first.report["seconds"]["total"]
+
+
+def test_an_edit_to_the_stage_invalidates_what_was_read_as_still(tmp_path):
+    from pxr import UsdLux
+
+    e = Engine(_overlay(tmp_path), width=64, height=36)
+    try:
+        first = e.render(300.0)
+        lamp = UsdLux.LightAPI(e.stage.GetPrimAtPath("/World/Lights/Lamp"))
+        lamp.GetIntensityAttr().Set(0.0)
+        e.stage.GetPrimAtPath("/World/Lights/Sun").SetActive(False)
+        second = e.render(300.0)
+    finally:
+        e.close()
+    assert "repeat_of_last_frame" not in second.report
+    assert second.report["lights"] == 1 and second.beauty.sum() < 0.5 * first.beauty.sum()
 
 
 def test_characters_sharing_a_bundle_run_as_one_batch(tmp_path):

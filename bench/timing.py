@@ -1,0 +1,26 @@
+"""Timing the bench's way: warm-up calls first, then repeated calls, each one timed."""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from typing import Any
+
+
+def repeat(fn: Callable[[], Any], repeats: int, warmup: int = 2) -> list[float]:
+    """Seconds of each of `repeats` calls of `fn`, after `warmup` untimed calls."""
+    for _ in range(warmup):
+        fn()
+    seconds = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        seconds.append(time.perf_counter() - start)
+    return seconds
+
+
+def timed(fn: Callable[[], Any], repeats: int, warmup: int = 2) -> dict[str, float]:
+    """Median, min and max milliseconds of `fn` (see `repeat`)."""
+    ms = [1e3 * s for s in repeat(fn, repeats, warmup)]
+    return {"median_ms": statistics.median(ms), "min_ms": min(ms), "max_ms": max(ms)}
