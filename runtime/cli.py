@@ -29,6 +29,16 @@ def _resolution(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive whole number")
+    return value
+
+
 def _aovs(text: str) -> tuple[str, ...]:
     from rigspace.runtime.engine import AOVS
 
@@ -59,10 +69,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--int8", action="store_true", help="evaluate the int8 graphs")
     parser.add_argument(
         "--prim-samples",
-        type=int,
+        type=_positive,
         default=2,
         metavar="N",
         help="N x N samples per pixel for the scene prims (default 2; 1: no anti-aliasing, faster)",
+    )
+    parser.add_argument(
+        "--max-level",
+        type=_positive,
+        metavar="R",
+        help="cap the characters' level of detail at R x R (faster, less detail)",
     )
     parser.add_argument(
         "--aovs",
@@ -102,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
     engine = Engine(
         args.scene, camera=args.camera, width=width, height=height,
         renderer=args.renderer, precision="int8" if args.int8 else "fp32", aovs=aovs,
-        prim_samples=args.prim_samples,
+        prim_samples=args.prim_samples, max_level=args.max_level,
     )  # fmt: skip
     truth = None
     if args.reference:

@@ -346,3 +346,12 @@ def test_a_light_with_a_nan_intensity_is_left_out_loudly(tmp_path, capsys):
     )
     assert np.all(np.isfinite(frame.beauty))
     assert "left out" in capsys.readouterr().err
+
+
+def test_max_level_caps_the_level_of_detail():
+    e = Engine(PREVIS, width=320, height=180, max_level=32)
+    try:
+        (hero,) = e.render(10.0).report["characters"]
+    finally:
+        e.close()
+    assert hero["level"] == 32 and hero["level_reason"].startswith("capped by max_level 32")
