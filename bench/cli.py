@@ -131,10 +131,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-PARTS = (
-    "pareto", "accuracy", "frames", "skips", "efficiency", "capture", "training", "memory",
-    "stability",
-)  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
@@ -344,6 +340,10 @@ MEASURE = {
     "memory": _memory,
     "stability": _stability,
 }
+
+
+PARTS = tuple(MEASURE)
+"""The bench's parts, in the order they run (and report)."""
 
 
 COMMAND = CommandSpec(

@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from rigspace.sdk.model import BundleModel
-from rigspace.sdk.rotations import matrix_from_quat, rig_parameters
+from rigspace.sdk.rotations import matrix_from_quat, quat_multiply, rig_parameters
 from rigspace.train.metrics import MASK_THRESHOLD, mask_iou, psnr
 
 KINDS = ("haar", "half_turn", "near_gimbal", "scaled", "mixed")
@@ -105,21 +105,6 @@ def _axis_angle(axis: int, angle: np.ndarray) -> np.ndarray:
     q[..., 0] = np.cos(angle / 2)
     q[..., 1 + axis] = np.sin(angle / 2)
     return q
-
-
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a b (apply b, then a), broadcast over leading axes."""
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
 
 
 def euler_xyz(alpha: np.ndarray, beta: np.ndarray, gamma: np.ndarray) -> np.ndarray:

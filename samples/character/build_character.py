@@ -12,6 +12,8 @@ import numpy as np
 import OpenImageIO as oiio
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, UsdSkel, Vt
 
+from rigspace.sdk.rotations import quat_multiply
+
 HERE = Path(__file__).resolve().parent
 USD_NAME = "sample_character.usda"
 TEXTURE_NAME = "textures/albedo.png"
@@ -132,21 +134,6 @@ def quat_axis(axis: int, degrees: np.ndarray) -> np.ndarray:
     return q
 
 
-def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a*b (apply b, then a)."""
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
-
-
 def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Rotate vectors v (..., 3) by unit quaternions q (..., 4)."""
     w, u = q[..., :1], q[..., 1:]
@@ -165,7 +152,7 @@ def delta_quat(angles: np.ndarray, twist_x: bool) -> np.ndarray:
     Arms twist about X (their bone axis), everything else about Y: Rz*Ry*Rx or Rz*Rx*Ry.
     """
     qx, qy, qz = (quat_axis(k, angles[..., k]) for k in range(3))
-    return quat_mul(qz, quat_mul(qy, qx) if twist_x else quat_mul(qx, qy))
+    return quat_multiply(qz, quat_multiply(qy, qx) if twist_x else quat_multiply(qx, qy))
 
 
 def rest_locals(joints: list[Joint]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -178,7 +165,7 @@ def rest_locals(joints: list[Joint]) -> tuple[np.ndarray, np.ndarray, np.ndarray
             local_q[i], local_t[i] = world_q[i], j.position
             continue
         inv = world_q[j.parent] * np.array([1.0, -1.0, -1.0, -1.0])
-        local_q[i] = quat_mul(inv, world_q[i])
+        local_q[i] = quat_multiply(inv, world_q[i])
         offset = np.subtract(j.position, joints[j.parent].position)
         local_t[i] = quat_rotate(inv, offset)
     return local_q, local_t, world_q
@@ -193,7 +180,7 @@ def forward_kinematics(local_q: np.ndarray, local_t: np.ndarray, joints: list[Jo
             world_q[:, i], world_p[:, i] = local_q[:, i], local_t[:, i]
             continue
         pq = world_q[:, j.parent]
-        world_q[:, i] = quat_mul(pq, local_q[:, i])
+        world_q[:, i] = quat_multiply(pq, local_q[:, i])
         world_p[:, i] = world_p[:, j.parent] + quat_rotate(pq, local_t[:, i])
     return world_q, world_p
 
@@ -1395,8 +1382,8 @@ def build_motion(rng: np.random.Generator):
     twist_x = np.array(["arm" in j.name or "hand" in j.name for j in JOINTS])
     delta = np.where(twist_x[:, None], delta_quat(angles, True), delta_quat(angles, False))
     rest_q, rest_t, _ = rest_locals(JOINTS)
-    local_q = quat_mul(rest_q[None], delta)
-    local_q[:, 0] = quat_mul(quat_axis(1, heading), local_q[:, 0])
+    local_q = quat_multiply(rest_q[None], delta)
+    local_q[:, 0] = quat_multiply(quat_axis(1, heading), local_q[:, 0])
     local_t = np.broadcast_to(rest_t, (*local_q.shape[:-1], 3)).copy()
     world_q, world_p = forward_kinematics(local_q, local_t, JOINTS)
     forward_only = np.concatenate([p.forward_only for p in poses])
