@@ -131,8 +131,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-
-
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
