@@ -146,13 +146,24 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     dataset = Path(args.dataset) if args.dataset else None
+    command = "rigspace " + " ".join(sys.argv[1:]) if sys.argv else "rigspace bench"
+    now = datetime.now(UTC).isoformat(timespec="seconds")
+    mode = "quick" if args.quick else "full"
     result: dict[str, Any] = {
-        "command": "rigspace " + " ".join(sys.argv[1:]) if sys.argv else "rigspace bench",
-        "date": datetime.now(UTC).isoformat(timespec="seconds"),
-        "mode": "quick" if args.quick else "full",
+        "command": command,
+        "date": now,
+        "mode": mode,
         "machine": machine(),
         "seconds": {},
+        "parts": {},
     }
+    previous = out / "results.json"
+    if args.only and previous.is_file():
+        # Re-running some parts: the others keep their numbers, each part its own date.
+        kept = json.loads(previous.read_text())
+        if kept.get("mode") == mode and kept.get("machine") == result["machine"]:
+            result = kept
+            result.setdefault("parts", {})
     with tempfile.TemporaryDirectory() as tmp:
         bar = tqdm(parts, unit="part", file=sys.stderr, dynamic_ncols=True)
         for part in bar:
@@ -160,6 +171,7 @@ def run(args: argparse.Namespace) -> int:
             start = time.monotonic()
             result[part] = MEASURE[part](plan, Path(tmp), dataset)
             result["seconds"][part] = round(time.monotonic() - start, 1)
+            result["parts"][part] = {"command": command, "date": now}
             _plot(part, result[part], out)
             _write(out, result)  # every part is kept even if a later one fails
     _write(out, result)

@@ -38,7 +38,7 @@ from rigspace.sdk import schema
 from rigspace.sdk.model import BundleModel
 from rigspace.sdk.render import Maps, RenderSettings, choose_renderer
 from rigspace.sdk.rotations import rig_parameters
-from rigspace.train.metrics import map_metrics
+from rigspace.train.metrics import map_metrics, mask_iou
 from rigspace.train.predictor import to_maps
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -122,6 +122,12 @@ def _upsampled(maps: Maps, size: int) -> Maps:
     )
 
 
+def _upsampled_mask(mask: np.ndarray, size: int) -> np.ndarray:
+    if mask.shape[0] == size:
+        return mask
+    return np.asarray(cv2.resize(mask, (size, size), interpolation=cv2.INTER_LINEAR))
+
+
 def _means(rows: list[dict[str, float]]) -> dict[str, float]:
     return {k: float(np.nanmean([r[k] for r in rows])) for k in KEYS}
 
@@ -144,6 +150,15 @@ def model_rows(samples: Samples, repeats: int, frame_size: int, frames: int) -> 
                     for m, t in zip(maps, truth, strict=True)
                 ]
                 row[split] = _means(errors)
+                if "alpha" in out:  # the unlit mode's coverage, from the albedo branch alone
+                    row[split]["alpha_iou"] = float(
+                        np.mean(
+                            [
+                                mask_iou(_upsampled_mask(a[0], size), t.mask)
+                                for a, t in zip(out["alpha"], truth, strict=True)
+                            ]
+                        )
+                    )
             one = samples.rigs["heldout-views"][:1]
             row["evaluation"] = timed(partial(model.predict, one, level), repeats)
             row["frame"] = _frame_time(

@@ -37,6 +37,9 @@ def markdown(result: dict[str, Any]) -> str:
     for part, section in SECTIONS.items():
         if part in result:
             lines += ["", *section(result[part])]
+            run = result.get("parts", {}).get(part)
+            if run and run["command"] != result["command"]:
+                lines += ["", f"(This part: `{run['command']}`, {run['date']}.)"]
     return "\n".join(lines) + "\n"
 
 
@@ -48,12 +51,12 @@ def _pareto(r: dict[str, Any]) -> list[str]:
         "(held-out clip in brackets); time of one evaluation (batch 1) and of one full "
         f"runtime frame at {r['frame_size']}x{r['frame_size']}. ![pareto](pareto.png)",
         "",
-        "| variant | albedo PSNR dB | SSIM | mask IoU | depth % height | normal deg | ms per evaluation | ms per frame |",
-        "|---|---|---|---|---|---|---|---|",
+        "| variant | albedo PSNR dB | SSIM | mask IoU | alpha IoU | depth % height | normal deg | ms per evaluation | ms per frame |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for row in r["rows"]:
         if "skipped" in row:
-            lines.append(f"| {row['variant']} | skipped: {row['skipped']} |||||||")
+            lines.append(f"| {row['variant']} | skipped: {row['skipped']} ||||||||")
             continue
         views, clip = row.get("heldout-views", {}), row.get("heldout-clip", {})
 
@@ -66,7 +69,8 @@ def _pareto(r: dict[str, Any]) -> list[str]:
             extra = f", keeps {row['footprint_bytes'] / 2**30:.2f} GiB"
         lines.append(
             f"| {row['variant']}{extra} | {cell('albedo_psnr', 2)} | {cell('albedo_ssim', 3)} | "
-            f"{cell('mask_iou', 3)} | {cell('depth_mae_pct', 2)} | {cell('normal_mean_deg', 1)} | "
+            f"{cell('mask_iou', 3)} | {cell('alpha_iou', 3)} | {cell('depth_mae_pct', 2)} | "
+            f"{cell('normal_mean_deg', 1)} | "
             f"{_ms(row.get('evaluation'))} | {_ms(row.get('frame'))} |"
         )
     return lines

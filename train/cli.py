@@ -47,7 +47,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         "--upgrade",
         action="store_true",
         help="bring the finished run in --out up to this rigspace's network (adds the albedo "
-        "branch's alpha; only the new weights train, --steps of them, default 1500), re-export",
+        "branch's alpha, or trains it further; only it trains, --steps of them, default 1500), "
+        "then re-export",
     )
     parser.add_argument("--no-int8", action="store_true", help="export fp32 graphs only")
     _add_config_flags(parser)

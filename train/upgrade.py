@@ -7,7 +7,8 @@ unlit frames can skip the geometry branch. A run trained before has 3-channel al
 heads; this adds the fourth channel (zero-initialised), freezes every other weight, and
 trains that channel alone against the mask at every level of detail. Adam's step for a
 parameter whose gradient is always zero is exactly zero, so every existing output is
-bit-identical afterwards (tested); only `alpha` is new. The optimiser state in the new
+bit-identical afterwards (tested); only `alpha` is new. On a run that has the channel
+already, the same trains it further. The optimiser state in the new
 checkpoint starts fresh (its shapes changed), so a later --resume restarts its moments.
 """
 
@@ -63,12 +64,8 @@ def upgrade(
     run = json.loads(run_file.read_text())
     config = replace(TrainConfig.from_json(run["config"]), channels_last=False, bf16=False)
     checkpoint = load_checkpoint(run_folder / CHECKPOINT)
-    widened = upgrade_state(checkpoint["model"])
-    if not widened:
-        raise TrainingError(
-            f"The run in {run_folder} already has the current network (nothing to upgrade).",
-            "export it as it is, or drop --upgrade.",
-        )
+    # A run that has the alpha channel already trains it further (more --steps).
+    upgrade_state(checkpoint["model"])
     samples = SampleSet(dataset, "train", config.resolution)
     if samples.joints != run["joints"]:
         raise TrainingError(

@@ -279,7 +279,7 @@ def test_an_unlit_unoccluded_character_runs_its_albedo_branch_only(tmp_path):
     assert other["branches"] == ["albedo", "geometry"]
     assert other["mode_reason"] == "the normal or depth AOV is asked for"
     # The albedo branch's alpha draws nearly the silhouette of the geometry branch's mask
-    # (0.81 against 0.85 IoU with the truth on held-out views, docs/runtime.md).
+    # (0.83 against 0.86 IoU with the truth on held-out views, docs/training.md).
     from rigspace.train.metrics import mask_iou, psnr
 
     assert mask_iou(a.maps.mask, b.maps.mask) > 0.75
