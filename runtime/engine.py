@@ -148,7 +148,7 @@ class Engine:
         self._frame_at: float | None = None
         """The time code of the last frame (the frame cache answers it again at once)."""
         self._still_camera: tuple[Camera, bytes] | None = None
-        self._still_lights: list[Light] | None = None
+        self._still_lights: tuple[list[Light], list[str]] | None = None
         self._camera_varies: bool | None = None
         self._lights_vary: bool | None = None
         # Edits to the stage (a live session, a script) invalidate what was read as still.
@@ -229,15 +229,18 @@ class Engine:
         if "beauty" not in self.aovs:
             return []  # without a beauty AOV nothing is shaded
         if self._still_lights is not None:
-            return self._still_lights
+            lights, self._light_problems = self._still_lights
+            return lights
+        self._light_problems = []
         lights = lights_at(self.light_prims, time, self._light_problem)
         if self._lights_vary is None:
             self._lights_vary = any(might_vary(p) for p in self.light_prims)
-        if not self._lights_vary:
-            self._still_lights = lights
+        if not self._lights_vary:  # still lights: read once, their problems reported each frame
+            self._still_lights = (lights, self._light_problems)
         return lights
 
     def _light_problem(self, problem: SceneError) -> None:
+        """Called by lights_at for a light it leaves out of this frame."""
         print(f"rigspace render: warning: {problem} The light is left out.", file=sys.stderr)
         self._light_problems.append(problem.what)
 
@@ -256,7 +259,6 @@ class Engine:
             # The G-buffer is keyed on its meshes' identities, which new meshes may reuse.
             self._prims, self._lit_prims = None, None
         timings = dict.fromkeys(STAGES, 0.0)
-        self._light_problems = []
         camera, camera_key = self._camera_at(time)
         meshes = self.scene.meshes(time)
         if self.reference:
@@ -322,12 +324,7 @@ class Engine:
             ):
                 c.entry.update(decision="reused", reason="same pose and camera as the last frame")
                 continue
-            level = c.character.model.level_for(c.billboard.size_px)
-            if self.max_level is not None:
-                level = max(
-                    [r for r in c.character.model.resolutions if r <= self.max_level]
-                    or c.character.model.resolutions[:1]
-                )
+            level = c.character.model.level_for(c.billboard.size_px, self.max_level)
             pending.setdefault((id(c.character.model), level, branches), []).append(c)
         t = clock.perf_counter()
         for c in (c for group in pending.values() for c in group):
@@ -358,22 +355,20 @@ class Engine:
         if self._frame is not None and self._frame[0] == frame_key:
             report["composite_reused"] = True
             report["scene_prims"]["lit_reused"] = True
-            report["seconds"] = {k: round(v, 6) for k, v in timings.items()}
-            report["seconds"]["total"] = round(clock.perf_counter() - start, 6)
+            report["seconds"] = _seconds(timings, start)
             self._frame_at = time
             return Frame(self._frame[1].beauty, self._frame[1].maps, report)
         report["composite_reused"] = False
         t = clock.perf_counter()
         lit_reused = reused and self._lit_prims is not None and self._lit_prims[0] == light_key
-        if lit_reused and self._lit_prims is not None:
-            beauty = self._lit_prims[1].copy()  # nothing moved and the lights did not change
-        else:
-            beauty = (
+        if not lit_reused or self._lit_prims is None:
+            lit = (
                 shade(prims.albedo, prims.normal, prims.depth, prims.mask, camera, lights)
                 if lights
-                else prims.albedo.copy()
+                else prims.albedo
             )
-            self._lit_prims = (light_key, beauty.copy())
+            self._lit_prims = (light_key, lit)
+        beauty = self._lit_prims[1].copy()  # the characters are composited over this copy
         report["scene_prims"]["lit_reused"] = lit_reused
         timings["lighting"] += clock.perf_counter() - t
         albedo, normal = prims.albedo.copy(), prims.normal.copy()
@@ -406,8 +401,7 @@ class Engine:
         frame = Frame(beauty, Maps(albedo, normal, depth, mask), report)
         self._frame = (frame_key, frame)
         self._frame_at = time
-        report["seconds"] = {k: round(v, 6) for k, v in timings.items()}
-        report["seconds"]["total"] = round(clock.perf_counter() - start, 6)
+        report["seconds"] = _seconds(timings, start)
         return frame
 
     def _repeat(self, last: Frame, start: float) -> Frame:
@@ -424,8 +418,7 @@ class Engine:
             for e in last.report["characters"]
         ]
         report["counts"] = _counts(report["characters"])
-        report["seconds"] = dict.fromkeys(STAGES, 0.0)
-        report["seconds"]["total"] = round(clock.perf_counter() - start, 6)
+        report["seconds"] = _seconds(dict.fromkeys(STAGES, 0.0), start)
         return Frame(last.beauty, last.maps, report)
 
     def _describe(self, c: _Candidate, layer: Layer) -> None:
@@ -461,6 +454,13 @@ class _Candidate:
     """(x0, y0, w, h) of the billboard in the frame."""
     rig: np.ndarray | None = None
     """Rig parameters, computed only for the characters evaluated this frame."""
+
+
+def _seconds(timings: dict[str, float], start: float) -> dict[str, float]:
+    """The report's seconds per stage, and the total since `start`."""
+    seconds = {k: round(v, 6) for k, v in timings.items()}
+    seconds["total"] = round(clock.perf_counter() - start, 6)
+    return seconds
 
 
 def _overlaps(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:

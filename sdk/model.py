@@ -67,12 +67,16 @@ class BundleModel:
     def resolutions(self) -> list[int]:
         return sorted(self.levels)
 
-    def level_for(self, pixels: float) -> int:
-        """The smallest level whose resolution covers `pixels` (else the largest level)."""
-        for r in self.resolutions:
+    def level_for(self, pixels: float, max_level: int | None = None) -> int:
+        """The smallest level whose resolution covers `pixels` (else the largest level), at
+        most `max_level` (else the smallest level)."""
+        levels = self.resolutions
+        if max_level is not None:
+            levels = [r for r in levels if r <= max_level] or levels[:1]
+        for r in levels:
             if r >= pixels:
                 return r
-        return self.resolutions[-1]
+        return levels[-1]
 
     def _session(self, name: str):
         if name not in self._sessions:
