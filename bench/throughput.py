@@ -90,8 +90,7 @@ def _step_rate(name: str, folder: Path, steps: int, warmup: int) -> dict[str, An
 
     from rigspace.train.config import preset
     from rigspace.train.data import Prefetcher, SampleSet
-    from rigspace.train.loop import make_optimizer
-    from rigspace.train.loss import total_loss
+    from rigspace.train.loop import forward_loss, make_optimizer, optimise, to_torch
     from rigspace.train.network import Rig2Image, Shape
 
     config = preset(name)
@@ -131,21 +130,10 @@ def _step_rate(name: str, folder: Path, steps: int, warmup: int) -> dict[str, An
     try:
         for step in range(warmup + steps):
             start = time.perf_counter()
-            batch = {k: torch.from_numpy(v) for k, v in prefetch.get(step).items()}
-            if config.channels_last:
-                batch = {
-                    k: v.contiguous(memory_format=torch.channels_last) if v.ndim == 4 else v
-                    for k, v in batch.items()
-                }
             # One step of train.loop.train at the final level, fade-in done (alpha 1).
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=config.bf16):
-                heads = model(batch["rig"], config.resolution)
-                loss, _terms = total_loss(heads, batch, 1.0, config)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            if config.grad_clip > 0:
-                torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
-            optimizer.step()
+            batch = to_torch(prefetch.get(step), config.channels_last)
+            loss, _terms = forward_loss(model, batch, config.resolution, 1.0, config)
+            optimise(model, optimizer, loss, config)
             losses.append(float(loss.detach()))
             if step >= warmup:
                 seconds.append(time.perf_counter() - start)

@@ -79,13 +79,35 @@ def make_optimizer(model: torch.nn.Module, config: TrainConfig) -> torch.optim.O
     )
 
 
-def _to_torch(batch: dict[str, np.ndarray], channels_last: bool) -> dict[str, torch.Tensor]:
+def to_torch(batch: dict[str, np.ndarray], channels_last: bool) -> dict[str, torch.Tensor]:
     out = {k: torch.from_numpy(v) for k, v in batch.items()}
     if channels_last:
         for k, v in out.items():
             if v.ndim == 4:
                 out[k] = v.contiguous(memory_format=torch.channels_last)
     return out
+
+
+def forward_loss(
+    model: Rig2Image,
+    batch: dict[str, torch.Tensor],
+    resolution: int,
+    alpha: float,
+    config: TrainConfig,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """One step's forward pass and loss at `resolution` with fade-in weight `alpha`."""
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=config.bf16):
+        heads = model(batch["rig"], resolution)
+        return total_loss(heads, batch, alpha, config)
+
+
+def optimise(model: Rig2Image, optimizer, loss: torch.Tensor, config: TrainConfig) -> None:
+    """One step's backward pass, gradient clipping and optimiser update."""
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    if config.grad_clip > 0:
+        torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+    optimizer.step()
 
 
 def save_checkpoint(folder: Path, model, optimizer, step: int, level: int) -> Path:
@@ -238,10 +260,8 @@ def train(
             if where.first_step_of_level and step > start:
                 # A new block joins: fresh optimizer state (the paper resets per level).
                 optimizer = make_optimizer(model, config)
-            batch = _to_torch(prefetch.get(step), config.channels_last)
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=config.bf16):
-                heads = model(batch["rig"], where.resolution)
-                loss, terms = total_loss(heads, batch, where.alpha, config)
+            batch = to_torch(prefetch.get(step), config.channels_last)
+            loss, terms = forward_loss(model, batch, where.resolution, where.alpha, config)
             if not torch.isfinite(loss):
                 raise TrainingError(
                     f"The loss became {float(loss.detach())} at step {step} (level {where.resolution}x"
@@ -249,11 +269,7 @@ def train(
                     f"checkpoint: {last_good or 'none yet'}.",
                     "lower --lr, or resume from the last good checkpoint with --resume.",
                 )
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            if config.grad_clip > 0:
-                torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
-            optimizer.step()
+            optimise(model, optimizer, loss, config)
             step += 1
             last_loss = float(loss.detach())
             elapsed = time.monotonic() - t0
