@@ -40,6 +40,7 @@ from rigspace.sdk.render import Maps, RenderSettings, choose_renderer
 from rigspace.sdk.rotations import rig_parameters
 from rigspace.sdk.stage import overlay_layer
 from rigspace.train.metrics import map_metrics
+from rigspace.train.predictor import to_maps
 
 ROOT = Path(__file__).resolve().parents[1]
 PREVIS = ROOT / "samples" / "scenes" / "previs.usda"
@@ -152,7 +153,9 @@ def measure(
                 height = float(np.ptp(points @ view.up))
             rig_q = rig_parameters(world[order], camera.camera_to_world).reshape(1, -1)
             out = model.predict(rig_q, settings.resolution)
-            model_rows.append(map_metrics(_model_maps(out, model, camera, joint), truth, height))
+            joint_depth = np.array([-camera.to_camera(joint[None])[0, 2]])
+            (maps,) = to_maps(out, joint_depth, model.depth_scale)  # as `rigspace eval` reads them
+            model_rows.append(map_metrics(maps, truth, height))
             picked.append({"time": float(time), "view": view.index, "azimuth": view.azimuth,
                            "elevation": view.elevation})  # fmt: skip
             cameras["centred"].append((float(time), camera))
@@ -196,19 +199,6 @@ def measure(
             if out_dir is not None:
                 _write_sheet(Path(out_dir) / f"accuracy_{name}.png", strips)
     return result
-
-
-def _model_maps(out: dict[str, np.ndarray], model: BundleModel, camera: Camera, joint) -> Maps:
-    """The network's maps at a ring camera as frame maps: depth back in camera units."""
-    mask = out["mask"][0, 0]
-    joint_depth = -float(camera.to_camera(joint[None])[0, 2])
-    depth = joint_depth + out["depth"][0, 0] * model.depth_scale
-    return Maps(
-        np.moveaxis(out["albedo"][0], 0, -1),
-        np.moveaxis(out["normal"][0], 0, -1),
-        np.where(mask >= 0.5, depth, np.inf).astype(np.float32),
-        mask,
-    )
 
 
 def _means(rows: list[dict[str, float]]) -> dict[str, float]:

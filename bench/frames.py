@@ -16,23 +16,42 @@ from typing import Any
 import numpy as np
 
 from rigspace.bench.scenes import PREVIS, crowd_scene
+from rigspace.bench.timing import summary
 from rigspace.runtime.engine import STAGES, Engine
 
 TIMES = np.linspace(100.0, 1400.0, 64)
 
 
+def frame_reports(
+    scene: Path, times, size: int, again: bool = False, **engine_options
+) -> list[dict[str, Any]]:
+    """The Engine's reports of the frames at times[1:], after a warm-up frame at times[0]
+    (sessions, GL buffers); with `again`, the last frame once more at the end."""
+    engine = Engine(scene, width=size, height=size, **engine_options)
+    try:
+        engine.render(float(times[0]))
+        reports = [engine.render(float(t)).report for t in times[1:]]
+        if again:
+            reports.append(engine.render(float(times[-1])).report)
+    finally:
+        engine.close()
+    return reports
+
+
+def total_ms(reports: list[dict[str, Any]]) -> dict[str, float]:
+    """Median, min and max of the reports' total milliseconds."""
+    return summary([1e3 * r["seconds"]["total"] for r in reports])
+
+
 def measure_one(
     scene: Path, size: int, precision: str, frames: int, prim_samples: int = 1
 ) -> dict[str, Any]:
-    engine = Engine(scene, width=size, height=size, precision=precision, prim_samples=prim_samples)
-    try:
-        engine.render(float(TIMES[0]))  # warm-up: sessions, GL buffers
-        reports = [engine.render(float(t)).report for t in TIMES[1 : frames + 1]]
-        repeat = engine.render(float(TIMES[frames])).report
-    finally:
-        engine.close()
+    reports = frame_reports(
+        scene, TIMES[: frames + 1], size, again=True, precision=precision, prim_samples=prim_samples
+    )
+    repeat = reports.pop()
     ms = {k: 1e3 * statistics.median(r["seconds"][k] for r in reports) for k in (*STAGES, "total")}
-    totals = [1e3 * r["seconds"]["total"] for r in reports]
+    totals = total_ms(reports)
     return {
         "characters": len(reports[0]["characters"]),
         "drawn": min(r["counts"]["evaluated"] + r["counts"]["reused"] for r in reports),
@@ -40,8 +59,8 @@ def measure_one(
         "precision": precision,
         "prim_samples": prim_samples,
         "ms": ms,
-        "min_ms": min(totals),
-        "max_ms": max(totals),
+        "min_ms": totals["min_ms"],
+        "max_ms": totals["max_ms"],
         "repeat_ms": 1e3 * repeat["seconds"]["total"],
         "repeat_fraction": repeat["seconds"]["total"] * 1e3 / ms["total"],
     }

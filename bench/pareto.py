@@ -23,7 +23,6 @@ normal mean angle; times are medians after a warm-up, with min and max.
 
 from __future__ import annotations
 
-import statistics
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -31,9 +30,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from rigspace.bench.frames import frame_reports, total_ms
 from rigspace.bench.timing import timed
 from rigspace.capture.settings import resolve_settings
-from rigspace.runtime.engine import Engine
 from rigspace.sdk import schema
 from rigspace.sdk.model import BundleModel
 from rigspace.sdk.render import Maps, RenderSettings, choose_renderer
@@ -104,28 +103,21 @@ class Samples:
             renderer.close()
 
 
+def _resize(image: np.ndarray, size: int, interpolation: int) -> np.ndarray:
+    if image.shape[0] == size:
+        return image
+    return np.asarray(cv2.resize(image, (size, size), interpolation=interpolation))
+
+
 def _upsampled(maps: Maps, size: int) -> Maps:
     """A lower level's maps at the training size: bilinear colour and coverage; depth and
     normals nearest (never blended across the silhouette)."""
-    r = maps.mask.shape[0]
-    if r == size:
-        return maps
-
-    def resize(image: np.ndarray, interpolation: int) -> np.ndarray:
-        return np.asarray(cv2.resize(image, (size, size), interpolation=interpolation))
-
     return Maps(
-        resize(maps.albedo, cv2.INTER_LINEAR),
-        resize(maps.normal, cv2.INTER_NEAREST),
-        resize(maps.depth, cv2.INTER_NEAREST),
-        resize(maps.mask, cv2.INTER_LINEAR),
+        _resize(maps.albedo, size, cv2.INTER_LINEAR),
+        _resize(maps.normal, size, cv2.INTER_NEAREST),
+        _resize(maps.depth, size, cv2.INTER_NEAREST),
+        _resize(maps.mask, size, cv2.INTER_LINEAR),
     )
-
-
-def _upsampled_mask(mask: np.ndarray, size: int) -> np.ndarray:
-    if mask.shape[0] == size:
-        return mask
-    return np.asarray(cv2.resize(mask, (size, size), interpolation=cv2.INTER_LINEAR))
 
 
 def _means(rows: list[dict[str, float]]) -> dict[str, float]:
@@ -154,7 +146,7 @@ def model_rows(samples: Samples, repeats: int, frame_size: int, frames: int) -> 
                     row[split]["alpha_iou"] = float(
                         np.mean(
                             [
-                                mask_iou(_upsampled_mask(a[0], size), t.mask)
+                                mask_iou(_resize(a[0], size, cv2.INTER_LINEAR), t.mask)
                                 for a, t in zip(out["alpha"], truth, strict=True)
                             ]
                         )
@@ -169,13 +161,7 @@ def model_rows(samples: Samples, repeats: int, frame_size: int, frames: int) -> 
 
 
 def _frame_time(scene: Path, size: int, times: np.ndarray, **options) -> dict[str, float]:
-    engine = Engine(scene, width=size, height=size, **options)
-    try:
-        engine.render(float(times[0]))
-        totals = [1e3 * engine.render(float(t)).report["seconds"]["total"] for t in times[1:]]
-    finally:
-        engine.close()
-    return {"median_ms": statistics.median(totals), "min_ms": min(totals), "max_ms": max(totals)}
+    return total_ms(frame_reports(scene, times, size, **options))
 
 
 def renderer_rows(samples: Samples, repeats: int, frame_size: int, frames: int) -> list[dict]:

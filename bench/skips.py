@@ -24,7 +24,8 @@ from typing import Any
 import numpy as np
 from pxr import Gf, Usd, UsdGeom
 
-from rigspace.runtime.engine import Engine
+from rigspace.bench.frames import frame_reports, total_ms
+from rigspace.runtime.engine import AOVS
 from rigspace.sdk.stage import overlay_layer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -81,27 +82,18 @@ def measure(
     """Median (min, max) ms per frame of each case and its fraction of the still full frame."""
     rows: dict[str, dict[str, Any]] = {}
     for name, case in cases(folder).items():
-        engine = Engine(
+        reports = frame_reports(
             case["scene"],
+            case["times"][: frames + 1],
+            size,
             camera=CAMERA,
-            width=size,
-            height=size,
             precision=precision,
             prim_samples=prim_samples,
-            aovs=case.get("aovs", ("beauty", "albedo", "normal", "depth", "mask")),
+            aovs=case.get("aovs", AOVS),
         )
-        times = case["times"][: frames + 1]
-        try:
-            engine.render(float(times[0]))
-            reports = [engine.render(float(t)).report for t in times[1:]]
-        finally:
-            engine.close()
-        totals = [1e3 * r["seconds"]["total"] for r in reports]
         hero = [c for r in reports for c in r["characters"] if c["path"] == HERO]
         rows[name] = {
-            "median_ms": statistics.median(totals),
-            "min_ms": min(totals),
-            "max_ms": max(totals),
+            **total_ms(reports),
             "stages_ms": {
                 k: 1e3 * statistics.median(r["seconds"][k] for r in reports)
                 for k in reports[0]["seconds"]

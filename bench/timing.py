@@ -20,7 +20,11 @@ def repeat(fn: Callable[[], Any], repeats: int, warmup: int = 2) -> list[float]:
     return seconds
 
 
+def summary(ms: list[float]) -> dict[str, float]:
+    """Median, min and max of milliseconds."""
+    return {"median_ms": statistics.median(ms), "min_ms": min(ms), "max_ms": max(ms)}
+
+
 def timed(fn: Callable[[], Any], repeats: int, warmup: int = 2) -> dict[str, float]:
     """Median, min and max milliseconds of `fn` (see `repeat`)."""
-    ms = [1e3 * s for s in repeat(fn, repeats, warmup)]
-    return {"median_ms": statistics.median(ms), "min_ms": min(ms), "max_ms": max(ms)}
+    return summary([1e3 * s for s in repeat(fn, repeats, warmup)])
