@@ -93,3 +93,23 @@ def discover(kind: Kind[S], extra: dict[str, Callable[[], Any]] | None = None) -
             continue
         found.specs[name] = spec
     return found
+
+
+@dataclass(frozen=True)
+class SourceSpec:
+    """What a live-source plugin exports (entry-point group `rigspace.sources`).
+
+    Chosen by the URL's scheme, like pyserial's `serial_for_url`: `factory(url, name)` opens
+    the source that `url` names for the binding called `name` (options travel in the URL query).
+    """
+
+    scheme: str
+    """The URL scheme this plugin handles, e.g. "vmc" or "bvh+tcp"."""
+    factory: Callable[[str, str], Any]
+    """(url, binding name) -> a source object with start(sink), stop() and counters."""
+    doc: str
+    """One line for `rigspace live --help` and error messages: the URL form and what it reads."""
+
+
+SOURCES: Kind[SourceSpec] = Kind("source", "rigspace.sources", SourceSpec)
+"""Live sources, keyed by URL scheme (docs/live.md)."""

@@ -1,0 +1,342 @@
+"""Per-binding buffering (latest, delayed), One Euro smoothing, status and counters."""
+
+from __future__ import annotations
+
+import bisect
+import math
+import threading
+import time
+from collections import deque
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from rigspace.runtime.live.frames import DecodeCounters, Frame, quat_slerp
+
+LATEST = "latest"
+DELAYED = "delayed"
+MODES = (LATEST, DELAYED)
+
+WAITING = "waiting"
+CONNECTED = "connected"
+STALE = "stale"
+LOST = "lost"
+
+LOST_FACTOR = 4.0
+"""A binding is stale after `timeout` seconds without data and lost after LOST_FACTOR times that
+(Live Link holds a subject's last pose before it drops it; the hold here is 3 timeouts long)."""
+CLOCK_RESET_SECONDS = 1.0
+"""A source timestamp this far behind the stream's last one is a restarted sender (a new clock),
+not a late packet: the stream starts over instead of dropping everything until it catches up."""
+ONE_EURO_MAX_CUTOFF = 5.0
+"""Minimum cutoff (Hz) of the One Euro filter at smoothing strength 0+; it falls as (1 - s)^2."""
+ONE_EURO_BETA = 0.8
+"""Speed coefficient for unit-quaternion components (per second): fast motion opens the filter.
+Casiez's 0.007 is for pixels; quaternion components move about 1 unit/s in brisk motion."""
+ONE_EURO_D_CUTOFF = 1.0
+"""Cutoff (Hz) of the derivative's low-pass, the reference implementation's default."""
+
+
+@dataclass(frozen=True)
+class BufferSettings:
+    """How one binding's samples meet frames (from the RigspaceLiveBindingAPI attributes)."""
+
+    mode: str = LATEST
+    """latest: the newest sample; delayed: the pose `delay` seconds ago, slerped between the
+    two samples around it on the source's clock (hides network jitter for a fixed latency)."""
+    delay: float | None = 0.05
+    """Seconds behind now for `delayed`; None: one sample interval (the median recent one)."""
+    smoothing: str = "none"
+    """none, exponential (slerp towards each sample by 1 - strength) or oneEuro."""
+    strength: float = 0.5
+    """Smoothing strength in [0, 1): 0 passes samples through."""
+    timeout: float = 0.5
+    """Seconds without data before the binding is stale (holds its last pose)."""
+    blend: float = 0.5
+    """Seconds over which a lost binding blends back to the stage animation."""
+    history: int = 256
+    """Snapshots kept for `delayed` (bounded: a flood cannot grow memory)."""
+
+    @property
+    def lost_after(self) -> float:
+        return self.timeout * LOST_FACTOR
+
+    @classmethod
+    def from_binding(cls, binding) -> BufferSettings:
+        """From an sdk.schema.LiveBinding: buffered/delayed -> delayed by bufferSeconds,
+        interpolate -> delayed by one sample interval, latest -> latest."""
+        mode = LATEST if binding.buffering == LATEST else DELAYED
+        delay = None if binding.buffering == "interpolate" else float(binding.buffer_seconds)
+        return cls(
+            mode=mode,
+            delay=delay,
+            smoothing=binding.smoothing,
+            strength=float(binding.smoothing_strength),
+            timeout=float(binding.timeout_seconds),
+        )
+
+
+def one_euro_alpha(cutoff: np.ndarray | float, te: np.ndarray | float) -> np.ndarray:
+    """Smoothing factor of a first-order low-pass at `cutoff` Hz for a step of `te` seconds."""
+    tau = 1.0 / (2.0 * math.pi * np.asarray(cutoff))
+    return 1.0 / (1.0 + tau / np.asarray(te))
+
+
+class OneEuroFilter:
+    """The One Euro filter (Casiez, Roussel, Vogel, CHI 2012), vectorised over rows.
+
+    Each row (a joint) is a vector filtered with one cutoff from the norm of its smoothed
+    derivative; for 1-vectors this is exactly the reference scalar filter. Rows are updated
+    independently (`indices`), each with its own previous time.
+    """
+
+    def __init__(self, rows: int, dim: int, min_cutoff: float, beta: float, d_cutoff: float):
+        self.min_cutoff, self.beta, self.d_cutoff = min_cutoff, beta, d_cutoff
+        self.x = np.zeros((rows, dim))
+        self.dx = np.zeros((rows, dim))
+        self.t = np.full(rows, -np.inf)
+
+    def __call__(self, indices: np.ndarray, x: np.ndarray, t: float) -> np.ndarray:
+        te = t - self.t[indices]
+        first = ~(te > 0)  # never seen, or time did not advance (a restarted clock): restart
+        te = np.where(first, 1.0, te)[:, None]
+        x_prev, dx_prev = self.x[indices], self.dx[indices]
+        dx = (x - x_prev) / te
+        dx_hat = (
+            one_euro_alpha(self.d_cutoff, te) * dx
+            + (1 - one_euro_alpha(self.d_cutoff, te)) * dx_prev
+        )
+        cutoff = self.min_cutoff + self.beta * np.linalg.norm(dx_hat, axis=1, keepdims=True)
+        a = one_euro_alpha(cutoff, te)
+        x_hat = a * x + (1 - a) * x_prev
+        x_hat = np.where(first[:, None], x, x_hat)
+        dx_hat = np.where(first[:, None], 0.0, dx_hat)
+        self.x[indices], self.dx[indices], self.t[indices] = x_hat, dx_hat, t
+        return x_hat
+
+
+@dataclass(frozen=True)
+class LivePose:
+    """What a binding gives a frame: its bones' rotations, status and blend weight."""
+
+    rotations: np.ndarray
+    """(B, 4) unit quaternions (w, x, y, z) per source bone, identity where never received."""
+    valid: np.ndarray
+    """(B,) bool: bones received at least once."""
+    root_position: np.ndarray | None
+    """(3,) in source units, or None when the source sent none."""
+    status: str
+    weight: float
+    """1 while connected or stale; falls to 0 over `blend` seconds once lost; 0 while waiting."""
+    sample_time: float
+    """Local monotonic time of the newest sample in this pose (nan while waiting)."""
+
+
+@dataclass
+class BindingCounters:
+    """One binding's health, as every frame's report carries it."""
+
+    status: str
+    packets: int
+    samples: int
+    malformed: int
+    ignored: int
+    unknown_bones: int
+    dropped: int
+    """Samples dropped by the buffer: duplicates and out-of-order."""
+    duplicates: int
+    out_of_order: int
+    clock_resets: int
+    reconnects: int
+    last_seen: float | None
+    """Seconds since the last sample (None: nothing yet)."""
+    jitter_p50_ms: float | None
+    jitter_p99_ms: float | None
+    latency_p50_ms: float | None
+    """Receive-to-pose latency: bytes read to samples available to pose()."""
+    latency_p99_ms: float | None
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+class _Stream:
+    """Ordering, clock mapping and jitter state of one clock domain."""
+
+    __slots__ = ("last_received", "last_ts", "offsets")
+
+    def __init__(self) -> None:
+        self.last_ts = -math.inf
+        self.last_received = -math.inf
+        self.offsets: deque[float] = deque(maxlen=256)
+
+
+class LiveBuffer:
+    """Samples of one binding, pushed by a receiver thread and read by the frame thread.
+
+    `push` and `pose` share one lock, held only for constant-time array copies (never around
+    I/O or decoding), so `pose(now)` waits at most for one push in progress.
+    """
+
+    def __init__(self, bones: tuple[str, ...], settings: BufferSettings | None = None) -> None:
+        self.bones = tuple(bones)
+        self.settings = s = settings or BufferSettings()
+        if s.mode not in MODES:
+            raise ValueError(f"buffer mode {s.mode!r} is not one of {MODES}")
+        n = len(self.bones)
+        self._lock = threading.Lock()
+        self._current = np.zeros((n, 4))
+        self._current[:, 0] = 1.0
+        self._valid = np.zeros(n, dtype=bool)
+        self._root: np.ndarray | None = None
+        self._times: deque[float] = deque(maxlen=s.history)
+        self._snapshots: deque[tuple[np.ndarray, np.ndarray | None]] = deque(maxlen=s.history)
+        self._streams: dict[int, _Stream] = {}
+        self._last_seen = math.nan
+        self._jitter: deque[float] = deque(maxlen=1024)
+        self._latency: deque[float] = deque(maxlen=1024)
+        self.samples = self.duplicates = self.out_of_order = self.clock_resets = 0
+        self._filter: OneEuroFilter | None = None
+        if s.smoothing == "oneEuro" and s.strength > 0:
+            cutoff = ONE_EURO_MAX_CUTOFF * (1.0 - s.strength) ** 2
+            self._filter = OneEuroFilter(n, 4, cutoff, ONE_EURO_BETA, ONE_EURO_D_CUTOFF)
+
+    # -- receiver side -------------------------------------------------------------------
+    def push(self, frame: Frame, received: float) -> bool:
+        """Add a frame received at local monotonic time `received`; False if it was dropped."""
+        with self._lock:
+            stream = self._streams.get(frame.stream)
+            if stream is None:
+                stream = self._streams[frame.stream] = _Stream()
+            ts = frame.timestamp
+            if ts <= stream.last_ts:
+                if ts < stream.last_ts - CLOCK_RESET_SECONDS:
+                    self.clock_resets += 1
+                    stream.__init__()
+                elif ts == stream.last_ts:
+                    self.duplicates += 1
+                    return False
+                else:
+                    self.out_of_order += 1
+                    return False
+            if stream.last_ts > -math.inf:
+                self._jitter.append(abs((received - stream.last_received) - (ts - stream.last_ts)))
+            stream.last_ts, stream.last_received = ts, received
+            stream.offsets.append(received - ts)
+            local = ts + min(stream.offsets)  # the least-delayed sample fixes the clock offset
+            rotations = self._smooth(frame, ts)
+            idx = frame.indices
+            self._current[idx] = rotations
+            self._valid[idx] = True
+            if frame.root_position is not None:
+                self._root = frame.root_position
+            if self._times and local <= self._times[-1]:
+                # Another stream's sample at or before the last snapshot: update that snapshot
+                # (snapshot times stay strictly increasing for the delayed lookup).
+                self._snapshots[-1] = (self._current.copy(), self._root)
+            else:
+                self._times.append(local)
+                self._snapshots.append((self._current.copy(), self._root))
+            self._last_seen = received
+            self.samples += len(idx)
+            return True
+
+    def _smooth(self, frame: Frame, ts: float) -> np.ndarray:
+        q = frame.rotations
+        idx = frame.indices
+        prev = self._current[idx]
+        # Same hemisphere as the previous value, so filters and slerp take the short arc.
+        q = np.where(np.sum(q * prev, axis=1, keepdims=True) < 0, -q, q)
+        s = self.settings
+        if self._filter is not None:
+            q = self._filter(idx, q, ts)
+        elif s.smoothing == "exponential" and s.strength > 0:
+            q = np.where(self._valid[idx, None], quat_slerp(prev, q, 1.0 - s.strength), q)
+        return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+    def note_latency(self, seconds: float) -> None:
+        """Record one packet's receive-to-pose latency (the transport times read to push)."""
+        self._latency.append(seconds)
+
+    # -- frame side ----------------------------------------------------------------------
+    def status_at(self, now: float) -> str:
+        if math.isnan(self._last_seen):
+            return WAITING
+        age = now - self._last_seen
+        if age <= self.settings.timeout:
+            return CONNECTED
+        return STALE if age <= self.settings.lost_after else LOST
+
+    def pose(self, now: float | None = None) -> LivePose:
+        """The binding's pose at local monotonic time `now` (default: time.monotonic())."""
+        now = time.monotonic() if now is None else now
+        s = self.settings
+        with self._lock:
+            status = self.status_at(now)
+            valid = self._valid.copy()
+            last_seen = self._last_seen
+            if s.mode == LATEST or len(self._times) < 2:
+                rotations = self._current.copy()
+                root = None if self._root is None else self._root.copy()
+                sample_time = self._times[-1] if self._times else math.nan
+            else:
+                delay = s.delay if s.delay is not None else self._sample_interval()
+                target = now - delay
+                i = bisect.bisect_right(self._times, target)
+                if i == 0:
+                    (rotations, root), sample_time = self._snapshots[0], self._times[0]
+                elif i == len(self._times):
+                    (rotations, root), sample_time = self._snapshots[-1], self._times[-1]
+                else:
+                    t0, t1 = self._times[i - 1], self._times[i]
+                    (r0, p0), (r1, p1) = self._snapshots[i - 1], self._snapshots[i]
+                    u = (target - t0) / (t1 - t0)
+                    rotations = quat_slerp(r0, r1, u)
+                    root = p0 if p0 is None or p1 is None else p0 + u * (p1 - p0)
+                    sample_time = target
+                rotations = rotations.copy()
+        weight = 1.0
+        if status == WAITING:
+            weight = 0.0
+        elif status == LOST:
+            gone = now - (last_seen + s.lost_after)
+            weight = max(0.0, 1.0 - gone / s.blend) if s.blend > 0 else 0.0
+        return LivePose(rotations, valid, root, status, weight, sample_time)
+
+    def _sample_interval(self) -> float:
+        times = list(self._times)[-33:]
+        return float(np.median(np.diff(times))) if len(times) > 1 else 0.0
+
+    def counters(
+        self, now: float | None = None, decoded: DecodeCounters | None = None, reconnects: int = 0
+    ) -> BindingCounters:
+        """A snapshot of this binding's status and counters (decoder counts from `decoded`)."""
+        now = time.monotonic() if now is None else now
+        d = decoded or DecodeCounters()
+        with self._lock:
+            jitter = np.array(self._jitter)
+            latency = np.array(self._latency)
+            status = self.status_at(now)
+            last_seen = None if math.isnan(self._last_seen) else now - self._last_seen
+
+        def ms(values: np.ndarray, q: float) -> float | None:
+            return float(np.percentile(values, q) * 1e3) if len(values) else None
+
+        return BindingCounters(
+            status=status,
+            packets=d.packets,
+            samples=self.samples,
+            malformed=d.malformed,
+            ignored=d.ignored,
+            unknown_bones=d.unknown_bones,
+            dropped=self.duplicates + self.out_of_order,
+            duplicates=self.duplicates,
+            out_of_order=self.out_of_order,
+            clock_resets=self.clock_resets,
+            reconnects=reconnects,
+            last_seen=last_seen,
+            jitter_p50_ms=ms(jitter, 50),
+            jitter_p99_ms=ms(jitter, 99),
+            latency_p50_ms=ms(latency, 50),
+            latency_p99_ms=ms(latency, 99),
+        )

@@ -1,0 +1,146 @@
+"""The VMC protocol (OSC over UDP, Unity conventions) decoded with python-osc, frames on OK/T."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from pythonosc.osc_packet import OscPacket
+
+from rigspace.runtime.live.frames import MAX_POSITION, DecodeCounters, Frame, unit_quaternions
+
+HUMAN_BODY_BONES = (
+    "Hips", "LeftUpperLeg", "RightUpperLeg", "LeftLowerLeg", "RightLowerLeg", "LeftFoot",
+    "RightFoot", "Spine", "Chest", "Neck", "Head", "LeftShoulder", "RightShoulder",
+    "LeftUpperArm", "RightUpperArm", "LeftLowerArm", "RightLowerArm", "LeftHand", "RightHand",
+    "LeftToes", "RightToes", "LeftEye", "RightEye", "Jaw",
+    "LeftThumbProximal", "LeftThumbIntermediate", "LeftThumbDistal",
+    "LeftIndexProximal", "LeftIndexIntermediate", "LeftIndexDistal",
+    "LeftMiddleProximal", "LeftMiddleIntermediate", "LeftMiddleDistal",
+    "LeftRingProximal", "LeftRingIntermediate", "LeftRingDistal",
+    "LeftLittleProximal", "LeftLittleIntermediate", "LeftLittleDistal",
+    "RightThumbProximal", "RightThumbIntermediate", "RightThumbDistal",
+    "RightIndexProximal", "RightIndexIntermediate", "RightIndexDistal",
+    "RightMiddleProximal", "RightMiddleIntermediate", "RightMiddleDistal",
+    "RightRingProximal", "RightRingIntermediate", "RightRingDistal",
+    "RightLittleProximal", "RightLittleIntermediate", "RightLittleDistal",
+    "UpperChest",
+)  # fmt: skip
+"""Unity's HumanBodyBones in enum order (LastBone excluded): the names VMC senders use."""
+
+ROOT = "Root"
+"""The avatar root (/VMC/Ext/Root/Pos) as a bone of its own, parent of Hips."""
+
+ROOT_POS = "/VMC/Ext/Root/Pos"
+BONE_POS = "/VMC/Ext/Bone/Pos"
+OK = "/VMC/Ext/OK"
+TIME = "/VMC/Ext/T"
+
+_NUMBER = (float, int)
+
+
+def unity_to_right_handed(pos: np.ndarray, quat_xyzw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unity (left-handed, Y up) -> right-handed Y up: position (x, y, -z), quaternion
+    (-x, -y, z, w) (mirroring Z flips the rotation's X and Y axis components); returns
+    positions (..., 3) and quaternions (..., 4) in (w, x, y, z) order."""
+    p = np.asarray(pos, dtype=np.float64) * np.array([1.0, 1.0, -1.0])
+    q = np.asarray(quat_xyzw, dtype=np.float64)
+    return p, np.stack([q[..., 3], -q[..., 0], -q[..., 1], q[..., 2]], axis=-1)
+
+
+class VmcDecoder:
+    """VMC datagrams -> frames of local bone rotations (right-handed, metres).
+
+    A VMC frame spans several datagrams (Root alone, the bones in a bundle that fragments, blend
+    shapes apart), so bone values collect until /VMC/Ext/OK or /VMC/Ext/T closes the frame. Once
+    a sender has sent T, only T closes frames and its value is the frame's timestamp (the
+    sender's clock); senders without T get the receive time. Packets are parsed with python-osc's
+    OscPacket, never its dispatcher, so a bundle's future timetag cannot stall the receiver.
+    Bone/Pos positions (the bone's local offset) are not used: retargeting takes rotations, and
+    root motion comes from Root/Pos.
+    """
+
+    space = "local"
+
+    def __init__(self, bones: tuple[str, ...] = HUMAN_BODY_BONES) -> None:
+        self.bones: tuple[str, ...] = (ROOT, *bones)
+        self._index = {name: i for i, name in enumerate(self.bones)}
+        self.counters = DecodeCounters()
+        self._pending: dict[int, list] = {}
+        self._sender_time = False
+
+    @property
+    def buffered(self) -> int:
+        """Bone values waiting for the frame to close (at most one per known bone)."""
+        return len(self._pending)
+
+    def reset(self) -> None:
+        self._pending.clear()
+
+    def feed(self, data: bytes, received: float) -> list[Frame]:
+        c = self.counters
+        c.packets += 1
+        try:
+            messages = OscPacket(data).messages
+        except Exception:  # python-osc raises ParseError, and IndexError/struct errors on garbage
+            c.malformed += 1
+            return []
+        frames: list[Frame] = []
+        for timed in messages:
+            msg = timed.message
+            c.messages += 1
+            address, params = msg.address, msg.params
+            if address == BONE_POS or address == ROOT_POS:
+                if (
+                    len(params) < 8
+                    or type(params[0]) is not str
+                    or any(type(v) not in _NUMBER for v in params[1:8])
+                ):
+                    c.malformed += 1
+                    continue
+                if address == ROOT_POS:
+                    index = 0
+                else:
+                    index = self._index.get(params[0], -1)
+                    if index <= 0:  # unknown, or a bone calling itself Root
+                        c.unknown_bones += 1
+                        continue
+                self._pending[index] = params[1:8]
+            elif address == OK:
+                if not self._sender_time:
+                    frame = self._close(received)
+                    if frame is not None:
+                        frames.append(frame)
+            elif address == TIME:
+                if not params or type(params[0]) not in _NUMBER or not math.isfinite(params[0]):
+                    c.malformed += 1
+                    continue
+                self._sender_time = True
+                frame = self._close(float(params[0]))
+                if frame is not None:
+                    frames.append(frame)
+            else:
+                c.ignored += 1
+        return frames
+
+    def _close(self, timestamp: float) -> Frame | None:
+        """The frame of the bone values collected so far, or None if there are none valid."""
+        c = self.counters
+        if not self._pending:
+            return None
+        indices = np.fromiter(self._pending, dtype=np.int64, count=len(self._pending))
+        values = np.array(list(self._pending.values()), dtype=np.float64)  # (k, 7)
+        self._pending.clear()
+        with np.errstate(invalid="ignore"):
+            finite_pos = np.all(np.abs(values[:, :3]) <= MAX_POSITION, axis=1)
+        positions, quats = unity_to_right_handed(values[:, :3], values[:, 3:7])
+        quats, ok = unit_quaternions(quats)
+        ok &= finite_pos
+        c.malformed += int(np.count_nonzero(~ok))
+        is_root = (indices == 0) & ok
+        root_position = positions[is_root][0] if is_root.any() else None
+        if not ok.any():
+            return None
+        c.frames += 1
+        c.samples += int(np.count_nonzero(ok))
+        return Frame(0, timestamp, indices[ok], quats[ok], root_position)
