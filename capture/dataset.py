@@ -11,8 +11,10 @@ Layout of a dataset folder:
 A work item is one clip's chunk of frames seen from one group of ring views (a ring, or
 its held-out views). Items are independent; `--shard i/n` takes items i, i+n, ... An
 item is done exactly when its record exists; a killed run leaves at most temporary files
-and an item without a record, which the next run redoes from scratch. Finalizing is
-deterministic and idempotent, so one run, a resumed run and merged shards give the same
+and an item without a record, which the next run redoes from scratch. A resumed run first
+checks every finished item against its record (`verify_items`: each sample file present,
+its sha256 the recorded one) and redoes the damaged ones. Finalizing is deterministic and
+idempotent, so one run, a resumed run, a repaired run and merged shards give the same
 manifest.
 """
 
@@ -23,6 +25,7 @@ import io
 import json
 import os
 import zipfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,6 +35,7 @@ import numpy as np
 from rigspace.capture.ring import HELDOUT_CLIPS, HELDOUT_VIEWS, SPLITS, TRAIN, RingView
 from rigspace.capture.settings import CaptureSettings, Clip
 from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.exr import read_exr
 
 FORMAT = "rigspace.dataset"
 FORMAT_VERSION = 1
@@ -41,6 +45,9 @@ PARAMS_FILE = "params.npz"
 CONTACT_SHEET = "contact_sheet.png"
 ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
 """The earliest time a zip entry can carry: every archive entry gets it."""
+EMPTY_PIXELS = 4.0
+"""A sample whose mask covers fewer pixels than this (a 2 x 2 patch) shows nothing to learn
+from: the character is out of frame, clipped away, or too small for the ring."""
 
 
 class DatasetError(RigspaceError):
@@ -105,12 +112,15 @@ def view_groups(views: list[RingView], settings: CaptureSettings) -> list[tuple[
     return [tuple(g) for g in groups.values()]
 
 
-def work_items(settings: CaptureSettings) -> list[WorkItem]:
-    """Every work item of the capture, in dataset order."""
+def work_items(
+    settings: CaptureSettings, samples: Sequence[float] | np.ndarray = ()
+) -> list[WorkItem]:
+    """Every work item of the capture, in dataset order; times snap to the animation's
+    authored `samples` (settings.animation_time_samples) within the time-code tolerance."""
     groups = view_groups(settings.views(), settings)
     items: list[WorkItem] = []
     for clip_index, clip in enumerate(settings.clips):
-        times = clip.times()
+        times = clip.times(samples=samples)
         for start in range(0, len(times), settings.frames_per_item):
             chunk = tuple(float(t) for t in times[start : start + settings.frames_per_item])
             for group in groups:
@@ -172,7 +182,71 @@ def record_path(folder: Path, item: WorkItem) -> Path:
 
 def load_record(folder: Path, item: WorkItem) -> dict[str, np.ndarray]:
     with np.load(record_path(folder, item), allow_pickle=False) as data:
-        return {k: data[k] for k in data.files}
+        record = {k: data[k] for k in data.files}
+    if "coverage" not in record:  # written before coverage was recorded: read it off the EXRs
+        record["coverage"] = np.array(
+            [mask_coverage(read_exr(folder / str(p)).mask) for p in record["path"]],
+            dtype=np.float32,
+        )
+    return record
+
+
+def mask_coverage(mask: np.ndarray) -> float:
+    """Pixels a sample's mask covers, as stored (half precision, like the EXR's A channel), so
+    a re-rendered sample and its EXR give the same number."""
+    return float(np.asarray(mask, dtype=np.float16).astype(np.float64).sum())
+
+
+def empty_by_view(coverage: np.ndarray, views: np.ndarray) -> dict[int, int]:
+    """How many samples of each view show nothing (coverage below EMPTY_PIXELS)."""
+    found, counts = np.unique(
+        np.asarray(views)[np.asarray(coverage) < EMPTY_PIXELS], return_counts=True
+    )
+    return {int(v): int(n) for v, n in zip(found, counts, strict=True)}
+
+
+@dataclass(frozen=True)
+class Damage:
+    """A finished work item whose files no longer match its record."""
+
+    item: WorkItem
+    problems: tuple[str, ...]
+    """One line per damaged file, e.g. "samples/walk/t00002.0_v001.exr: checksum differs"."""
+
+
+def verify_items(folder: Path, items: list[WorkItem]) -> list[Damage]:
+    """Every finished item among `items` whose record or sample files are missing or damaged.
+
+    Reads and hashes every sample file of every finished item (about 1 GB/s here); items
+    without a record are not finished and not reported.
+    """
+    damaged = []
+    for item in items:
+        path = record_path(folder, item)
+        if not path.is_file():
+            continue
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                paths, checksums = data["path"], data["sha256"]
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            name = path.relative_to(folder)
+            damaged.append(Damage(item, (f"{name}: unreadable ({type(exc).__name__})",)))
+            continue
+        expected = [sample_path(item.clip, t, v) for t in item.times for v in item.views]
+        if sorted(str(p) for p in paths) != sorted(expected) or len(checksums) != len(paths):
+            name = path.relative_to(folder)
+            damaged.append(Damage(item, (f"{name}: lists other samples than the item's",)))
+            continue
+        problems = []
+        for relative, checksum in zip(paths, checksums, strict=True):
+            sample = folder / str(relative)
+            if not sample.is_file():
+                problems.append(f"{relative}: missing")
+            elif sha256_file(sample) != checksum:
+                problems.append(f"{relative}: checksum differs (damaged or truncated)")
+        if problems:
+            damaged.append(Damage(item, tuple(problems)))
+    return damaged
 
 
 def clean_temporaries(folder: Path) -> int:
@@ -191,6 +265,7 @@ def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> 
     params_bytes = npz_bytes(table)
     write_atomic(folder / PARAMS_FILE, params_bytes)
     split_counts = {s: int(np.sum(table["split"] == i)) for i, s in enumerate(SPLITS)}
+    empty = empty_by_view(table["coverage"], table["view"])
     digest = hashlib.sha256()
     for path, checksum in zip(table["path"], table["sha256"], strict=True):
         digest.update(f"{path} {checksum}\n".encode())
@@ -243,9 +318,16 @@ def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> 
             "file": PARAMS_FILE,
             "rig": "per joint (skeleton order) the world rotation in the camera frame, 6D "
             "(first two matrix columns)",
+            "coverage": f"pixels the mask covers (sum of A); below {EMPTY_PIXELS:g} the sample "
+            "shows nothing",
             "columns": sorted(table),
         },
         "counts": {"samples": len(table["path"]), "items": len(items), **split_counts},
+        "coverage": {
+            "empty_below_pixels": EMPTY_PIXELS,
+            "empty_samples": sum(empty.values()),
+            "empty_by_view": {str(v): n for v, n in empty.items()},
+        },
         "splits": list(SPLITS),
         "bytes": total_bytes,
         "checksum": digest.hexdigest(),

@@ -2,8 +2,10 @@
 
 Each worker process opens the stage, poses the character with UsdSkel and renders with
 its own renderer (a GL context cannot cross a fork, so workers are spawned). The main
-process only hands out items and shows progress. See capture/dataset.py for the layout
-and the resume and shard guarantees.
+process hands out items, shows progress and watches coverage: when the first items show
+nothing of the character (a ring that misses it) it stops with the fix, and at the end it
+warns about views that stayed empty. See capture/dataset.py for the layout and the
+resume, repair and shard guarantees.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import contextlib
 import json
 import multiprocessing
 import os
+import shutil
 import sys
 import time
 from collections.abc import Iterator
@@ -28,6 +31,11 @@ from rigspace.capture.settings import (
     CaptureError,
     CaptureOverrides,
     CaptureSettings,
+    Warn,
+    animation_time_samples,
+    character_reach,
+    fit_radius,
+    print_warning,
     resolve_settings,
 )
 from rigspace.sdk.exr import write_exr
@@ -37,6 +45,9 @@ from rigspace.sdk.rotations import rig_parameters
 from rigspace.sdk.stage import open_stage
 
 STAGES = ("pose", "render", "write")
+EARLY_SAMPLES = 24
+"""Samples (whole items, as they finish) that must show something before the run goes on:
+enough to see every view of a ring's first frames, a few seconds of work."""
 
 
 @dataclass
@@ -51,6 +62,9 @@ class CaptureResult:
     manifest: dict[str, Any] | None
     timings: dict[str, float] = field(default_factory=dict)
     """Seconds spent per stage (pose, render, write) summed over workers."""
+    repaired: list[ds.Damage] = field(default_factory=list)
+    """Finished items found damaged on disk and rendered again by this run."""
+    warnings: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
         rate = self.samples_done / self.seconds if self.seconds > 0 else 0.0
@@ -73,7 +87,27 @@ class CaptureResult:
             )
         else:
             text += f"\n{self.samples_total - self.samples_done} samples remain for other shards"
+        if self.repaired:
+            problems = [p for d in self.repaired for p in d.problems]
+            shown = "; ".join(problems[:5]) + ("; ..." if len(problems) > 5 else "")
+            text += (
+                f"\nrepaired {len(self.repaired)} damaged work item(s) "
+                f"({sum(d.item.samples for d in self.repaired)} samples rendered again): {shown}"
+            )
+        text += "".join(f"\nwarning: {w}" for w in self.warnings)
         return text
+
+
+@dataclass(frozen=True)
+class ItemDone:
+    """What a worker reports for a finished item."""
+
+    samples: int
+    timings: dict[str, float]
+    coverage: np.ndarray
+    """Pixels the mask covers, per sample of the item."""
+    views: np.ndarray
+    """View index per sample of the item."""
 
 
 class ItemWorker:
@@ -89,13 +123,13 @@ class ItemWorker:
         self.renderer = spec.create(RenderSettings(settings.samples_per_axis))
         self.lens = settings.lens
 
-    def run(self, item: ds.WorkItem) -> tuple[int, dict[str, float]]:
+    def run(self, item: ds.WorkItem) -> ItemDone:
         timings = dict.fromkeys(STAGES, 0.0)
         rows: dict[str, list[Any]] = {
             k: []
             for k in (
                 "path", "sha256", "rig", "joint_camera", "camera_to_world", "intrinsics",
-                "clip", "time", "view", "elevation", "azimuth", "split",
+                "clip", "time", "view", "elevation", "azimuth", "split", "coverage",
             )
         }  # fmt: skip
         for t in item.times:
@@ -129,6 +163,7 @@ class ItemWorker:
                 rows["elevation"].append(view.elevation)
                 rows["azimuth"].append(view.azimuth)
                 rows["split"].append(ds.SPLITS.index(ds.split_of(item.clip, view)))
+                rows["coverage"].append(ds.mask_coverage(maps.mask))
         columns = {
             "path": np.array(rows["path"]),
             "sha256": np.array(rows["sha256"]),
@@ -142,9 +177,10 @@ class ItemWorker:
             "elevation": np.array(rows["elevation"], dtype=np.float32),
             "azimuth": np.array(rows["azimuth"], dtype=np.float32),
             "split": np.array(rows["split"], dtype=np.int8),
+            "coverage": np.array(rows["coverage"], dtype=np.float32),
         }
         ds.save_record(self.folder, item, columns)
-        return item.samples, timings
+        return ItemDone(item.samples, timings, columns["coverage"], columns["view"])
 
     def close(self) -> None:
         self.renderer.close()
@@ -158,7 +194,7 @@ def _init_worker(settings_json: dict[str, Any], folder: str) -> None:
     _worker = ItemWorker(CaptureSettings.from_json(settings_json), Path(folder))
 
 
-def _run_item(item: ds.WorkItem) -> tuple[int, dict[str, float]]:
+def _run_item(item: ds.WorkItem) -> ItemDone:
     assert _worker is not None, "worker not initialised"
     return _worker.run(item)
 
@@ -177,8 +213,8 @@ def parse_shard(text: str) -> tuple[int, int]:
     return index, count
 
 
-def prepare_folder(folder: Path, settings: CaptureSettings, resume: bool, sharded: bool) -> None:
-    """Check the output folder before any work; create it when it is new."""
+def prepare_folder(folder: Path, settings: CaptureSettings, resume: bool, sharded: bool) -> bool:
+    """Check the output folder before any work; create it when it is new (then True)."""
     if folder.exists() and not folder.is_dir():
         raise CaptureError(f"--out {folder} is a file.", "choose a folder.")
     settings_file = folder / ds.SETTINGS_FILE
@@ -202,7 +238,7 @@ def prepare_folder(folder: Path, settings: CaptureSettings, resume: bool, sharde
                 f"--out {folder} already holds this capture.",
                 "pass --resume to finish it, or choose a new folder.",
             )
-        return
+        return False
     parent = next(p for p in [folder, *folder.parents] if p.exists())
     if not os.access(parent, os.W_OK | os.X_OK):
         raise CaptureError(
@@ -216,6 +252,60 @@ def prepare_folder(folder: Path, settings: CaptureSettings, resume: bool, sharde
         raise CaptureError(
             f"--out {folder} cannot be written: {exc}.", "choose a writable location."
         ) from exc
+    return True
+
+
+def repair(folder: Path, items: list[ds.WorkItem]) -> list[ds.Damage]:
+    """Find the damaged finished items among `items` and mark them unfinished (drop their
+    records), so this run renders them again; the manifest goes too until the dataset is
+    whole again, so an interrupted repair leaves an unfinished dataset, never a wrong one."""
+    damaged = ds.verify_items(folder, items)
+    if damaged:
+        (folder / ds.MANIFEST_FILE).unlink(missing_ok=True)
+        for damage in damaged:
+            ds.record_path(folder, damage.item).unlink(missing_ok=True)
+    return damaged
+
+
+def nothing_in_view(
+    settings: CaptureSettings, rig: CharacterRig, samples: int, best: float
+) -> CaptureError:
+    """The error for a capture whose first samples show nothing, with framing that works."""
+    joint = settings.joints.index(settings.look_at_joint)
+    reach = character_reach(rig, joint, settings.clips)
+    near, far = settings.clipping_range
+    size = settings.resolution
+    what = (
+        f"Capture of {settings.character} shows nothing: its first {samples} samples cover at "
+        f"most {best:.2g} pixels of {size}x{size} (fewer than {ds.EMPTY_PIXELS:g}). The ring: "
+        f"radius {settings.radius:g}, focal length {settings.focal_length:g}, horizontal "
+        f"aperture {settings.horizontal_aperture:g}, clipping range ({near:g}, {far:g}), "
+        f"elevations {list(settings.elevations)}, looking at joint {settings.look_at_joint!r}; "
+        f"the character reaches {reach:.3g} scene units from that joint."
+    )
+    if reach <= 0:
+        return CaptureError(what, "check the character's meshes and skin weights.")
+    fit = fit_radius(reach, settings.focal_length, settings.horizontal_aperture)
+    focal = settings.focal_length * settings.radius / fit
+    fix = (
+        f"pass --radius {fit:.3g}, which frames the character (or set "
+        "rigspace:captureRing:radius to 0 to fit it), or set rigspace:captureRing:focalLength "
+        f"to {focal:.3g} to keep radius {settings.radius:g}"
+    )
+    if fit <= near:
+        fix += f", and lower the near clipping distance below {fit:.3g}"
+    return CaptureError(what, fix + ".")
+
+
+def _empty_views_warning(settings: CaptureSettings, empty: dict[int, int], total: int) -> str:
+    count = sum(empty.values())
+    by_view = ", ".join(f"view {v}: {n}" for v, n in sorted(empty.items()))
+    return (
+        f"{count} of {total} samples show less than {ds.EMPTY_PIXELS:g} pixels of "
+        f"{settings.character} ({by_view}); they teach the network nothing. Check those views' "
+        f"cameras (radius {settings.radius:g}, clipping range {settings.clipping_range}, "
+        "elevations, look-at joint) and capture again into a new folder."
+    )
 
 
 def capture(
@@ -228,17 +318,26 @@ def capture(
     resume: bool = False,
     workers: int | None = None,
     progress: bool = True,
+    warn: Warn = print_warning,
 ) -> CaptureResult:
     """Capture a neural character's dataset (see the module and capture/dataset.py docs)."""
-    settings, _rig = resolve_settings(scene, character, overrides)
+    warnings: list[str] = []
+
+    def note(text: str) -> None:
+        warnings.append(text)
+        warn(text)
+
+    settings, rig = resolve_settings(scene, character, overrides, warn=note)
     renderer = choose_renderer(settings.renderer)  # a concrete name, so the dataset records it
     settings = replace(settings, renderer=renderer.name)
     folder = Path(out)
-    prepare_folder(folder, settings, resume, sharded=shard[1] > 1)
+    created = prepare_folder(folder, settings, resume, sharded=shard[1] > 1)
     (folder / "items").mkdir(exist_ok=True)
     ds.clean_temporaries(folder)
-    items = ds.work_items(settings)
-    mine = [i for i in ds.shard_items(items, shard) if not ds.record_path(folder, i).is_file()]
+    items = ds.work_items(settings, animation_time_samples(rig))
+    ours = ds.shard_items(items, shard)
+    repaired = [] if created else repair(folder, ours)
+    mine = [i for i in ours if not ds.record_path(folder, i).is_file()]
     workers = max(1, min(workers or os.cpu_count() or 1, len(mine) or 1))
     total = sum(i.samples for i in mine)
     timings = dict.fromkeys(STAGES, 0.0)
@@ -247,28 +346,63 @@ def capture(
         total=total, unit="sample", disable=not progress, file=sys.stderr, dynamic_ncols=True
     )
     done = 0
-    with contextlib.ExitStack() as stack:
-        stack.callback(bar.close)
-        if workers == 1:
-            worker = ItemWorker(settings, folder)
-            stack.callback(worker.close)
-            results: Iterator[tuple[int, dict[str, float]]] = map(worker.run, mine)
-        else:
-            pool = stack.enter_context(
-                multiprocessing.get_context("spawn").Pool(
-                    workers, initializer=_init_worker, initargs=(settings.to_json(), str(folder))
+    coverage: list[np.ndarray] = []
+    views: list[np.ndarray] = []
+    seen_something = False
+    try:
+        with contextlib.ExitStack() as stack:
+            stack.callback(bar.close)
+            if workers == 1:
+                worker = ItemWorker(settings, folder)
+                stack.callback(worker.close)
+                results: Iterator[ItemDone] = map(worker.run, mine)
+            else:
+                pool = stack.enter_context(
+                    multiprocessing.get_context("spawn").Pool(
+                        workers,
+                        initializer=_init_worker,
+                        initargs=(settings.to_json(), str(folder)),
+                    )
                 )
-            )
-            results = pool.imap_unordered(_run_item, mine)
-        for count, spent in results:
-            done += count
-            bar.update(count)
-            for k, v in spent.items():
-                timings[k] = timings.get(k, 0.0) + v
+                results = pool.imap_unordered(_run_item, mine)
+            for result in results:
+                done += result.samples
+                bar.update(result.samples)
+                for k, v in result.timings.items():
+                    timings[k] = timings.get(k, 0.0) + v
+                coverage.append(result.coverage)
+                views.append(result.views)
+                # A ring that misses the character: stop after a few seconds, not hours.
+                seen_something = seen_something or bool(np.any(coverage[-1] >= ds.EMPTY_PIXELS))
+                if not seen_something and done >= min(EARLY_SAMPLES, total):
+                    best = float(np.concatenate(coverage).max())
+                    raise nothing_in_view(settings, rig, done, best)
+    except CaptureError as exc:
+        # The pool is gone (the with block ended); a folder this run created holds nothing
+        # worth keeping, and leaving it would make the fixed command fail as "different
+        # settings". An existing dataset, or one shared with other shards, is kept as it is.
+        if created and shard[1] == 1:
+            shutil.rmtree(folder, ignore_errors=True)
+            exc.what += f" Nothing was kept: {folder} was removed."
+        else:
+            exc.what += f" {folder} is kept as it was."
+        exc.args = (f"{exc.what} Fix: {exc.fix}",)
+        raise
     seconds = time.perf_counter() - start
     complete = all(ds.record_path(folder, i).is_file() for i in items)
     manifest = None
     if complete:
         manifest = ds.finalize(folder, settings, items)
         write_contact_sheet(folder)
-    return CaptureResult(folder, settings, total, done, seconds, complete, manifest, timings)
+        empty = {int(v): n for v, n in manifest["coverage"]["empty_by_view"].items()}
+        total_samples = manifest["counts"]["samples"]
+    else:
+        empty = ds.empty_by_view(
+            np.concatenate(coverage or [np.zeros(0)]), np.concatenate(views or [np.zeros(0)])
+        )
+        total_samples = done
+    if empty:
+        note(_empty_views_warning(settings, empty, total_samples))
+    result = CaptureResult(folder, settings, total, done, seconds, complete, manifest, timings)
+    result.repaired, result.warnings = repaired, warnings
+    return result

@@ -12,6 +12,8 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import sys
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -20,7 +22,7 @@ import numpy as np
 from pxr import Usd, UsdSkel
 
 from rigspace.capture.ring import Lens, RingView, ring_views
-from rigspace.sdk import schema
+from rigspace.sdk import schema, timecodes
 from rigspace.sdk.errors import RigspaceError, SceneError
 from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.stage import meters_per_unit, open_stage, up_axis
@@ -28,10 +30,18 @@ from rigspace.sdk.validation import MAX_RESOLUTION, MIN_RESOLUTION
 
 BOUNDS_MARGIN = 1.1
 """Radius derived from the bounds leaves 10% room around the character's farthest point."""
-TIME_TOLERANCE = 1e-9
-"""Time codes this close count as equal (float rounding of authored clip ranges)."""
 BOUNDS_FRAMES = 24
 """Frames sampled across the clips to find the character's farthest point from the joint."""
+MAX_SAMPLES_PER_AXIS = 8
+"""Anti-aliasing beyond 8 x 8 samples per pixel changes nothing visible and multiplies the
+supersampled image past what GL render buffers hold (16384 at 2048 x 8)."""
+
+Warn = Callable[[str], None]
+"""Where a capture's warnings go: one line each (the CLI prints them to stderr)."""
+
+
+def print_warning(text: str) -> None:
+    print(f"rigspace capture: warning: {text}", file=sys.stderr)
 
 
 class CaptureError(RigspaceError):
@@ -47,9 +57,12 @@ class Clip:
     """Stage time code of the last frame (inclusive)."""
     held_out: bool = False
 
-    def times(self, step: float = 1.0) -> np.ndarray:
-        count = math.floor((self.last - self.first) / step + TIME_TOLERANCE) + 1
-        return self.first + step * np.arange(count)
+    def times(self, step: float = 1.0, samples: Sequence[float] | np.ndarray = ()) -> np.ndarray:
+        """The clip's time codes, each snapped to an authored sample within the tolerance
+        (sdk/timecodes.py), so a drifted export is posed at its own samples."""
+        span = (self.last - self.first + float(timecodes.tolerance(self.last))) / step
+        count = math.floor(span) + 1
+        return timecodes.snap(self.first + step * np.arange(count), samples)
 
 
 @dataclass(frozen=True)
@@ -173,16 +186,28 @@ def _character_prim(stage: Usd.Stage, path: str) -> Usd.Prim:
 
 
 def _resolve_clips(
-    ring: schema.CaptureRing | None, overrides: CaptureOverrides, span: tuple[float, float]
+    ring: schema.CaptureRing | None,
+    overrides: CaptureOverrides,
+    span: tuple[float, float],
+    samples: np.ndarray,
+    warn: Warn,
 ) -> tuple[Clip, ...]:
+    """The clips to capture, fitted to the animated range (sdk/timecodes.py).
+
+    An end that rounds into the range is the same frame and is snapped to the authored
+    sample; a clip that reaches past the range is clamped with a warning; one wholly
+    outside it, or not finite, is refused.
+    """
     held = set(ring.held_out_clips) if ring else set()
     if ring and ring.clip_names:
         clips = [
-            Clip(n, a, b, n in held)
+            Clip(n, float(a), float(b), n in held)
             for n, (a, b) in zip(ring.clip_names, ring.clip_ranges, strict=True)
         ]
+        source = "rigspace:captureRing:clipRanges"
     else:
         clips = [Clip("all", span[0], span[1])]
+        source = "the animation's time samples"
     if overrides.clips is not None:
         known = {c.name for c in clips}
         unknown = [c for c in overrides.clips if c not in known]
@@ -194,25 +219,49 @@ def _resolve_clips(
         clips = [c for c in clips if c.name in overrides.clips]
     if overrides.frames is not None:
         first, last = overrides.frames
-        if first > last:
-            raise CaptureError(
-                f"--frames {first:g}:{last:g} ends before it starts.", "use A:B with A <= B."
-            )
         clips = [Clip("frames", float(first), float(last))]
+        source = "--frames"
+    fitted = []
     for clip in clips:
-        if clip.first < span[0] or clip.last > span[1]:
+        named = (
+            f"--frames {clip.first:g}:{clip.last:g}"
+            if source == "--frames"
+            else (f"Clip {clip.name!r} ({clip.first:g}-{clip.last:g}) of {source}")
+        )
+        if not (math.isfinite(clip.first) and math.isfinite(clip.last)):
             raise CaptureError(
-                f"Clip {clip.name!r} ({clip.first:g}-{clip.last:g}) lies outside the animation's "
-                f"time samples ({span[0]:g}-{span[1]:g}).",
+                f"{named} is not a range of finite time codes.",
+                f"use A:B with finite numbers inside {span[0]:g}-{span[1]:g}.",
+            )
+        if clip.first > clip.last and not timecodes.same_time(clip.first, clip.last):
+            raise CaptureError(f"{named} ends before it starts.", "use A:B with A <= B.")
+        inside = timecodes.clamp_range(clip.first, clip.last, *span)
+        if inside is None:
+            raise CaptureError(
+                f"{named} lies outside the animation's time samples ({span[0]:g}-{span[1]:g}).",
                 "capture frames inside the animated range (--frames or the ring's clipRanges).",
             )
-    return tuple(clips)
+        first, last = (float(t) for t in timecodes.snap(inside, samples))
+        if not (timecodes.same_time(first, clip.first) and timecodes.same_time(last, clip.last)):
+            warn(
+                f"{named} reaches past the animation's time samples ({span[0]:g}-{span[1]:g}); "
+                f"capturing {first:g}-{last:g}."
+            )
+        fitted.append(Clip(clip.name, first, last, clip.held_out))
+    return tuple(fitted)
 
 
-def derive_radius(
-    rig: CharacterRig, joint: int, clips: tuple[Clip, ...], focal: float, aperture: float
-) -> float:
-    """A camera distance at which the character's farthest point stays inside the image."""
+def animation_time_samples(rig: CharacterRig) -> np.ndarray:
+    """Every authored time code of the character's animation, sorted (what clips snap to)."""
+    anim = UsdSkel.Animation(rig.animation)
+    times: list[float] = []
+    for attr in (anim.GetTranslationsAttr(), anim.GetRotationsAttr(), anim.GetScalesAttr()):
+        times += attr.GetTimeSamples()
+    return np.unique(np.asarray(times, dtype=np.float64))
+
+
+def character_reach(rig: CharacterRig, joint: int, clips: tuple[Clip, ...]) -> float:
+    """The farthest any posed vertex gets from the look-at joint over the clips (scene units)."""
     times = np.concatenate([c.times() for c in clips])
     picks = times[np.linspace(0, len(times) - 1, min(BOUNDS_FRAMES, len(times))).astype(int)]
     reach = 0.0
@@ -220,9 +269,21 @@ def derive_radius(
         centre = rig.world_transforms(float(t))[joint][:3, 3]
         for mesh in rig.posed_meshes(float(t)):
             reach = max(reach, float(np.linalg.norm(mesh.points - centre, axis=1).max()))
+    return reach
+
+
+def fit_radius(reach: float, focal: float, aperture: float) -> float:
+    """The camera distance at which a sphere of radius `reach` fills the frame (with margin)."""
     half_fov = math.atan(aperture / 2 / focal)
     # A sphere of radius `reach` fits a cone of half-angle `half_fov` at distance reach / sin.
     return BOUNDS_MARGIN * reach / math.sin(half_fov)
+
+
+def derive_radius(
+    rig: CharacterRig, joint: int, clips: tuple[Clip, ...], focal: float, aperture: float
+) -> float:
+    """A camera distance at which the character's farthest point stays inside the image."""
+    return fit_radius(character_reach(rig, joint, clips), focal, aperture)
 
 
 def _check_finite(rig: CharacterRig) -> None:
@@ -241,9 +302,17 @@ def _check_finite(rig: CharacterRig) -> None:
 
 
 def resolve_settings(
-    scene: str | Path, character: str, overrides: CaptureOverrides | None = None
+    scene: str | Path,
+    character: str,
+    overrides: CaptureOverrides | None = None,
+    *,
+    warn: Warn = print_warning,
 ) -> tuple[CaptureSettings, CharacterRig]:
-    """The capture's settings with every bad input reported before any work."""
+    """The capture's settings with every bad input reported before any work.
+
+    What is allowed but probably not meant (a clip clamped to the animation, a dataset
+    without training samples) goes to `warn`.
+    """
     overrides = overrides or CaptureOverrides()
     stage = open_stage(scene)
     prim = _character_prim(stage, character)
@@ -287,24 +356,45 @@ def resolve_settings(
         raise CaptureError(
             f"Look-at joint: {exc.args[0]}.", "name a joint of the skeleton."
         ) from exc
-    clips = _resolve_clips(ring, overrides, span)
+    clips = _resolve_clips(ring, overrides, span, animation_time_samples(rig), warn)
     radius = overrides.radius or defaults.radius
     if not radius:
         radius = derive_radius(
             rig, joint, clips, defaults.focal_length, defaults.horizontal_aperture
+        )
+    if not math.isfinite(radius):
+        raise CaptureError(
+            f"Camera radius {radius:g} is not a finite distance.",
+            "pass --radius with a distance in scene units (or 0 to fit the character).",
         )
     if not radius > near:
         raise CaptureError(
             f"Camera radius {radius:g} is not beyond the near clipping plane {near:g}.",
             "raise the radius or lower the near clipping distance.",
         )
+    if not radius < far:
+        raise CaptureError(
+            f"Camera radius {radius:g} puts the look-at joint beyond the far clipping plane "
+            f"{far:g}, so the character would be clipped away.",
+            "lower the radius or raise the far clipping distance "
+            "(rigspace:captureRing:clippingRange).",
+        )
     if overrides.frames_per_item < 1:
         raise CaptureError(
             f"--frames-per-item {overrides.frames_per_item} must be at least 1.", "use e.g. 16."
         )
-    if overrides.samples_per_axis < 1:
+    if not 1 <= overrides.samples_per_axis <= MAX_SAMPLES_PER_AXIS:
         raise CaptureError(
-            f"--samples {overrides.samples_per_axis} must be at least 1.", "use 1, 2, 3 or 4."
+            f"--samples {overrides.samples_per_axis} is outside 1 to {MAX_SAMPLES_PER_AXIS}.",
+            "use 1, 2, 3 or 4.",
+        )
+    if all(clip.held_out for clip in clips):
+        names = ", ".join(clip.name for clip in clips)
+        warn(
+            f"every clip of this capture ({names}) is held out (rigspace:captureRing:"
+            "heldOutClips), so the dataset will have 0 training samples and `rigspace train` "
+            "cannot use it; capture a training clip too (another --clips or --frames) unless "
+            "this dataset is for evaluation only."
         )
     settings = CaptureSettings(
         scene=str(Path(scene).resolve()),

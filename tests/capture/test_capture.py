@@ -8,7 +8,6 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -22,26 +21,18 @@ from rigspace.sdk.errors import RigspaceError, SceneError
 from rigspace.sdk.exr import CHANNELS, read_exr
 from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.stage import open_stage
-from tests.conftest import REPO
-
-SCENE = REPO / "samples" / "scenes" / "cesium_man.usda"
-CHARACTER = "/World/CesiumMan"
-SMALL = CaptureOverrides(
-    views=4, elevations=(0.0,), resolution=32, frames=(1.0, 6.0), frames_per_item=3
+from tests.capture.conftest import (
+    CHARACTER,
+    IMAGE_TOLERANCE,
+    ROTATION_TOLERANCE,
+    SCENE,
+    SMALL,
+    capture_variant,
+    checksum,
+    small_capture,
+    with_character_ops,
 )
-ROTATION_TOLERANCE = 1e-4  # float32 parameters of float64 transforms
-IMAGE_TOLERANCE = 0.02  # mean abs albedo difference between views of a rotated character
-
-
-def small_capture(out: Path, **kwargs):
-    kwargs.setdefault("workers", 1)
-    kwargs.setdefault("progress", False)
-    return capture(SCENE, CHARACTER, out, kwargs.pop("overrides", SMALL), **kwargs)
-
-
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    return small_capture(tmp_path_factory.mktemp("capture") / "ds")
+from tests.conftest import REPO
 
 
 def test_dataset_layout_and_manifest(dataset):
@@ -101,26 +92,6 @@ def test_rot6d_reconstructs_the_joint_rotations(dataset):
             assert np.abs(decoded - expected).max() < ROTATION_TOLERANCE
 
 
-def with_character_ops(text: str, *ops: str) -> str:
-    """The scene text with xformOp lines (and their order) added to the character prim."""
-    names = ", ".join(f'"{op.split(" = ")[0].split()[-1]}"' for op in ops)
-    lines = "".join(f"        {op}\n" for op in ops)
-    return text.replace(
-        "        rel rigspace:skeleton",
-        f"{lines}        uniform token[] xformOpOrder = [{names}]\n        rel rigspace:skeleton",
-    )
-
-
-def capture_variant(tmp_path: Path, name: str, text: str):
-    """Capture (SMALL) a variant of the CesiumMan scene written beside it (same asset paths)."""
-    scene = SCENE.parent / f".{name}_{os.getpid()}.usda"
-    scene.write_text(text)
-    try:
-        return capture(scene, CHARACTER, tmp_path / name, SMALL, workers=1, progress=False)
-    finally:
-        scene.unlink()
-
-
 def test_parameters_invariant_when_character_and_ring_rotate_together(tmp_path, dataset):
     # Turn the character one view step (90 degrees) about the up axis: view k+1 of the turned
     # character must see exactly what view k saw before.
@@ -138,10 +109,6 @@ def test_parameters_invariant_when_character_and_ring_rotate_together(tmp_path, 
                 before = read_exr(dataset.folder / str(a["path"][i]))
                 after = read_exr(turned.folder / str(b["path"][j]))
                 assert np.abs(before.albedo - after.albedo).mean() < IMAGE_TOLERANCE
-
-
-def checksum(folder: Path) -> str:
-    return json.loads((folder / ds.MANIFEST_FILE).read_text())["checksum"]
 
 
 def test_shards_merge_to_the_same_dataset(tmp_path, dataset):
@@ -184,15 +151,28 @@ def test_kill_9_then_resume_gives_the_same_dataset(tmp_path, dataset):
 
 # -- bad input: a clear error before anything is written ---------------------------------
 
+NAN, INF = float("nan"), float("inf")
+
 
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
         (CaptureOverrides(resolution=100), "not a power of two"),
-        (CaptureOverrides(frames=(40.0, 90.0)), "outside the animation"),
+        (CaptureOverrides(frames=(60.0, 90.0)), r"--frames 60:90 lies outside the animation"),
+        (
+            CaptureOverrides(frames=(1e12, 1e12)),
+            r"lies outside the animation's time samples \(1-48",
+        ),
+        (CaptureOverrides(frames=(NAN, NAN)), "--frames nan:nan is not a range of finite"),
+        (CaptureOverrides(frames=(1.0, INF)), "is not a range of finite time codes"),
         (CaptureOverrides(frames=(9.0, 3.0)), "ends before it starts"),
         (CaptureOverrides(clips=("run",)), "does not define"),
         (CaptureOverrides(views=0), "outside 1 to 360"),
+        (CaptureOverrides(elevations=(NAN,)), r"must be in \[-89, 89\]"),
+        (CaptureOverrides(radius=NAN), "radius nan is not a finite distance"),
+        (CaptureOverrides(radius=INF), "radius inf is not a finite distance"),
+        (CaptureOverrides(radius=500.0), "beyond the far clipping plane 100"),
+        (CaptureOverrides(samples_per_axis=1000), "--samples 1000 is outside 1 to 8"),
     ],
 )
 def test_bad_settings(tmp_path, overrides, message):
@@ -299,9 +279,16 @@ def test_the_sample_character_captures(tmp_path):
 def test_held_out_clips_are_seen_from_training_views_only(tmp_path):
     previs = REPO / "samples" / "scenes" / "previs.usda"
     overrides = CaptureOverrides(views=1, elevations=(0.0,), resolution=16, clips=("wave",))
-    result = capture(previs, "/World/Hero", tmp_path / "ds", overrides, progress=False)
+    warned: list[str] = []
+    result = capture(
+        previs, "/World/Hero", tmp_path / "ds", overrides, progress=False, warn=warned.append
+    )
     counts = result.manifest["counts"]
     assert (counts["heldout-clips"], counts["train"], counts["heldout-views"]) == (240, 0, 0)
+    # Only held-out material: said before rendering, and again in the summary.
+    assert len(warned) == 1 and "every clip of this capture (wave) is held out" in warned[0]
+    assert "0 training samples" in warned[0] and "capture a training clip too" in warned[0]
+    assert "warning: every clip" in result.summary()
 
 
 def test_z_up_stage_gives_the_same_parameters(tmp_path, dataset):
