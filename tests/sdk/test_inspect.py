@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -14,9 +14,6 @@ from rigspace.sdk.cli import main
 from tests.conftest import CESIUM_MAN, REPO
 
 SCENES = sorted((REPO / "samples" / "scenes").glob("*.usda"))
-# CesiumMan itself authors inputs:varname as token (USD expects string): a real defect in
-# the third-party asset, reported by USD's own validator, documented in its scene.
-CESIUM_KNOWN = {("usdShadeValidators:ShaderSdrCompliance", "MismatchedPropertyType")}
 
 
 def inspect_json(path: Path, capsys) -> tuple[int, dict]:
@@ -33,10 +30,7 @@ def test_sample_scenes_exist():
 def test_sample_scenes_inspect_cleanly(scene, capsys):
     code, report = inspect_json(scene, capsys)
     assert set(report) == {"stage", "prims", "errors", "warnings"}
-    errors = {(e["validator"], e["code"]) for e in report["errors"]}
-    allowed = CESIUM_KNOWN if "cesium" in scene.name else set()
-    assert errors <= allowed, report["errors"]
-    assert code == (1 if errors else 0)
+    assert report["errors"] == [] and code == 0
     kinds = {p["kind"] for p in report["prims"]}
     assert {
         "neuralCharacter",
@@ -63,8 +57,8 @@ def test_previs_scene_prints_the_tree_and_no_errors(capsys):
 def test_cesium_man_usdz(capsys):
     code, report = inspect_json(CESIUM_MAN, capsys)
     assert report["stage"]["timeCodesPerSecond"] == 24
-    assert {(e["validator"], e["code"]) for e in report["errors"]} == CESIUM_KNOWN
-    assert code == 1
+    # The shipped copy authors inputs:varname as a string (samples/assets/CesiumMan/NOTICE.md).
+    assert report["errors"] == [] and code == 0
     (skeleton,) = [p for p in report["prims"] if p["kind"] == "skeleton"]
     (mesh,) = [p for p in report["prims"] if p["kind"] == "skinnedMesh"]
     (anim,) = [p for p in report["prims"] if p["kind"] == "skelAnimation"]
@@ -112,14 +106,28 @@ def test_unreadable_scene_is_a_clear_error(tmp_path, capsys, content, suffix, me
     assert message in err and str(path) in err and "Traceback" not in err
 
 
-def test_console_script(tmp_path):
-    exe = shutil.which("rigspace")
-    assert exe, "the rigspace console script is not installed (pip install -e .)"
-    result = subprocess.run(
-        [exe, "inspect", "--json", str(CESIUM_MAN)], capture_output=True, text=True, check=False
+def _run(command: list[str]) -> subprocess.CompletedProcess:
+    # PATH holds the system folders only: what a fresh clone has when pytest runs as
+    # `.venv/bin/python -m pytest` without an activated environment.
+    env = {"PATH": "/usr/bin:/bin", "HOME": str(Path.home())}
+    return subprocess.run(command, capture_output=True, text=True, check=False, env=env)
+
+
+def test_console_script():
+    # Installed beside the interpreter, as pip puts console scripts: not looked up on PATH.
+    exe = Path(sys.executable).parent / "rigspace"
+    assert exe.is_file(), (
+        f"the rigspace console script is not installed at {exe} (pip install -e .)"
     )
-    assert result.returncode == 1
+    result = _run([str(exe), "inspect", "--json", str(CESIUM_MAN)])
+    assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout)["stage"]["upAxis"] == "Y"
+
+
+def test_python_dash_m():
+    result = _run([sys.executable, "-m", "rigspace.sdk", "inspect", "--json", str(CESIUM_MAN)])
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout)["stage"]["timeCodesPerSecond"] == 24
 
 
 def test_the_readme_broken_fixture(capsys):
