@@ -211,7 +211,7 @@ class Damage:
 
     item: WorkItem
     problems: tuple[str, ...]
-    """One line per damaged file, e.g. "samples/walk/t00002.0_v001.exr: checksum differs"."""
+    """One line per damaged file, e.g. "samples/walk/t000002.0_v001.exr: missing"."""
 
 
 def verify_items(folder: Path, items: list[WorkItem]) -> list[Damage]:

@@ -303,7 +303,8 @@ def _empty_views_warning(settings: CaptureSettings, empty: dict[int, int], total
     return (
         f"{count} of {total} samples show less than {ds.EMPTY_PIXELS:g} pixels of "
         f"{settings.character} ({by_view}); they teach the network nothing. Check those views' "
-        f"cameras (radius {settings.radius:g}, clipping range {settings.clipping_range}, "
+        f"cameras (radius {settings.radius:g}, clipping range "
+        f"({settings.clipping_range[0]:g}, {settings.clipping_range[1]:g}), "
         "elevations, look-at joint) and capture again into a new folder."
     )
 
@@ -365,13 +366,13 @@ def capture(
                     )
                 )
                 results = pool.imap_unordered(_run_item, mine)
-            for result in results:
-                done += result.samples
-                bar.update(result.samples)
-                for k, v in result.timings.items():
+            for finished in results:
+                done += finished.samples
+                bar.update(finished.samples)
+                for k, v in finished.timings.items():
                     timings[k] = timings.get(k, 0.0) + v
-                coverage.append(result.coverage)
-                views.append(result.views)
+                coverage.append(finished.coverage)
+                views.append(finished.views)
                 # A ring that misses the character: stop after a few seconds, not hours.
                 seen_something = seen_something or bool(np.any(coverage[-1] >= ds.EMPTY_PIXELS))
                 if not seen_something and done >= min(EARLY_SAMPLES, total):
@@ -403,6 +404,6 @@ def capture(
         total_samples = done
     if empty:
         note(_empty_views_warning(settings, empty, total_samples))
-    result = CaptureResult(folder, settings, total, done, seconds, complete, manifest, timings)
-    result.repaired, result.warnings = repaired, warnings
-    return result
+    return CaptureResult(
+        folder, settings, total, done, seconds, complete, manifest, timings, repaired, warnings
+    )
