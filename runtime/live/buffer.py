@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import bisect
 import math
 import threading
 import time
@@ -190,6 +189,10 @@ class LiveBuffer:
         self._valid = np.zeros(n, dtype=bool)
         self._root: np.ndarray | None = None
         self._times: deque[float] = deque(maxlen=s.history)
+        """Local time of each snapshot when it was pushed (orders snapshots across streams)."""
+        self._source_times: deque[tuple[int, float]] = deque(maxlen=s.history)
+        """(stream, source timestamp) of each snapshot: mapped to local time at pose() with the
+        stream's clock offset as known then (it only improves as samples arrive)."""
         self._snapshots: deque[tuple[np.ndarray, np.ndarray | None]] = deque(maxlen=s.history)
         self._streams: dict[int, _Stream] = {}
         self._last_seen = math.nan
@@ -236,6 +239,7 @@ class LiveBuffer:
                 self._snapshots[-1] = (self._current.copy(), self._root)
             else:
                 self._times.append(local)
+                self._source_times.append((frame.stream, ts))
                 self._snapshots.append((self._current.copy(), self._root))
             self._last_seen = received
             self.samples += len(idx)
@@ -281,16 +285,17 @@ class LiveBuffer:
                 sample_time = self._times[-1] if self._times else math.nan
             else:
                 delay = s.delay if s.delay is not None else self._sample_interval()
+                times = self._local_times()
                 target = now - delay
-                i = bisect.bisect_right(self._times, target)
+                i = int(np.searchsorted(times, target, side="right"))
                 if i == 0:
-                    (rotations, root), sample_time = self._snapshots[0], self._times[0]
-                elif i == len(self._times):
-                    (rotations, root), sample_time = self._snapshots[-1], self._times[-1]
+                    (rotations, root), sample_time = self._snapshots[0], times[0]
+                elif i == len(times):
+                    (rotations, root), sample_time = self._snapshots[-1], times[-1]
                 else:
-                    t0, t1 = self._times[i - 1], self._times[i]
+                    t0, t1 = times[i - 1], times[i]
                     (r0, p0), (r1, p1) = self._snapshots[i - 1], self._snapshots[i]
-                    u = (target - t0) / (t1 - t0)
+                    u = (target - t0) / (t1 - t0) if t1 > t0 else 1.0
                     rotations = quat_slerp(r0, r1, u)
                     root = p0 if p0 is None or p1 is None else p0 + u * (p1 - p0)
                     sample_time = target
@@ -302,6 +307,12 @@ class LiveBuffer:
             gone = now - (last_seen + s.lost_after)
             weight = max(0.0, 1.0 - gone / s.blend) if s.blend > 0 else 0.0
         return LivePose(rotations, valid, root, status, weight, sample_time)
+
+    def _local_times(self) -> np.ndarray:
+        """Snapshot times on the local clock, from each stream's current offset, non-decreasing."""
+        offsets = {k: min(v.offsets) for k, v in self._streams.items() if v.offsets}
+        mapped = [ts + offsets.get(stream, 0.0) for stream, ts in self._source_times]
+        return np.maximum.accumulate(np.array(mapped))
 
     def _sample_interval(self) -> float:
         times = list(self._times)[-33:]

@@ -203,9 +203,12 @@ def read_bvh(path: str | Path) -> tuple[BvhSkeleton, np.ndarray, float]:
 class BvhStreamDecoder:
     """The Axis Neuron BVH data stream: one line of channel values per frame, for a known
     hierarchy. Lines may carry Axis Neuron's prefix (an index and the avatar name) and its `||`
-    terminator. The stream has no timestamps: frames get the receive time."""
+    terminator. The stream has no timestamps: frames get the receive time, and lines that
+    arrive in one read (a burst) are spaced BURST_STEP apart so they stay distinct and ordered."""
 
     space = "local"
+    BURST_STEP = 1e-6
+    """Seconds between frames that arrived together (far below any frame interval)."""
     MAX_LINE = 1 << 16
     """Longest line kept while waiting for its newline, in bytes (a 60-joint frame is ~2 KB)."""
 
@@ -216,6 +219,7 @@ class BvhStreamDecoder:
         self._buffer = bytearray()
         self._skip = False  # inside an over-long line: drop bytes until its newline
         self._indices = np.arange(len(self.bones), dtype=np.int64)
+        self._last_time = -np.inf
 
     @property
     def buffered(self) -> int:
@@ -238,9 +242,10 @@ class BvhStreamDecoder:
             if self._skip:
                 self._skip = False
                 continue
-            frame = self.decode_line(line, received)
+            frame = self.decode_line(line, max(received, self._last_time + self.BURST_STEP))
             if frame is not None:
                 frames.append(frame)
+                self._last_time = frame.timestamp
         if len(self._buffer) > self.MAX_LINE:
             self.counters.malformed += 1
             self._buffer.clear()

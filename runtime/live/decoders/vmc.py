@@ -144,3 +144,34 @@ class VmcDecoder:
         c.frames += 1
         c.samples += int(np.count_nonzero(ok))
         return Frame(0, timestamp, indices[ok], quats[ok], root_position)
+
+
+def encode_frame(
+    bones: tuple[str, ...],
+    rotations: np.ndarray,
+    root_position: np.ndarray | None = None,
+    root_rotation: np.ndarray | None = None,
+    sender_time: float | None = None,
+) -> list[bytes]:
+    """One VMC frame as a reference sender sends it: Root/Pos alone, the bones in one bundle,
+    then OK and (when `sender_time` is given) T. Takes right-handed (w, x, y, z) rotations and
+    positions and converts them to Unity's frame (the conversion is its own inverse)."""
+    from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
+    from pythonosc.osc_message_builder import build_msg
+
+    datagrams = []
+    if root_position is not None:
+        q = np.array([1.0, 0.0, 0.0, 0.0]) if root_rotation is None else root_rotation
+        p, (w, x, y, z) = np.asarray(root_position) * [1, 1, -1], q
+        args = [ROOT, *map(float, p), float(-x), float(-y), float(z), float(w)]
+        datagrams.append(build_msg(ROOT_POS, args).dgram)
+    bundle = OscBundleBuilder(IMMEDIATELY)
+    for name, (w, x, y, z) in zip(bones, np.asarray(rotations, dtype=np.float64), strict=True):
+        bundle.add_content(
+            build_msg(BONE_POS, [name, 0.0, 0.0, 0.0, float(-x), float(-y), float(z), float(w)])
+        )
+    datagrams.append(bundle.build().dgram)
+    datagrams.append(build_msg(OK, [1]).dgram)
+    if sender_time is not None:
+        datagrams.append(build_msg(TIME, [float(sender_time)]).dgram)
+    return datagrams

@@ -1,0 +1,363 @@
+"""Retargeting: source bones onto a UsdSkel skeleton by world-rotation deltas, with presets.
+
+Convention (the "documented conversion"): for every mapped target joint j fed by source bone b,
+
+    W'_j = A (W_b R_b^-1) A^-1 W'rest_j
+
+W_b is b's world rotation in the source (its local rotations composed down the source hierarchy,
+or the sensor orientation for world-space sources), R_b its world rotation in the calibration
+rest pose (identity without calibration: BVH rest frames are world-aligned), A the source-to-stage
+basis, W'rest_j the target's rest world rotation. So a mapped joint turns, in the stage's frame,
+exactly as its source bone turned away from its rest pose, whatever the two skeletons' joint
+frames. The target's local rotation follows from its parent's final world rotation, so target
+joints without a source keep the stage animation's local values and mapped children still land
+on their source's world rotation.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rigspace.runtime.live.buffer import LivePose
+from rigspace.runtime.live.decoders.vmc import HUMAN_BODY_BONES, ROOT
+from rigspace.runtime.live.frames import quat_conjugate, quat_slerp
+from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.rotations import matrix_from_quat, quat_from_matrix, quat_multiply
+
+
+class RetargetError(RigspaceError):
+    """A bone map that does not fit the source or the skeleton."""
+
+
+Y_180 = np.diag([-1.0, 1.0, -1.0])
+MIRROR_Z = np.diag([1.0, 1.0, -1.0])
+Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # (x, z, -y)
+
+
+def source_basis(up_axis: str = "Y", handedness: str = "right", facing_yaw_degrees: float = 0.0):
+    """3x3 matrix taking source coordinates to the stage's right-handed Y-up frame: a Z mirror
+    for left-handed data, (x, y, z) -> (x, z, -y) for Z up, then a turn about Y (degrees) so the
+    performer's forward becomes the character's forward."""
+    m = np.eye(3)
+    if handedness == "left":
+        m = MIRROR_Z @ m
+    if up_axis == "Z":
+        m = Z_UP_TO_Y_UP @ m
+    yaw = np.radians(facing_yaw_degrees)
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]) @ m
+
+
+def _sided(pairs: Mapping[str, str], left: str, right: str, tl: str, tr: str) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for source, target in pairs.items():
+        out[source.format(side=left)] = target.format(side=tl)
+        out[source.format(side=right)] = target.format(side=tr)
+    return out
+
+
+_SPINE_SAMPLE = {"spine_01", "spine_02", "spine_03", "neck_01", "head"}
+
+
+@dataclass(frozen=True)
+class Preset:
+    """A source skeleton family: its bone map to the sample character, hierarchy, basis, units."""
+
+    name: str
+    bone_map: dict[str, str]
+    """Source bone -> target joint name (the sample character's; a leaf name or full path)."""
+    parents: dict[str, str]
+    """Source bone -> its parent source bone (absent: a root), to compose world rotations."""
+    basis: np.ndarray = field(default_factory=lambda: np.eye(3))
+    """Source (as decoded) to the sample character's frame (Y up, facing +Z, left +X)."""
+    meters_per_unit: float = 1.0
+
+
+def _unity_parents() -> dict[str, str]:
+    parents = {"Hips": ROOT, "Spine": "Hips", "Chest": "Spine", "UpperChest": "Chest"}
+    parents |= {"Neck": "UpperChest", "Head": "Neck", "LeftEye": "Head", "RightEye": "Head"}
+    parents["Jaw"] = "Head"
+    for side in ("Left", "Right"):
+        parents |= {
+            f"{side}UpperLeg": "Hips",
+            f"{side}LowerLeg": f"{side}UpperLeg",
+            f"{side}Foot": f"{side}LowerLeg",
+            f"{side}Toes": f"{side}Foot",
+            f"{side}Shoulder": "UpperChest",
+            f"{side}UpperArm": f"{side}Shoulder",
+            f"{side}LowerArm": f"{side}UpperArm",
+            f"{side}Hand": f"{side}LowerArm",
+        }
+        for finger in ("Thumb", "Index", "Middle", "Ring", "Little"):
+            chain = [f"{side}Hand"] + [
+                f"{side}{finger}{p}" for p in ("Proximal", "Intermediate", "Distal")
+            ]
+            parents |= dict(zip(chain[1:], chain[:-1], strict=True))
+    assert set(parents) == set(HUMAN_BODY_BONES)
+    return parents
+
+
+UNITY = Preset(
+    "unity",
+    {"Hips": "pelvis", "Spine": "spine_01", "Chest": "spine_02", "UpperChest": "spine_03"}
+    | {"Neck": "neck_01", "Head": "head"}
+    | _sided(
+        {
+            "{side}Shoulder": "clavicle_{side}",
+            "{side}UpperArm": "upperarm_{side}",
+            "{side}LowerArm": "lowerarm_{side}",
+            "{side}Hand": "hand_{side}",
+            "{side}UpperLeg": "thigh_{side}",
+            "{side}LowerLeg": "calf_{side}",
+            "{side}Foot": "foot_{side}",
+            "{side}Toes": "ball_{side}",
+        },
+        "Left",
+        "Right",
+        "l",
+        "r",
+    ),
+    _unity_parents(),
+    # VmcDecoder already mirrored Unity's Z: the avatar faces -Z with its left at -X; turn it.
+    Y_180,
+    1.0,
+)
+
+CMU = Preset(
+    "cmu",
+    {"Hips": "pelvis", "lowerback": "spine_01", "Chest": "spine_02", "Chest2": "spine_03"}
+    | {"Neck": "neck_01", "Head": "head"}
+    | _sided(
+        {
+            "{side}Collar": "clavicle_{side}",
+            "{side}Shoulder": "upperarm_{side}",
+            "{side}Elbow": "lowerarm_{side}",
+            "{side}Wrist": "hand_{side}",
+            "{side}Hip": "thigh_{side}",
+            "{side}Knee": "calf_{side}",
+            "{side}Ankle": "foot_{side}",
+            "{side}Toe": "ball_{side}",
+        },
+        "Left",
+        "Right",
+        "l",
+        "r",
+    ),
+    {},  # BVH sources bring their own hierarchy (BvhSkeleton.parents)
+    np.eye(3),
+    0.0254 / 0.45,  # the CMU ASF length unit: 1/0.45 inch
+)
+
+_MIXAMO_PARENTS = {"Spine": "Hips", "Spine1": "Spine", "Spine2": "Spine1", "Neck": "Spine2"}
+_MIXAMO_PARENTS["Head"] = "Neck"
+for _side in ("Left", "Right"):
+    _MIXAMO_PARENTS |= {
+        f"{_side}Shoulder": "Spine2",
+        f"{_side}Arm": f"{_side}Shoulder",
+        f"{_side}ForeArm": f"{_side}Arm",
+        f"{_side}Hand": f"{_side}ForeArm",
+        f"{_side}UpLeg": "Hips",
+        f"{_side}Leg": f"{_side}UpLeg",
+        f"{_side}Foot": f"{_side}Leg",
+        f"{_side}ToeBase": f"{_side}Foot",
+    }
+
+MIXAMO = Preset(
+    "mixamo",
+    {
+        f"mixamorig:{s}": t
+        for s, t in (
+            {"Hips": "pelvis", "Spine": "spine_01", "Spine1": "spine_02", "Spine2": "spine_03"}
+            | {"Neck": "neck_01", "Head": "head"}
+            | _sided(
+                {
+                    "{side}Shoulder": "clavicle_{side}",
+                    "{side}Arm": "upperarm_{side}",
+                    "{side}ForeArm": "lowerarm_{side}",
+                    "{side}Hand": "hand_{side}",
+                    "{side}UpLeg": "thigh_{side}",
+                    "{side}Leg": "calf_{side}",
+                    "{side}Foot": "foot_{side}",
+                    "{side}ToeBase": "ball_{side}",
+                },
+                "Left",
+                "Right",
+                "l",
+                "r",
+            )
+        ).items()
+    },
+    {f"mixamorig:{c}": f"mixamorig:{p}" for c, p in _MIXAMO_PARENTS.items()},
+    np.eye(3),
+    0.01,  # Mixamo FBX/BVH exports are in centimetres
+)
+
+PRESETS = {p.name: p for p in (UNITY, CMU, MIXAMO)}
+
+
+def hierarchy_levels(parents: np.ndarray) -> list[np.ndarray]:
+    """Joint indices grouped by depth (roots first), so parents are done before children."""
+    depth = np.zeros(len(parents), dtype=np.int64)
+    for j, p in enumerate(parents):  # parents precede children (USD and BVH order)
+        depth[j] = 0 if p < 0 else depth[p] + 1
+    return [np.flatnonzero(depth == d) for d in range(int(depth.max(initial=-1)) + 1)]
+
+
+def compose_world(local: np.ndarray, parents: np.ndarray, levels: list[np.ndarray]) -> np.ndarray:
+    """(N, 4) local rotations -> world rotations down the hierarchy (one product per level)."""
+    world = local.copy()
+    for level in levels[1:]:
+        world[level] = quat_multiply(world[parents[level]], local[level])
+    return world
+
+
+def _parent_indices(names: Sequence[str], parents: Mapping[str, str]) -> np.ndarray:
+    index = {n: i for i, n in enumerate(names)}
+    out = np.array([index.get(parents.get(n, ""), -1) for n in names], dtype=np.int64)
+    bad = np.flatnonzero(out >= np.arange(len(names)))
+    if len(bad):
+        raise RetargetError(
+            f"Source bone {names[bad[0]]!r} comes before its parent in the source's bone list.",
+            "list parents before children.",
+        )
+    return out
+
+
+class Retargeter:
+    """Maps one source's poses onto a skeleton's local transforms (see the module docstring)."""
+
+    def __init__(
+        self,
+        source_bones: Sequence[str],
+        source_parents: Mapping[str, str] | Sequence[int],
+        space: str,
+        target_joints: Sequence[str],
+        target_rest_local: np.ndarray,
+        bone_map: Mapping[str, str],
+        basis: np.ndarray | None = None,
+        scale: float = 1.0,
+        rest_pose: np.ndarray | None = None,
+        rest_root: np.ndarray | None = None,
+        root_motion: bool = True,
+    ) -> None:
+        """`target_rest_local` is (J, 4, 4) in USD's row-vector layout (restTransforms);
+        `scale` takes source units to stage units (root motion: the source root's position
+        relative to `rest_root`, else to where it first was, moves the target's root joint); `rest_pose` is (B, 4), the calibration."""
+        self.source_bones = tuple(source_bones)
+        if isinstance(source_parents, Mapping):
+            self.source_parents = _parent_indices(self.source_bones, source_parents)
+        else:
+            self.source_parents = np.asarray(source_parents, dtype=np.int64)
+        self.source_levels = hierarchy_levels(self.source_parents)
+        self.space = space
+        self.target_joints = tuple(target_joints)
+        leaf = {j.rsplit("/", 1)[-1]: i for i, j in enumerate(self.target_joints)}
+        full = {j: i for i, j in enumerate(self.target_joints)}
+        self.target_parents = np.array(
+            [full.get(j.rsplit("/", 1)[0], -1) if "/" in j else -1 for j in self.target_joints]
+        )
+        self.target_levels = hierarchy_levels(self.target_parents)
+        src_index = {b: i for i, b in enumerate(self.source_bones)}
+        pairs = []
+        for source, target in bone_map.items():
+            if source not in src_index:
+                continue  # the preset names bones this source does not send
+            j = full.get(target, leaf.get(target))
+            if j is None:
+                raise RetargetError(
+                    f"Bone map target {target!r} (for source bone {source!r}) is not a joint of "
+                    "the skeleton.",
+                    f"use one of {', '.join(sorted(leaf))}.",
+                )
+            pairs.append((src_index[source], j))
+        if not pairs:
+            raise RetargetError(
+                "The bone map maps none of the source's bones.",
+                "choose the preset of the source's skeleton, or author sourceBones/targetJoints.",
+            )
+        self.map_source = np.array([s for s, _ in pairs])
+        self.map_target = np.array([t for _, t in pairs])
+        basis = np.eye(3) if basis is None else np.asarray(basis, dtype=np.float64)
+        proper = basis if np.linalg.det(basis) > 0 else -basis  # A R A^T = (-A) R (-A)^T
+        self.basis, self._a = basis, quat_from_matrix(proper)
+        self.scale = scale
+        rest_local = np.asarray(target_rest_local, dtype=np.float64)
+        self._rest_rot = quat_from_matrix(np.swapaxes(rest_local[:, :3, :3], 1, 2))
+        self._rest_world = compose_world(self._rest_rot, self.target_parents, self.target_levels)
+        self._rest_t = rest_local[:, 3, :3]
+        self._target_root = int(np.flatnonzero(self.target_parents < 0)[0])
+        """Root motion moves the skeleton's (first) root joint, in stage units."""
+        self.root_motion = root_motion
+        self.rest_root = None if rest_root is None else np.asarray(rest_root, dtype=np.float64)
+        self.calibrate_rotations(rest_pose)
+
+    def calibrate_rotations(self, rest_pose: np.ndarray | None) -> None:
+        """Set the source's rest pose: (B, 4) rotations as the source sends them (None: identity)."""
+        b = len(self.source_bones)
+        rest = np.tile([1.0, 0.0, 0.0, 0.0], (b, 1)) if rest_pose is None else rest_pose
+        rest = np.asarray(rest, dtype=np.float64)
+        self.rest_pose = rest / np.linalg.norm(rest, axis=1, keepdims=True)
+        self._source_rest_world = self._source_world(self.rest_pose)
+
+    def calibrate(self, pose: LivePose) -> np.ndarray:
+        """Take `pose` (the performer in the skeleton's rest pose) as the rest pose; returns the
+        (B, 4) rest rotations to store (restPose holds the mapped bones' rows, sourceBones order)."""
+        self.calibrate_rotations(np.where(pose.valid[:, None], pose.rotations, [1.0, 0, 0, 0]))
+        if pose.root_position is not None:
+            self.rest_root = np.array(pose.root_position, dtype=np.float64)
+        return self.rest_pose
+
+    def _source_world(self, rotations: np.ndarray) -> np.ndarray:
+        if self.space == "world":
+            return rotations
+        return compose_world(rotations, self.source_parents, self.source_levels)
+
+    def world_deltas(self, rotations: np.ndarray) -> np.ndarray:
+        """(B, 4) source rotations -> (M, 4) stage-frame world deltas of the mapped bones."""
+        w = self._source_world(rotations)[self.map_source]
+        d = quat_multiply(w, quat_conjugate(self._source_rest_world[self.map_source]))
+        return quat_multiply(quat_multiply(self._a, d), quat_conjugate(self._a))
+
+    def apply(self, stage_local: np.ndarray, pose: LivePose) -> np.ndarray:
+        """Merge `pose` into the stage's (J, 4, 4) local transforms (row-vector, as
+        UsdSkel gives them); returns new (J, 4, 4) transforms. Joints without a source, or whose
+        source bone never arrived, keep the stage's values; pose.weight blends live and stage."""
+        stage_local = np.asarray(stage_local, dtype=np.float64)
+        out = stage_local.copy()
+        if pose.weight <= 0:
+            return out
+        stage_rot = quat_from_matrix(np.swapaxes(stage_local[:, :3, :3], 1, 2))
+        received = pose.valid[self.map_source]
+        targets = self.map_target[received]
+        desired = np.zeros((len(self.target_joints), 4))
+        mapped = np.zeros(len(self.target_joints), dtype=bool)
+        deltas = self.world_deltas(pose.rotations)[received]
+        desired[targets] = quat_multiply(deltas, self._rest_world[targets])
+        mapped[targets] = True
+        world = stage_rot.copy()
+        local = stage_rot.copy()
+        for level in self.target_levels:
+            parents = self.target_parents[level]
+            parent_world = np.where(
+                (parents >= 0)[:, None], world[np.maximum(parents, 0)], [1.0, 0.0, 0.0, 0.0]
+            )
+            live_local = quat_multiply(quat_conjugate(parent_world), desired[level])
+            here = mapped[level]
+            local[level[here]] = live_local[here]
+            world[level] = quat_multiply(parent_world, local[level])
+        if pose.weight < 1:
+            local[mapped] = quat_slerp(stage_rot[mapped], local[mapped], pose.weight)
+        # Row-vector layout: the upper 3x3 is the transpose of the column-vector rotation.
+        scale = np.linalg.norm(stage_local[mapped, :3, :3], axis=2, keepdims=True)
+        out[mapped, :3, :3] = np.swapaxes(matrix_from_quat(local[mapped]), 1, 2) * scale
+        if self.root_motion and pose.root_position is not None:
+            if self.rest_root is None:
+                self.rest_root = np.array(pose.root_position, dtype=np.float64)  # start = here
+            root = self._target_root
+            move = self.basis @ (pose.root_position - self.rest_root) * self.scale
+            live_t = self._rest_t[root] + move
+            out[root, 3, :3] = (1 - pose.weight) * stage_local[root, 3, :3] + pose.weight * live_t
+        return out

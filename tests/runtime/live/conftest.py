@@ -1,0 +1,31 @@
+"""Live-input fixtures: the committed CMU clip and free local ports."""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections.abc import Callable
+
+import pytest
+
+from tests.conftest import REPO
+
+CMU_CLIP = REPO / "samples" / "motion" / "cmu_131_01.bvh"
+SAMPLE_CHARACTER = REPO / "samples" / "character" / "sample_character.usda"
+
+
+def wait_for(condition: Callable[[], bool], timeout: float = 5.0) -> bool:
+    """Poll `condition` until it holds or `timeout` seconds pass (receivers run on threads)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if condition():
+            return True
+        time.sleep(0.005)
+    return condition()
+
+
+@pytest.fixture
+def free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

@@ -1,0 +1,137 @@
+"""LiveBuffer: latest/delayed, One Euro against hand-computed values, ordering, status, counters."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from rigspace.runtime.live.buffer import (
+    BufferSettings,
+    LiveBuffer,
+    OneEuroFilter,
+    one_euro_alpha,
+)
+from rigspace.runtime.live.frames import Frame, quat_angle, quat_slerp
+
+IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+def yaw(degrees: float) -> np.ndarray:
+    h = np.radians(degrees) / 2
+    return np.array([np.cos(h), 0.0, np.sin(h), 0.0])
+
+
+def frame(ts: float, q: np.ndarray, stream: int = 0, bone: int = 0, root=None) -> Frame:
+    return Frame(stream, ts, np.array([bone]), q[None], root)
+
+
+def test_one_euro_alpha_and_filter_match_hand_computed_values():
+    # Casiez et al. 2012: alpha = 1 / (1 + tau / Te), tau = 1 / (2 pi fc); values worked by hand.
+    assert one_euro_alpha(1.0, 0.1) == pytest.approx(0.3858695450950375, abs=1e-12)
+    f = OneEuroFilter(1, 1, min_cutoff=1.0, beta=0.0, d_cutoff=1.0)
+    out = [
+        f(np.array([0]), np.array([[x]]), t)[0, 0] for t, x in ((0, 0.0), (0.1, 1.0), (0.2, 1.0))
+    ]
+    assert out == pytest.approx([0.0, 0.3858695450950375, 0.6228437843582239], abs=1e-12)
+    # beta = 1: the derivative (smoothed at 1 Hz) opens the cutoff to 4.8587 Hz, then 4.3218 Hz.
+    f = OneEuroFilter(1, 1, min_cutoff=1.0, beta=1.0, d_cutoff=1.0)
+    out = [
+        f(np.array([0]), np.array([[x]]), t)[0, 0] for t, x in ((0, 0.0), (0.1, 1.0), (0.2, 1.0))
+    ]
+    assert out == pytest.approx([0.0, 0.7532575181149229, 0.9335909750997666], abs=1e-12)
+    assert f.dx[0, 0] == pytest.approx(3.3218464850380154, abs=1e-12)
+
+
+def test_latest_drops_duplicates_and_out_of_order_and_survives_clock_reset():
+    b = LiveBuffer(("a",))
+    assert b.push(frame(10.0, yaw(10)), 100.0)
+    assert not b.push(frame(10.0, yaw(20)), 100.1)  # duplicate
+    assert not b.push(frame(9.9, yaw(30)), 100.2)  # late
+    np.testing.assert_allclose(b.pose(100.3).rotations[0], yaw(10))
+    assert b.push(frame(0.5, yaw(40)), 100.4)  # 9.5 s back: a restarted sender
+    np.testing.assert_allclose(b.pose(100.5).rotations[0], yaw(40))
+    c = b.counters(100.5)
+    assert (c.duplicates, c.out_of_order, c.dropped, c.clock_resets) == (1, 1, 2, 1)
+    assert c.samples == 2
+
+
+def test_delayed_slerps_on_source_timestamps_and_hides_jitter():
+    settings = BufferSettings(mode="delayed", delay=0.05)
+    b = LiveBuffer(("a",), settings)
+    # Source samples every 10 ms; arrival jitters by up to 8 ms (the least delayed sample fixes
+    # the clock offset: 1000.0 - 0.0).
+    rng = np.random.default_rng(1)
+    for k in range(20):
+        b.push(frame(k * 0.01, yaw(k)), 1000.0 + k * 0.01 + rng.uniform(0, 0.008))
+    b.push(frame(0.20, yaw(20)), 1000.20)
+    pose = b.pose(1000.155 + 0.05)  # source time 0.155 -> halfway between samples 15 and 16
+    expected = quat_slerp(yaw(15), yaw(16), 0.5)
+    assert quat_angle(pose.rotations[0], expected) < 1e-6
+    assert b.counters(1000.2).jitter_p99_ms < 10
+
+
+def test_interpolate_uses_one_sample_interval():
+    b = LiveBuffer(("a",), BufferSettings(mode="delayed", delay=None))
+    for k in range(5):
+        b.push(frame(k * 0.02, yaw(10 * k)), 5.0 + k * 0.02)
+    pose = b.pose(5.08)  # one interval (20 ms) behind the newest sample
+    assert quat_angle(pose.rotations[0], yaw(30)) < 1e-6
+
+
+def test_status_connected_stale_lost_and_blend_weight():
+    b = LiveBuffer(("a",), BufferSettings(timeout=0.5, blend=0.5))
+    assert b.pose(0.0).status == "waiting" and b.pose(0.0).weight == 0
+    b.push(frame(1.0, yaw(10)), 10.0)
+    assert (b.pose(10.4).status, b.pose(10.4).weight) == ("connected", 1.0)
+    stale = b.pose(11.0)
+    assert stale.status == "stale" and stale.weight == 1.0
+    np.testing.assert_allclose(stale.rotations[0], yaw(10))  # holds the last pose
+    lost = b.pose(12.25)  # lost at 10 + 4 * 0.5 = 12; half-way through the blend
+    assert lost.status == "lost" and lost.weight == pytest.approx(0.5)
+    assert b.pose(13.0).weight == 0.0
+    b.push(frame(1.1, yaw(20)), 13.0)
+    assert b.pose(13.0).status == "connected"
+
+
+def test_exponential_and_one_euro_smoothing_reduce_noise():
+    rng = np.random.default_rng(3)
+    noisy = [quat_slerp(IDENTITY, yaw(rng.normal(0, 5)), 1.0) for _ in range(200)]
+    errors = {}
+    for smoothing in ("none", "exponential", "oneEuro"):
+        b = LiveBuffer(("a",), BufferSettings(smoothing=smoothing, strength=0.7))
+        out = []
+        for k, q in enumerate(noisy):
+            b.push(frame(k / 60, q), k / 60)
+            out.append(b.pose(k / 60).rotations[0])
+        errors[smoothing] = float(np.mean(quat_angle(np.array(out[50:]), IDENTITY)))
+    assert errors["exponential"] < 0.6 * errors["none"]
+    assert errors["oneEuro"] < 0.6 * errors["none"]
+
+
+def test_history_is_bounded_and_pose_does_not_wait_for_a_flood():
+    b = LiveBuffer(tuple(f"j{i}" for i in range(55)), BufferSettings(mode="delayed", history=64))
+    quats = np.tile(IDENTITY, (55, 1))
+    stop = threading.Event()
+
+    def flood():
+        k = 0
+        while not stop.is_set():
+            b.push(Frame(0, k * 1e-4, np.arange(55), quats), time.monotonic())
+            k += 1
+
+    thread = threading.Thread(target=flood)
+    thread.start()
+    durations = []
+    try:
+        for _ in range(300):
+            t = time.perf_counter()
+            b.pose()
+            durations.append(time.perf_counter() - t)
+    finally:
+        stop.set()
+        thread.join()
+    assert len(b._snapshots) == 64 and b.samples > 0
+    assert np.percentile(durations, 50) < 0.005  # generous: the machine is shared

@@ -1,0 +1,170 @@
+"""VMC decoding (python-osc packets, frames on OK/T, Unity conversion) and the UDP receiver."""
+
+from __future__ import annotations
+
+import socket
+import time
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pythonosc.osc_bundle_builder import OscBundleBuilder
+from pythonosc.osc_message_builder import build_msg
+from pythonosc.udp_client import SimpleUDPClient, UDPClient
+
+from rigspace.runtime.live.buffer import LiveBuffer
+from rigspace.runtime.live.decoders.vmc import (
+    BONE_POS,
+    HUMAN_BODY_BONES,
+    OK,
+    TIME,
+    VmcDecoder,
+    encode_frame,
+    unity_to_right_handed,
+)
+from rigspace.runtime.live.sources import open_source
+from rigspace.runtime.live.transports import LiveSourceError, UdpSource
+from rigspace.sdk.rotations import matrix_from_quat
+from tests.runtime.live.conftest import wait_for
+
+RNG = np.random.default_rng(7)
+
+
+def random_quats(n: int) -> np.ndarray:
+    q = RNG.normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def feed_all(decoder: VmcDecoder, datagrams: list[bytes], received: float = 1.0) -> list:
+    return [f for d in datagrams for f in decoder.feed(d, received)]
+
+
+def test_unity_conversion_is_the_mirror_of_z():
+    # A rotation in Unity's frame, mirrored through z = 0, must equal the converted quaternion.
+    q_xyzw = np.array([0.2, -0.4, 0.3, 0.843])
+    q_xyzw /= np.linalg.norm(q_xyzw)
+    _, q = unity_to_right_handed(np.zeros(3), q_xyzw)
+    r_unity = matrix_from_quat(np.r_[q_xyzw[3], q_xyzw[:3]])
+    mirror = np.diag([1.0, 1.0, -1.0])
+    np.testing.assert_allclose(matrix_from_quat(q), mirror @ r_unity @ mirror, atol=1e-12)
+    p, _ = unity_to_right_handed(np.array([1.0, 2.0, 3.0]), q_xyzw)
+    np.testing.assert_allclose(p, [1.0, 2.0, -3.0])
+
+
+def test_frame_assembles_over_datagrams_and_closes_on_t():
+    q = random_quats(len(HUMAN_BODY_BONES))
+    decoder = VmcDecoder()
+    first = feed_all(decoder, encode_frame(HUMAN_BODY_BONES, q, np.array([1.0, 2, 3]), None, 10.0))
+    # The first frame closes on OK (T not seen yet), the next ones only on T, with T's time.
+    assert len(first) == 1 and first[0].timestamp == 1.0
+    frames = feed_all(decoder, encode_frame(HUMAN_BODY_BONES, q, np.array([1.0, 2, 3]), None, 10.5))
+    assert len(frames) == 1 and frames[0].timestamp == 10.5
+    f = frames[0]
+    assert f.indices[0] == 0 and len(f.indices) == len(HUMAN_BODY_BONES) + 1
+    np.testing.assert_allclose(f.root_position, [1.0, 2.0, 3.0], atol=1e-6)
+    order = np.argsort(f.indices)
+    np.testing.assert_allclose(np.abs(np.sum(f.rotations[order][1:] * q, axis=1)), 1.0, atol=1e-6)
+    assert decoder.counters.malformed == 0 and decoder.buffered == 0
+
+
+def test_malformed_messages_are_counted_and_dropped():
+    decoder = VmcDecoder()
+    bad = [
+        b"\x00\x01garbage",  # not OSC
+        build_msg(BONE_POS, ["Hips", 0.0, 0.0, 0.0, 0.0, 0.0]).dgram,  # truncated
+        build_msg(BONE_POS, ["Hips", "x", 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]).dgram,  # wrong type
+        build_msg(BONE_POS, ["Spine", 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]).dgram,  # zero quat
+        build_msg(BONE_POS, ["Chest", 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0]).dgram,  # non-unit
+        build_msg(BONE_POS, ["Neck", 0.0, 0.0, 0.0, float("nan"), 0.0, 0.0, 1.0]).dgram,
+        build_msg(BONE_POS, ["Head", 1e9, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]).dgram,  # absurd
+        build_msg(TIME, ["soon"]).dgram,
+    ]
+    unknown = build_msg(BONE_POS, ["Tail", 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]).dgram
+    good = build_msg(BONE_POS, ["LeftHand", 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]).dgram
+    frames = feed_all(decoder, [*bad, unknown, good, build_msg(OK, [1]).dgram])
+    c = decoder.counters
+    assert c.malformed == len(bad) and c.unknown_bones == 1
+    assert len(frames) == 1
+    assert [decoder.bones[i] for i in frames[0].indices] == ["LeftHand"]
+
+
+def test_future_timetag_does_not_stall_or_reorder():
+    # A bundle timetagged an hour ahead is decoded at once (no dispatcher sleeping on it).
+    bundle = OscBundleBuilder(time.time() + 3600)
+    bundle.add_content(build_msg(BONE_POS, ["Hips", 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]))
+    bundle.add_content(build_msg(OK, [1]))
+    frames = VmcDecoder().feed(bundle.build().dgram, 1.0)
+    assert len(frames) == 1
+
+
+osc_values = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True, width=32),
+    st.integers(-(2**31), 2**31 - 1),
+    st.text(alphabet=st.characters(min_codepoint=33, max_codepoint=126), max_size=8),
+    st.sampled_from(["Hips", "LeftHand", "Tail", "Root"]),
+)
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    messages=st.lists(
+        st.tuples(
+            st.sampled_from([BONE_POS, "/VMC/Ext/Root/Pos", OK, TIME, "/VMC/Ext/Blend/Val", "/x"]),
+            st.lists(osc_values, max_size=10),
+        ),
+        max_size=30,
+    ),
+    cut=st.integers(0, 64),
+)
+def test_fuzz_osc_messages(messages, cut):
+    decoder = VmcDecoder()
+    for address, args in messages:
+        dgram = build_msg(address, args).dgram
+        for data in (dgram, dgram[: len(dgram) - cut]):
+            for f in decoder.feed(data, 1.0):
+                assert np.all(np.isfinite(f.rotations))
+                np.testing.assert_allclose(np.linalg.norm(f.rotations, axis=1), 1.0, atol=1e-9)
+    assert decoder.buffered <= len(decoder.bones)
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.binary(max_size=512))
+def test_fuzz_raw_bytes(data):
+    decoder = VmcDecoder()
+    decoder.feed(data, 0.0)
+    decoder.feed(b"#bundle\x00" + data, 0.0)
+    assert decoder.counters.packets == 2
+
+
+def test_udp_receiver_with_python_osc_client():
+    source = open_source("vmc://127.0.0.1:0", "suit")
+    assert isinstance(source, UdpSource)
+    buffer = LiveBuffer(source.bones)
+    source.start(buffer)
+    try:
+        host, port = source.address
+        assert host == "127.0.0.1"
+        client = UDPClient(host, port)
+        q = random_quats(len(HUMAN_BODY_BONES))
+        for k in range(5):
+            for dgram in encode_frame(HUMAN_BODY_BONES, q, np.zeros(3), None, 1.0 + k / 60):
+                client._sock.sendto(dgram, (host, port))
+        SimpleUDPClient(host, port).send_message(BONE_POS, ["Tail", 0.0, 0, 0, 0, 0, 0, 1.0])
+        assert wait_for(lambda: source.decoder.counters.unknown_bones == 1)
+        counters = source.counters()
+        assert counters.status == "connected" and counters.samples == 5 * 56
+        assert counters.latency_p99_ms is not None
+        pose = buffer.pose()
+        np.testing.assert_allclose(np.abs(np.sum(pose.rotations[1:] * q, axis=1)), 1.0, atol=1e-6)
+    finally:
+        source.stop()
+
+
+def test_port_in_use_names_the_source_and_the_fix():
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        port = taken.getsockname()[1]
+        source = open_source(f"vmc://127.0.0.1:{port}", "suit")
+        with pytest.raises(LiveSourceError, match=rf"'suit'.*UDP port {port}.*in use.*Fix"):
+            source.start(LiveBuffer(source.bones))
