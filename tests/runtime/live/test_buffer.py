@@ -15,6 +15,7 @@ from rigspace.runtime.live.buffer import (
     one_euro_alpha,
 )
 from rigspace.runtime.live.frames import Frame, quat_angle, quat_slerp
+from tests.runtime.live.conftest import wait_for
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 
@@ -126,6 +127,7 @@ def test_history_is_bounded_and_pose_does_not_wait_for_a_flood():
     thread.start()
     durations = []
     try:
+        assert wait_for(lambda: b.samples >= 55 * 200)
         for _ in range(300):
             t = time.perf_counter()
             b.pose()
