@@ -4,19 +4,25 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rigspace.sdk.cli import CommandSpec, time_range
-from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.errors import RigspaceError, SceneError
+
+if TYPE_CHECKING:
+    import numpy as np
 
 DESCRIPTION = """\
 Render a USD stage's frames with its neural characters drawn by their model bundles:
 per frame one EXR (R,G,B,A lit beauty premultiplied; albedo.R/G/B; N.X/N.Y/N.Z camera
 normals; Z depth), a PNG of the beauty, and report.json (per frame: what each character
-cost and what was skipped or reused, and why). --video adds an mp4; a contact sheet of
-a few frames is written as contact_sheet.png.
+cost and what was skipped or reused, and why). --video adds an H.264 mp4 that browsers
+play; a contact sheet of a few frames is written as contact_sheet.png. The --out folder
+is created only once the scene and flags are valid.
 """
 CONTACT_FRAMES = 6
 
@@ -62,7 +68,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--step", type=float, default=1.0, help="time codes between frames")
     parser.add_argument("--resolution", type=_resolution, default=(640, 360), metavar="WxH")
-    parser.add_argument("--video", help="also write this mp4 (OpenCV mp4v)")
+    parser.add_argument("--video", help="also write this mp4 (H.264, yuv420p)")
     parser.add_argument(
         "--renderer", default="auto", help="renderer for the scene prims: gl, embree, auto"
     )
@@ -103,16 +109,14 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from rigspace.runtime.engine import AOVS, Engine
-    from rigspace.runtime.output import write_frame_exr
+    from rigspace.runtime.output import VideoWriter, write_frame_exr
     from rigspace.sdk.color import linear_to_srgb
 
     out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
+    if out.exists() and not out.is_dir():
         raise RigspaceError(
-            f"--out {out} cannot be created ({exc}).", "choose a writable folder."
-        ) from exc
+            f"--out {out} is a file, not a folder.", "choose a folder for the frames."
+        )
     width, height = args.resolution
     aovs = args.aovs or AOVS
     engine = Engine(
@@ -121,42 +125,41 @@ def run(args: argparse.Namespace) -> int:
         prim_samples=args.prim_samples, max_level=args.max_level,
     )  # fmt: skip
     truth = None
-    if args.reference:
-        truth = Engine(args.scene, camera=args.camera, width=width, height=height,
-                       renderer=args.renderer, reference=True, aovs=aovs,
-                       prim_samples=args.prim_samples)  # fmt: skip
-    first, last = args.frames or (engine.stage.GetStartTimeCode(), engine.stage.GetEndTimeCode())
-    if args.step <= 0 or last < first:
-        raise RigspaceError(
-            f"--frames {first:g}:{last:g} with --step {args.step:g} is empty.",
-            "use A:B with A <= B and a positive step.",
-        )
-    times = np.arange(first, last + 1e-9, args.step)
     video = None
-    if args.video:
-        video = cv2.VideoWriter(
-            args.video,
-            cv2.VideoWriter.fourcc(*"mp4v"),
-            engine.stage.GetFramesPerSecond() / args.step,
-            (width, height),
-        )
-        if not video.isOpened():
-            raise RigspaceError(
-                f"--video {args.video} cannot be written.", "choose a writable .mp4 path."
-            )
-    reports, thumbs = [], []
-    picks = set(
-        np.linspace(0, len(times) - 1, min(CONTACT_FRAMES, len(times))).astype(int).tolist()
-    )
     try:
+        if args.reference:
+            truth = Engine(args.scene, camera=args.camera, width=width, height=height,
+                           renderer=args.renderer, reference=True, aovs=aovs,
+                           prim_samples=args.prim_samples)  # fmt: skip
+        times = frame_times(args.frames, args.step, engine.stage)
+        if truth is not None:
+            check_reference_poses(truth, times)
+        # The input is valid: only now does the output folder appear.
+        created = make_folder(out)
+        if args.video:
+            try:
+                video = VideoWriter(
+                    args.video, width, height, engine.stage.GetFramesPerSecond() / args.step
+                )
+            except (OSError, ValueError) as exc:  # av's errors derive from both
+                remove_empty(created)
+                raise RigspaceError(
+                    f"--video {args.video} cannot be written ({exc}).",
+                    "choose a writable .mp4 path in an existing folder.",
+                ) from exc
+        reports, thumbs = [], []
+        picks = set(
+            np.linspace(0, len(times) - 1, min(CONTACT_FRAMES, len(times))).astype(int).tolist()
+        )
         for k, t in enumerate(tqdm(times, unit="frame", file=sys.stderr, dynamic_ncols=True)):
             frame = engine.render(float(t))
             stem = f"frame_{t:08.1f}"
             write_frame_exr(out / f"{stem}.exr", frame, aovs)
-            png = (linear_to_srgb(frame.beauty) * 255 + 0.5).astype(np.uint8)[..., ::-1]
+            rgb = (linear_to_srgb(frame.beauty) * 255 + 0.5).astype(np.uint8)
+            png = rgb[..., ::-1]
             cv2.imwrite(str(out / f"{stem}.png"), png)
             if video is not None:
-                video.write(png)
+                video.write(rgb)
             if k in picks:
                 thumbs.append(png)
             if truth is not None:
@@ -169,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
         if truth is not None:
             truth.close()
         if video is not None:
-            video.release()
+            video.close()
     cv2.imwrite(str(out / "contact_sheet.png"), contact_sheet(thumbs))
     tmp = out / f".report.json.{os.getpid()}.tmp"
     tmp.write_text(
@@ -182,24 +185,150 @@ def run(args: argparse.Namespace) -> int:
     totals = np.array([r["seconds"]["total"] for r in reports])
     counts = {k: sum(r["counts"][k] for r in reports) for k in reports[0]["counts"]}
     if truth is not None:
-        rows = [c for r in reports for c in r["reference"] if c["psnr"] is not None]
-        if rows:
-            beauty, albedo = [c["psnr"] for c in rows], [c["albedo_psnr"] for c in rows]
-            print(
-                f"reference: character region, median over {len(rows)} character frames: beauty "
-                f"PSNR {np.median(beauty):.2f} dB (min {min(beauty):.2f}), albedo PSNR "
-                f"{np.median(albedo):.2f} dB (the region holds the prims behind it too)"
-            )
+        print(reference_summary(reports))
     print(
         f"rendered {len(reports)} frames at {width}x{height} into {out} "
         f"(median {1e3 * float(np.median(totals)):.1f} ms/frame)"
-        + (f"; video {args.video}" if args.video else "")
+        + (f"; video {args.video} (H.264)" if args.video else "")
     )
     print(
         "characters: "
         + ", ".join(f"{k} {v}" for k, v in counts.items() if v or k in ("evaluated", "reused"))
     )
     return 0
+
+
+MAX_FRAMES = 1_000_000
+"""The most frames one render may ask for: over nine hours at 30 fps. More is a typo in
+--frames or --step (a 1e12 or a 1e-9), which would otherwise exhaust memory before the
+first frame."""
+
+
+def frame_times(frames: tuple[float, float] | None, step: float, stage) -> np.ndarray:
+    """The time codes to render: --frames A:B every --step (default: the stage's range).
+
+    Refuses a range that is not finite, empty, too long, or wholly outside the stage's
+    authored time range; warns (on stderr) when it reaches past either end, where USD holds
+    the first or last time sample.
+    """
+    import numpy as np
+
+    start, end = stage.GetStartTimeCode(), stage.GetEndTimeCode()
+    first, last = frames or (start, end)
+    flag = f"--frames {first:g}:{last:g}"
+    if not (math.isfinite(first) and math.isfinite(last)):
+        raise RigspaceError(
+            f"{flag} is not a range of time codes.", "give two finite numbers, e.g. --frames 0:120."
+        )
+    if not (math.isfinite(step) and step > 0):
+        raise RigspaceError(
+            f"--step {step:g} is not a positive number of time codes.",
+            "use e.g. --step 1 (every frame) or --step 10.",
+        )
+    if last < first:
+        raise RigspaceError(
+            f"{flag} with --step {step:g} is empty.", "use A:B with A <= B and a positive step."
+        )
+    count = (last - first) / step + 1
+    if count > MAX_FRAMES:
+        raise RigspaceError(
+            f"{flag} with --step {step:g} is {count:.3g} frames.",
+            f"render at most {MAX_FRAMES:,} at once: a shorter range or a larger --step.",
+        )
+    if stage.HasAuthoredTimeCodeRange():
+        where = f"the stage's time range {start:g}-{end:g}"
+        if last < start or first > end:
+            raise RigspaceError(
+                f"{flag} lies outside {where}.", f"choose frames within {start:g}:{end:g}."
+            )
+        if first < start or last > end:
+            outside = [f"{first:g}-{start:g}"] if first < start else []
+            outside += [f"{end:g}-{last:g}"] if last > end else []
+            print(
+                f"rigspace render: warning: {flag} reaches past {where}: frames "
+                f"{' and '.join(outside)} show the stage held at its "
+                f"{'first or last' if len(outside) == 2 else 'first' if first < start else 'last'}"
+                " time sample.",
+                file=sys.stderr,
+            )
+    # Counted, then spaced: arange(first, last + eps, step) loses the frame when last + eps
+    # rounds to last (1e12) and a frame to rounding when (last - first) / step is whole.
+    return first + step * np.arange(int(count + 1e-9))
+
+
+def check_reference_poses(truth, times) -> None:
+    """--reference draws each character's skinned mesh: refuse, before any frame, an
+    animation that gives NaN or Inf joints at a time to render (the network's render skips
+    such a frame with a warning; the mesh cannot be drawn at all)."""
+    for character in truth.characters:
+        for t in times:
+            try:
+                character.pose(float(t))
+            except SceneError:
+                animation = character.rig.animation.GetPath()
+                raise SceneError(
+                    f"--reference: the animation {animation} of {character.path} gives NaN or "
+                    f"Inf joint transforms at time {t:g}, so its skinned mesh cannot be drawn.",
+                    "fix the SkelAnimation's values there, or leave out --reference (the "
+                    "network's render skips that frame with a warning).",
+                ) from None
+
+
+def make_folder(out: Path) -> Path | None:
+    """Create `out` (and missing parents); the topmost folder this created, else None."""
+    missing = [p for p in (out, *out.parents) if not p.exists()]
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RigspaceError(
+            f"--out {out} cannot be created ({exc}).", "choose a writable folder."
+        ) from exc
+    return missing[-1] if missing else None
+
+
+def remove_empty(created: Path | None) -> None:
+    """Remove the folders make_folder created, as long as they are still empty: a folder
+    that existed before, or holds anything, is never removed."""
+    if created is None:
+        return
+    for folder in sorted((p for p in created.rglob("*") if p.is_dir()), reverse=True):
+        try:
+            folder.rmdir()
+        except OSError:
+            return
+    try:
+        created.rmdir()
+    except OSError:
+        pass
+
+
+def reference_summary(reports: list[dict]) -> str:
+    """The console's line about the --reference comparison."""
+    import numpy as np
+
+    entries = [c for r in reports for c in r["reference"]]
+    rows = [c for c in entries if c["psnr"] is not None]
+    empty = sum(1 for c in entries if c.get("reason", "").startswith(NOTHING_TO_COMPARE))
+    if not rows:
+        return (
+            f"reference: nothing to compare: no character covered a pixel in any of the "
+            f"{len(entries)} character frames (report.json: psnr null, with the reason)."
+            if empty
+            else "reference: nothing to compare: no character was drawn by the network."
+        )
+    beauty, albedo = [c["psnr"] for c in rows], [c["albedo_psnr"] for c in rows]
+    return (
+        f"reference: character region, median over {len(rows)} character frames: beauty "
+        f"PSNR {np.median(beauty):.2f} dB (min {min(beauty):.2f}), albedo PSNR "
+        f"{np.median(albedo):.2f} dB (the region holds the prims behind it too)"
+        + (f"; {empty} frames had nothing to compare (under a pixel)" if empty else "")
+    )
+
+
+NOTHING_TO_COMPARE = "nothing to compare"
+MIN_COMPARED_PX = 1.0
+"""A billboard narrower than a pixel covers no pixel centre: the region is background in
+both images and its PSNR (120 dB, the 1e-12 floor) would say nothing about the network."""
 
 
 def compare_with_reference(frame, truth, path: Path) -> list[dict]:
@@ -214,6 +343,18 @@ def compare_with_reference(frame, truth, path: Path) -> list[dict]:
     for entry in frame.report["characters"]:
         if "region" not in entry:
             results.append({"path": entry["path"], "psnr": None, "reason": entry.get("reason", "")})
+            continue
+        if entry["size_px"] < MIN_COMPARED_PX:
+            results.append(
+                {
+                    "path": entry["path"],
+                    "region": entry["region"],
+                    "psnr": None,
+                    "albedo_psnr": None,
+                    "reason": f"{NOTHING_TO_COMPARE}: its billboard is {entry['size_px']:g} px "
+                    "across, under a pixel",
+                }
+            )
             continue
         x, y, w, h = entry["region"]
         region = np.s_[y : y + h, x : x + w]
