@@ -199,10 +199,20 @@ PRESETS = {p.name: p for p in (UNITY, CMU, MIXAMO)}
 
 
 def hierarchy_levels(parents: np.ndarray) -> list[np.ndarray]:
-    """Joint indices grouped by depth (roots first), so parents are done before children."""
-    depth = np.zeros(len(parents), dtype=np.int64)
-    for j, p in enumerate(parents):  # parents precede children (USD and BVH order)
-        depth[j] = 0 if p < 0 else depth[p] + 1
+    """Joint indices grouped by depth (roots first), so parents are done before children,
+    whatever order the joints are listed in (HumanBodyBones lists UpperChest last)."""
+    parents = np.asarray(parents, dtype=np.int64)
+    depth = np.where(parents < 0, 0, -1)
+    for _ in range(len(parents)):
+        pending = depth < 0
+        if not pending.any():
+            break
+        ready = pending & (depth[np.maximum(parents, 0)] >= 0)
+        depth[ready] = depth[parents[ready]] + 1
+    if (depth < 0).any():
+        raise RetargetError(
+            "The source hierarchy has a cycle.", "give every bone a parent chain to a root."
+        )
     return [np.flatnonzero(depth == d) for d in range(int(depth.max(initial=-1)) + 1)]
 
 
@@ -215,15 +225,9 @@ def compose_world(local: np.ndarray, parents: np.ndarray, levels: list[np.ndarra
 
 
 def _parent_indices(names: Sequence[str], parents: Mapping[str, str]) -> np.ndarray:
+    """Parent index per bone from a name map; a parent the source does not send makes a root."""
     index = {n: i for i, n in enumerate(names)}
-    out = np.array([index.get(parents.get(n, ""), -1) for n in names], dtype=np.int64)
-    bad = np.flatnonzero(out >= np.arange(len(names)))
-    if len(bad):
-        raise RetargetError(
-            f"Source bone {names[bad[0]]!r} comes before its parent in the source's bone list.",
-            "list parents before children.",
-        )
-    return out
+    return np.array([index.get(parents.get(n, ""), -1) for n in names], dtype=np.int64)
 
 
 class Retargeter:
@@ -361,3 +365,60 @@ class Retargeter:
             live_t = self._rest_t[root] + move
             out[root, 3, :3] = (1 - pose.weight) * stage_local[root, 3, :3] + pose.weight * live_t
         return out
+
+
+def target_skeleton(skeleton_prim) -> tuple[tuple[str, ...], np.ndarray]:
+    """A UsdSkel Skeleton's joint paths and (J, 4, 4) rest transforms (row-vector, parent space)."""
+    from pxr import UsdSkel
+
+    skeleton = UsdSkel.Skeleton(skeleton_prim)
+    joints = tuple(str(j) for j in skeleton.GetJointsAttr().Get() or ())
+    rest = skeleton.GetRestTransformsAttr().Get()
+    if not joints or rest is None or len(rest) != len(joints):
+        raise RetargetError(
+            f"Skeleton {skeleton_prim.GetPath()} has no restTransforms for its {len(joints)} "
+            "joints.",
+            "author restTransforms (one parent-space matrix per joint).",
+        )
+    return joints, np.array(rest, dtype=np.float64)
+
+
+def source_hierarchy(source, preset: Preset) -> np.ndarray:
+    """Parent index per source bone: the BVH's own hierarchy where the source has one (BVH
+    stream, replay), else the preset's (VMC's HumanBodyBones); -1 for roots."""
+    decoder = getattr(source, "decoder", None)
+    skeleton = getattr(decoder, "skeleton", None)
+    parents = getattr(source, "parents", ()) or (skeleton.parents if skeleton else ())
+    if parents:
+        return np.asarray(parents, dtype=np.int64)
+    return _parent_indices(source.bones, preset.parents)
+
+
+def for_preset(
+    source,
+    skeleton_prim,
+    preset: str | Preset,
+    stage_meters_per_unit: float,
+    rest_pose: np.ndarray | None = None,
+) -> Retargeter:
+    """A Retargeter from a started or unstarted source onto a USD skeleton with a preset's map,
+    basis and units (`stage_meters_per_unit`: UsdGeom.GetStageMetersPerUnit of the stage)."""
+    if isinstance(preset, str):
+        if preset not in PRESETS:
+            raise RetargetError(
+                f"There is no retargeting preset {preset!r}.",
+                f"use one of {', '.join(sorted(PRESETS))}, or author a bone map.",
+            )
+        preset = PRESETS[preset]
+    joints, rest = target_skeleton(skeleton_prim)
+    return Retargeter(
+        source.bones,
+        source_hierarchy(source, preset),
+        source.space,
+        joints,
+        rest,
+        preset.bone_map,
+        preset.basis,
+        preset.meters_per_unit / stage_meters_per_unit,
+        rest_pose,
+    )

@@ -171,6 +171,7 @@ def open_replay(url: str, name: str = "") -> Source:
         frame_time,
         options.get("speed", 1.0),
         options.get("loop", True),
+        skeleton.parents,
     )
 
 

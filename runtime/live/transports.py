@@ -276,8 +276,11 @@ class ReplaySource(Source):
         frame_time: float,
         speed: float = 1.0,
         loop: bool = True,
+        parents: tuple[int, ...] = (),
     ) -> None:
         super().__init__(name, url, ClipPlayer(bones, "local"))
+        self.parents = parents
+        """The clip's hierarchy (parent index per bone, -1 for roots), for retargeting."""
         self.rotations, self.root_positions = rotations, root_positions
         self.frame_time, self.speed, self.loop = frame_time, speed, loop
         self.finished = threading.Event()

@@ -1,0 +1,87 @@
+"""The rigspace.sources plugin kind: discovery by scheme, clear errors, and the replay source."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from rigspace.runtime.live.buffer import LiveBuffer
+from rigspace.runtime.live.decoders.bvh import read_bvh
+from rigspace.runtime.live.frames import quat_angle
+from rigspace.runtime.live.sources import open_source, source_specs
+from rigspace.runtime.live.transports import LiveSourceError, ReplaySource
+from rigspace.sdk.plugins import SourceSpec
+from tests.runtime.live.conftest import CMU_CLIP
+
+
+def test_built_in_sources_come_from_entry_points():
+    specs = source_specs()
+    assert {"vmc", "bvh+tcp", "serial", "replay"} <= set(specs)
+    assert all(isinstance(s, SourceSpec) and s.doc for s in specs.values())
+
+
+def test_unknown_scheme_names_the_url_and_the_known_schemes():
+    with pytest.raises(LiveSourceError) as err:
+        open_source("osc://127.0.0.1:9000", "suit")
+    text = str(err.value)
+    assert "'suit' (osc://127.0.0.1:9000)" in text and "scheme 'osc'" in text
+    assert "vmc://" in text and "replay://" in text
+    with pytest.raises(LiveSourceError, match="without scheme://"):
+        open_source("127.0.0.1:9000", "suit")
+
+
+def test_extra_plugins_and_failed_plugins():
+    made = []
+    fake = SourceSpec("fake", lambda url, name: made.append((url, name)) or "source", "fake://")
+
+    def broken():
+        raise ImportError("No module named 'evdev'")
+
+    extra = {"fake": lambda: fake, "gamepad": broken}
+    assert open_source("fake://x", "pad", extra=extra) == "source"
+    assert made == [("fake://x", "pad")]
+    with pytest.raises(LiveSourceError, match=r"'gamepad' source plugin failed.*evdev"):
+        open_source("gamepad://", "pad", extra=extra)
+
+
+def test_replay_plays_the_clip_in_order_at_speed():
+    skeleton, motion, frame_time = read_bvh(CMU_CLIP)
+    source = open_source(f"replay://{CMU_CLIP}?speed=20&loop=0", "take")
+    assert isinstance(source, ReplaySource)
+    buffer = LiveBuffer(source.bones)
+    start = time.monotonic()
+    source.start(buffer)
+    try:
+        assert source.finished.wait(10)
+        elapsed = time.monotonic() - start
+    finally:
+        source.stop()
+    assert elapsed >= 993 * frame_time / 20 * 0.95  # real time, scaled by speed
+    assert buffer.samples == 994 * 31 and buffer.duplicates == buffer.out_of_order == 0
+    expected, roots = skeleton.pose(motion[-1:])
+    assert quat_angle(buffer.pose().rotations, expected[0]).max() < 1e-6
+    np.testing.assert_allclose(buffer.pose().root_position, roots[0])
+
+
+def test_replay_loops_with_increasing_timestamps():
+    source = open_source(f"replay://{CMU_CLIP}?speed=200&loop=1", "take")
+    buffer = LiveBuffer(source.bones)
+    source.start(buffer)
+    try:
+        deadline = time.monotonic() + 10
+        while buffer.samples < 31 * 1200 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        source.stop()
+    assert buffer.samples >= 31 * 1200 and buffer.out_of_order == buffer.clock_resets == 0
+
+
+def test_replay_errors_name_the_file(tmp_path):
+    with pytest.raises(LiveSourceError, match=r"'take'.*missing\.bvh cannot be read"):
+        open_source(f"replay://{tmp_path}/missing.bvh", "take")
+    with pytest.raises(LiveSourceError, match=r"not a \.bvh file"):
+        open_source(f"replay://{tmp_path}/take.usda", "take")
+    with pytest.raises(LiveSourceError, match=r"speed='0'"):
+        open_source(f"replay://{CMU_CLIP}?speed=0", "take")
