@@ -24,6 +24,7 @@ import hashlib
 import io
 import json
 import os
+import shlex
 import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -54,6 +55,35 @@ class DatasetError(RigspaceError):
     """A dataset folder that cannot be read as asked."""
 
 
+def _number(x: float) -> str:
+    short = f"{x:g}"
+    return short if float(short) == x else repr(x)
+
+
+def resume_command(folder: str | Path) -> str:
+    """The command line that resumes (and repairs) the capture in `folder`, from its
+    capture.json: the flags that give exactly its settings; "rigspace capture ... --resume"
+    when there is no readable capture.json."""
+    folder = Path(folder)
+    try:
+        settings = json.loads((folder / SETTINGS_FILE).read_text())
+        clips = settings["clips"]
+        args = ["rigspace", "capture", settings["scene"], "--character", settings["character"]]
+        args += ["--out", str(folder), "--views", str(settings["views_per_ring"])]
+        args += ["--elevations", *(_number(e) for e in settings["elevations"])]
+        args += ["--resolution", str(settings["resolution"])]
+        args += ["--radius", _number(settings["radius"])]
+        if [c["name"] for c in clips] == ["frames"]:
+            args += ["--frames", f"{_number(clips[0]['first'])}:{_number(clips[0]['last'])}"]
+        else:
+            args += ["--clips", *(c["name"] for c in clips)]
+        args += ["--renderer", settings["renderer"], "--samples", str(settings["samples_per_axis"])]
+        args += ["--frames-per-item", str(settings["frames_per_item"]), "--resume"]
+    except (OSError, ValueError, KeyError, TypeError, IndexError):
+        return "rigspace capture ... --resume"
+    return shlex.join(args)
+
+
 def read_manifest(folder: str | Path) -> dict[str, Any]:
     """A finished dataset's manifest, checked: the one reader that training and eval share."""
     folder = Path(folder)
@@ -64,14 +94,15 @@ def read_manifest(folder: str | Path) -> dict[str, Any]:
         if not (folder / name).is_file():
             raise DatasetError(
                 f"{folder} has no {name}, so it is not a finished dataset.",
-                f"{fix} An interrupted capture finishes with `rigspace capture ... --resume`.",
+                f"{fix} An interrupted or damaged capture finishes with "
+                f"`{resume_command(folder)}`.",
             )
     try:
         manifest = json.loads((folder / MANIFEST_FILE).read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise DatasetError(
             f"{folder / MANIFEST_FILE} is not readable JSON ({exc}).",
-            "re-run `rigspace capture ... --resume` to rewrite it.",
+            f"run `{resume_command(folder)}` to rewrite it.",
         ) from exc
     if not isinstance(manifest, dict) or (
         manifest.get("format"),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import shlex
 import shutil
 from pathlib import Path
 
@@ -208,3 +209,18 @@ def test_read_exr_of_a_repaired_sample(tmp_path, dataset):
     first.write_bytes(b"")
     small_capture(out, resume=True)
     assert read_exr(first).mask.max() == 1
+
+
+def test_the_resume_command_in_read_manifest_repairs_the_dataset(tmp_path, dataset, capsys):
+    out = tmp_path / "unfinished"
+    shutil.copytree(dataset.folder, out)
+    (out / ds.MANIFEST_FILE).unlink()
+    with np.load(out / ds.PARAMS_FILE) as table:
+        (out / str(table["path"][7])).unlink()
+    with pytest.raises(ds.DatasetError, match="finishes with `rigspace capture ") as caught:
+        ds.read_manifest(out)
+    command = re.search(r"`(rigspace capture [^`]+--resume)`", str(caught.value)).group(1)
+    assert "--frames 1:6" in command and "--radius 3" in command
+    assert main(shlex.split(command)[1:]) == 0  # the same settings: no "different settings"
+    assert "repaired 1 damaged work item(s)" in capsys.readouterr().out
+    assert checksum(out) == checksum(dataset.folder)
