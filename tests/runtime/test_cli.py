@@ -77,6 +77,14 @@ def test_a_rejected_scene_leaves_no_folder_and_keeps_an_existing_one(tmp_path, c
     assert "error" in capsys.readouterr().err
 
 
+def test_an_out_that_is_a_file_is_refused_and_kept(tmp_path, capsys):
+    out = tmp_path / "frames"
+    out.write_text("not a folder")
+    assert main(["render", str(PREVIS), "--out", str(out), "--frames", "0:0", *SMALL]) == 2
+    assert "is a file, not a folder" in capsys.readouterr().err
+    assert out.read_text() == "not a folder"
+
+
 def test_an_unwritable_video_removes_only_the_folder_it_created(tmp_path, capsys):
     out = tmp_path / "made" / "frames"
     video = tmp_path / "no such folder" / "v.mp4"
