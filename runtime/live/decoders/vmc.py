@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -37,6 +38,19 @@ OK = "/VMC/Ext/OK"
 TIME = "/VMC/Ext/T"
 
 _NUMBER = (float, int)
+
+
+class _QuietPythonOsc(logging.Filter):
+    """Drops python-osc's per-packet warnings: it logs every malformed datagram to the root
+    logger (logging.warning), so a flood of garbage would flood the log; the decoder counts
+    them as malformed instead."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "pythonosc" not in record.pathname
+
+
+if not any(isinstance(f, _QuietPythonOsc) for f in logging.getLogger().filters):
+    logging.getLogger().addFilter(_QuietPythonOsc())
 
 
 def unity_to_right_handed(pos: np.ndarray, quat_xyzw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
