@@ -24,7 +24,8 @@ cost and what was skipped or reused, and why). --video adds an H.264 mp4 that br
 play; a contact sheet of a few frames is written as contact_sheet.png. The --out folder
 is created only once the scene and flags are valid.
 """
-CONTACT_FRAMES = 6
+CONTACT_FRAMES = 9
+"""Evenly spaced frames on contact_sheet.png, three to a row (a 16:9 sheet of 16:9 frames)."""
 
 
 def _resolution(text: str) -> tuple[int, int]:

@@ -49,9 +49,10 @@ CAMERA_KEYS = (
 )
 # (first frame, last frame, fraction of the way from the hero to the camera, half length of
 # the path, direction +1 left to right on screen): the crate crosses in front (fraction > 0)
-# and the ball rolls behind (fraction < 0), centred on the hero at the middle frame.
-CRATE_CROSSINGS = ((0, 150, 0.22, 700.0, 1), (660, 900, 0.22, 380.0, -1))
-BALL_CROSSINGS = ((430, 620, -0.45, 480.0, -1), (1380, 1600, -0.45, 480.0, 1))
+# and the ball rolls behind (fraction < 0), centred on the hero at the middle frame. The
+# middles (200, 800; 600, 1400) are frames the README's render puts on its contact sheet.
+CRATE_CROSSINGS = ((60, 340, 0.26, 700.0, 1), (680, 920, 0.22, 380.0, -1))
+BALL_CROSSINGS = ((500, 700, -0.45, 480.0, -1), (1290, 1510, -0.45, 480.0, 1))
 
 
 def pelvis_path(stage: Usd.Stage, frames: np.ndarray) -> np.ndarray:

@@ -112,6 +112,7 @@ def test_the_crate_passes_in_front_and_the_ball_behind(shot):
         for first, last, *_ in crossings:
             seen = [t for t in met if first <= t <= last]
             assert len(seen) >= 3, (prop, first, last, met)  # visible over several frames
+            assert (first + last) / 2 in seen, (prop, first, last, met)  # centred on the hero
 
 
 def test_the_props_never_run_through_the_character(shot):
