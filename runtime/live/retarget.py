@@ -23,7 +23,7 @@ import numpy as np
 
 from rigspace.runtime.live.buffer import LivePose
 from rigspace.runtime.live.decoders.vmc import HUMAN_BODY_BONES, ROOT
-from rigspace.runtime.live.frames import quat_conjugate, quat_slerp
+from rigspace.runtime.live.frames import quat_slerp
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.rotations import matrix_from_quat, quat_from_matrix, quat_multiply
 
@@ -285,18 +285,28 @@ class Retargeter:
         self.map_source = np.array([s for s, _ in pairs])
         self.map_target = np.array([t for _, t in pairs])
         basis = np.eye(3) if basis is None else np.asarray(basis, dtype=np.float64)
-        proper = basis if np.linalg.det(basis) > 0 else -basis  # A R A^T = (-A) R (-A)^T
-        self.basis, self._a = basis, quat_from_matrix(proper)
+        # A R A^T = (-A) R (-A)^T: a mirroring basis conjugates like the rotation -A.
+        self.basis = basis
+        self._a = basis if np.linalg.det(basis) > 0 else -basis
         self.scale = scale
         rest_local = np.asarray(target_rest_local, dtype=np.float64)
-        self._rest_rot = quat_from_matrix(np.swapaxes(rest_local[:, :3, :3], 1, 2))
-        self._rest_world = compose_world(self._rest_rot, self.target_parents, self.target_levels)
+        n = len(self.target_joints)
+        # Roots take their parent from a padded identity slot, so each level is one matmul.
+        self._parent_slot = np.where(self.target_parents < 0, n, self.target_parents)
+        self._rest_world = self._compose_target(_rotations(rest_local))
         self._rest_t = rest_local[:, 3, :3]
         self._target_root = int(np.flatnonzero(self.target_parents < 0)[0])
         """Root motion moves the skeleton's (first) root joint, in stage units."""
         self.root_motion = root_motion
         self.rest_root = None if rest_root is None else np.asarray(rest_root, dtype=np.float64)
         self.calibrate_rotations(rest_pose)
+
+    def _compose_target(self, local: np.ndarray) -> np.ndarray:
+        world = np.empty((len(local) + 1, 3, 3))
+        world[-1] = np.eye(3)
+        for level in self.target_levels:
+            world[level] = world[self._parent_slot[level]] @ local[level]
+        return world[:-1]
 
     def calibrate_rotations(self, rest_pose: np.ndarray | None) -> None:
         """Set the source's rest pose: (B, 4) rotations as the source sends them (None: identity)."""
@@ -315,15 +325,22 @@ class Retargeter:
         return self.rest_pose
 
     def _source_world(self, rotations: np.ndarray) -> np.ndarray:
+        """(B, 4) source rotations -> (B, 3, 3) world rotation matrices."""
+        m = matrix_from_quat(rotations)
         if self.space == "world":
-            return rotations
-        return compose_world(rotations, self.source_parents, self.source_levels)
+            return m
+        for level in self.source_levels[1:]:
+            m[level] = m[self.source_parents[level]] @ m[level]
+        return m
+
+    def _world_deltas(self, rotations: np.ndarray) -> np.ndarray:
+        w = self._source_world(rotations)[self.map_source]
+        d = w @ np.swapaxes(self._source_rest_world[self.map_source], 1, 2)
+        return self._a @ d @ self._a.T
 
     def world_deltas(self, rotations: np.ndarray) -> np.ndarray:
         """(B, 4) source rotations -> (M, 4) stage-frame world deltas of the mapped bones."""
-        w = self._source_world(rotations)[self.map_source]
-        d = quat_multiply(w, quat_conjugate(self._source_rest_world[self.map_source]))
-        return quat_multiply(quat_multiply(self._a, d), quat_conjugate(self._a))
+        return quat_from_matrix(self._world_deltas(rotations))
 
     def apply(self, stage_local: np.ndarray, pose: LivePose) -> np.ndarray:
         """Merge `pose` into the stage's (J, 4, 4) local transforms (row-vector, as
@@ -333,30 +350,30 @@ class Retargeter:
         out = stage_local.copy()
         if pose.weight <= 0:
             return out
-        stage_rot = quat_from_matrix(np.swapaxes(stage_local[:, :3, :3], 1, 2))
+        n = len(self.target_joints)
+        # Row-vector layout: the upper 3x3 is S R^T, its rows the scaled axes.
+        row_scale = np.linalg.norm(stage_local[:, :3, :3], axis=2)
+        stage_rot = np.swapaxes(stage_local[:, :3, :3] / row_scale[:, :, None], 1, 2)
         received = pose.valid[self.map_source]
         targets = self.map_target[received]
-        desired = np.zeros((len(self.target_joints), 4))
-        mapped = np.zeros(len(self.target_joints), dtype=bool)
-        deltas = self.world_deltas(pose.rotations)[received]
-        desired[targets] = quat_multiply(deltas, self._rest_world[targets])
+        desired = np.zeros((n, 3, 3))
+        desired[targets] = self._world_deltas(pose.rotations)[received] @ self._rest_world[targets]
+        mapped = np.zeros(n, dtype=bool)
         mapped[targets] = True
-        world = stage_rot.copy()
+        world = np.empty((n + 1, 3, 3))
+        world[-1] = np.eye(3)
         local = stage_rot.copy()
         for level in self.target_levels:
-            parents = self.target_parents[level]
-            parent_world = np.where(
-                (parents >= 0)[:, None], world[np.maximum(parents, 0)], [1.0, 0.0, 0.0, 0.0]
-            )
-            live_local = quat_multiply(quat_conjugate(parent_world), desired[level])
+            parent_world = world[self._parent_slot[level]]
             here = mapped[level]
-            local[level[here]] = live_local[here]
-            world[level] = quat_multiply(parent_world, local[level])
+            if here.any():
+                local[level[here]] = np.swapaxes(parent_world[here], 1, 2) @ desired[level[here]]
+            world[level] = parent_world @ local[level]
+        live = local[mapped]
         if pose.weight < 1:
-            local[mapped] = quat_slerp(stage_rot[mapped], local[mapped], pose.weight)
-        # Row-vector layout: the upper 3x3 is the transpose of the column-vector rotation.
-        scale = np.linalg.norm(stage_local[mapped, :3, :3], axis=2, keepdims=True)
-        out[mapped, :3, :3] = np.swapaxes(matrix_from_quat(local[mapped]), 1, 2) * scale
+            q = quat_slerp(quat_from_matrix(stage_rot[mapped]), quat_from_matrix(live), pose.weight)
+            live = matrix_from_quat(q)
+        out[mapped, :3, :3] = np.swapaxes(live, 1, 2) * row_scale[mapped][:, :, None]
         if self.root_motion and pose.root_position is not None:
             if self.rest_root is None:
                 self.rest_root = np.array(pose.root_position, dtype=np.float64)  # start = here
@@ -365,6 +382,12 @@ class Retargeter:
             live_t = self._rest_t[root] + move
             out[root, 3, :3] = (1 - pose.weight) * stage_local[root, 3, :3] + pose.weight * live_t
         return out
+
+
+def _rotations(transforms: np.ndarray) -> np.ndarray:
+    """(J, 4, 4) row-vector transforms -> (J, 3, 3) column-vector rotations (scale removed)."""
+    m = transforms[:, :3, :3]
+    return np.swapaxes(m / np.linalg.norm(m, axis=2, keepdims=True), 1, 2)
 
 
 def target_skeleton(skeleton_prim) -> tuple[tuple[str, ...], np.ndarray]:
