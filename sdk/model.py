@@ -9,6 +9,7 @@ graphs `depth`, `normal` and `mask`.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +48,8 @@ class BundleModel:
         self.providers = providers or default_providers()
         self.threads = threads
         self.levels: dict[int, dict[str, str]] = {}
+        self.int8_fallbacks: dict[str, str] = {}
+        """int8 graphs the export's check failed (manifest int8_check) -> fp32 graph run instead."""
         for level in raw["levels"]:
             graphs = level["int8"] if precision == "int8" else level["graphs"]
             if precision == "int8" and not graphs:
@@ -54,14 +57,32 @@ class BundleModel:
                     f"{self.manifest.path} has no int8 graphs.",
                     "evaluate the fp32 graphs, or export with int8 (drop --no-int8).",
                 )
+            if precision == "int8":
+                graphs = {b: self._checked(g, level["graphs"][b]) for b, g in graphs.items()}
             self.levels[int(level["resolution"])] = graphs
         trunk = raw["trunk"]["int8" if precision == "int8" else "graphs"]["trunk"]
+        if precision == "int8":
+            trunk = self._checked(trunk, raw["trunk"]["graphs"]["trunk"])
+        if self.int8_fallbacks:
+            warnings.warn(
+                f"Model bundle {self.manifest.folder}: int8 graphs "
+                f"{', '.join(sorted(self.int8_fallbacks))} failed the export's check against "
+                "fp32 (manifest int8_check); their fp32 graphs run instead.",
+                stacklevel=2,
+            )
         self._trunk_file = trunk
         self._sessions: dict[str, Any] = {}
         self.depth_scale = float(raw["depth"]["scale"])
         self.albedo_has_alpha = self.manifest.format_version >= 2
         """Whether the albedo branch alone gives coverage (lets unlit frames skip geometry)."""
         self.joints = list(self.manifest.joints)
+
+    def _checked(self, int8: str, fp32: str) -> str:
+        check = self.manifest.raw.get("int8_check", {}).get("graphs", {}).get(int8, {})
+        if check.get("ok", True):
+            return int8
+        self.int8_fallbacks[int8] = fp32
+        return fp32
 
     @property
     def resolutions(self) -> list[int]:

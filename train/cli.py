@@ -5,13 +5,17 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 from pathlib import Path
 
 from rigspace.sdk.cli import CommandSpec
+from rigspace.sdk.errors import RigspaceError
 
 TRAINING = "training"
 """Subfolder of a model bundle holding the run: run.json, checkpoint.pt, log, previews."""
+RUN_FILE = "run.json"
+"""train.loop.RUN_FILE (not imported: that module needs torch, and --help must not)."""
 
 
 def _add_config_flags(parser: argparse.ArgumentParser) -> None:
@@ -51,24 +55,39 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         "then re-export",
     )
     parser.add_argument("--no-int8", action="store_true", help="export fp32 graphs only")
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="replace a model bundle (and its training run) already in --out; other files "
+        "there are kept",
+    )
     _add_config_flags(parser)
 
 
 def run_train(args: argparse.Namespace) -> int:
+    from rigspace.capture.dataset import read_manifest
     from rigspace.train.config import TrainConfig, preset
-    from rigspace.train.export import export_bundle
     from rigspace.train.loop import train
 
     names = [f.name for f in dataclasses.fields(TrainConfig) if f.name != "preset"]
     try:
         config = preset(args.preset, **{n: getattr(args, n) for n in names})
     except KeyError as exc:
-        from rigspace.sdk.errors import RigspaceError
-
         raise RigspaceError(str(exc.args[0]), "pass --preset tiny, small or paper.") from None
     out = Path(args.out)
+    if args.force and (args.resume or args.upgrade):
+        raise RigspaceError(
+            "--force starts over and cannot be combined with --resume or --upgrade.",
+            "drop --force to continue the run in --out, or drop --resume/--upgrade to replace it.",
+        )
+    check_out(out, resume=args.resume or args.upgrade, force=args.force)
     if args.upgrade:
         return _upgrade(args, out)
+    read_manifest(Path(args.dataset))  # a bad dataset fails before --force removes anything
+    if args.force:
+        removed = clear_bundle(out)
+        if removed:
+            print(f"--force: removed {len(removed)} files of the bundle in {out}", file=sys.stderr)
     result = train(
         args.dataset,
         out / TRAINING,
@@ -87,14 +106,93 @@ def run_train(args: argparse.Namespace) -> int:
             "(no bundle exported from an interrupted run)"
         )
         return 130
-    manifest = export_bundle(out / TRAINING, out, int8=not args.no_int8)
+    return _export(args, out)
+
+
+def _export(args: argparse.Namespace, out: Path, metrics: dict | None = None) -> int:
+    """Export the run in out/training, then say what the bundle holds and what failed."""
+    from rigspace.train.export import export_bundle
+    from rigspace.train.int8check import failure_lines
+
+    manifest = export_bundle(out / TRAINING, out, int8=not args.no_int8, metrics=metrics)
+    graphs = [name for name in manifest["files"] if name.endswith(".onnx")]
     size = sum(v["bytes"] for v in manifest["files"].values())
-    print(f"exported {len(manifest['files'])} graphs ({size / 2**20:.1f} MiB) to {out}")
+    training = manifest["training"]
+    levels = ", ".join(str(r) for r in training["trained_levels"])
+    print(
+        f"exported {len(graphs)} graphs ({size / 2**20:.1f} MiB) to {out}: levels {levels}"
+        + (", capsules" if "capsules" in manifest else "")
+    )
+    if training["trained_levels"] != training["planned_levels"]:
+        final = training["planned_levels"][-1]
+        print(
+            f"rigspace train: warning: the run stopped at step {training['steps']} of "
+            f"{training['planned_steps']}, before level {final} was trained: the bundle holds "
+            f"levels up to {training['trained_levels'][-1]} only; continue with the same "
+            "command and --resume to train the rest",
+            file=sys.stderr,
+        )
+    for line in failure_lines(manifest.get("int8_check", {})):
+        print(f"rigspace train: warning: {line}", file=sys.stderr)
     return 0
 
 
+def check_out(out: Path, resume: bool, force: bool) -> None:
+    """Refuse an --out that is a file, or that holds a bundle this run would not continue."""
+    check_folder(out, "--out")
+    if force or not out.is_dir() or (out / TRAINING / RUN_FILE).is_file():
+        return
+    found = bundle_files(out)
+    if found:
+        what = "a model bundle" if (out / "manifest.json").is_file() else "model graphs"
+        raise RigspaceError(
+            f"--out {out} holds {what} ({len(found)} files) without its training run "
+            f"({TRAINING}/{RUN_FILE}), so "
+            + ("there is nothing to continue." if resume else "training would mix with it."),
+            "choose a new --out, or pass --force to replace that bundle.",
+        )
+
+
+def check_folder(path: Path, flag: str) -> None:
+    """An output folder `flag` names must be a folder, or creatable: checked before any work."""
+    if path.exists() and not path.is_dir():
+        raise RigspaceError(f"{flag} {path} is a file.", f"give {flag} a folder.")
+    parent = next(p for p in [path, *path.parents] if p.exists())
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise RigspaceError(
+            f"{flag} {path} cannot be written: {parent} is not a writable folder.",
+            "choose a writable location.",
+        )
+
+
+def bundle_files(out: Path) -> list[Path]:
+    """The files of a model bundle in `out`: its manifest, what it lists, and graphs."""
+    manifest = out / "manifest.json"
+    names = {p.name for p in out.glob("*.onnx")} | {"capsules.json"}
+    if manifest.is_file():
+        names.add(manifest.name)
+        try:
+            listed = json.loads(manifest.read_text()).get("files", {})
+            names |= {n for n in listed if isinstance(n, str) and "/" not in n}
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
+            pass  # a damaged manifest: its graphs are still found by name
+    return sorted(out / n for n in names if (out / n).is_file())
+
+
+def clear_bundle(out: Path) -> list[Path]:
+    """--force: remove the bundle in `out` (its files and training run); nothing else there."""
+    import shutil
+
+    removed = bundle_files(out) if out.is_dir() else []
+    for path in removed:
+        path.unlink()
+    if (out / TRAINING).is_dir():
+        shutil.rmtree(out / TRAINING)
+        removed.append(out / TRAINING)
+    return removed
+
+
 def _upgrade(args: argparse.Namespace, out: Path) -> int:
-    from rigspace.train.export import export_bundle
     from rigspace.train.upgrade import upgrade
 
     old = out / "manifest.json"
@@ -105,9 +203,7 @@ def _upgrade(args: argparse.Namespace, out: Path) -> int:
         f"({result.images_per_second:.1f} images/s), last alpha loss {result.last_loss:.4f}"
     )
     # Every other output is bit-identical, so the recorded metrics still hold.
-    manifest = export_bundle(out / TRAINING, out, int8=not args.no_int8, metrics=metrics)
-    print(f"exported {len(manifest['files'])} graphs to {out} (bundle format 2)")
-    return 0
+    return _export(args, out, metrics)
 
 
 TRAIN_COMMAND = CommandSpec(
@@ -148,6 +244,8 @@ def run_eval(args: argparse.Namespace) -> int:
     from rigspace.train.evaluate import DatasetTable, compare, format_table
     from rigspace.train.predictor import BundlePredictor
 
+    if args.errors:
+        check_folder(Path(args.errors), "--errors")  # before the evaluation, not after it
     table = DatasetTable(Path(args.dataset))
     predictors = [BundlePredictor(Path(args.model), table, int8=args.int8)]
     if args.split == "heldout-clips" and not args.no_baselines:

@@ -16,6 +16,7 @@ import numpy as np
 
 from rigspace.capture.dataset import DatasetError, read_manifest
 from rigspace.sdk.exr import read_exr
+from rigspace.sdk.render import Maps
 
 SPLITS = ("train", "heldout-views", "heldout-clips")
 
@@ -29,6 +30,24 @@ def depth_scale(manifest: dict[str, Any]) -> float:
     """
     ring = manifest["ring"]
     return float(ring["radius"] * (ring["horizontal_aperture"] / 2.0) / ring["focal_length"])
+
+
+def read_sample(folder: Path, manifest: dict[str, Any], relative: str) -> Maps:
+    """A dataset sample's maps; a missing or damaged EXR is a DatasetError naming the file
+    and the capture command that re-renders it (training and evaluation read through here)."""
+    path = folder / relative
+    try:
+        return read_exr(path)
+    except OSError as exc:  # sdk.exr.ExrError is an OSError, as is a file that went away
+        state = "missing" if not path.is_file() else "damaged"
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        scene = manifest.get("scene", "SCENE")
+        raise DatasetError(
+            f"Sample {path} of the dataset is {state} ({reason}).",
+            f"re-render it: repeat the capture with --resume (`rigspace capture {scene} --out "
+            f"{folder} --resume`, with the original capture's other flags), which re-renders "
+            "missing and damaged samples.",
+        ) from exc
 
 
 def area_downsample(x: np.ndarray, factor: int) -> np.ndarray:
@@ -94,7 +113,7 @@ class SampleSet:
     def item(self, k: int) -> dict[str, np.ndarray]:
         """Sample k of the split: rig (J*6,), albedo (3,R,R), mask (1,R,R), normal (3,R,R), depth (1,R,R)."""
         row = int(self.rows[k])
-        maps = read_exr(self.folder / str(self.paths[row]))
+        maps = read_sample(self.folder, self.manifest, str(self.paths[row]))
         mask = maps.mask[None]
         hit = mask > 0
         depth = np.where(hit, (maps.depth[None] - self.joint_depth[row]) / self.depth_scale, 0.0)

@@ -15,8 +15,8 @@ import numpy as np
 
 from rigspace.capture.dataset import PARAMS_FILE, DatasetError, read_manifest
 from rigspace.capture.ring import SPLITS, TRAIN
-from rigspace.sdk.exr import ExrError, read_exr
 from rigspace.sdk.render import Maps
+from rigspace.train.data import read_sample
 from rigspace.train.metrics import MASK_THRESHOLD, METRICS, map_metrics
 
 HEIGHT_SAMPLES = 16
@@ -103,18 +103,7 @@ class DatasetTable:
 
     def maps(self, index: int) -> Maps:
         """The captured maps of row `index`."""
-        path = self.path(index)
-        if not path.is_file():
-            raise DatasetError(
-                f"Sample {path} of the dataset is missing.",
-                "re-run the capture into this folder with --resume to redo its work item.",
-            )
-        try:
-            return read_exr(path)
-        except ExrError as exc:
-            raise DatasetError(
-                str(exc), "delete the file and re-run the capture with --resume."
-            ) from exc
+        return read_sample(self.folder, self.manifest, str(self.column("path")[index]))
 
     @cached_property
     def character_height(self) -> float:

@@ -6,6 +6,8 @@ The bundle is the only artefact the runtime reads (DESIGN.md "Model bundle"):
     MODEL/trunk.onnx                                        rig -> shared 8x8 features
     MODEL/albedo_<R>.onnx, MODEL/geometry_<R>.onnx          features -> maps, R = 8, ..., final
     MODEL/*.int8.onnx                                       static QDQ int8 variants (optional)
+    MODEL/capsules.json                                     capsule shadow proxies (when the
+                                                            dataset has them)
 
 onnxruntime runs every node of a graph even when one output is requested, so separate
 graphs are what lets a frame skip a branch or stop at a small level. The shared trunk
@@ -26,6 +28,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import tempfile
 import warnings
 from pathlib import Path
@@ -37,8 +40,11 @@ from torch import nn
 
 from rigspace.capture.dataset import read_manifest
 from rigspace.sdk.bundle import FORMAT, FORMAT_VERSION
+from rigspace.train.budget import trained_levels
+from rigspace.train.config import TrainConfig
 from rigspace.train.data import SampleSet, depth_scale
-from rigspace.train.loop import build_model
+from rigspace.train.int8check import TOLERANCES, check_int8
+from rigspace.train.loop import TrainingError, build_model
 from rigspace.train.network import Rig2Image, albedo_alpha, albedo_maps, geometry_maps
 
 OPSET = 17
@@ -155,6 +161,24 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+BUNDLE_GRAPHS = ("trunk*.onnx", "albedo_*.onnx", "geometry_*.onnx")
+"""Names of the graphs an export writes: a re-export removes those it no longer writes."""
+CAPSULES = "capsules.json"
+"""Capsule shadow proxies a capture may leave in its dataset folder; copied into the bundle."""
+INT8_CHECK_SAMPLES = 32
+"""Held-out rows (training rows when there are none) each int8 graph is checked on."""
+
+
+def check_rows(dataset: Path) -> tuple[np.ndarray, str]:
+    """Rig rows for the int8 check: held-out views, evenly spaced; training rows without them."""
+    for split in ("heldout-views", "train"):
+        samples = SampleSet(dataset, split)
+        if len(samples):
+            picks = np.linspace(0, len(samples) - 1, min(INT8_CHECK_SAMPLES, len(samples)))
+            return samples.rig[samples.rows[np.unique(picks.astype(int))]], split
+    raise TrainingError(f"{dataset} has no samples.", "capture the dataset again.")
+
+
 def export_bundle(
     run_folder: str | Path,
     out: str | Path,
@@ -162,9 +186,24 @@ def export_bundle(
     int8: bool = True,
     metrics: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Write the model bundle of a training run; return its manifest."""
+    """Write the model bundle of a training run; return its manifest.
+
+    Only the levels the run trained are exported (train.budget.trained_levels: a run
+    stopped by a budget before a level faded in has no usable graph there), and the
+    manifest says which. Each int8 graph is checked against fp32 (train.int8check) and a
+    failed one is marked in `int8_check`. Graphs of an earlier export into `out` that
+    this one does not write are removed, after the new manifest is in place.
+    """
     run_folder, out = Path(run_folder), Path(out)
     model, run, step = build_model(run_folder)
+    config = TrainConfig.from_json(run["config"])
+    trained = trained_levels(config, step)
+    if not trained:
+        raise TrainingError(
+            f"The run in {run_folder} has trained no level yet (step {step}).",
+            "train longer: continue it with --resume (and a larger --steps or --minutes).",
+        )
+    resolutions = [r for r in model.albedo.resolutions if r <= trained[-1]]
     dataset = Path(run["dataset"])
     data_manifest = read_manifest(dataset)
     out.mkdir(parents=True, exist_ok=True)
@@ -175,6 +214,7 @@ def export_bundle(
         rig_calibration = train.rig[train.rows[picks]]
         with torch.no_grad():
             features_calibration = model.features(torch.from_numpy(rig_calibration)).numpy()
+    written: list[str] = []
 
     def write(branch: str, resolution: int, stem: str) -> dict[str, str]:
         names = {"fp32": f"{stem}.onnx"}
@@ -184,12 +224,13 @@ def export_bundle(
             data = rig_calibration if branch == "trunk" else features_calibration
             assert data is not None
             quantize_int8(out / names["fp32"], out / names["int8"], INPUTS[branch], data)
+        written.extend(names.values())
         return names
 
     with torch.no_grad():
         trunk = write("trunk", 8, "trunk")
         levels = []
-        for resolution in model.albedo.resolutions:
+        for resolution in resolutions:
             entry: dict[str, Any] = {"resolution": resolution, "graphs": {}, "int8": {}}
             for branch in ("albedo", "geometry"):
                 names = write(branch, resolution, f"{branch}_{resolution}")
@@ -198,7 +239,6 @@ def export_bundle(
                     entry["int8"][branch] = names["int8"]
             levels.append(entry)
     ring = data_manifest["ring"]
-    files = sorted(p.name for p in out.glob("*.onnx"))
     manifest = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -239,14 +279,53 @@ def export_bundle(
             "character": data_manifest["character"],
             "samples": data_manifest["counts"],
         },
-        "training": {"config": run["config"], "steps": step},
-        "metrics": metrics or {},
-        "files": {
-            name: {"bytes": (out / name).stat().st_size, "sha256": _sha256(out / name)}
-            for name in files
+        "training": {
+            "config": run["config"],
+            "steps": step,
+            "planned_steps": config.total_steps(),
+            "trained_levels": resolutions,
+            "planned_levels": list(model.albedo.resolutions),
+            **({"plan": run["plan"]} if run.get("plan") else {}),
         },
+        "metrics": metrics or {},
+    }
+    if int8:
+        rows, split = check_rows(dataset)
+        manifest["int8_check"] = {
+            "split": split,
+            "samples": len(rows),
+            "tolerances": {k: f"{op} {limit:g}" for k, (op, limit) in TOLERANCES.items()},
+            "graphs": check_int8(out, trunk, levels, rows),
+        }
+    source = dataset / CAPSULES
+    if source.is_file():
+        try:
+            json.loads(source.read_text())
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise TrainingError(
+                f"{source} is not readable JSON ({exc}).",
+                "re-run the capture with --resume to rewrite it, or delete it to export "
+                "without capsule shadows.",
+            ) from exc
+        shutil.copyfile(source, out / CAPSULES)
+        manifest["capsules"] = CAPSULES
+        written.append(CAPSULES)
+    manifest["files"] = {
+        name: {"bytes": (out / name).stat().st_size, "sha256": _sha256(out / name)}
+        for name in sorted(written)
     }
     tmp = out / f".manifest.json.{os.getpid()}.tmp"
     tmp.write_text(json.dumps(manifest, indent=2) + "\n")
     os.replace(tmp, out / "manifest.json")
+    remove_stale(out, set(written))
     return manifest
+
+
+def remove_stale(out: Path, keep: set[str]) -> list[str]:
+    """Delete the bundle files in `out` an earlier export wrote and this one did not."""
+    stale = {p.name for pattern in BUNDLE_GRAPHS for p in out.glob(pattern)}
+    stale.add(CAPSULES)
+    removed = sorted(name for name in stale - keep if (out / name).is_file())
+    for name in removed:
+        (out / name).unlink()
+    return removed

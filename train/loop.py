@@ -7,15 +7,21 @@ The run folder holds run.json (the config and the dataset it trained on), checkp
 log.jsonl, and previews/level_<R>.png (prediction | ground truth | error). Every step's
 batch is a pure function of (seed, step) and the RNG state is checkpointed, so a resumed
 run continues exactly where it stopped. Ctrl-C saves a checkpoint and returns; a
-non-finite loss stops with the step and the last good checkpoint named.
+non-finite loss stops with the step and the last good checkpoint named; a damaged sample
+stops with a checkpoint and the capture command that re-renders it. With `minutes`, a new
+run first measures its step time at every level and sizes its steps per level so that the
+final level is reached within the budget (train.budget; the plan is saved in run.json).
 """
 
 from __future__ import annotations
 
+import copy
+import io
 import json
 import math
 import os
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -26,8 +32,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from rigspace.capture.dataset import read_manifest
+from rigspace.capture.dataset import DatasetError, read_manifest
 from rigspace.sdk.errors import RigspaceError
+from rigspace.train.budget import apply_plan, plan_schedule
 from rigspace.train.config import TrainConfig
 from rigspace.train.data import Prefetcher, SampleSet
 from rigspace.train.loss import targets_for, total_loss
@@ -35,6 +42,8 @@ from rigspace.train.network import Rig2Image, Shape, albedo_maps, geometry_maps
 
 CHECKPOINT = "checkpoint.pt"
 RUN_FILE = "run.json"
+PROBE_STEPS = 3
+"""Timed steps per level when a time budget is planned (after one warm-up step)."""
 
 
 class TrainingError(RigspaceError):
@@ -169,39 +178,97 @@ def _preview(model, samples: SampleSet, resolution: int, path: Path) -> dict[str
     }
 
 
-def prepare_run(dataset: Path, out: Path, config: TrainConfig, resume: bool) -> dict[str, Any]:
-    """Check the dataset and the run folder before any work; write run.json."""
+def prepare_run(
+    dataset: Path, out: Path, config: TrainConfig, resume: bool
+) -> tuple[dict[str, Any], TrainConfig, dict[str, Any] | None]:
+    """Check the dataset and the run folder before any work.
+
+    Returns the dataset manifest, the config to train with, and the run.json of the run
+    being resumed (None for a new run). A run planned for a time budget keeps its planned
+    steps per level when resumed with the same options.
+    """
     manifest = read_manifest(dataset)
     if config.resolution > manifest["resolution"]:
         raise TrainingError(
             f"--resolution {config.resolution} is above the dataset's {manifest['resolution']}.",
             f"train at {manifest['resolution']} or below, or capture at a higher resolution.",
         )
-    run = {
+    if out.exists() and not out.is_dir():
+        raise TrainingError(f"{out} is a file, not a folder.", "choose a folder for --out.")
+    run_file = out / RUN_FILE
+    if not run_file.exists():
+        return manifest, config, None
+    existing = json.loads(run_file.read_text())
+    if not resume:
+        raise TrainingError(
+            f"{out} already holds a training run.",
+            "pass --resume to continue it, or choose a new --out.",
+        )
+    if existing.get("plan"):
+        config = replace(config, steps_per_level=int(existing["plan"]["steps_per_level"]))
+    wanted = json.loads(json.dumps(run_record(dataset, manifest, config)))  # tuples -> lists
+    differs = sorted(k for k in wanted if existing.get(k) != wanted[k])
+    if differs:
+        raise TrainingError(
+            f"{out} holds a run with other settings or another dataset ({', '.join(differs)}).",
+            "resume with the original options, or choose a new --out.",
+        )
+    return manifest, config, existing
+
+
+def run_record(dataset: Path, manifest: dict[str, Any], config: TrainConfig) -> dict[str, Any]:
+    """What run.json records of a run (a resumed run must match it)."""
+    return {
         "config": config.to_json(),
         "dataset": str(Path(dataset).resolve()),
         "dataset_checksum": manifest["checksum"],
         "joints": manifest["joints"],
     }
-    run_file = out / RUN_FILE
-    if run_file.exists():
-        existing = json.loads(run_file.read_text())
-        if not resume:
-            raise TrainingError(
-                f"{out} already holds a training run.",
-                "pass --resume to continue it, or choose a new --out.",
-            )
-        wanted = json.loads(json.dumps(run))  # tuples become lists, as on disk
-        if existing != wanted:
-            differs = sorted(k for k in wanted if existing.get(k) != wanted[k])
-            raise TrainingError(
-                f"{out} holds a run with other settings or another dataset ({', '.join(differs)}).",
-                "resume with the original options, or choose a new --out.",
-            )
-    else:
-        out.mkdir(parents=True, exist_ok=True)
-        run_file.write_text(json.dumps(run, indent=2) + "\n")
-    return manifest
+
+
+def measure_step_seconds(
+    model: Rig2Image,
+    samples: SampleSet,
+    previews: SampleSet,
+    config: TrainConfig,
+    steps: int = PROBE_STEPS,
+) -> dict[int, float]:
+    """Seconds per training step at every level, previews and checkpoints included.
+
+    Real steps (batches read through the Prefetcher) on a copy of the model, so the run
+    itself is unchanged: the fastest of `steps` timed steps after one warm-up step, plus a
+    preview's time over eval_every and a checkpoint's over checkpoint_every.
+    """
+    probe = copy.deepcopy(model)
+    optimizer = make_optimizer(probe, config)
+    rng = torch.get_rng_state()
+    prefetch = Prefetcher(samples, config.batch, config.seed)
+    seconds: dict[int, float] = {}
+    step = 0
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            for resolution in config.levels():
+                times = []
+                for _ in range(steps + 1):
+                    begin = time.perf_counter()
+                    batch = to_torch(prefetch.get(step), config.channels_last)
+                    loss, _ = forward_loss(probe, batch, resolution, 1.0, config)
+                    optimise(probe, optimizer, loss, config)
+                    times.append(time.perf_counter() - begin)
+                    step += 1
+                begin = time.perf_counter()
+                _preview(probe, previews, resolution, Path(tmp) / "preview.png")
+                preview = time.perf_counter() - begin
+                begin = time.perf_counter()
+                torch.save({"m": probe.state_dict(), "o": optimizer.state_dict()}, io.BytesIO())
+                save = time.perf_counter() - begin
+                seconds[resolution] = (
+                    min(times[1:]) + preview / config.eval_every + save / config.checkpoint_every
+                )
+    finally:
+        prefetch.close()
+        torch.set_rng_state(rng)
+    return seconds
 
 
 def train(
@@ -216,7 +283,8 @@ def train(
 ) -> TrainResult:
     """Train Rig2Image on a capture dataset (see the module doc)."""
     dataset, out = Path(dataset), Path(out)
-    prepare_run(dataset, out, config, resume)
+    began = time.monotonic()  # the budget counts from here: the step-rate probe is part of it
+    manifest, config, existing = prepare_run(dataset, out, config, resume)
     if config.threads:
         torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
@@ -229,6 +297,19 @@ def train(
     model = Rig2Image(Shape(len(samples.joints)), config)
     if config.channels_last:
         model = model.to(memory_format=torch.channels_last)
+    plan = None
+    if existing is None:
+        if minutes:
+            previews = held_out if len(held_out) else samples
+            rates = measure_step_seconds(model, samples, previews, config)
+            plan = plan_schedule(config, rates, 60 * minutes - (time.monotonic() - began))
+            config = apply_plan(config, plan)
+            print(f"rigspace train: {plan.summary()}", file=sys.stderr)
+        run = run_record(dataset, manifest, config)
+        if plan is not None:
+            run["plan"] = plan.to_json()
+        out.mkdir(parents=True, exist_ok=True)
+        (out / RUN_FILE).write_text(json.dumps(run, indent=2) + "\n")
     start, optimizer = 0, make_optimizer(model, config)
     checkpoint_path = out / CHECKPOINT
     if resume and checkpoint_path.exists():
@@ -238,7 +319,7 @@ def train(
         torch.set_rng_state(state["torch_rng"])
         start = int(state["step"])
     total = config.total_steps() if steps is None else min(steps, config.total_steps())
-    deadline = time.monotonic() + 60 * minutes if minutes else math.inf
+    deadline = began + 60 * minutes if minutes else math.inf
     prefetch = Prefetcher(samples, config.batch, config.seed)
     log = (out / "log.jsonl").open("a")
     bar = tqdm(
@@ -295,6 +376,14 @@ def train(
                 last_good = save_checkpoint(out, model, optimizer, step, where.level)
     except KeyboardInterrupt:
         stopped = "interrupted"
+    except DatasetError as exc:  # a damaged sample: keep the progress, then say how to go on
+        if step > start:
+            save_checkpoint(out, model, optimizer, step, schedule(config, step - 1).level)
+        raise TrainingError(
+            f"{exc.what} Training stopped at step {step}"
+            + (f"; checkpoint saved in {out}." if step > start else "."),
+            f"{exc.fix} Then continue training with --resume.",
+        ) from exc
     finally:
         bar.close()
         log.close()

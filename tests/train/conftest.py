@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from rigspace.capture.pipeline import capture
 from rigspace.capture.settings import CaptureOverrides
 from tests.conftest import REPO
@@ -28,3 +30,16 @@ def captured_dataset(tmp_path_factory) -> Path:
         capture(SCENE, CHARACTER, out, TINY, workers=1, progress=False)
         _captured["tiny"] = out
     return _captured["tiny"]
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory, tiny_dataset) -> Path:
+    """A finished training run of the tiny preset on the tiny dataset (read-only: copy it)."""
+    pytest.importorskip("torch", reason="training needs the train extra (torch)")
+    from rigspace.train import loop
+    from rigspace.train.config import preset
+
+    run = tmp_path_factory.mktemp("train") / "run"
+    result = loop.train(tiny_dataset, run, preset("tiny"), progress=False)
+    assert result.stopped == "done" and result.step == preset("tiny").total_steps()
+    return run

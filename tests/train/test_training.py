@@ -66,14 +66,6 @@ def log(run: Path) -> list[dict]:
     return [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
 
 
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory, tiny_dataset) -> Path:
-    run = tmp_path_factory.mktemp("train") / "run"
-    result = loop.train(tiny_dataset, run, TINY, progress=False)
-    assert result.stopped == "done" and result.step == TINY.total_steps()
-    return run
-
-
 def test_tiny_run_reduces_the_loss(tiny_run):
     losses = [r["loss"] for r in log(tiny_run) if r["resolution"] == 16]
     assert np.mean(losses[-5:]) < 0.7 * np.mean(losses[:5])

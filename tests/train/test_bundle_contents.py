@@ -1,0 +1,245 @@
+"""What a bundle holds and what train/eval refuse: trained levels only, time budgets, --force,
+int8 graphs checked against fp32, capsules, and clear errors for bad paths and samples."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import warnings
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch", reason="training needs the train extra (torch)")
+
+from rigspace.sdk.bundle import read_manifest  # noqa: E402
+from rigspace.sdk.cli import main  # noqa: E402
+from rigspace.sdk.model import BundleModel  # noqa: E402
+from rigspace.train import loop  # noqa: E402
+from rigspace.train.budget import (  # noqa: E402
+    MIN_STEPS_PER_LEVEL,
+    PLAN_SHARE,
+    plan_schedule,
+    trained_levels,
+)
+from rigspace.train.config import preset  # noqa: E402
+from rigspace.train.data import DatasetError, SampleSet  # noqa: E402
+from rigspace.train.evaluate import DatasetTable  # noqa: E402
+from rigspace.train.export import export_bundle  # noqa: E402
+from rigspace.train.int8check import failure_lines  # noqa: E402
+
+TINY = preset("tiny")
+
+
+def levels(manifest: dict) -> list[int]:
+    return [level["resolution"] for level in manifest["levels"]]
+
+
+def test_a_level_counts_as_trained_once_it_has_faded_in():
+    # Tiny: 20 steps per level; level 32 fades in over its first 10 steps (20-29).
+    assert trained_levels(TINY, 0) == []
+    assert trained_levels(TINY, 1) == [16]
+    assert trained_levels(TINY, 30) == [16]
+    assert trained_levels(TINY, 31) == [16, 32]
+
+
+def test_a_run_stopped_early_exports_only_the_levels_it_trained(tmp_path, tiny_dataset):
+    model = tmp_path / "model"
+    loop.train(tiny_dataset, model / "training", TINY, steps=25, progress=False)  # 32 fading
+    manifest = export_bundle(model / "training", model, int8=False)
+    assert levels(manifest) == [8, 16]
+    assert manifest["training"]["trained_levels"] == [8, 16]
+    assert manifest["training"]["planned_levels"] == [8, 16, 32]
+    assert not list(model.glob("*_32*.onnx"))
+    runtime = BundleModel(model)
+    assert runtime.resolutions == [8, 16] and runtime.level_for(999) == 16
+
+
+def test_the_plan_fits_every_level_into_the_budget():
+    seconds = {16: 0.01, 32: 0.03}
+    long = replace(TINY, steps_per_level=100_000)
+    plan = plan_schedule(long, seconds, 60.0)
+    assert plan.steps_per_level == math.floor(PLAN_SHARE * 60.0 / 0.04) and plan.reaches_final
+    assert "reaches 32x32" in plan.summary()
+    assert plan_schedule(TINY, seconds, 60.0).steps_per_level == TINY.steps_per_level
+    short = plan_schedule(long, {16: 0.01, 32: 1.0}, 10.0)  # not even the floor fits
+    assert short.steps_per_level == MIN_STEPS_PER_LEVEL and short.reaches == 16
+    assert "reaches only 16x16" in short.summary()
+
+
+def test_a_time_budget_plans_the_schedule_before_training(tmp_path, tiny_dataset, capsys):
+    # Far more steps than 9 seconds hold. Whether the plan reaches 32x32 depends on the
+    # machine's load (the plan's arithmetic is tested above); the run must plan, say so, and
+    # export exactly what it trained.
+    config = replace(TINY, steps_per_level=100_000)
+    model = tmp_path / "model"
+    result = loop.train(tiny_dataset, model / "training", config, minutes=0.15, progress=False)
+    record = json.loads((model / "training" / loop.RUN_FILE).read_text())
+    plan = record["plan"]
+    planned = plan["steps_per_level"]
+    assert MIN_STEPS_PER_LEVEL <= planned < 100_000
+    assert record["config"]["steps_per_level"] == planned
+    assert set(plan["seconds_per_step"]) == {"16", "32"}
+    err = capsys.readouterr().err
+    assert "time budget" in err and ("the run reaches 32x32" in err or "reaches only" in err)
+    if plan["reaches"] == 32 and planned > MIN_STEPS_PER_LEVEL:
+        assert (
+            planned * sum(plan["seconds_per_step"].values()) <= PLAN_SHARE * plan["budget_seconds"]
+        )
+    assert result.step <= 2 * planned
+    manifest = export_bundle(model / "training", model, int8=False)
+    trained = trained_levels(replace(config, steps_per_level=planned), result.step)
+    assert levels(manifest) == [8, *trained]
+    # Resumed with the same options, the run keeps its plan.
+    again = loop.train(
+        tiny_dataset, model / "training", config, steps=result.step, resume=True, progress=False
+    )
+    assert again.step == result.step
+
+
+def _train_args(dataset: Path, out: Path, *extra: str) -> list[str]:
+    return ["train", str(dataset), "--out", str(out), "--preset", "tiny", "--no-int8", *extra]
+
+
+def test_out_with_a_bundle_is_refused_or_replaced_with_force(
+    tmp_path, tiny_run, tiny_dataset, capsys
+):
+    bundle = tmp_path / "bundle"
+    export_bundle(tiny_run, bundle, int8=False)  # a bundle without its training run
+    (bundle / "albedo_64.onnx").write_bytes(b"a graph of an older, larger bundle")
+    (bundle / "notes.txt").write_text("mine")
+    before = (bundle / "manifest.json").read_text()
+    assert main(_train_args(tiny_dataset, bundle, "--steps", "2")) == 2
+    err = capsys.readouterr().err
+    assert "holds a model bundle" in err and "--force" in err
+    assert main(_train_args(tiny_dataset, bundle, "--resume")) == 2
+    assert "nothing to continue" in capsys.readouterr().err
+    assert (bundle / "manifest.json").read_text() == before
+    assert not (bundle / "training").exists()
+
+    assert main(_train_args(tiny_dataset, bundle, "--steps", "2", "--force")) == 0
+    out = capsys.readouterr()
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    assert sorted(p.name for p in bundle.glob("*.onnx")) == sorted(manifest["files"])
+    assert not (bundle / "albedo_64.onnx").exists() and levels(manifest) == [8, 16]
+    assert (bundle / "notes.txt").read_text() == "mine"
+    assert "levels 8, 16" in out.out and "before level 32 was trained" in out.err
+    # Its own run continues with --resume as before, and the re-export adds level 32.
+    assert main(_train_args(tiny_dataset, bundle, "--resume")) == 0
+    assert levels(json.loads((bundle / "manifest.json").read_text())) == [8, 16, 32]
+    assert main(_train_args(tiny_dataset, bundle, "--resume", "--force")) == 2
+
+
+@pytest.fixture(scope="module")
+def fp32_bundle(tiny_run, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("fp32") / "bundle"
+    export_bundle(tiny_run, out, int8=False)
+    return out
+
+
+def test_output_paths_that_are_files_are_refused_before_any_work(
+    tmp_path, fp32_bundle, tiny_dataset, capsys
+):
+    file = tmp_path / "file"
+    file.write_text("x")
+    assert main(_train_args(tiny_dataset, file, "--steps", "1")) == 2
+    assert "--out" in capsys.readouterr().err and file.read_text() == "x"
+    args = ["eval", str(fp32_bundle), str(tiny_dataset), "--errors", str(file), "--no-baselines"]
+    assert main(args) == 2
+    out = capsys.readouterr()
+    assert f"--errors {file} is a file" in out.err and out.out == ""  # nothing was evaluated
+
+
+def test_a_damaged_sample_names_the_file_and_the_capture_that_re_renders_it(
+    tmp_path, fp32_bundle, tiny_dataset, capsys
+):
+    dataset = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, dataset)
+    table = DatasetTable(dataset)
+    row = int(table.indices("train")[3])
+    path = table.path(row)
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])  # truncated
+    scene = table.manifest["scene"]
+    fix = f"`rigspace capture {scene} --out {dataset} --resume`"
+    assert main(_train_args(dataset, tmp_path / "model", "--steps", "10")) == 2
+    err = capsys.readouterr().err
+    assert f"Sample {path} of the dataset is damaged" in err and fix in err
+    args = ["eval", str(fp32_bundle), str(dataset), "--split", "train", "--limit", "0"]
+    assert main([*args, "--no-baselines"]) == 2
+    err = capsys.readouterr().err
+    assert f"{path} of the dataset is damaged" in err and fix in err and "delete" not in err
+    path.unlink()
+    with pytest.raises(DatasetError, match="is missing"):
+        SampleSet(dataset, "train").batch(np.arange(len(table.indices("train"))))
+
+
+def test_healthy_int8_graphs_pass_the_export_check(tmp_path, tiny_run):
+    manifest = export_bundle(tiny_run, tmp_path / "bundle")
+    check = manifest["int8_check"]
+    assert check["split"] == "heldout-views" and check["samples"] == 32
+    assert len(check["graphs"]) == 7  # the trunk and two branches at 8, 16, 32
+    assert all(result["ok"] for result in check["graphs"].values()), check["graphs"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert BundleModel(tmp_path / "bundle", "int8").int8_fallbacks == {}
+
+
+def test_a_broken_int8_graph_is_flagged_and_the_runtime_runs_fp32_instead(
+    tmp_path, tiny_run, tiny_dataset
+):
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    state = loop.load_checkpoint(run / loop.CHECKPOINT)
+    for name, value in state["model"].items():
+        if name.startswith("geometry.heads."):
+            # A confident mask: logits spanning hundreds, as a well-trained character's do.
+            # One int8 scale is shared by the head's channels, so the normals round to zero.
+            value[4:5] *= 100.0
+            if value.ndim == 1:
+                value[4:5] += 100.0
+    torch.save(state, run / loop.CHECKPOINT)
+    bundle = tmp_path / "bundle"
+    manifest = export_bundle(run, bundle)
+    graphs = manifest["int8_check"]["graphs"]
+    failed = sorted(name for name, result in graphs.items() if not result["ok"])
+    assert "geometry_32.int8.onnx" in failed and all(n.startswith("geometry_") for n in failed)
+    assert graphs["geometry_32.int8.onnx"]["metrics"]["normal_zero_fraction"] > 0.5
+    assert graphs["albedo_32.int8.onnx"]["ok"] and graphs["trunk.int8.onnx"]["ok"]
+    lines = failure_lines(manifest["int8_check"])
+    assert len(lines) == len(failed) and "geometry_32.int8.onnx" in lines[-1]
+
+    with pytest.warns(UserWarning, match=r"geometry_32\.int8\.onnx"):
+        int8 = BundleModel(bundle, "int8")
+    samples = SampleSet(tiny_dataset, "heldout-views")
+    rig = samples.rig[samples.rows[:8]]
+    fp32 = BundleModel(bundle).predict(rig, 32)
+    out = int8.predict(rig, 32)
+    covered = fp32["mask"][:, 0] >= 0.5
+    assert covered.sum() > 100
+    # The fp32 geometry graph ran (on the int8 trunk's features): no normal vanished.
+    assert np.all(np.linalg.norm(np.moveaxis(out["normal"], 1, -1)[covered], axis=-1) > 0.9)
+    assert int8.levels[32]["albedo"] == "albedo_32.int8.onnx"
+
+
+def test_capsules_in_the_dataset_travel_with_the_bundle(tmp_path, tiny_run, tiny_dataset):
+    dataset = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, dataset)
+    capsules = {"capsules": [{"joint": "Skeleton_torso_joint_1", "radius": 0.1}]}
+    (dataset / "capsules.json").write_text(json.dumps(capsules))
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    record = json.loads((run / loop.RUN_FILE).read_text())
+    (run / loop.RUN_FILE).write_text(json.dumps({**record, "dataset": str(dataset)}))
+    bundle = tmp_path / "bundle"
+    manifest = export_bundle(run, bundle, int8=False)
+    assert manifest["capsules"] == "capsules.json" and "capsules.json" in manifest["files"]
+    assert json.loads((bundle / "capsules.json").read_text()) == capsules
+    assert read_manifest(bundle).raw["capsules"] == "capsules.json"
+    assert BundleModel(bundle).resolutions == [8, 16, 32]
+    # The dataset without them: a re-export leaves no stale copy behind.
+    (dataset / "capsules.json").unlink()
+    manifest = export_bundle(run, bundle, int8=False)
+    assert "capsules" not in manifest and not (bundle / "capsules.json").exists()
