@@ -170,15 +170,15 @@ def jitter_error(jitter_ms: float = 10.0, latency_ms: float = 20.0, delay_ms: fl
     results = {}
     for mode in ("latest", "delayed"):
         b = LiveBuffer(skeleton.names, BufferSettings(mode, delay_ms * 1e-3))
-        poses = []
+        collected = []
         pushed = 0
         for now in nows:
             while pushed < len(order) and arrival[order[pushed]] <= now:
                 k = order[pushed]
                 b.push(Frame(0, ts[k], idx, rotations[k]), arrival[k])
                 pushed += 1
-            poses.append(b.pose(now).rotations)
-        poses = np.array(poses)
+            collected.append(b.pose(now).rotations)
+        poses = np.array(collected)
         best = None
         for display in np.arange(0.0, 0.08, 0.001):
             e = np.degrees(quat_angle(poses, truth(nows - display)))

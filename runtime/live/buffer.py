@@ -169,6 +169,11 @@ class _Stream:
         self.last_received = -math.inf
         self.offsets: deque[float] = deque(maxlen=256)
 
+    def restart(self) -> None:
+        """A new clock (the sender restarted): forget order and offset."""
+        self.last_ts = self.last_received = -math.inf
+        self.offsets.clear()
+
 
 class LiveBuffer:
     """Samples of one binding, pushed by a receiver thread and read by the frame thread.
@@ -215,7 +220,7 @@ class LiveBuffer:
             if ts <= stream.last_ts:
                 if ts < stream.last_ts - CLOCK_RESET_SECONDS:
                     self.clock_resets += 1
-                    stream.__init__()
+                    stream.restart()
                 elif ts == stream.last_ts:
                     self.duplicates += 1
                     return False

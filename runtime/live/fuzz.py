@@ -8,6 +8,7 @@ import sys
 import time
 import traceback
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -93,7 +94,7 @@ def mutate(data: bytes, rng: np.random.Generator) -> bytes:
     return bytes(buf)
 
 
-def _decoders() -> dict[str, tuple[Callable[[], object], Callable, int]]:
+def _decoders() -> dict[str, tuple[Callable[[], Any], Callable, int]]:
     """Name -> (new decoder, seed generator, bound on its buffered state)."""
     skeleton = parse_bvh(FUZZ_BVH, "fuzz.bvh")[0]
     return {

@@ -236,7 +236,7 @@ class Retargeter:
     def __init__(
         self,
         source_bones: Sequence[str],
-        source_parents: Mapping[str, str] | Sequence[int],
+        source_parents: Mapping[str, str] | Sequence[int] | np.ndarray,
         space: str,
         target_joints: Sequence[str],
         target_rest_local: np.ndarray,
