@@ -29,7 +29,7 @@ from rigspace.runtime.character import Layer, NeuralCharacter
 from rigspace.runtime.lights import Light, light_prims, lights_at
 from rigspace.runtime.scene import SceneGeometry
 from rigspace.runtime.shading import shade
-from rigspace.sdk import schema
+from rigspace.sdk import schema, validation
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.errors import SceneError
 from rigspace.sdk.model import BundleModel
@@ -120,6 +120,7 @@ class Engine:
         self.stage: Usd.Stage = open_stage(scene)
         self.width, self.height = width, height
         self.camera_prim = self._camera(camera)
+        validation.require_valid(self.stage, "render")  # inspect's checks, in inspect's words
         self.characters: list[NeuralCharacter] = []
         self.without_model: list[str] = []
         models: dict[Path, BundleModel] = {}

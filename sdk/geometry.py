@@ -65,20 +65,29 @@ def _primvar_per_corner(primvar: UsdGeom.Primvar, triangles, corners, faces, tim
     return values[index]
 
 
-def read_texture(asset, color_space: str = "auto") -> np.ndarray:
-    """A texture as linear float32 RGB (H, W, 3), read through USD's asset resolver."""
+def read_texture(asset, color_space: str = "auto", where: str = "") -> np.ndarray:
+    """A texture as linear float32 RGB (H, W, 3), read through USD's asset resolver.
+
+    `where` names what uses it (material, shader and prim) in the errors.
+    """
     resolved = asset.resolvedPath if hasattr(asset, "resolvedPath") else str(asset)
+    used_by = f" ({where})" if where else ""
     if not resolved:
         raise SceneError(
-            f"Texture @{getattr(asset, 'path', asset)}@ does not resolve.", "fix its path."
+            f"Texture @{getattr(asset, 'path', asset)}@{used_by} does not resolve.",
+            "correct the shader's inputs:file (a relative path is relative to the layer that "
+            "authors it) or put the image there.",
         )
     data = Ar.GetResolver().OpenAsset(Ar.ResolvedPath(resolved))
     if data is None:
-        raise SceneError(f"Texture {resolved} cannot be opened.", "check that the file exists.")
+        raise SceneError(
+            f"Texture {resolved}{used_by} cannot be opened.", "check that the file exists."
+        )
     image = cv2.imdecode(np.frombuffer(data.GetBuffer(), np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise SceneError(
-            f"Texture {resolved} is not an image OpenCV can decode.", "re-save it as PNG."
+            f"Texture {resolved}{used_by} is not an image OpenCV can decode.",
+            "re-save it as PNG.",
         )
     # OpenCV decodes to uint8, uint16, or float32 (EXR, HDR: already linear).
     integer = image.dtype in (np.uint8, np.uint16)
@@ -116,22 +125,82 @@ def _shader_id(shader: UsdShade.Shader) -> str:
     return str(shader.GetIdAttr().Get() or "") if shader else ""
 
 
-def read_albedo(prim: Usd.Prim) -> Albedo:
-    """The albedo of a gprim per UsdPreviewSurface rules, falling back to displayColor."""
+@dataclass(frozen=True)
+class AlbedoTexture:
+    """A UsdUVTexture feeding a UsdPreviewSurface's diffuseColor, and who uses it."""
+
+    prim: str
+    material: str
+    shader: UsdShade.Shader
+    reader: UsdShade.Shader | None
+    """The UsdPrimvarReader_float2 feeding its st, if any."""
+
+    @property
+    def file(self):
+        """The authored inputs:file (an Sdf.AssetPath), or None."""
+        file_input = self.shader.GetInput("file")
+        return file_input.Get() if file_input else None
+
+    @property
+    def where(self) -> str:
+        return (
+            f"inputs:file of {self.shader.GetPath()} in material {self.material}, bound to "
+            f"{self.prim}"
+        )
+
+    def problem(self) -> str | None:
+        """Why the image cannot be found (without reading it), or None."""
+        asset = self.file
+        if asset is None or not asset.path:
+            return f"{self.where} is empty"
+        if not asset.resolvedPath:
+            return f"texture @{asset.path}@ ({self.where}) does not resolve"
+        return None
+
+
+def _surface(prim: Usd.Prim) -> tuple[UsdShade.Material | None, UsdShade.Shader | None]:
     material, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
     surface = material.ComputeSurfaceSource()[0] if material else None
     if surface and _shader_id(surface) == "UsdPreviewSurface":
+        return material, surface
+    return material, None
+
+
+def albedo_texture(prim: Usd.Prim) -> AlbedoTexture | None:
+    """The texture a gprim's UsdPreviewSurface reads its diffuseColor from, or None."""
+    material, surface = _surface(prim)
+    if material is None or surface is None:
+        return None
+    texture = _input_source(surface.GetInput("diffuseColor"))
+    if not texture or _shader_id(texture) != "UsdUVTexture":
+        return None
+    return AlbedoTexture(
+        prim=str(prim.GetPath()),
+        material=str(material.GetPath()),
+        shader=texture,
+        reader=_input_source(texture.GetInput("st")),
+    )
+
+
+def read_albedo(prim: Usd.Prim) -> Albedo:
+    """The albedo of a gprim per UsdPreviewSurface rules, falling back to displayColor."""
+    _material, surface = _surface(prim)
+    if surface is not None:
         diffuse = surface.GetInput("diffuseColor")
-        texture = _input_source(diffuse)
-        if texture and _shader_id(texture) == "UsdUVTexture":
-            file_input = texture.GetInput("file")
+        source = albedo_texture(prim)
+        if source is not None:
+            texture = source.shader
             color_space = texture.GetInput("sourceColorSpace")
-            reader = _input_source(texture.GetInput("st"))
+            reader = source.reader
             uv_set = "st"
             if reader and reader.GetInput("varname"):
                 uv_set = str(reader.GetInput("varname").Get() or "st")
+            if source.file is None:
+                raise SceneError(
+                    f"Texture {source.where} is empty.", "author the image's path in inputs:file."
+                )
             image = read_texture(
-                file_input.Get(), str(color_space.Get()) if color_space else "auto"
+                source.file, str(color_space.Get()) if color_space else "auto", source.where
             )
             scale, bias = texture.GetInput("scale"), texture.GetInput("bias")
             if scale and scale.Get() is not None:

@@ -17,6 +17,7 @@ from typing import Any
 from pxr import Usd, UsdGeom, UsdLux, UsdSkel
 
 from rigspace.sdk import schema, validation
+from rigspace.sdk.bindings import bound_animation
 from rigspace.sdk.cli import CommandSpec
 from rigspace.sdk.stage import meters_per_unit, open_stage, up_axis
 
@@ -120,7 +121,7 @@ def describe_prim(prim: Usd.Prim) -> dict[str, Any] | None:
     elif prim.IsA(UsdSkel.Skeleton):
         entry["kind"] = "skeleton"
         entry["joints"] = len(schema.skeleton_joints(prim))
-        source = UsdSkel.BindingAPI(prim).GetAnimationSource()
+        source = bound_animation(prim)  # its own binding or the SkelRoot's, as UsdSkel reads it
         entry["animationSource"] = str(source.GetPath()) if source else None
     elif prim.IsA(UsdSkel.Animation):
         entry["kind"] = "skelAnimation"
@@ -202,6 +203,10 @@ def _details(info: dict[str, Any]) -> str:
     return ""
 
 
+def _count(items: list, noun: str) -> str:
+    return f"{len(items)} {noun}{'' if len(items) == 1 else 's'}"
+
+
 def format_report(report: dict[str, Any], shown_path: str | None = None) -> str:
     """The report as text; `shown_path` replaces the stage's absolute path in the title."""
     s = report["stage"]
@@ -226,11 +231,24 @@ def format_report(report: dict[str, Any], shown_path: str | None = None) -> str:
     if not report["prims"]:
         lines.append("  (none)")
     errors, warnings = report["errors"], report["warnings"]
-    lines += ["", f"Validation: {len(errors)} errors, {len(warnings)} warnings"]
+    refusals = ", ".join(
+        f"{command} refuses {sum(command in e['blocks'] for e in errors)}"
+        for command in validation.PURPOSES
+    )
+    lines += [
+        "",
+        f"Validation: {_count(errors, 'error')} ({refusals}), {_count(warnings, 'warning')}",
+    ]
     for finding in errors + warnings:
         where = finding["prim"] or "stage"
+        if finding["severity"] != validation.ERROR:
+            stops = ""
+        elif finding["blocks"]:
+            stops = f"  stops {' and '.join(finding['blocks'])}"
+        else:
+            stops = "  (USD compliance: no rigspace command refuses it)"
         lines.append(
-            f"  {finding['severity']:<7} {where}  [{finding['validator']}.{finding['code']}]"
+            f"  {finding['severity']:<7} {where}  [{finding['validator']}.{finding['code']}]{stops}"
         )
         lines.append(f"          {finding['message']}")
     return "\n".join(lines)

@@ -2,9 +2,10 @@
 
 `CharacterRig` is the one place that turns "stage + character + time" into joint
 transforms. Local joint transforms come from a SkelAnimation (the character's
-rigspace:animationSource, else the skeleton's own binding) through UsdSkel's
-AnimQuery/AnimMapper, so a live source can later replace them before
-`UsdSkel.ConcatJointTransforms` (the seam the runtime uses). Skinning is USD's own
+rigspace:animationSource, else the one UsdSkel binds to the skeleton, its own or one
+inherited from the SkelRoot: sdk/bindings.py) through UsdSkel's AnimQuery/AnimMapper,
+so a live source can later replace them before `UsdSkel.ConcatJointTransforms` (the
+seam the runtime uses). Skinning is USD's own
 `SkinningQuery.ComputeSkinnedPoints`. Matrices leave this module as numpy in the
 column-vector convention (p' = M @ p); Gf matrices are row-vector (camera.from_gf).
 """
@@ -16,11 +17,11 @@ from dataclasses import dataclass
 import numpy as np
 from pxr import Usd, UsdGeom, UsdSkel, Vt
 
-from rigspace.sdk import schema
 from rigspace.sdk.camera import from_gf
 from rigspace.sdk.errors import SceneError
 from rigspace.sdk.geometry import MeshSource, read_mesh_source
 from rigspace.sdk.render import DrawMesh, vertex_normals
+from rigspace.sdk.validation import resolve_character
 
 
 @dataclass
@@ -33,78 +34,29 @@ class CharacterRig:
     """A neural character's skeleton, animation and skinned meshes, ready to pose per time."""
 
     def __init__(self, character: Usd.Prim) -> None:
-        info = schema.read_neural_character(character)
-        stage = character.GetStage()
-        where = f"Neural character {info.path}"
-        if info.skeleton is None:
-            raise SceneError(
-                f"{where} has no single rigspace:skeleton target.",
-                "point rigspace:skeleton at the Skeleton that drives it (see `rigspace inspect`).",
-            )
-        skel_prim = stage.GetPrimAtPath(info.skeleton)
-        if not skel_prim or not skel_prim.IsA(UsdSkel.Skeleton):
-            raise SceneError(
-                f"{where}: rigspace:skeleton {info.skeleton} is not a Skeleton prim.",
-                "target the UsdSkel Skeleton prim.",
-            )
+        # The validation rule's look-up and words: inspect reports what this refuses.
+        found, problem = resolve_character(character)
+        if found is None:
+            assert problem is not None  # resolve_character gives one or the other
+            raise problem.as_error()
         self.character = character
-        self.stage = stage
-        self.skeleton = UsdSkel.Skeleton(skel_prim)
-        self.joints: list[str] = schema.skeleton_joints(skel_prim)
-        self._cache = UsdSkel.Cache()
-        root = UsdSkel.Root.Find(skel_prim)
-        if root:
-            self._cache.Populate(root, Usd.TraverseInstanceProxies())
-        self._skel_query = self._cache.GetSkelQuery(self.skeleton)
+        self.stage = character.GetStage()
+        self.skeleton = UsdSkel.Skeleton(found.skeleton)
+        self.joints: list[str] = found.joints
+        self._cache = found.skel.cache
+        self._skel_query = found.skel.query
         self._topology = UsdSkel.Topology(self.skeleton.GetJointsAttr().Get())
         self._rest = self.skeleton.GetRestTransformsAttr().Get()
-        self.animation = self._find_animation(info, where)
+        self.animation = found.animation
         self._anim_query = self._cache.GetAnimQuery(UsdSkel.Animation(self.animation))
         self._mapper = UsdSkel.AnimMapper(
             self._anim_query.GetJointOrder(), self.skeleton.GetJointsAttr().Get()
         )
         # Constant per skeleton: inverted once, not per pose.
         self._bind_inverse = [m.GetInverse() for m in self.skeleton.GetBindTransformsAttr().Get()]
-        self._meshes = self._find_meshes(root, where) if root else []
-        if not self._meshes:
-            raise SceneError(
-                f"{where}: no skinned mesh is bound to skeleton {info.skeleton} (a Mesh under its "
-                "SkelRoot with primvars:skel:jointIndices and jointWeights).",
-                "bind the character's meshes to the skeleton with UsdSkelBindingAPI skin weights.",
-            )
-
-    def _find_animation(self, info: schema.NeuralCharacter, where: str) -> Usd.Prim:
-        if info.animation_targets:
-            anim = self.stage.GetPrimAtPath(info.animation_targets[0])
-            if not anim or not anim.IsA(UsdSkel.Animation):
-                raise SceneError(
-                    f"{where}: rigspace:animationSource {info.animation_targets[0]} is not a "
-                    "SkelAnimation.",
-                    "target a SkelAnimation prim, or clear the relationship.",
-                )
-            return anim
-        source = UsdSkel.BindingAPI(self.skeleton.GetPrim()).GetAnimationSource()
-        if not source or not source.IsA(UsdSkel.Animation):
-            raise SceneError(
-                f"{where}: skeleton {self.skeleton.GetPath()} has no animation (neither "
-                "rigspace:animationSource nor skel:animationSource names a SkelAnimation).",
-                "bind a SkelAnimation to the skeleton, or set rigspace:animationSource.",
-            )
-        return source
-
-    def _find_meshes(self, root: UsdSkel.Root, where: str) -> list[_SkinnedMesh]:
-        meshes = []
-        for binding in self._cache.ComputeSkelBindings(root, Usd.TraverseInstanceProxies()):
-            if binding.GetSkeleton().GetPrim() != self.skeleton.GetPrim():
-                continue
-            for query in binding.GetSkinningTargets():
-                prim = query.GetPrim()
-                if not prim.IsA(UsdGeom.Mesh) or not query.HasJointInfluences():
-                    continue
-                if UsdGeom.Imageable(prim).ComputeVisibility() == UsdGeom.Tokens.invisible:
-                    continue
-                meshes.append(_SkinnedMesh(query, read_mesh_source(prim)))
-        return meshes
+        self._meshes = [
+            _SkinnedMesh(query, read_mesh_source(query.GetPrim())) for query in found.skel.skinning
+        ]
 
     # -- time range ---------------------------------------------------------------------
 

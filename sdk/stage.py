@@ -27,16 +27,54 @@ def open_stage(path: str | Path) -> Usd.Stage:
     try:
         layer = Sdf.Layer.FindOrOpen(str(path))
     except Tf.ErrorException as exc:
-        raise SceneError(
-            f"Scene {path} could not be read: {_first_line(exc)}",
-            "fix the syntax error it names (or re-export the file).",
-        ) from exc
+        raise _unreadable(path, _first_line(exc)) from exc
     if layer is None:
-        raise SceneError(f"Scene {path} could not be read as USD.", "re-export the file.")
+        raise _unreadable(path, "")
     try:
         return Usd.Stage.Open(layer, load=Usd.Stage.LoadAll)
     except Tf.ErrorException as exc:
-        raise SceneError(f"Scene {path} could not be opened: {_first_line(exc)}") from exc
+        raise SceneError(
+            f"Scene {path} could not be opened: USD reports: {_sentence(_first_line(exc))}",
+            "fix what USD names (a missing sublayer or reference, or a syntax error in it).",
+        ) from exc
+
+
+USDA_HEADER = b"#usda "
+USDC_HEADER = b"PXR-USDC"
+ZIP_HEADER = b"PK\x03\x04"
+
+
+def _sentence(text: str) -> str:
+    text = text.strip()
+    return text if text.endswith((".", "!", "?")) else text + "."
+
+
+def _unreadable(path: Path, usd_error: str) -> SceneError:
+    """Why USD could not read `path`, from its error and the file's first bytes, with a fix."""
+    with path.open("rb") as file:
+        head = file.read(16)
+    said = f" USD reports: {_sentence(usd_error)}" if usd_error else ""
+    if head.startswith(USDA_HEADER):
+        return SceneError(
+            f"Scene {path} is a USD text file that USD could not parse.{said}",
+            "fix the syntax error at the line and column USD names, or re-export the file.",
+        )
+    if not head.strip():
+        what = "is empty"
+    elif head.startswith(USDC_HEADER):
+        what = "is a USD crate (binary) file that is damaged or truncated"
+    elif head.startswith(ZIP_HEADER):
+        what = "is a zip archive but not a USD package USD can read"
+    else:
+        what = (
+            "is not USD: it does not start with the `#usda 1.0` header of a USD text file, "
+            "nor is it a USD crate or package"
+        )
+    return SceneError(
+        f"Scene {path} {what}.{said}",
+        "export the scene to USD (.usda, .usdc or .usdz) from the application that made it, "
+        "or pass the right file.",
+    )
 
 
 def _first_line(exc: Exception) -> str:
@@ -62,6 +100,7 @@ STAGE_METADATA = (
     "endTimeCode",
     "upAxis",
     "metersPerUnit",
+    "defaultPrim",
 )
 """Root-layer metadata a stage reads from its root layer only: an overlay must repeat them."""
 
@@ -69,8 +108,8 @@ STAGE_METADATA = (
 def overlay_layer(path: str | Path, scene: str | Path) -> Sdf.Layer:
     """A new layer at `path` whose only sublayer is `scene`, with the scene's stage metadata.
 
-    USD reads time codes per second, frames per second, the time range, the up axis and
-    metersPerUnit from the root layer alone, and rescales a sublayer whose time codes per
+    USD reads time codes per second, frames per second, the time range, the up axis,
+    metersPerUnit and the default prim from the root layer alone, and rescales a sublayer whose time codes per
     second differ from the root's; an overlay without them would shift the scene's times
     and change its units.
     """

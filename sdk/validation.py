@@ -5,25 +5,40 @@ A rigspace validator is a `ValidatorSpec` (plugin kind "validator", entry-point 
 `UsdValidation.ValidationRegistry` as `rigspace:<name>` and runs in the same
 `ValidationContext` as USD's built-in validators, so every finding has the same shape:
 severity, validator, prim and a message that names the fix. Rules report, never raise.
+
+These rules are the one set of checks: `rigspace inspect` reports them all, and
+`require_valid` makes capture and render refuse the errors of the rules that concern
+them, in the same words (docs/conventions.md, "Validation").
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import math
 import re
-from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
+import sys
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
 from urllib.parse import urlsplit
 
-from pxr import Usd, UsdSkel, UsdValidation
+import numpy as np
+from pxr import Sdf, Usd, UsdGeom, UsdSkel, UsdValidation
 
-from rigspace.sdk import schema
+from rigspace.sdk import schema, timecodes
+from rigspace.sdk.bindings import SkelBinding, ignored_animation_sources, skel_binding
 from rigspace.sdk.bundle import BundleError, read_manifest
+from rigspace.sdk.errors import RigspaceError, SceneError
+from rigspace.sdk.geometry import albedo_texture
 from rigspace.sdk.plugins import Kind, discover
 
 ERROR = "error"
 WARNING = "warning"
 PREFIX = "rigspace:"
+CAPTURE, RENDER = "capture", "render"
+PURPOSES = (CAPTURE, RENDER)
+"""The commands that refuse a scene with errors (`require_valid`'s purposes)."""
 
 # Limits documented on the schema properties (usd_schemas/schema.usda).
 MAX_VIEWS = 360
@@ -32,6 +47,7 @@ MIN_RESOLUTION, MAX_RESOLUTION = 16, 4096
 MAX_BUFFER_SECONDS = 5.0
 UNIT_QUAT_TOLERANCE = 1e-3
 MAPS = ("albedo", "normal", "depth", "mask")
+UP_AXES = ("Y", "Z")
 
 
 @dataclass(frozen=True)
@@ -41,6 +57,16 @@ class Issue:
     severity: str
     code: str
     message: str
+    """What is wrong, then " Fix: " and what to do about it."""
+    purposes: tuple[str, ...] | None = None
+    """The commands this error stops, or this warning is shown to; None: its rule's
+    (ValidatorSpec.purposes)."""
+    exception: type[RigspaceError] | None = None
+    """The exception `require_valid` raises for it alone (None: the caller's)."""
+
+    def as_error(self, default: type[RigspaceError] = SceneError) -> RigspaceError:
+        what, _, fix = self.message.partition(" Fix: ")
+        return (self.exception or default)(what, fix)
 
 
 @dataclass(frozen=True)
@@ -50,6 +76,10 @@ class ValidatorSpec:
     name: str
     doc: str
     check: Callable[[Usd.Prim], Iterable[Issue]]
+    purposes: tuple[str, ...] = PURPOSES
+    """The commands its errors stop (inspect reports every rule)."""
+    stage: bool = False
+    """Checked once per stage (`check` gets the pseudo-root) instead of once per prim."""
 
 
 VALIDATORS: Kind[ValidatorSpec] = Kind("validator", "rigspace.validators", ValidatorSpec)
@@ -64,23 +94,27 @@ class Finding:
     code: str
     prim: str
     message: str
+    blocks: tuple[str, ...] = ()
+    """The commands that refuse the scene for it (an error of a rigspace rule); USD's own
+    validators report compliance and stop none."""
 
-    def as_dict(self) -> dict[str, str]:
+    def as_dict(self) -> dict[str, object]:
         return {
             "severity": self.severity,
             "validator": self.validator,
             "code": self.code,
             "prim": self.prim,
             "message": self.message,
+            "blocks": list(self.blocks),
         }
 
 
-def error(code: str, message: str) -> Issue:
-    return Issue(ERROR, code, message)
+def error(code: str, message: str, **kwargs) -> Issue:
+    return Issue(ERROR, code, message, **kwargs)
 
 
-def warning(code: str, message: str) -> Issue:
-    return Issue(WARNING, code, message)
+def warning(code: str, message: str, **kwargs) -> Issue:
+    return Issue(WARNING, code, message, **kwargs)
 
 
 # ---------------------------------------------------------------------------------------
@@ -97,17 +131,10 @@ def character_skeleton(prim: Usd.Prim) -> Usd.Prim | None:
 
 
 def character_animation(prim: Usd.Prim) -> Usd.Prim | None:
-    """The SkelAnimation driving a neural character: its own relationship, else the skeleton's."""
-    stage = prim.GetStage()
-    targets = schema.read_neural_character(prim).animation_targets
-    if targets:
-        anim = stage.GetPrimAtPath(targets[0])
-        return anim if anim and anim.IsA(UsdSkel.Animation) else None
-    skel = character_skeleton(prim)
-    if skel is None:
-        return None
-    source = UsdSkel.BindingAPI(skel).GetAnimationSource()
-    return source if source and source.IsA(UsdSkel.Animation) else None
+    """The SkelAnimation driving a neural character: its own relationship, else the one UsdSkel
+    binds to its skeleton (the skeleton's own skel:animationSource or an ancestor's)."""
+    found, _ = resolve_character(prim)
+    return found.animation if found else None
 
 
 def animation_time_range(anim: Usd.Prim) -> tuple[float, float] | None:
@@ -117,6 +144,121 @@ def animation_time_range(anim: Usd.Prim) -> tuple[float, float] | None:
     for attr in (skel_anim.GetRotationsAttr(), skel_anim.GetTranslationsAttr()):
         samples += attr.GetTimeSamples()
     return (min(samples), max(samples)) if samples else None
+
+
+@dataclass
+class CharacterBinding:
+    """A neural character's skeleton, animation and skinned meshes, resolved as UsdSkel does."""
+
+    skeleton: Usd.Prim
+    joints: list[str]
+    animation: Usd.Prim
+    skel: SkelBinding = field(repr=False)
+
+
+def resolve_character(prim: Usd.Prim) -> tuple[CharacterBinding | None, Issue | None]:
+    """What posing a neural character needs (`CharacterRig`), or the first error that stops it.
+
+    In order: exactly one rigspace:skeleton target that is a Skeleton with joints; a
+    SkelAnimation (rigspace:animationSource, else the one UsdSkel binds); a skinned Mesh.
+    """
+    path = prim.GetPath()
+    character = schema.read_neural_character(prim)
+    stage = prim.GetStage()
+    targets = character.skeleton_targets
+    if len(targets) != 1:
+        listed = f"it has {len(targets)}: {', '.join(targets)}" if targets else "it has none"
+        code = "SeveralSkeletons" if targets else "NoSkeleton"
+        return None, error(
+            code,
+            f"Neural character {path} has no single rigspace:skeleton target ({listed}). Fix: "
+            "point rigspace:skeleton at the one UsdSkel Skeleton that drives the character.",
+        )
+    target = stage.GetPrimAtPath(targets[0])
+    if not target:
+        return None, error(
+            "SkeletonMissing",
+            f"Neural character {path}: rigspace:skeleton targets {targets[0]}, which does not "
+            "exist on the stage. Fix: correct the path, or load the layer that defines it.",
+        )
+    if not target.IsA(UsdSkel.Skeleton):
+        return None, error(
+            "NotASkeleton",
+            f"Neural character {path}: rigspace:skeleton targets {targets[0]}, a "
+            f"{target.GetTypeName() or 'untyped prim'}, not a Skeleton. Fix: target the "
+            "Skeleton prim (UsdSkel) instead.",
+        )
+    joints = schema.skeleton_joints(target)
+    if not joints:
+        return None, error(
+            "EmptySkeleton",
+            f"Skeleton {targets[0]} (rigspace:skeleton of {path}) has no joints. Fix: author "
+            "its joints, bindTransforms and restTransforms.",
+        )
+    binding = skel_binding(target)
+    if character.animation_targets:
+        anim = stage.GetPrimAtPath(character.animation_targets[0])
+        if not anim or not anim.IsA(UsdSkel.Animation):
+            kind = anim.GetTypeName() if anim else "nothing"
+            return None, error(
+                "NotAnAnimation",
+                f"Neural character {path}: rigspace:animationSource targets "
+                f"{character.animation_targets[0]} ({kind}), not a SkelAnimation. Fix: target a "
+                "SkelAnimation prim, or clear the relationship to use the skeleton's own binding.",
+            )
+    else:
+        anim = binding.animation
+    if anim is None:
+        ignored = ignored_animation_sources(target)
+        hint = (
+            f" ({', '.join(ignored)} authors skel:animationSource without SkelBindingAPI, so "
+            "UsdSkel ignores it: apply the API there)"
+            if ignored
+            else ""
+        )
+        return None, error(
+            "NoAnimation",
+            f"Neural character {path}: skeleton {targets[0]} has no animation (neither "
+            "rigspace:animationSource nor a skel:animationSource on the skeleton or an ancestor "
+            f"names a SkelAnimation){hint}. Fix: bind a SkelAnimation to the skeleton or its "
+            "SkelRoot, or set rigspace:animationSource.",
+        )
+    if not binding.skinning:
+        return None, error(
+            "NoSkinnedMesh",
+            f"Neural character {path}: no skinned mesh is bound to skeleton {targets[0]} (a "
+            "visible Mesh under its SkelRoot with primvars:skel:jointIndices and jointWeights). "
+            "Fix: bind the character's meshes to the skeleton with UsdSkelBindingAPI skin weights.",
+        )
+    return CharacterBinding(target, joints, anim, binding), None
+
+
+def _animation_values(anim: Usd.Prim, path: Sdf.Path) -> Iterator[Issue]:
+    """Every authored value of the animation finite; time samples to capture."""
+    skel_anim = UsdSkel.Animation(anim)
+    for attr in (
+        skel_anim.GetTranslationsAttr(),
+        skel_anim.GetRotationsAttr(),
+        skel_anim.GetScalesAttr(),
+    ):
+        for t in attr.GetTimeSamples() or [Usd.TimeCode.Default()]:
+            value = attr.Get(t)
+            if value is not None and not np.all(np.isfinite(np.asarray(value, dtype=float))):
+                when = f"at time {t:g}" if isinstance(t, float) else "(its default value)"
+                yield error(
+                    "AnimationNotFinite",
+                    f"Animation {anim.GetPath()} (driving {path}) has NaN or Inf in "
+                    f"{attr.GetName()} {when}. Fix: fix or delete that time sample (capture "
+                    "and render read every time code).",
+                )
+                break
+    if animation_time_range(anim) is None:
+        yield error(
+            "AnimationNotTimeSampled",
+            f"Animation {anim.GetPath()} (driving {path}) has no time samples to capture. Fix: "
+            "author time-sampled rotations on the SkelAnimation.",
+            purposes=(CAPTURE,),
+        )
 
 
 def _missing_joints(names: Iterable[str], joints: list[str]) -> list[str]:
@@ -143,68 +285,66 @@ def _owner_is_character(prim: Usd.Prim, api: str) -> Iterator[Issue]:
 # The rules
 
 
+def check_stage(root: Usd.Prim) -> Iterator[Issue]:
+    """Units and up axis, read from the root layer (USD reads them nowhere else)."""
+    stage = root.GetStage()
+    name = stage.GetRootLayer().identifier
+    if not stage.HasAuthoredMetadata("metersPerUnit"):
+        yield warning(
+            "MetersPerUnitAssumed",
+            f"Stage {name} does not author metersPerUnit; rigspace assumes USD's fallback "
+            "0.01 (centimetres). Fix: author metersPerUnit in the root layer (1 for metres).",
+        )
+    else:
+        value = stage.GetMetadata("metersPerUnit")
+        if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+            yield error(
+                "BadMetersPerUnit",
+                f"Stage {name} has metersPerUnit {value}; it must be a finite number > 0 (light "
+                "normalisation, capture distances and depth are in these units). Fix: author "
+                "metersPerUnit in the root layer (0.01 for centimetres, 1 for metres).",
+            )
+    if not stage.HasAuthoredMetadata("upAxis"):
+        yield warning(
+            "UpAxisAssumed",
+            f"Stage {name} does not author upAxis; rigspace assumes Y (USD's fallback). Fix: "
+            'author upAxis = "Y" (or "Z") in the root layer.',
+        )
+    elif str(stage.GetMetadata("upAxis")) not in UP_AXES:
+        yield error(
+            "BadUpAxis",
+            f"Stage {name} has upAxis {stage.GetMetadata('upAxis')!r}; USD allows Y or Z. Fix: "
+            'author upAxis = "Y" or "Z" in the root layer.',
+        )
+
+
+def check_textures(prim: Usd.Prim) -> Iterator[Issue]:
+    """A gprim's UsdPreviewSurface texture can be found (reading it is left to the renderer)."""
+    if not prim.IsA(UsdGeom.Gprim):
+        return
+    texture = albedo_texture(prim)
+    problem = texture.problem() if texture else None
+    if problem:
+        yield error(
+            "TextureMissing",
+            f"Gprim {prim.GetPath()}: {problem[0].upper()}{problem[1:]}. Fix: correct the "
+            "shader's inputs:file (a relative path is relative to the layer that authors it) "
+            "or put the image there.",
+        )
+
+
 def check_character_skeleton(prim: Usd.Prim) -> Iterator[Issue]:
     if not schema.is_neural_character(prim):
         return
     path = prim.GetPath()
     character = schema.read_neural_character(prim)
-    stage = prim.GetStage()
-    if not character.skeleton_targets:
-        yield error(
-            "NoSkeleton",
-            f"Neural character {path} has no rigspace:skeleton target. Fix: point "
-            "rigspace:skeleton at the UsdSkel Skeleton that drives the character.",
-        )
+    found, problem = resolve_character(prim)
+    if found is None:
+        if problem is not None:
+            yield problem
         return
-    if len(character.skeleton_targets) > 1:
-        yield error(
-            "SeveralSkeletons",
-            f"Neural character {path} has {len(character.skeleton_targets)} rigspace:skeleton "
-            f"targets ({', '.join(character.skeleton_targets)}). Fix: keep exactly one.",
-        )
-        return
-    target_path = character.skeleton_targets[0]
-    target = stage.GetPrimAtPath(target_path)
-    if not target:
-        yield error(
-            "SkeletonMissing",
-            f"Neural character {path}: rigspace:skeleton targets {target_path}, which does not "
-            "exist on the stage. Fix: correct the path, or load the layer that defines it.",
-        )
-        return
-    if not target.IsA(UsdSkel.Skeleton):
-        yield error(
-            "NotASkeleton",
-            f"Neural character {path}: rigspace:skeleton targets {target_path}, a "
-            f"{target.GetTypeName() or 'untyped prim'}, not a Skeleton. Fix: target the "
-            "Skeleton prim (UsdSkel) instead.",
-        )
-        return
-    joints = schema.skeleton_joints(target)
-    if not joints:
-        yield error(
-            "EmptySkeleton",
-            f"Skeleton {target_path} (rigspace:skeleton of {path}) has no joints. Fix: author "
-            "its joints, bindTransforms and restTransforms.",
-        )
-        return
-    for anim_path in character.animation_targets[:1]:
-        anim = stage.GetPrimAtPath(anim_path)
-        if not anim or not anim.IsA(UsdSkel.Animation):
-            kind = anim.GetTypeName() if anim else "nothing"
-            yield error(
-                "NotAnAnimation",
-                f"Neural character {path}: rigspace:animationSource targets {anim_path} "
-                f"({kind}), not a SkelAnimation. Fix: target a SkelAnimation prim, or clear the "
-                "relationship to use the skeleton's own binding.",
-            )
-    if not character.animation_targets and character_animation(prim) is None:
-        yield warning(
-            "NoAnimation",
-            f"Neural character {path}: neither it nor its skeleton {target_path} has an "
-            "animation source, so it holds the rest pose. Fix: set rigspace:animationSource "
-            "or the skeleton's skel:animationSource to a SkelAnimation.",
-        )
+    yield from _animation_values(found.animation, path)
+    joints = found.joints
     if character.look_at_joint:
         yield from _joint_issues(
             "LookAtJointMissing", [character.look_at_joint], joints, path, "rigspace:lookAtJoint"
@@ -257,8 +397,12 @@ def check_character_model(prim: Usd.Prim) -> Iterator[Issue]:
     try:
         manifest = read_manifest(manifest_file)
     except BundleError as exc:
-        yield error("BadModel", f"Neural character {path}: {exc}")
+        yield error("BadModel", f"Neural character {path}: {exc}", exception=BundleError)
         return
+    if "trunk" in manifest.raw or "levels" in manifest.raw:  # a manifest alone: nothing to load
+        problem = _graphs_problem(manifest.folder)
+        if problem:
+            yield error("BadModel", f"Neural character {path}: {problem}", exception=BundleError)
     skeleton = character_skeleton(prim)
     if skeleton is not None:
         missing = _missing_joints(manifest.joints, schema.skeleton_joints(skeleton))
@@ -292,6 +436,64 @@ def check_character_model(prim: Usd.Prim) -> Iterator[Issue]:
             f"> 0 (distance {distance}, focal length {focal}); the billboard scale depends on "
             "them. Fix: author rigspace:trainingCamera:* or re-export the bundle.",
         )
+
+
+def _graphs_problem(folder: Path) -> str | None:
+    """Why the bundle's graphs cannot run, or None (cached per folder content)."""
+    stamp = tuple((p.name, p.stat().st_mtime_ns, p.stat().st_size) for p in folder.glob("*"))
+    return _check_graphs(folder.resolve(), stamp)
+
+
+@functools.lru_cache(maxsize=32)
+def _check_graphs(folder: Path, _stamp: tuple) -> str | None:
+    """Every graph the manifest lists is there with the size and sha256 it records; the trunk,
+    and any graph without a record or that differs from it, loads in onnxruntime (the
+    runtime's loader, so its words). Loading every graph would triple inspect's time."""
+    from rigspace.sdk.model import BundleModel  # onnxruntime, only once a bundle resolves
+
+    try:
+        model = BundleModel(folder)
+        raw = model.manifest.raw
+        sets = [raw["trunk"], *raw["levels"]]
+        graphs = sorted(
+            {g for s in sets for key in ("graphs", "int8") for g in s.get(key, {}).values()}
+        )
+        records = raw.get("files", {})
+        load = {raw["trunk"]["graphs"]["trunk"]}
+        changed = []
+        for name in graphs:
+            path = folder / name
+            if not path.is_file():
+                return (
+                    f"Model file {path} is missing from the bundle. Fix: re-export the bundle, "
+                    "or restore the file."
+                )
+            record = records.get(name)
+            if not record or _differs(path, record):
+                load.add(name)
+                changed += [name] if record else []
+        for name in sorted(load):
+            model._session(name)  # the runtime loader: its errors, word for word
+    except BundleError as exc:
+        return str(exc)
+    except (KeyError, TypeError, AttributeError) as exc:  # a manifest that lacks what it lists
+        return (
+            f"Model bundle {folder}: manifest.json is incomplete ({type(exc).__name__}: {exc}). "
+            "Fix: re-export the bundle with `rigspace train`."
+        )
+    if changed:
+        return (
+            f"Model bundle {folder}: {', '.join(changed)} differ from the size and sha256 "
+            "manifest.json records (changed after export). Fix: re-export the bundle with "
+            "`rigspace train`, or restore the files."
+        )
+    return None
+
+
+def _differs(path: Path, record: dict) -> bool:
+    if path.stat().st_size != record.get("bytes"):
+        return True
+    return hashlib.sha256(path.read_bytes()).hexdigest() != record.get("sha256")
 
 
 def _range_issue(ok: bool, code: str, message: str) -> Iterator[Issue]:
@@ -364,6 +566,14 @@ def check_capture_ring(prim: Usd.Prim) -> Iterator[Issue]:
         "ClippingOutOfRange",
         out_of_range("clippingRange", (near, far), "0 < near < far"),
     )
+    if ring.radius > 0 and 0 < near < far:
+        yield from _range_issue(
+            near < ring.radius < far,
+            "RadiusOutsideClipping",
+            f"Capture ring on {path}: {ns}radius {ring.radius:g} puts the look-at joint outside "
+            f"the clipping range ({near:g}, {far:g}), so the character would be clipped away. "
+            "Fix: author a radius between near and far, or widen clippingRange.",
+        )
     yield from _range_issue(
         0 <= ring.held_out_views_per_ring <= ring.views_per_ring,
         "HeldOutViewsOutOfRange",
@@ -407,16 +617,30 @@ def _check_clips(prim: Usd.Prim, ring: schema.CaptureRing) -> Iterator[Issue]:
     anim = character_animation(prim) if schema.is_neural_character(prim) else None
     span = animation_time_range(anim) if anim is not None else None
     if anim is not None and span is not None:
-        outside = [
-            f"{n} ({a:g}-{b:g})"
-            for n, (a, b) in zip(ring.clip_names, ring.clip_ranges, strict=True)
-            if a < span[0] or b > span[1]
-        ]
+        # As capture fits them (sdk/timecodes.py): an end within the tolerance is the same
+        # frame, a clip reaching past the range is clamped, one wholly outside is refused.
+        outside, clamped = [], []
+        for n, (a, b) in zip(ring.clip_names, ring.clip_ranges, strict=True):
+            if not (math.isfinite(a) and math.isfinite(b)) or a > b:
+                continue  # ClipRangeBackwards, or not a range at all: said above
+            inside = timecodes.clamp_range(a, b, *span)
+            if inside is None:
+                outside.append(f"{n} ({a:g}-{b:g})")
+            elif not (timecodes.same_time(inside[0], a) and timecodes.same_time(inside[1], b)):
+                clamped.append(f"{n} ({a:g}-{b:g} -> {inside[0]:g}-{inside[1]:g})")
         if outside:
             yield error(
                 "ClipOutsideAnimation",
                 f"Capture ring on {path}: clips {', '.join(outside)} fall outside the animation "
                 f"{anim.GetPath()} ({span[0]:g}-{span[1]:g}). Fix: clip to the animated range.",
+            )
+        if clamped:
+            yield warning(
+                "ClipClamped",
+                f"Capture ring on {path}: clips {', '.join(clamped)} reach past the animation "
+                f"{anim.GetPath()} ({span[0]:g}-{span[1]:g}); capture clamps them. Fix: author "
+                "clipRanges inside the animated range.",
+                purposes=(),  # inspect's: capture warns itself about the clips it captures
             )
     skeleton = character_skeleton(prim) if schema.is_neural_character(prim) else None
     if skeleton is not None and ring.look_at_joint:
@@ -518,26 +742,67 @@ def check_live_binding(prim: Usd.Prim) -> Iterator[Issue]:
                 )
 
 
+STAGE_METADATA = ValidatorSpec(
+    "StageMetadata",
+    "The stage's metersPerUnit is a finite number > 0 and its upAxis Y or Z (else assumed).",
+    check_stage,
+    stage=True,
+)
 CHARACTER_SKELETON = ValidatorSpec(
     "CharacterSkeleton",
-    "A neural character targets exactly one Skeleton, its joints and animation exist.",
+    "A neural character's Skeleton, animation (own or inherited) and skinned meshes resolve; "
+    "its joints exist and its animation is finite.",
     check_character_skeleton,
 )
 CHARACTER_MODEL = ValidatorSpec(
     "CharacterModel",
-    "A neural character's model bundle resolves, reads, and fits its skeleton.",
+    "A neural character's model bundle resolves, its graphs load, and it fits its skeleton.",
     check_character_model,
+    purposes=(RENDER,),
 )
 CAPTURE_RING = ValidatorSpec(
     "CaptureRing",
     "Capture ring values are in range and its clips lie inside the animation.",
     check_capture_ring,
+    purposes=(CAPTURE,),
 )
 LIVE_BINDING = ValidatorSpec(
     "LiveBinding",
     "Live bindings have parseable URLs and bone maps that fit the skeleton.",
     check_live_binding,
+    purposes=(RENDER,),
 )
+TEXTURES = ValidatorSpec(
+    "Textures",
+    "Every UsdPreviewSurface texture a gprim reads can be found.",
+    check_textures,
+)
+BUILTIN = (
+    STAGE_METADATA,
+    CHARACTER_SKELETON,
+    CHARACTER_MODEL,
+    CAPTURE_RING,
+    LIVE_BINDING,
+    TEXTURES,
+)
+"""Always run; the entry-point group adds plugins' rules (the built-ins are declared there
+too, for discovery's sake, and are not run twice)."""
+
+
+def rules() -> tuple[list[ValidatorSpec], dict[str, str]]:
+    """The built-in rules and the installed plugins' rules; plugin name -> why it failed."""
+    plugins = discover(VALIDATORS)
+    failed = dict(plugins.failed)
+    names = {spec.name for spec in BUILTIN}
+    extra = []
+    for plugin_name, spec in plugins.specs.items():
+        if spec in BUILTIN:
+            continue
+        if spec.name in names:
+            failed[plugin_name] = f"its rule name {spec.name!r} is a built-in rule's"
+            continue
+        extra.append(spec)
+    return [*BUILTIN, *extra], failed
 
 
 # ---------------------------------------------------------------------------------------
@@ -547,20 +812,34 @@ LIVE_BINDING = ValidatorSpec(
 _SEVERITY = {ERROR: UsdValidation.ValidationErrorType.Error}
 _registered: dict[str, UsdValidation.Validator] = {}
 _failures: list[BaseException] = []
+_blocks: dict[tuple[str, str, str], tuple[str, ...]] = {}
+"""(code, prim, message) -> the commands an error stops, noted while USD runs the rules."""
+
+
+def _blocked(spec: ValidatorSpec, issue: Issue) -> tuple[str, ...]:
+    """The commands that refuse the scene for `issue` (none for a warning)."""
+    if issue.severity != ERROR:
+        return ()
+    return tuple(p for p in spec.purposes if issue.purposes is None or p in issue.purposes)
 
 
 def _usd_task(spec: ValidatorSpec):
-    def task(prim, *_time_range):
+    def task(subject, *_time_range):
         try:
-            return [
-                UsdValidation.ValidationError(
-                    issue.code,
-                    _SEVERITY.get(issue.severity, UsdValidation.ValidationErrorType.Warn),
-                    [UsdValidation.ValidationErrorSite(prim.GetStage(), prim.GetPath())],
-                    issue.message,
+            stage = subject if spec.stage else subject.GetStage()
+            prim = stage.GetPseudoRoot() if spec.stage else subject
+            found = []
+            for issue in spec.check(prim):
+                _blocks[(issue.code, str(prim.GetPath()), issue.message)] = _blocked(spec, issue)
+                found.append(
+                    UsdValidation.ValidationError(
+                        issue.code,
+                        _SEVERITY.get(issue.severity, UsdValidation.ValidationErrorType.Warn),
+                        [UsdValidation.ValidationErrorSite(stage, prim.GetPath())],
+                        issue.message,
+                    )
                 )
-                for issue in spec.check(prim)
-            ]
+            return found
         except Exception as exc:  # a bug in a rule: re-raised after validation (loudly)
             _failures.append(exc)
             return []
@@ -579,19 +858,23 @@ def register(specs: Iterable[ValidatorSpec]) -> list[UsdValidation.Validator]:
                 metadata = UsdValidation.ValidatorMetadata(
                     name=name, keywords=["rigspace"], doc=spec.doc, isSuite=False
                 )
-                registry.RegisterPrimValidator(metadata, _usd_task(spec))
+                if spec.stage:
+                    registry.RegisterStageValidator(metadata, _usd_task(spec))
+                else:
+                    registry.RegisterPrimValidator(metadata, _usd_task(spec))
             _registered[name] = registry.GetOrLoadValidatorByName(name)
         validators.append(_registered[name])
     return validators
 
 
 def _site_path(err: UsdValidation.ValidationError) -> str:
-    """The prim or property a finding is about, else its layer."""
+    """The prim or property a finding is about, else its layer ("" for the stage itself)."""
     for site in err.GetSites():
         if site.IsProperty() and site.GetProperty():
             return str(site.GetProperty().GetPath())
         if site.IsPrim() and site.GetPrim():
-            return str(site.GetPrim().GetPath())
+            path = site.GetPrim().GetPath()
+            return "" if path == Sdf.Path.absoluteRootPath else str(path)
         if site.GetLayer():
             return site.GetLayer().identifier
     return ""
@@ -603,8 +886,8 @@ def validate(stage: Usd.Stage, include_usd: bool = True) -> list[Finding]:
     Findings are sorted by severity, prim and validator. A rigspace validator plugin that
     fails to load is reported as a warning; a rule that raises is our bug and re-raises.
     """
-    plugins = discover(VALIDATORS)
-    validators = register(plugins)
+    specs, failed = rules()
+    validators = register(specs)
     if include_usd:
         validators += [
             v
@@ -612,23 +895,98 @@ def validate(stage: Usd.Stage, include_usd: bool = True) -> list[Finding]:
             if not v.GetMetadata().isSuite and not str(v.GetMetadata().name).startswith(PREFIX)
         ]
     _failures.clear()
+    _blocks.clear()
     errors = UsdValidation.ValidationContext(validators).Validate(stage)
     if _failures:
         raise _failures[0]
-    findings = [
-        Finding(
-            severity=ERROR if e.GetType() == UsdValidation.ValidationErrorType.Error else WARNING,
-            validator=str(e.GetValidator().GetMetadata().name) if e.GetValidator() else "",
-            code=str(e.GetName()),
-            prim=_site_path(e),
-            message=e.GetMessage(),
+    findings = []
+    for e in errors:
+        if e.HasNoError():
+            continue
+        prim = _site_path(e)
+        code, message = str(e.GetName()), e.GetMessage()
+        findings.append(
+            Finding(
+                severity=ERROR
+                if e.GetType() == UsdValidation.ValidationErrorType.Error
+                else WARNING,
+                validator=str(e.GetValidator().GetMetadata().name) if e.GetValidator() else "",
+                code=code,
+                prim=prim,
+                message=message,
+                blocks=_blocks.get((code, prim or "/", message), ()),
+            )
         )
-        for e in errors
-        if not e.HasNoError()
-    ]
     findings += [
         Finding(WARNING, PREFIX + "plugins", "PluginFailed", "", f"validator plugin {n!r}: {why}")
-        for n, why in plugins.failed.items()
+        for n, why in failed.items()
     ]
     order = {ERROR: 0, WARNING: 1}
     return sorted(findings, key=lambda f: (order[f.severity], f.prim, f.validator, f.code))
+
+
+# ---------------------------------------------------------------------------------------
+# Refusing what a command cannot use
+
+
+_warned: set[tuple[str, str]] = set()
+
+
+def _read_prims(stage: Usd.Stage, prims: Sequence[Usd.Prim] | None) -> list[Usd.Prim]:
+    """The prims a command reads: every prim, or the given characters and their skinned meshes."""
+    if prims is None:
+        return list(stage.Traverse(Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
+    read = []
+    for prim in prims:
+        read.append(prim)
+        if schema.is_neural_character(prim):
+            found, _ = resolve_character(prim)
+            if found is not None:
+                read += [query.GetPrim() for query in found.skel.skinning]
+    return read
+
+
+def require_valid(
+    stage: Usd.Stage,
+    purpose: str,
+    prims: Sequence[Usd.Prim] | None = None,
+    *,
+    exception: type[RigspaceError] = SceneError,
+    warn: Callable[[str], None] | None = None,
+) -> None:
+    """Refuse a scene that `purpose` ("capture" or "render") cannot use, in inspect's words.
+
+    Runs the stage rules and, on `prims` (None: every prim of the stage; a neural character
+    brings its skinned meshes), the rigspace rules whose errors stop `purpose`; raises one
+    `exception` for them (a lone finding keeps its own type, e.g. BundleError).
+    Warnings go to `warn` (default: stderr, once per stage and message).
+    """
+    if purpose not in PURPOSES:
+        raise ValueError(f"purpose must be one of {PURPOSES}, got {purpose!r}")
+    specs, _failed = rules()
+    errors: list[Issue] = []
+    targets = _read_prims(stage, prims)
+    for spec in specs:
+        if purpose not in spec.purposes:
+            continue
+        for prim in [stage.GetPseudoRoot()] if spec.stage else targets:
+            for issue in spec.check(prim):
+                if purpose not in (spec.purposes if issue.purposes is None else issue.purposes):
+                    continue
+                if issue.severity == ERROR:
+                    errors.append(issue)
+                elif warn is not None:
+                    warn(issue.message)
+                elif (stage.GetRootLayer().identifier, issue.message) not in _warned:
+                    _warned.add((stage.GetRootLayer().identifier, issue.message))
+                    print(f"rigspace {purpose}: warning: {issue.message}", file=sys.stderr)
+    if len(errors) == 1:
+        raise errors[0].as_error(exception)
+    if errors:
+        name = stage.GetRootLayer().identifier
+        raise exception(
+            f"Scene {name} has {len(errors)} problems that stop {purpose}:\n"
+            + "\n".join(f"  - {issue.message}" for issue in errors)
+            + "\n",
+            f"fix each as it says (`rigspace inspect {name}` lists them all).",
+        )

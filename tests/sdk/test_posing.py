@@ -11,7 +11,7 @@ from rigspace.sdk.errors import SceneError
 from rigspace.sdk.geometry import read_albedo, read_mesh_source, triangulate
 from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.stage import open_stage
-from tests.conftest import REPO
+from tests.conftest import REPO, write_tiny_scene
 
 CESIUM_SCENE = REPO / "samples" / "scenes" / "cesium_man.usda"
 SKINNING_TOLERANCE = 1e-4  # scene units (metres here): float32 skinning vs float64 numpy
@@ -86,10 +86,10 @@ def _character_stage(tiny_scene, **kwargs):
     return stage, stage.GetPrimAtPath("/World/Hero")
 
 
-def test_rig_without_skinned_mesh_is_a_clear_error(tiny_scene):
-    _, hero = _character_stage(tiny_scene)
+def test_rig_without_skinned_mesh_is_a_clear_error(tmp_path):
+    stage = open_stage(write_tiny_scene(tmp_path))  # the shared tiny scene has no mesh
     with pytest.raises(SceneError, match="no skinned mesh is bound"):
-        CharacterRig(hero)
+        CharacterRig(stage.GetPrimAtPath("/World/Hero"))
 
 
 def test_rig_without_animation_is_a_clear_error(tiny_scene):
