@@ -259,20 +259,29 @@ def frame_times(frames: tuple[float, float] | None, step: float, stage) -> np.nd
 
 def check_reference_poses(truth, times) -> None:
     """--reference draws each character's skinned mesh: refuse, before any frame, an
-    animation that gives NaN or Inf joints at a time to render (the network's render skips
-    such a frame with a warning; the mesh cannot be drawn at all)."""
+    animation that gives NaN or Inf joints, or skinned points beyond float32's range (finite
+    joint translations near 3e38 add up past it), at a time to render. The network's render
+    skips such a frame with a warning; the mesh cannot be drawn at all."""
+    import numpy as np
+
     for character in truth.characters:
         for t in times:
             try:
                 character.pose(float(t))
+                with np.errstate(invalid="ignore", over="ignore"):  # the normals of inf points
+                    meshes = character.rig.posed_meshes(float(t))
+                bad = next((m.name for m in meshes if not np.all(np.isfinite(m.points))), None)
+                what = f"points for {bad}"
             except SceneError:
+                bad = what = "joint transforms"
+            if bad is not None:
                 animation = character.rig.animation.GetPath()
                 raise SceneError(
                     f"--reference: the animation {animation} of {character.path} gives NaN or "
-                    f"Inf joint transforms at time {t:g}, so its skinned mesh cannot be drawn.",
+                    f"Inf {what} at time {t:g}, so the skinned mesh cannot be drawn.",
                     "fix the SkelAnimation's values there, or leave out --reference (the "
-                    "network's render skips that frame with a warning).",
-                ) from None
+                    "network's render skips a frame without finite joints, with a warning).",
+                )
 
 
 def make_folder(out: Path) -> Path | None:

@@ -8,7 +8,7 @@ import av
 import cv2
 import numpy as np
 import pytest
-from pxr import Gf, Usd, UsdGeom, UsdSkel
+from pxr import Gf, Usd, UsdGeom
 
 from rigspace.sdk.cli import main
 from rigspace.sdk.stage import overlay_layer
@@ -110,24 +110,44 @@ def test_the_video_is_h264_with_every_frame_and_the_pngs_pixels(tmp_path):
     assert np.abs(frames[1].astype(int) - png).mean() < 3
 
 
-def _nan_pose(stage):
-    rotations = UsdSkel.Animation(stage.GetPrimAtPath(ANIMATION)).GetRotationsAttr()
-    # Samples in a stronger layer replace the weaker layer's: frames 0-20, one of them NaN.
-    for t in range(0, 21):
-        value = rotations.Get(t)
-        if t == 10:
-            value = [Gf.Quatf(float("nan"), 0, 0, 0), *list(value)[1:]]
-        rotations.Set(value, t)
+def _animation_values(name: str, frame: int, values):
+    """An overlay edit: the animation's `name` samples on frames 0-20, with the first
+    joints' values at `frame` replaced by `values` (samples in a stronger layer replace the
+    weaker layer's)."""
+
+    def edit(stage):
+        attr = stage.GetPrimAtPath(ANIMATION).GetAttribute(name)
+        for t in range(0, 21):
+            value = list(attr.Get(t))
+            if t == frame:
+                value[: len(values)] = values
+            attr.Set(value, t)
+
+    return edit
 
 
 def test_reference_with_nan_in_the_animation_names_the_animation(tmp_path, capsys):
-    scene = _overlay(tmp_path, "nan.usda", _nan_pose)
+    nan = _animation_values("rotations", 10, [Gf.Quatf(float("nan"), 0, 0, 0)])
+    scene = _overlay(tmp_path, "nan.usda", nan)
     out = tmp_path / "ref"
     args = ["render", scene, "--out", str(out), "--frames", "0:20", "--step", "5", "--reference"]
     assert main([*args, *SMALL]) == 2
     err = capsys.readouterr().err
-    assert ANIMATION in err and "NaN or Inf joint transforms at time 10" in err
+    assert ANIMATION in err and "NaN or Inf" in err and "at time 10" in err
     assert "Traceback" not in err and not out.exists()
+
+
+def test_reference_with_points_past_float32_names_the_animation(tmp_path, capsys):
+    # Finite samples (inspect passes them), but the pelvis and spine at 3e38 each put the
+    # skinned points past float32's 3.4e38: the network draws, the mesh cannot.
+    far = Gf.Vec3f(3e38, 0, 0)
+    scene = _overlay(tmp_path, "far.usda", _animation_values("translations", 10, [far, far]))
+    out = tmp_path / "ref"
+    args = ["render", scene, "--out", str(out), "--frames", "0:20", "--step", "5", "--reference"]
+    assert main([*args, *SMALL]) == 2
+    err = capsys.readouterr().err
+    assert f"the animation {ANIMATION} of /World/Hero gives NaN or Inf points" in err
+    assert "at time 10" in err and "Traceback" not in err and not out.exists()
 
 
 def _tiny_hero(stage):
