@@ -360,16 +360,17 @@ class Retargeter:
         desired[targets] = self._world_deltas(pose.rotations)[received] @ self._rest_world[targets]
         mapped = np.zeros(n, dtype=bool)
         mapped[targets] = True
+        # Final world rotations: mapped joints take the desired ones; the others chain the
+        # stage's local rotation onto their parent's final world, level by level.
         world = np.empty((n + 1, 3, 3))
         world[-1] = np.eye(3)
-        local = stage_rot.copy()
+        world[:-1][mapped] = desired[mapped]
         for level in self.target_levels:
-            parent_world = world[self._parent_slot[level]]
-            here = mapped[level]
-            if here.any():
-                local[level[here]] = np.swapaxes(parent_world[here], 1, 2) @ desired[level[here]]
-            world[level] = parent_world @ local[level]
-        live = local[mapped]
+            free = level[~mapped[level]]
+            if len(free):
+                world[free] = world[self._parent_slot[free]] @ stage_rot[free]
+        parent_world = world[self._parent_slot[mapped]]
+        live = np.swapaxes(parent_world, 1, 2) @ desired[mapped]
         if pose.weight < 1:
             q = quat_slerp(quat_from_matrix(stage_rot[mapped]), quat_from_matrix(live), pose.weight)
             live = matrix_from_quat(q)
