@@ -2,9 +2,11 @@
 
 Like a look through usdview's prim browser from the terminal: stage metadata, skeletons,
 animations, skinned meshes, cameras, lights and neural characters (every schema value
-and applied API), then the findings of USD's validators and rigspace's. Exit code 0
-without errors, 1 with errors; `--json` prints one object with keys stage, prims,
-errors, warnings.
+and applied API), then the findings of USD's validators and rigspace's. Each rigspace
+error names the commands that refuse the scene for it (`blocks`: capture, render; they
+run the same rules through `validation.require_valid`); USD's own findings are
+compliance and stop no command. Exit code 0 without errors, 1 with errors; `--json`
+prints one object with keys stage, prims, errors, warnings.
 """
 
 from __future__ import annotations

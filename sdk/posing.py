@@ -18,10 +18,10 @@ import numpy as np
 from pxr import Usd, UsdGeom, UsdSkel, Vt
 
 from rigspace.sdk.camera import from_gf
+from rigspace.sdk.character_rules import resolve_character
 from rigspace.sdk.errors import SceneError
 from rigspace.sdk.geometry import MeshSource, read_mesh_source
 from rigspace.sdk.render import DrawMesh, vertex_normals
-from rigspace.sdk.validation import resolve_character
 
 
 @dataclass

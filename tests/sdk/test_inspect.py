@@ -106,6 +106,16 @@ def test_unreadable_scene_is_a_clear_error(tmp_path, capsys, content, suffix, me
     assert message in err and str(path) in err and "Traceback" not in err
 
 
+def test_a_text_file_named_usda_says_what_it_is_what_usd_said_and_the_fix(tmp_path, capsys):
+    path = tmp_path / "notes.usda"
+    path.write_text("shopping list\n- milk\n")
+    assert main(["inspect", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"Scene {path} is not USD: it does not start with the `#usda 1.0` header" in err
+    assert f"USD reports: <{path}> is not a valid usda layer." in err
+    assert "Fix: export the scene to USD (.usda, .usdc or .usdz)" in err and err.endswith(".")
+
+
 def _run(command: list[str]) -> subprocess.CompletedProcess:
     # PATH holds the system folders only: what a fresh clone has when pytest runs as
     # `.venv/bin/python -m pytest` without an activated environment.

@@ -1,0 +1,425 @@
+"""The rules for the stage and its neural characters: units, bindings, animation, model, textures.
+
+`resolve_character` is also what posing (`CharacterRig`) runs, so inspect reports exactly
+what capture and the runtime refuse to pose, in the same words.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import math
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from pxr import Sdf, Usd, UsdGeom, UsdSkel
+
+from rigspace.sdk import schema
+from rigspace.sdk.bindings import SkelBinding, ignored_animation_sources, skel_binding
+from rigspace.sdk.bundle import BundleError, read_manifest
+from rigspace.sdk.geometry import albedo_texture
+from rigspace.sdk.issues import CAPTURE, RENDER, Issue, ValidatorSpec, error, warning
+
+MAPS = ("albedo", "normal", "depth", "mask")
+UP_AXES = ("Y", "Z")
+
+
+def character_skeleton(prim: Usd.Prim) -> Usd.Prim | None:
+    """The Skeleton prim a neural character targets, or None when it has no valid one."""
+    targets = schema.read_neural_character(prim).skeleton_targets
+    if len(targets) != 1:
+        return None
+    target = prim.GetStage().GetPrimAtPath(targets[0])
+    return target if target and target.IsA(UsdSkel.Skeleton) else None
+
+
+def character_animation(prim: Usd.Prim) -> Usd.Prim | None:
+    """The SkelAnimation driving a neural character: its own relationship, else the one UsdSkel
+    binds to its skeleton (the skeleton's own skel:animationSource or an ancestor's)."""
+    found, _ = resolve_character(prim)
+    return found.animation if found else None
+
+
+def animation_time_range(anim: Usd.Prim) -> tuple[float, float] | None:
+    """First and last time sample over the animation's rotations and translations."""
+    samples: list[float] = []
+    skel_anim = UsdSkel.Animation(anim)
+    for attr in (skel_anim.GetRotationsAttr(), skel_anim.GetTranslationsAttr()):
+        samples += attr.GetTimeSamples()
+    return (min(samples), max(samples)) if samples else None
+
+
+@dataclass
+class CharacterBinding:
+    """A neural character's skeleton, animation and skinned meshes, resolved as UsdSkel does."""
+
+    skeleton: Usd.Prim
+    joints: list[str]
+    animation: Usd.Prim
+    skel: SkelBinding = field(repr=False)
+
+
+def resolve_character(prim: Usd.Prim) -> tuple[CharacterBinding | None, Issue | None]:
+    """What posing a neural character needs (`CharacterRig`), or the first error that stops it.
+
+    In order: exactly one rigspace:skeleton target that is a Skeleton with joints; a
+    SkelAnimation (rigspace:animationSource, else the one UsdSkel binds); a skinned Mesh.
+    """
+    path = prim.GetPath()
+    character = schema.read_neural_character(prim)
+    stage = prim.GetStage()
+    targets = character.skeleton_targets
+    if len(targets) != 1:
+        listed = f"it has {len(targets)}: {', '.join(targets)}" if targets else "it has none"
+        code = "SeveralSkeletons" if targets else "NoSkeleton"
+        return None, error(
+            code,
+            f"Neural character {path} has no single rigspace:skeleton target ({listed}). Fix: "
+            "point rigspace:skeleton at the one UsdSkel Skeleton that drives the character.",
+        )
+    target = stage.GetPrimAtPath(targets[0])
+    if not target:
+        return None, error(
+            "SkeletonMissing",
+            f"Neural character {path}: rigspace:skeleton targets {targets[0]}, which does not "
+            "exist on the stage. Fix: correct the path, or load the layer that defines it.",
+        )
+    if not target.IsA(UsdSkel.Skeleton):
+        return None, error(
+            "NotASkeleton",
+            f"Neural character {path}: rigspace:skeleton targets {targets[0]}, a "
+            f"{target.GetTypeName() or 'untyped prim'}, not a Skeleton. Fix: target the "
+            "Skeleton prim (UsdSkel) instead.",
+        )
+    joints = schema.skeleton_joints(target)
+    if not joints:
+        return None, error(
+            "EmptySkeleton",
+            f"Skeleton {targets[0]} (rigspace:skeleton of {path}) has no joints. Fix: author "
+            "its joints, bindTransforms and restTransforms.",
+        )
+    binding = skel_binding(target)
+    if character.animation_targets:
+        anim = stage.GetPrimAtPath(character.animation_targets[0])
+        if not anim or not anim.IsA(UsdSkel.Animation):
+            kind = anim.GetTypeName() if anim else "nothing"
+            return None, error(
+                "NotAnAnimation",
+                f"Neural character {path}: rigspace:animationSource targets "
+                f"{character.animation_targets[0]} ({kind}), not a SkelAnimation. Fix: target a "
+                "SkelAnimation prim, or clear the relationship to use the skeleton's own binding.",
+            )
+    else:
+        anim = binding.animation
+    if anim is None:
+        ignored = ignored_animation_sources(target)
+        hint = (
+            f" ({', '.join(ignored)} authors skel:animationSource without SkelBindingAPI, so "
+            "UsdSkel ignores it: apply the API there)"
+            if ignored
+            else ""
+        )
+        return None, error(
+            "NoAnimation",
+            f"Neural character {path}: skeleton {targets[0]} has no animation (neither "
+            "rigspace:animationSource nor a skel:animationSource on the skeleton or an ancestor "
+            f"names a SkelAnimation){hint}. Fix: bind a SkelAnimation to the skeleton or its "
+            "SkelRoot, or set rigspace:animationSource.",
+        )
+    if not binding.skinning:
+        return None, error(
+            "NoSkinnedMesh",
+            f"Neural character {path}: no skinned mesh is bound to skeleton {targets[0]} (a "
+            "visible Mesh under its SkelRoot with primvars:skel:jointIndices and jointWeights). "
+            "Fix: bind the character's meshes to the skeleton with UsdSkelBindingAPI skin weights.",
+        )
+    return CharacterBinding(target, joints, anim, binding), None
+
+
+def _animation_values(anim: Usd.Prim, path: Sdf.Path) -> Iterator[Issue]:
+    """Every authored value of the animation finite; time samples to capture."""
+    skel_anim = UsdSkel.Animation(anim)
+    for attr in (
+        skel_anim.GetTranslationsAttr(),
+        skel_anim.GetRotationsAttr(),
+        skel_anim.GetScalesAttr(),
+    ):
+        for t in attr.GetTimeSamples() or [Usd.TimeCode.Default()]:
+            value = attr.Get(t)
+            if value is not None and not np.all(np.isfinite(np.asarray(value, dtype=float))):
+                when = f"at time {t:g}" if isinstance(t, float) else "(its default value)"
+                yield error(
+                    "AnimationNotFinite",
+                    f"Animation {anim.GetPath()} (driving {path}) has NaN or Inf in "
+                    f"{attr.GetName()} {when}. Fix: fix or delete that time sample (capture "
+                    "and render read every time code).",
+                )
+                break
+    if animation_time_range(anim) is None:
+        yield error(
+            "AnimationNotTimeSampled",
+            f"Animation {anim.GetPath()} (driving {path}) has no time samples to capture. Fix: "
+            "author time-sampled rotations on the SkelAnimation.",
+            purposes=(CAPTURE,),
+        )
+
+
+def _missing_joints(names: Iterable[str], joints: list[str]) -> list[str]:
+    missing = []
+    for name in names:
+        try:
+            schema.find_joint(name, joints)
+        except schema.JointLookupError:
+            missing.append(name)
+    return missing
+
+
+def _owner_is_character(prim: Usd.Prim, api: str) -> Iterator[Issue]:
+    if not schema.is_neural_character(prim):
+        yield error(
+            "NotOnCharacter",
+            f"{prim.GetPath()} ({prim.GetTypeName() or 'untyped'}) has {api} applied, which "
+            "only means something on a RigspaceNeuralCharacter. Fix: remove the API, or apply "
+            "it to the character prim.",
+        )
+
+
+def check_stage(root: Usd.Prim) -> Iterator[Issue]:
+    """Units and up axis, read from the root layer (USD reads them nowhere else)."""
+    stage = root.GetStage()
+    name = stage.GetRootLayer().identifier
+    if not stage.HasAuthoredMetadata("metersPerUnit"):
+        yield warning(
+            "MetersPerUnitAssumed",
+            f"Stage {name} does not author metersPerUnit; rigspace assumes USD's fallback "
+            "0.01 (centimetres). Fix: author metersPerUnit in the root layer (1 for metres).",
+        )
+    else:
+        value = stage.GetMetadata("metersPerUnit")
+        if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+            yield error(
+                "BadMetersPerUnit",
+                f"Stage {name} has metersPerUnit {value}; it must be a finite number > 0 (light "
+                "normalisation, capture distances and depth are in these units). Fix: author "
+                "metersPerUnit in the root layer (0.01 for centimetres, 1 for metres).",
+            )
+    if not stage.HasAuthoredMetadata("upAxis"):
+        yield warning(
+            "UpAxisAssumed",
+            f"Stage {name} does not author upAxis; rigspace assumes Y (USD's fallback). Fix: "
+            'author upAxis = "Y" (or "Z") in the root layer.',
+        )
+    elif str(stage.GetMetadata("upAxis")) not in UP_AXES:
+        yield error(
+            "BadUpAxis",
+            f"Stage {name} has upAxis {stage.GetMetadata('upAxis')!r}; USD allows Y or Z. Fix: "
+            'author upAxis = "Y" or "Z" in the root layer.',
+        )
+
+
+def check_textures(prim: Usd.Prim) -> Iterator[Issue]:
+    """A gprim's UsdPreviewSurface texture can be found (reading it is left to the renderer)."""
+    if not prim.IsA(UsdGeom.Gprim):
+        return
+    texture = albedo_texture(prim)
+    problem = texture.problem() if texture else None
+    if problem:
+        yield error(
+            "TextureMissing",
+            f"Gprim {prim.GetPath()}: {problem[0].upper()}{problem[1:]}. Fix: correct the "
+            "shader's inputs:file (a relative path is relative to the layer that authors it) "
+            "or put the image there.",
+        )
+
+
+def check_character_skeleton(prim: Usd.Prim) -> Iterator[Issue]:
+    if not schema.is_neural_character(prim):
+        return
+    path = prim.GetPath()
+    character = schema.read_neural_character(prim)
+    found, problem = resolve_character(prim)
+    if found is None:
+        if problem is not None:
+            yield problem
+        return
+    yield from _animation_values(found.animation, path)
+    joints = found.joints
+    if character.look_at_joint:
+        yield from _joint_issues(
+            "LookAtJointMissing", [character.look_at_joint], joints, path, "rigspace:lookAtJoint"
+        )
+    yield from _joint_issues("JointsMissing", character.joints, joints, path, "rigspace:joints")
+    unknown_maps = [m for m in character.maps if m not in MAPS]
+    if unknown_maps:
+        yield error(
+            "UnknownMaps",
+            f"Neural character {path}: rigspace:maps lists {', '.join(unknown_maps)}; the "
+            f"maps a model can provide are {', '.join(MAPS)}. Fix: remove the others.",
+        )
+
+
+def _joint_issues(
+    code: str, names: Iterable[str], joints: list[str], path, prop: str
+) -> Iterator[Issue]:
+    missing = _missing_joints(names, joints)
+    if missing:
+        yield error(
+            code,
+            f"Neural character {path}: {prop} names joints the skeleton lacks: "
+            f"{', '.join(missing)}. Fix: use names from the Skeleton's joint list (full path or "
+            "a unique last element).",
+        )
+
+
+def check_character_model(prim: Usd.Prim) -> Iterator[Issue]:
+    if not schema.is_neural_character(prim):
+        return
+    path = prim.GetPath()
+    character = schema.read_neural_character(prim)
+    if not character.model:
+        yield warning(
+            "NoModel",
+            f"Neural character {path} has no model bundle (rigspace:model is empty): it can be "
+            "captured but the runtime cannot draw it. Fix: train one with `rigspace train` and "
+            "set rigspace:model to the bundle folder.",
+        )
+        return
+    manifest_file = schema.resolve_model_path(character)
+    if manifest_file is None:
+        yield error(
+            "ModelNotFound",
+            f"Neural character {path}: rigspace:model @{character.model}@ does not resolve to a "
+            "bundle folder or manifest.json. Fix: correct the path (relative paths are relative "
+            "to the layer that authors them) or export the bundle there.",
+        )
+        return
+    try:
+        manifest = read_manifest(manifest_file)
+    except BundleError as exc:
+        yield error("BadModel", f"Neural character {path}: {exc}", exception=BundleError)
+        return
+    if "trunk" in manifest.raw or "levels" in manifest.raw:  # a manifest alone: nothing to load
+        problem = _graphs_problem(manifest.folder)
+        if problem:
+            yield error("BadModel", f"Neural character {path}: {problem}", exception=BundleError)
+    skeleton = character_skeleton(prim)
+    if skeleton is not None:
+        missing = _missing_joints(manifest.joints, schema.skeleton_joints(skeleton))
+        if missing:
+            yield error(
+                "ModelJointsMissing",
+                f"Neural character {path}: the model {manifest.path} needs joints that skeleton "
+                f"{skeleton.GetPath()} lacks: {', '.join(missing)}. Fix: bind the skeleton the "
+                "model was trained on, or retrain the model on this skeleton.",
+            )
+    if character.joints and tuple(character.joints) != manifest.joints:
+        yield error(
+            "JointsDisagree",
+            f"Neural character {path}: rigspace:joints differs from the joints the model "
+            f"{manifest.path} reads. Fix: clear rigspace:joints (the manifest is the truth) or "
+            "copy the manifest's list.",
+        )
+    if character.rotation_encoding != manifest.rotation_encoding:
+        yield error(
+            "EncodingDisagrees",
+            f"Neural character {path}: rigspace:rotationEncoding is "
+            f"{character.rotation_encoding!r} but the model reads {manifest.rotation_encoding!r}. "
+            "Fix: set it to the manifest's encoding.",
+        )
+    distance = character.training_distance or manifest.training_distance
+    focal = character.training_focal_length or manifest.training_focal_length
+    if distance <= 0 or focal <= 0:
+        yield error(
+            "NoTrainingCamera",
+            f"Neural character {path}: the training camera distance and focal length must be "
+            f"> 0 (distance {distance}, focal length {focal}); the billboard scale depends on "
+            "them. Fix: author rigspace:trainingCamera:* or re-export the bundle.",
+        )
+
+
+def _graphs_problem(folder: Path) -> str | None:
+    """Why the bundle's graphs cannot run, or None (cached per folder content)."""
+    stamp = tuple((p.name, p.stat().st_mtime_ns, p.stat().st_size) for p in folder.glob("*"))
+    return _check_graphs(folder.resolve(), stamp)
+
+
+@functools.lru_cache(maxsize=32)
+def _check_graphs(folder: Path, _stamp: tuple) -> str | None:
+    """Every graph the manifest lists is there with the size and sha256 it records; the trunk,
+    and any graph without a record or that differs from it, loads in onnxruntime (the
+    runtime's loader, so its words). Loading every graph would triple inspect's time."""
+    from rigspace.sdk.model import BundleModel  # onnxruntime, only once a bundle resolves
+
+    try:
+        model = BundleModel(folder)
+        raw = model.manifest.raw
+        sets = [raw["trunk"], *raw["levels"]]
+        graphs = sorted(
+            {g for s in sets for key in ("graphs", "int8") for g in s.get(key, {}).values()}
+        )
+        records = raw.get("files", {})
+        load = {raw["trunk"]["graphs"]["trunk"]}
+        changed = []
+        for name in graphs:
+            path = folder / name
+            if not path.is_file():
+                return (
+                    f"Model file {path} is missing from the bundle. Fix: re-export the bundle, "
+                    "or restore the file."
+                )
+            record = records.get(name)
+            if not record or _differs(path, record):
+                load.add(name)
+                changed += [name] if record else []
+        for name in sorted(load):
+            model._session(name)  # the runtime loader: its errors, word for word
+    except BundleError as exc:
+        return str(exc)
+    except (KeyError, TypeError, AttributeError) as exc:  # a manifest that lacks what it lists
+        return (
+            f"Model bundle {folder}: manifest.json is incomplete ({type(exc).__name__}: {exc}). "
+            "Fix: re-export the bundle with `rigspace train`."
+        )
+    if changed:
+        return (
+            f"Model bundle {folder}: {', '.join(changed)} differ from the size and sha256 "
+            "manifest.json records (changed after export). Fix: re-export the bundle with "
+            "`rigspace train`, or restore the files."
+        )
+    return None
+
+
+def _differs(path: Path, record: dict) -> bool:
+    if path.stat().st_size != record.get("bytes"):
+        return True
+    return hashlib.sha256(path.read_bytes()).hexdigest() != record.get("sha256")
+
+
+STAGE_METADATA = ValidatorSpec(
+    "StageMetadata",
+    "The stage's metersPerUnit is a finite number > 0 and its upAxis Y or Z (else assumed).",
+    check_stage,
+    stage=True,
+)
+
+CHARACTER_SKELETON = ValidatorSpec(
+    "CharacterSkeleton",
+    "A neural character's Skeleton, animation (own or inherited) and skinned meshes resolve; "
+    "its joints exist and its animation is finite.",
+    check_character_skeleton,
+)
+
+CHARACTER_MODEL = ValidatorSpec(
+    "CharacterModel",
+    "A neural character's model bundle resolves, its graphs load, and it fits its skeleton.",
+    check_character_model,
+    purposes=(RENDER,),
+)
+
+TEXTURES = ValidatorSpec(
+    "Textures",
+    "Every UsdPreviewSurface texture a gprim reads can be found.",
+    check_textures,
+)

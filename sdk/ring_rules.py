@@ -1,0 +1,288 @@
+"""The rules for the capture ring and live binding APIs: values in range, clips, bone maps."""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Iterator
+from urllib.parse import urlsplit
+
+from pxr import Usd
+
+from rigspace.sdk import schema, timecodes
+from rigspace.sdk.character_rules import (
+    _missing_joints,
+    _owner_is_character,
+    animation_time_range,
+    character_animation,
+    character_skeleton,
+)
+from rigspace.sdk.issues import CAPTURE, RENDER, Issue, ValidatorSpec, error, warning
+
+# Limits documented on the schema properties (usd_schemas/schema.usda).
+MAX_VIEWS = 360
+MAX_ELEVATION_DEG = 89.0
+MIN_RESOLUTION, MAX_RESOLUTION = 16, 4096
+MAX_BUFFER_SECONDS = 5.0
+UNIT_QUAT_TOLERANCE = 1e-3
+
+
+def _range_issue(ok: bool, code: str, message: str) -> Iterator[Issue]:
+    if not ok:
+        yield error(code, message)
+
+
+def check_capture_ring(prim: Usd.Prim) -> Iterator[Issue]:
+    if not schema.has_capture_ring(prim):
+        return
+    yield from _owner_is_character(prim, "RigspaceCaptureRingAPI")
+    path = prim.GetPath()
+    ring = schema.read_capture_ring(prim)
+    ns = "rigspace:captureRing:"
+
+    def out_of_range(prop: str, value, allowed: str) -> str:
+        return (
+            f"Capture ring on {path}: {ns}{prop} is {value}; allowed: {allowed}. Fix: author a "
+            "value that is allowed."
+        )
+
+    yield from _range_issue(
+        1 <= ring.views_per_ring <= MAX_VIEWS,
+        "ViewsOutOfRange",
+        out_of_range("viewsPerRing", ring.views_per_ring, f"1 to {MAX_VIEWS}"),
+    )
+    bad_elevations = [e for e in ring.elevations if not abs(e) <= MAX_ELEVATION_DEG]
+    yield from _range_issue(
+        bool(ring.elevations) and not bad_elevations,
+        "ElevationOutOfRange",
+        out_of_range(
+            "elevations",
+            list(ring.elevations),
+            f"[-{MAX_ELEVATION_DEG:g}, {MAX_ELEVATION_DEG:g}] degrees, at least one ring",
+        ),
+    )
+    bad_held = [e for e in ring.held_out_elevations if not abs(e) <= MAX_ELEVATION_DEG]
+    yield from _range_issue(
+        not bad_held,
+        "ElevationOutOfRange",
+        out_of_range(
+            "heldOutElevations", bad_held, f"[-{MAX_ELEVATION_DEG:g}, {MAX_ELEVATION_DEG:g}]"
+        ),
+    )
+    yield from _range_issue(
+        math.isfinite(ring.radius) and ring.radius >= 0,
+        "RadiusOutOfRange",
+        out_of_range("radius", ring.radius, "> 0 scene units, or 0 to derive it from the bounds"),
+    )
+    for prop, value in (
+        ("focalLength", ring.focal_length),
+        ("horizontalAperture", ring.horizontal_aperture),
+    ):
+        yield from _range_issue(
+            math.isfinite(value) and value > 0,
+            "LensOutOfRange",
+            out_of_range(prop, value, "> 0 tenths of a scene unit"),
+        )
+    res = ring.resolution
+    yield from _range_issue(
+        MIN_RESOLUTION <= res <= MAX_RESOLUTION and res & (res - 1) == 0,
+        "ResolutionNotPowerOfTwo",
+        out_of_range(
+            "resolution", res, f"a power of two from {MIN_RESOLUTION} to {MAX_RESOLUTION}"
+        ),
+    )
+    near, far = ring.clipping_range
+    yield from _range_issue(
+        0 < near < far and math.isfinite(far),
+        "ClippingOutOfRange",
+        out_of_range("clippingRange", (near, far), "0 < near < far"),
+    )
+    if ring.radius > 0 and 0 < near < far:
+        yield from _range_issue(
+            near < ring.radius < far,
+            "RadiusOutsideClipping",
+            f"Capture ring on {path}: {ns}radius {ring.radius:g} puts the look-at joint outside "
+            f"the clipping range ({near:g}, {far:g}), so the character would be clipped away. "
+            "Fix: author a radius between near and far, or widen clippingRange.",
+        )
+    yield from _range_issue(
+        0 <= ring.held_out_views_per_ring <= ring.views_per_ring,
+        "HeldOutViewsOutOfRange",
+        out_of_range(
+            "heldOutViewsPerRing", ring.held_out_views_per_ring, f"0 to {ring.views_per_ring}"
+        ),
+    )
+    yield from _check_clips(prim, ring)
+
+
+def _check_clips(prim: Usd.Prim, ring: schema.CaptureRing) -> Iterator[Issue]:
+    path = prim.GetPath()
+    if len(ring.clip_names) != len(ring.clip_ranges):
+        yield error(
+            "ClipsDisagree",
+            f"Capture ring on {path}: {len(ring.clip_names)} clipNames but "
+            f"{len(ring.clip_ranges)} clipRanges. Fix: author one (first, last) range per name.",
+        )
+        return
+    duplicates = sorted({n for n in ring.clip_names if ring.clip_names.count(n) > 1})
+    if duplicates:
+        yield error(
+            "DuplicateClips",
+            f"Capture ring on {path}: clip names repeat: {', '.join(duplicates)}. Fix: give each "
+            "clip a unique name.",
+        )
+    unknown = [c for c in ring.held_out_clips if c not in ring.clip_names]
+    if unknown and ring.clip_names:
+        yield error(
+            "UnknownHeldOutClips",
+            f"Capture ring on {path}: heldOutClips names {', '.join(unknown)}, which are not in "
+            f"clipNames ({', '.join(ring.clip_names)}). Fix: use clip names.",
+        )
+    backwards = [n for n, (a, b) in zip(ring.clip_names, ring.clip_ranges, strict=True) if a > b]
+    if backwards:
+        yield error(
+            "ClipRangeBackwards",
+            f"Capture ring on {path}: clips {', '.join(backwards)} end before they start. Fix: "
+            "author (first, last) with first <= last.",
+        )
+    anim = character_animation(prim) if schema.is_neural_character(prim) else None
+    span = animation_time_range(anim) if anim is not None else None
+    if anim is not None and span is not None:
+        # As capture fits them (sdk/timecodes.py): an end within the tolerance is the same
+        # frame, a clip reaching past the range is clamped, one wholly outside is refused.
+        outside, clamped = [], []
+        for n, (a, b) in zip(ring.clip_names, ring.clip_ranges, strict=True):
+            if not (math.isfinite(a) and math.isfinite(b)) or a > b:
+                continue  # ClipRangeBackwards, or not a range at all: said above
+            inside = timecodes.clamp_range(a, b, *span)
+            if inside is None:
+                outside.append(f"{n} ({a:g}-{b:g})")
+            elif not (timecodes.same_time(inside[0], a) and timecodes.same_time(inside[1], b)):
+                clamped.append(f"{n} ({a:g}-{b:g} -> {inside[0]:g}-{inside[1]:g})")
+        if outside:
+            yield error(
+                "ClipOutsideAnimation",
+                f"Capture ring on {path}: clips {', '.join(outside)} fall outside the animation "
+                f"{anim.GetPath()} ({span[0]:g}-{span[1]:g}). Fix: clip to the animated range.",
+            )
+        if clamped:
+            yield warning(
+                "ClipClamped",
+                f"Capture ring on {path}: clips {', '.join(clamped)} reach past the animation "
+                f"{anim.GetPath()} ({span[0]:g}-{span[1]:g}); capture clamps them. Fix: author "
+                "clipRanges inside the animated range.",
+                purposes=(),  # inspect's: capture warns itself about the clips it captures
+            )
+    skeleton = character_skeleton(prim) if schema.is_neural_character(prim) else None
+    if skeleton is not None and ring.look_at_joint:
+        missing = _missing_joints([ring.look_at_joint], schema.skeleton_joints(skeleton))
+        if missing:
+            yield error(
+                "LookAtJointMissing",
+                f"Capture ring on {path}: lookAtJoint {ring.look_at_joint!r} is not a joint of "
+                f"{skeleton.GetPath()}. Fix: name a joint from its joint list.",
+            )
+
+
+URL_SCHEME = re.compile(r"^[a-z][a-z0-9+.-]*$")
+SMOOTHING = ("none", "exponential", "oneEuro")
+BUFFERING = ("latest", "interpolate", "buffered")
+
+
+def url_problem(url: str) -> str | None:
+    """Why `url` is not a usable live-source URL, or None when it parses."""
+    if not url:
+        return "it is empty"
+    if "://" not in url:
+        return "it has no scheme:// (for example vmc://127.0.0.1:39539)"
+    try:
+        parts = urlsplit(url)
+        port = parts.port
+    except ValueError as exc:
+        return f"it does not parse ({exc})"
+    if not URL_SCHEME.match(parts.scheme):
+        return f"its scheme {parts.scheme!r} is not a valid URL scheme"
+    if port is not None and port == 0:
+        return "port 0 is not a port a source can use"
+    if not parts.netloc and not parts.path:
+        return "it names neither a host nor a path"
+    return None
+
+
+def check_live_binding(prim: Usd.Prim) -> Iterator[Issue]:
+    bindings = schema.read_live_bindings(prim)
+    if not bindings:
+        return
+    yield from _owner_is_character(prim, "RigspaceLiveBindingAPI")
+    skeleton = character_skeleton(prim) if schema.is_neural_character(prim) else None
+    for b in bindings:
+        where = f"Live binding {b.name!r} on {prim.GetPath()}"
+        ns = f"rigspace:live:{b.name}:"
+        problem = url_problem(b.url)
+        if problem:
+            yield error(
+                "BadUrl",
+                f"{where}: {ns}url {b.url!r} is not a source URL: {problem}. Fix: author "
+                "scheme://host:port/path?options, such as vmc://127.0.0.1:39539.",
+            )
+        if b.source_bones and len(b.source_bones) != len(b.target_joints):
+            yield error(
+                "BoneMapDisagrees",
+                f"{where}: {len(b.source_bones)} sourceBones but {len(b.target_joints)} "
+                "targetJoints. Fix: author one target joint per source bone.",
+            )
+        if skeleton is not None:
+            missing = _missing_joints(b.target_joints, schema.skeleton_joints(skeleton))
+            if missing:
+                yield error(
+                    "TargetJointsMissing",
+                    f"{where}: targetJoints names joints skeleton {skeleton.GetPath()} lacks: "
+                    f"{', '.join(missing)}. Fix: use names from its joint list.",
+                )
+        if b.rest_pose:
+            bones = len(b.source_bones) or len(b.target_joints)
+            if len(b.rest_pose) != bones:
+                yield error(
+                    "RestPoseDisagrees",
+                    f"{where}: {len(b.rest_pose)} restPose rotations for {bones} bones. Fix: "
+                    "author one rotation per source bone, or none.",
+                )
+            norms = [math.sqrt(sum(c * c for c in q)) for q in b.rest_pose]
+            if any(not abs(n - 1.0) <= UNIT_QUAT_TOLERANCE for n in norms):
+                yield error(
+                    "RestPoseNotUnit",
+                    f"{where}: restPose holds non-unit quaternions (norms "
+                    f"{min(norms):.4g} to {max(norms):.4g}). Fix: normalise them.",
+                )
+        for ok, prop, value, allowed in (
+            (0 <= b.smoothing_strength < 1, "smoothingStrength", b.smoothing_strength, "[0, 1)"),
+            (
+                0 <= b.buffer_seconds <= MAX_BUFFER_SECONDS,
+                "bufferSeconds",
+                b.buffer_seconds,
+                f"[0, {MAX_BUFFER_SECONDS:g}]",
+            ),
+            (b.timeout_seconds > 0, "timeoutSeconds", b.timeout_seconds, "> 0"),
+            (b.source_meters_per_unit > 0, "sourceMetersPerUnit", b.source_meters_per_unit, "> 0"),
+        ):
+            if not ok:
+                yield error(
+                    "ValueOutOfRange",
+                    f"{where}: {ns}{prop} is {value}; allowed: {allowed}. Fix: author a value "
+                    "that is allowed.",
+                )
+
+
+CAPTURE_RING = ValidatorSpec(
+    "CaptureRing",
+    "Capture ring values are in range and its clips lie inside the animation.",
+    check_capture_ring,
+    purposes=(CAPTURE,),
+)
+
+LIVE_BINDING = ValidatorSpec(
+    "LiveBinding",
+    "Live bindings have parseable URLs and bone maps that fit the skeleton.",
+    check_live_binding,
+    purposes=(RENDER,),
+)
