@@ -1,0 +1,144 @@
+"""Stream a BVH clip as a live source would: VMC over UDP, or a BVH line server over TCP."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from dataclasses import dataclass
+from urllib.parse import urlsplit
+
+import numpy as np
+
+from rigspace.runtime.live.decoders.bvh import BvhSkeleton
+from rigspace.runtime.live.decoders.vmc import HUMAN_BODY_BONES, encode_frame
+from rigspace.runtime.live.retarget import CMU, UNITY, Preset, Retargeter
+from rigspace.sdk.rotations import quat_from_matrix
+
+
+@dataclass(frozen=True)
+class HumanoidClip:
+    """A clip re-expressed on Unity's HumanBodyBones, in VmcDecoder's frame (right-handed, the
+    avatar facing -Z), ready for `encode_frame`."""
+
+    bones: tuple[str, ...]
+    rotations: np.ndarray
+    """(F, H, 4) local rotations (w, x, y, z); identity is each bone's rest."""
+    root_positions: np.ndarray
+    """(F, 3) metres."""
+    frame_time: float
+
+
+def humanoid_clip(
+    skeleton: BvhSkeleton,
+    rotations: np.ndarray,
+    roots: np.ndarray,
+    frame_time: float,
+    preset: Preset = CMU,
+) -> HumanoidClip:
+    """Re-express a BVH clip's pose on HumanBodyBones (an avatar whose rest locals are identity).
+
+    Each humanoid bone takes the world rotation of the BVH bone that the two presets map to the
+    same sample-character joint (CMU's LHipJoint, lowerneck, ... fold into their children), so
+    retargeting the result with the `unity` preset gives what retargeting the clip with `preset`
+    gives (tested to float32 precision through real UDP).
+    """
+    by_joint = {joint: bone for bone, joint in UNITY.bone_map.items()}
+    bone_map = {src: by_joint[joint] for src, joint in preset.bone_map.items()}
+    humanoid = [b for b in HUMAN_BODY_BONES if b in by_joint.values()]
+    paths = {}
+    for bone in humanoid:  # parents are in the map too (the 22 mapped bones form one tree)
+        chain, b = [bone], UNITY.parents.get(bone)
+        while b is not None and b in UNITY.parents:
+            if b in humanoid:
+                chain.append(b)
+            b = UNITY.parents.get(b)
+        paths[bone] = "/".join(reversed(chain))
+    order = sorted(humanoid, key=lambda b: paths[b].count("/"))
+    rest = np.tile(np.eye(4), (len(order), 1, 1))
+    # Humanoid frame = VMC-decoded frame; A maps the BVH frame into it (the inverse of unity's).
+    basis = UNITY.basis.T @ preset.basis
+    r = Retargeter(
+        skeleton.names, skeleton.parents, "local", [paths[b] for b in order], rest, bone_map, basis
+    )
+    frames = np.empty((len(rotations), len(order), 4))
+    stage = np.tile(np.eye(4), (len(order), 1, 1))
+    valid = np.ones(len(skeleton.names), dtype=bool)
+    from rigspace.runtime.live.buffer import LivePose
+
+    for f in range(len(rotations)):
+        pose = LivePose(rotations[f], valid, None, "connected", 1.0, 0.0)
+        local = r.apply(stage, pose)
+        frames[f] = quat_from_matrix(np.swapaxes(local[:, :3, :3], 1, 2))
+    metres = (basis @ roots.T).T * preset.meters_per_unit
+    return HumanoidClip(tuple(order), frames, metres, frame_time)
+
+
+def send_vmc(
+    url: str,
+    clip: HumanoidClip,
+    speed: float = 1.0,
+    loop: bool = False,
+    stop: threading.Event | None = None,
+) -> int:
+    """Send `clip` to vmc://HOST:PORT in real time (scaled by speed), with /VMC/Ext/T carrying
+    the clip time; returns the frames sent. `stop` ends it early."""
+    parts = urlsplit(url)
+    address = (parts.hostname or "127.0.0.1", parts.port or 39539)
+    stop = stop or threading.Event()
+    step = clip.frame_time / speed
+    sent = 0
+    start = time.monotonic()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        while not stop.is_set():
+            i = sent % len(clip.rotations)
+            if sent and i == 0 and not loop:
+                break
+            wait = start + sent * step - time.monotonic()
+            if wait > 0 and stop.wait(wait):
+                break
+            for dgram in encode_frame(
+                clip.bones, clip.rotations[i], clip.root_positions[i], None, sent * step
+            ):
+                sock.sendto(dgram, address)
+            sent += 1
+    return sent
+
+
+def bvh_lines(motion: np.ndarray) -> list[bytes]:
+    """One data-stream line per frame of channel values (Axis Neuron's layout, no prefix)."""
+    return [(" ".join(f"{v:.6f}" for v in row) + "\n").encode() for row in motion]
+
+
+def serve_bvh(
+    host: str,
+    port: int,
+    motion: np.ndarray,
+    frame_time: float,
+    speed: float = 1.0,
+    stop: threading.Event | None = None,
+) -> int:
+    """Serve a BVH clip's lines to one TCP client at a time in real time (what a
+    bvh+tcp:// source connects to); returns the lines sent when `stop` is set."""
+    stop = stop or threading.Event()
+    lines = bvh_lines(motion)
+    sent = 0
+    with socket.create_server((host, port)) as server:
+        server.settimeout(0.1)
+        while not stop.is_set():
+            try:
+                conn, _ = server.accept()
+            except TimeoutError:
+                continue
+            start = time.monotonic()
+            with conn:
+                for k, line in enumerate(lines):
+                    wait = start + k * frame_time / speed - time.monotonic()
+                    if (wait > 0 and stop.wait(wait)) or stop.is_set():
+                        break
+                    try:
+                        conn.sendall(line)
+                    except OSError:
+                        break
+                    sent += 1
+    return sent
