@@ -38,6 +38,8 @@ from rigspace.capture.settings import (
     print_warning,
     resolve_settings,
 )
+from rigspace.sdk.capsules import FILE_NAME as CAPSULES_FILE
+from rigspace.sdk.capsules import fit_capsules, write_capsules
 from rigspace.sdk.exr import write_exr
 from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.render import RenderSettings, choose_renderer
@@ -395,6 +397,8 @@ def capture(
     if complete:
         manifest = ds.finalize(folder, settings, items)
         write_contact_sheet(folder)
+        # The character's shadow capsules, fitted at bind pose; export copies them into the bundle.
+        write_capsules(fit_capsules(rig), folder / CAPSULES_FILE)
         empty = {int(v): n for v, n in manifest["coverage"]["empty_by_view"].items()}
         total_samples = manifest["counts"]["samples"]
     else:

@@ -23,8 +23,10 @@ import numpy as np
 from pxr import Usd, UsdGeom, Vt
 
 from rigspace.runtime.billboard import Billboard, TrainingView, place
+from rigspace.runtime.shadows import PosedCapsules, chains, pose_capsules
 from rigspace.sdk import schema
 from rigspace.sdk.camera import Camera
+from rigspace.sdk.capsules import CapsuleError, read_capsules
 from rigspace.sdk.errors import SceneError
 from rigspace.sdk.model import BundleModel
 from rigspace.sdk.posing import CharacterRig
@@ -88,6 +90,33 @@ class NeuralCharacter:
             np.array([0.0, 0.0, 1.0]) if axis == UsdGeom.Tokens.z else np.array([0.0, 1.0, 0.0])
         )
         """The stage's up axis: the training ring kept it upright in every view."""
+        self.capsules: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        """Shadow capsules (skeleton joint index, a, b, radius), None without any."""
+        self.no_shadow = self._load_capsules(raw)
+        """Why the character casts no shadow ("" when it has capsules)."""
+
+    def _load_capsules(self, raw: dict) -> str:
+        name = raw.get("capsules")
+        if not name:
+            return "its model bundle has no shadow capsules (capsules.json)"
+        try:
+            capsules = read_capsules(self.model.manifest.folder / str(name))
+        except CapsuleError as exc:
+            return str(exc)
+        try:
+            joints = [schema.find_joint(j, self.rig.joints) for j in capsules.joints]
+        except schema.JointLookupError as exc:
+            return f"its shadow capsules name a joint the skeleton lacks ({exc})"
+        self.capsules = (np.asarray(joints), capsules.a, capsules.b, capsules.radius)
+        self._chains = chains([self.rig.joints[j] for j in joints])
+        return ""
+
+    def posed_capsules(self, world: np.ndarray) -> PosedCapsules | None:
+        """The shadow capsules at joint transforms `world` (J, 4, 4), in world space."""
+        if self.capsules is None:
+            return None
+        joints, a, b, radius = self.capsules
+        return pose_capsules(a, b, radius, world[joints], self._chains)
 
     def pose(self, time: float, local: Vt.Matrix4dArray | None = None) -> np.ndarray:
         """(J, 4, 4) joint-to-world transforms at `time` (from `local` when a source gives it)."""

@@ -6,10 +6,12 @@
 Per frame: the camera at t; the scene's other prims drawn by the renderer plugin into a
 G-buffer (reused while neither they nor the camera move); per neural character the pose,
 its billboard, and (when visible) its network maps in the billboard's region, reused when
-pose and camera repeat; each layer lit by the scene's lights (runtime/shading.py); then a
-depth test composites the character over or under the prims, with its coverage as alpha
-at its edges. Every decision and every stage's time goes into the frame's report. A
-stage without lights renders unlit (beauty = albedo). Imports no torch.
+pose and camera repeat; each layer lit by the scene's lights (runtime/shading.py) and
+shadowed (runtime/shadows.py: prims by shadow maps, characters by their capsules, onto
+each other); then a depth test composites the character over or under the prims, with its
+coverage as alpha at its edges, and a DomeLight fills what nothing covers. Every decision
+and every stage's time goes into the frame's report. A stage without lights renders unlit
+(beauty = albedo) and unshadowed. Imports no torch.
 """
 
 from __future__ import annotations
@@ -26,9 +28,25 @@ from pxr import Tf, Usd, UsdGeom
 
 from rigspace.runtime.billboard import Billboard
 from rigspace.runtime.character import Layer, NeuralCharacter
-from rigspace.runtime.lights import Light, light_prims, lights_at
+from rigspace.runtime.lights import (
+    AMBIENT,
+    DISTANT,
+    POINT,
+    Light,
+    background,
+    light_prims,
+    lights_at,
+)
 from rigspace.runtime.scene import SceneGeometry
-from rigspace.runtime.shading import shade
+from rigspace.runtime.shading import pixel_positions, shade, shade_pixels
+from rigspace.runtime.shadows import (
+    PosedCapsules,
+    PrimShadows,
+    capsule_visibility,
+    light_softness,
+    region_mask,
+    shadow_region,
+)
 from rigspace.sdk import schema, validation
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.errors import SceneError
@@ -36,7 +54,7 @@ from rigspace.sdk.model import BundleModel
 from rigspace.sdk.render import Maps, RenderSettings, choose_renderer, empty_maps
 from rigspace.sdk.stage import might_vary, open_stage
 
-STAGES = ("scene", "rig", "network", "lighting", "composite")
+STAGES = ("scene", "rig", "network", "shadows", "lighting", "composite")
 AOVS = ("beauty", "albedo", "normal", "depth", "mask")
 """The images a frame can give (Frame.beauty and Frame.maps)."""
 BOTH = ("albedo", "geometry")
@@ -47,9 +65,16 @@ class Frame:
     """One rendered frame: premultiplied beauty and the composited maps, plus its report."""
 
     beauty: np.ndarray
-    """(H, W, 3) lit colour, premultiplied by `mask`."""
+    """(H, W, 3) lit colour, premultiplied by `mask`; over the background where there is one."""
     maps: Maps
     report: dict[str, Any] = field(default_factory=dict)
+    opaque: bool = False
+    """A background (a DomeLight) fills the pixels nothing covers: the beauty's alpha is 1."""
+
+    @property
+    def alpha(self) -> np.ndarray:
+        """(H, W) the beauty's alpha: 1 over a background, else the coverage (maps.mask)."""
+        return np.ones_like(self.maps.mask) if self.opaque else self.maps.mask
 
 
 POSE_TOLERANCE = 1e-5
@@ -142,7 +167,14 @@ class Engine:
         self._prims_key: tuple = ()
         self._prims: Maps | None = None
         self._layers: dict[str, _CachedLayer] = {}
-        self._lit_prims: tuple[bytes, np.ndarray] | None = None
+        self._lit_prims: tuple[bytes, np.ndarray, list[np.ndarray | None]] | None = None
+        """The lit prims, keyed by lights and shadow maps, with each light's shadow factor."""
+        self.shadows = PrimShadows(self.renderer)
+        self._box: tuple[tuple, np.ndarray] | None = None
+        self._background: tuple[bytes, np.ndarray] | None = None
+        self._no_shadow = [(c.path, c.no_shadow) for c in self.characters if c.no_shadow]
+        for path, why in self._no_shadow:  # said once, here and in the first frame's report
+            print(f"rigspace render: warning: {path} casts no shadow: {why}.", file=sys.stderr)
         self._frame: tuple[tuple, Frame] | None = None
         self._light_problems: list[str] = []
         self._edited = False
@@ -245,6 +277,160 @@ class Engine:
         print(f"rigspace render: warning: {problem} The light is left out.", file=sys.stderr)
         self._light_problems.append(problem.what)
 
+    @staticmethod
+    def _shadowing(lights: list[Light]) -> bool:
+        """Whether any light casts shadows (the ambient one does not)."""
+        return any(light.kind in (DISTANT, POINT) for light in lights)
+
+    def _update_shadow_maps(self, meshes, lights: list[Light]) -> None:
+        """The prims' shadow maps: still prims in one map per light, each moving one in its own.
+        `meshes` are the scene's prims only: a character casts through its capsules (in the
+        reference mode too, so that the two modes differ only in the character's maps)."""
+        if not self._shadowing(lights):
+            self.shadows.update([], [])
+            return
+        still = [m for m in meshes if id(m) not in self.scene.moving]
+        moving = [(f"moving {m.name}", [m]) for m in meshes if id(m) in self.scene.moving]
+        self.shadows.update(lights, [("still", still), *moving])
+
+    def _scene_box(self, meshes) -> np.ndarray:
+        """(2, 3) bounds of the prims (where a capsule shadow can land), cached with them."""
+        key = tuple(id(m) for m in meshes)
+        if self._box is None or self._box[0] != key:
+            if meshes:
+                lo = np.min([m.points.min(axis=0) for m in meshes], axis=0)
+                hi = np.max([m.points.max(axis=0) for m in meshes], axis=0)
+            else:
+                lo = hi = np.zeros(3)
+            self._box = (key, np.array([lo, hi], dtype=np.float64))
+        return self._box[1]
+
+    def _prim_visibility(
+        self, prims: Maps, camera: Camera, lights: list[Light], meshes
+    ) -> list[np.ndarray | None] | None:
+        """Per light, the prims' (H, W) shadow factor from the shadow maps (None: unshadowed),
+        looked up only where some prim's shadow can fall."""
+        if not self._shadowing(lights):
+            return None
+        box = self._scene_box(meshes)
+        covered = prims.mask > 0
+        out: list[np.ndarray | None] = []
+        for index, light in enumerate(lights):
+            regions = self.shadows.regions(light, box, camera) if self.shadows.maps(index) else []
+            pixels = np.flatnonzero(covered & region_mask(regions, camera.height, camera.width))
+            if pixels.size == 0:
+                out.append(None)
+                continue
+            rows, cols = np.divmod(pixels, camera.width)
+            points, normals = _world_points(
+                prims.depth.reshape(-1)[pixels], rows, cols, prims.normal.reshape(-1, 3)[pixels],
+                camera, (0, 0),
+            )  # fmt: skip
+            full = np.ones(camera.height * camera.width, np.float32)
+            full[pixels] = self.shadows.visibility(index, points, normals)
+            out.append(full.reshape(camera.height, camera.width))
+        return out
+
+    def _capsule_shadows_on_prims(
+        self, beauty, prims: Maps, camera: Camera, lights, casters, meshes
+    ) -> None:
+        """Re-shade, in `beauty`, the prim pixels the characters' capsules shadow."""
+        box = self._scene_box(meshes)
+        h, w = camera.height, camera.width
+        # Per light and caster, the regions its limbs' shadows can fall on (a limb's region
+        # is much smaller than the whole body's).
+        regions: list[list[tuple[np.ndarray, PosedCapsules]]] = []
+        for light in lights:
+            mine = []
+            if light.kind in (DISTANT, POINT):
+                for _, posed in casters:
+                    rects = []
+                    for part in posed.parts():
+                        centre, reach = part.bounds()
+                        distance = float(np.linalg.norm(centre - light.position))
+                        angle = light_softness(light, distance)
+                        lo, hi = centre - reach, centre + reach
+                        rect = shadow_region(lo, hi, light, box, camera, angle)
+                        if rect is not None:
+                            rects.append(rect)
+                    if rects:
+                        mine.append((region_mask(rects, h, w) & (prims.mask > 0), posed))
+            regions.append(mine)
+        if not any(regions):
+            return
+        union = np.logical_or.reduce([m for mine in regions for m, _ in mine])
+        flat = np.flatnonzero(union)
+        if flat.size == 0:
+            return
+        rows, cols = np.divmod(flat, w)
+        depth = prims.depth.reshape(-1)[flat]
+        normal = prims.normal.reshape(-1, 3)[flat]
+        points, _ = _world_points(depth, rows, cols, normal, camera, (0, 0))
+        hidden = []
+        for index, mine in enumerate(regions):
+            v = np.ones(flat.size, np.float32)
+            for mask, posed in mine:
+                inside = np.flatnonzero(mask.reshape(-1)[flat])
+                v[inside] *= capsule_visibility(points[:, inside], posed, lights[index])
+            hidden.append(v)
+        changed = np.flatnonzero(np.logical_or.reduce([v < 1.0 for v in hidden]))
+        if changed.size == 0:
+            return
+        # Only the pixels a capsule shadows are shaded again, with every light's shadows.
+        shadowed = self._lit_prims[2] if self._lit_prims is not None else None
+        visibility: list[np.ndarray | None] = []
+        for index, v in enumerate(hidden):
+            v = v[changed]
+            if shadowed is not None and shadowed[index] is not None:
+                v = v * shadowed[index].reshape(-1)[flat[changed]]
+            visibility.append(v)
+        rows, cols, flat = rows[changed], cols[changed], flat[changed]
+        beauty.reshape(-1, 3)[flat] = shade_pixels(
+            prims.albedo.reshape(-1, 3)[flat],
+            normal[changed],
+            pixel_positions(depth[changed], rows, cols, camera),
+            prims.mask.reshape(-1)[flat],
+            camera.world_to_camera,
+            lights,
+            visibility,
+        )
+
+    def _layer_visibility(
+        self, layer: Layer, camera: Camera, lights: list[Light], others
+    ) -> list[np.ndarray | None] | None:
+        """Per light, a character layer's (h, w) shadow factor: the prims' shadow maps and the
+        other characters' capsules (its own capsules would shadow its own surface)."""
+        if not self._shadowing(lights) or layer.depth is None or layer.normal is None:
+            return None
+        h, w = layer.mask.shape
+        covered = np.flatnonzero(layer.mask > 0)
+        rows, cols = np.divmod(covered, w)
+        points, normals = _world_points(
+            layer.depth.reshape(-1)[covered], rows, cols, layer.normal.reshape(-1, 3)[covered],
+            camera, (layer.x0, layer.y0),
+        )  # fmt: skip
+        out: list[np.ndarray | None] = []
+        for index, light in enumerate(lights):
+            v = self.shadows.visibility(index, points, normals)
+            if light.kind in (DISTANT, POINT):
+                for _, posed in others:
+                    v = capsule_visibility(points, posed, light) * (1.0 if v is None else v)
+            if v is None:
+                out.append(None)
+                continue
+            full = np.ones(h * w, np.float32)
+            full[covered] = v
+            out.append(full.reshape(h, w))
+        return out
+
+    def _dome_background(self, dome: Light, camera: Camera, camera_key: bytes) -> np.ndarray:
+        """What a DomeLight shows behind everything, cached while camera and dome are still."""
+        key = camera_key + dome.radiance.tobytes() + dome.orientation.tobytes()
+        key += b"" if dome.texture is None else np.int64(id(dome.texture)).tobytes()
+        if self._background is None or self._background[0] != key:
+            self._background = (key, background(dome, camera))
+        return self._background[1]
+
     def render(self, time: float) -> Frame:
         """The frame at stage time `time`. Its arrays may be shared with later frames that
         change nothing (the frame cache): they are read-only; copy them to edit."""
@@ -261,7 +447,7 @@ class Engine:
             self._prims, self._lit_prims = None, None
         timings = dict.fromkeys(STAGES, 0.0)
         camera, camera_key = self._camera_at(time)
-        meshes = self.scene.meshes(time)
+        scene_meshes = meshes = self.scene.meshes(time)
         if self.reference:
             meshes = meshes + [m for c in self.characters for m in c.rig.posed_meshes(time)]
         prims, reused = self._scene_maps(meshes, camera, camera_key)
@@ -281,9 +467,21 @@ class Engine:
             for p in self.without_model
         ]
         light_key = b"".join(
-            light.radiance.tobytes() + light.direction.tobytes() + light.position.tobytes()
+            light.radiance.tobytes()
+            + light.direction.tobytes()
+            + light.position.tobytes()
+            + np.array([light.angle, light.radius]).tobytes()
+            + light.orientation.tobytes()
             for light in lights
         )
+        t = clock.perf_counter()
+        self._update_shadow_maps(scene_meshes, lights)
+        timings["shadows"] += clock.perf_counter() - t
+        report["shadows"] = {"maps_drawn": self.shadows.drawn, "casters": 0}
+        if self._no_shadow:
+            report["shadows"]["without_capsules"] = [p for p, _ in self._no_shadow]
+            self._no_shadow = []
+        casters: list[tuple[str, PosedCapsules]] = []
         candidates: list[_Candidate] = []
         for character in self.characters:
             entry: dict[str, Any] = {"path": character.path}
@@ -300,6 +498,9 @@ class Engine:
                 entry.update(decision="skipped", reason=exc.what)
                 print(f"rigspace render: warning: {exc}", file=sys.stderr)
                 continue
+            posed = character.posed_capsules(world) if self._shadowing(lights) else None
+            if posed is not None:  # casts a shadow wherever its billboard is, in view or not
+                casters.append((character.path, posed))
             billboard = character.place(world, camera)
             if not billboard.visible:
                 timings["rig"] += clock.perf_counter() - t
@@ -347,10 +548,13 @@ class Engine:
         for c in candidates:
             self._describe(c, self._layers[c.character.path].layer)
         report["counts"] = _counts(report["characters"])
-        # Nothing changed since the last frame: the same prims, lights and character layers.
+        report["shadows"]["casters"] = len(casters)
+        # Nothing changed since the last frame: the same prims, lights, shadows and layers.
         frame_key = (
             self._prims_key,
             light_key,
+            self.shadows.key,
+            tuple((path, posed.key) for path, posed in casters),
             tuple((c.character.path, self._layers[c.character.path].serial) for c in candidates),
         )
         if self._frame is not None and self._frame[0] == frame_key:
@@ -358,28 +562,51 @@ class Engine:
             report["scene_prims"]["lit_reused"] = True
             report["seconds"] = _seconds(timings, start)
             self._frame_at = time
-            return Frame(self._frame[1].beauty, self._frame[1].maps, report)
+            last = self._frame[1]
+            report["background"] = last.report.get("background")
+            return Frame(last.beauty, last.maps, report, last.opaque)
         report["composite_reused"] = False
         t = clock.perf_counter()
-        lit_reused = reused and self._lit_prims is not None and self._lit_prims[0] == light_key
+        lit_key = light_key + self.shadows.key
+        lit_reused = reused and self._lit_prims is not None and self._lit_prims[0] == lit_key
         if not lit_reused or self._lit_prims is None:
+            visibility = self._prim_visibility(prims, camera, lights, scene_meshes)
+            timings["shadows"] += clock.perf_counter() - t
+            t = clock.perf_counter()
             lit = (
-                shade(prims.albedo, prims.normal, prims.depth, prims.mask, camera, lights)
+                shade(
+                    prims.albedo,
+                    prims.normal,
+                    prims.depth,
+                    prims.mask,
+                    camera,
+                    lights,
+                    visibility=visibility,
+                )
                 if lights
                 else prims.albedo
             )
-            self._lit_prims = (light_key, lit)
+            self._lit_prims = (lit_key, lit, visibility)
         beauty = self._lit_prims[1].copy()  # the characters are composited over this copy
         report["scene_prims"]["lit_reused"] = lit_reused
         timings["lighting"] += clock.perf_counter() - t
+        t = clock.perf_counter()
+        if casters:
+            self._capsule_shadows_on_prims(beauty, prims, camera, lights, casters, meshes)
+        timings["shadows"] += clock.perf_counter() - t
         albedo, normal = prims.albedo.copy(), prims.normal.copy()
         depth, mask = prims.depth.copy(), prims.mask.copy()
         for c in candidates:
             cached = self._layers[c.character.path]
             layer = cached.layer
             t = clock.perf_counter()
-            if cached.lit is None or cached.lit_key != light_key:
-                cached.lit_key = light_key
+            others = [(p, posed) for p, posed in casters if p != c.character.path]
+            key = light_key + self.shadows.key + b"".join(posed.key for _, posed in others)
+            if cached.lit is None or cached.lit_key != key:
+                cached.lit_key = key
+                visibility = self._layer_visibility(layer, camera, lights, others)
+                timings["shadows"] += clock.perf_counter() - t
+                t = clock.perf_counter()
                 cached.lit = (
                     shade(
                         layer.albedo,
@@ -389,6 +616,7 @@ class Engine:
                         camera,
                         lights,
                         origin=(layer.x0, layer.y0),
+                        visibility=visibility,
                     )
                     if lights
                     else layer.albedo
@@ -397,9 +625,15 @@ class Engine:
             t = clock.perf_counter()
             _composite(layer, cached.lit, beauty, albedo, normal, depth, mask)
             timings["composite"] += clock.perf_counter() - t
+        t = clock.perf_counter()
+        dome = next((light for light in lights if light.kind == AMBIENT), None)
+        report["background"] = dome.path if dome is not None else None
+        if dome is not None:  # behind everything: over it goes the premultiplied frame
+            beauty += (1.0 - mask)[..., None] * self._dome_background(dome, camera, camera_key)
+        timings["composite"] += clock.perf_counter() - t
         for array in (beauty, albedo, normal, depth, mask):
             array.flags.writeable = False  # shared with the frame cache
-        frame = Frame(beauty, Maps(albedo, normal, depth, mask), report)
+        frame = Frame(beauty, Maps(albedo, normal, depth, mask), report, dome is not None)
         self._frame = (frame_key, frame)
         self._frame_at = time
         report["seconds"] = _seconds(timings, start)
@@ -420,7 +654,7 @@ class Engine:
         ]
         report["counts"] = _counts(report["characters"])
         report["seconds"] = _seconds(dict.fromkeys(STAGES, 0.0), start)
-        return Frame(last.beauty, last.maps, report)
+        return Frame(last.beauty, last.maps, report, last.opaque)
 
     def _describe(self, c: _Candidate, layer: Layer) -> None:
         top = max(c.character.model.resolutions)
@@ -455,6 +689,20 @@ class _Candidate:
     """(x0, y0, w, h) of the billboard in the frame."""
     rig: np.ndarray | None = None
     """Rig parameters, computed only for the characters evaluated this frame."""
+
+
+def _world_points(depth, rows, cols, normal, camera: Camera, origin):
+    """Planar (3, N) float32 world positions and normals of pixels (rows, cols) of a region
+    at `origin`, from their camera-space depth and (N, 3) normals."""
+    d = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
+    x = (cols.astype(np.float32) + np.float32(origin[0] + 0.5 - camera.cx)) * (d / camera.fx)
+    y = (np.float32(camera.cy - origin[1] - 0.5) - rows.astype(np.float32)) * (d / camera.fy)
+    z = -d
+    m = camera.camera_to_world.astype(np.float32)
+    n = np.ascontiguousarray(normal.T, dtype=np.float32)
+    points = np.stack([m[i, 0] * x + m[i, 1] * y + m[i, 2] * z + m[i, 3] for i in range(3)])
+    normals = np.stack([m[i, 0] * n[0] + m[i, 1] * n[1] + m[i, 2] * n[2] for i in range(3)])
+    return points, normals
 
 
 def _seconds(timings: dict[str, float], start: float) -> dict[str, float]:

@@ -169,6 +169,9 @@ class SceneGeometry:
         self._cache: dict[str, _Cached] = {}
         self._still: dict[str, bool] = {}
         """Per prim: nothing of it or its ancestors is time-varying (read once, then reused)."""
+        self.moving: set[int] = set()
+        """ids of the last meshes() call's meshes whose prims may vary in time (the rest never
+        move: their shadow map is drawn once)."""
 
     def _drawn(self, prim: Usd.Prim, time: Usd.TimeCode) -> bool:
         imageable = UsdGeom.Imageable(prim)
@@ -213,6 +216,7 @@ class SceneGeometry:
         when = Usd.TimeCode(time)
         xf_cache = UsdGeom.XformCache(when)
         out = []
+        self.moving = set()
         for prim in self.prims:
             path = str(prim.GetPath())
             still = self._still.get(path)
@@ -227,6 +231,8 @@ class SceneGeometry:
                 self._cache[path] = _Cached(b"", None)
                 continue
             static = self._static(prim)
+            if not still:
+                self.moving.add(len(out))  # its index for now: made an id below
             to_world = from_gf(xf_cache.GetLocalToWorldTransform(prim))
             local = self._local_points(prim, static, when)
             key = to_world.tobytes() + (local.tobytes() if static.animated else b"")
@@ -241,4 +247,5 @@ class SceneGeometry:
                 mesh = DrawMesh(world, static.triangles, normals, color=static.color, name=path)
             self._cache[path] = _Cached(key, mesh)
             out.append(mesh)
+        self.moving = {id(out[i]) for i in self.moving}
         return out

@@ -3,7 +3,8 @@
 The same function lights the neural character's maps and the scene prims' maps, so the
 two match. Game-engine convention: diffuse = albedo * sum(radiance * max(0, n.l)), no
 1/pi; specular = SPECULAR * (n.h)^SHININESS * radiance * max(0, n.l); ambient (DomeLight)
-= albedo * radiance. Albedo is premultiplied by coverage, and so is the result.
+= albedo * radiance. Albedo is premultiplied by coverage, and so is the result. A light's
+shadow (runtime/shadows.py) scales its diffuse and specular terms, never the ambient one.
 """
 
 from __future__ import annotations
@@ -57,12 +58,14 @@ def shade(
     camera: Camera,
     lights: Sequence[Light],
     origin: tuple[int, int] = (0, 0),
+    visibility: Sequence[np.ndarray | None] | None = None,
 ) -> np.ndarray:
     """Lit, premultiplied colour (H, W, 3) of a G-buffer in `camera`'s space.
 
     The G-buffer may be a region of the camera's image whose top-left pixel is `origin`.
     Only covered pixels are shaded (empty ones are black: premultiplied albedo is 0 there),
-    which halves the cost of a frame whose sky is empty.
+    which halves the cost of a frame whose sky is empty. `visibility`, per light, is None
+    (unshadowed) or its (H, W) shadow factor in [0, 1].
     """
     out = np.zeros(albedo.shape, dtype=np.float32)
     covered = np.flatnonzero(mask > 0)  # flat indices: one take per array, not a 2-D gather
@@ -75,6 +78,9 @@ def shade(
             mask.reshape(-1)[covered],
             camera.world_to_camera,
             lights,
+            None
+            if visibility is None
+            else [None if v is None else v.reshape(-1)[covered] for v in visibility],
         )
     return out
 
@@ -102,9 +108,11 @@ def shade_pixels(
     mask: np.ndarray,
     world_to_camera: np.ndarray,
     lights: Sequence[Light],
+    visibility: Sequence[np.ndarray | None] | None = None,
 ) -> np.ndarray:
     """The shading of pixels given as (..., 3) arrays: camera-space position, normal, albedo;
-    `mask` (...) their coverage. Works on planar (3, N) copies of the vectors."""
+    `mask` (...) their coverage; `visibility` per light None or its shadow factor (...).
+    Works on planar (3, N) copies of the vectors."""
     shape = np.shape(albedo)
     rotation = world_to_camera[:3, :3]
     p = np.ascontiguousarray(np.reshape(position, (-1, 3)).T, dtype=np.float32)
@@ -112,7 +120,7 @@ def shade_pixels(
     view = p * (-1.0 / np.maximum(np.sqrt(_dot(p, p)), MIN_DISTANCE))
     diffuse = np.zeros(p.shape, dtype=np.float32)  # per channel, planar
     specular = np.zeros(p.shape, dtype=np.float32)
-    for light in lights:
+    for index, light in enumerate(lights):
         radiance = light.radiance.astype(np.float32)[:, None]
         if light.kind == AMBIENT:
             diffuse += radiance
@@ -131,6 +139,8 @@ def shade_pixels(
             half += view
         else:
             raise ValueError(f"unknown light kind {light.kind!r}")
+        if visibility is not None and visibility[index] is not None:
+            strength = strength * np.reshape(visibility[index], -1).astype(np.float32)
         diffuse += radiance * strength
         half *= 1.0 / np.maximum(np.sqrt(_dot(half, half)), MIN_DISTANCE)
         highlight = _power(np.maximum(_dot(n, half), 0.0), SHININESS)

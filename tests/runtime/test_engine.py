@@ -10,6 +10,7 @@ import OpenImageIO as oiio
 import pytest
 
 from rigspace.runtime.engine import Engine
+from rigspace.runtime.lights import light_prims
 from rigspace.runtime.output import CHANNELS
 from rigspace.sdk.cli import main
 from rigspace.sdk.errors import SceneError
@@ -29,7 +30,10 @@ def test_a_frame_composites_the_character_with_the_scene(engine):
     frame = engine.render(100.0)
     (hero,) = frame.report["characters"]
     assert hero["decision"] == "evaluated" and hero["level"] in (32, 64, 128)
-    assert frame.report["lights"] == 2 and frame.report["scene_prims"]["meshes"] == 5
+    # Every UsdLux light of the scene: the sun, the lamp (and the sky's DomeLight).
+    lights = len(light_prims(engine.stage))
+    assert lights >= 2 and frame.report["lights"] == lights
+    assert frame.report["scene_prims"]["meshes"] == 5
     assert frame.beauty.shape == (90, 160, 3) and np.all(np.isfinite(frame.beauty))
     covered = frame.maps.mask > 0.5
     assert np.all(np.isfinite(frame.maps.depth[covered]))
@@ -37,6 +41,7 @@ def test_a_frame_composites_the_character_with_the_scene(engine):
         "scene",
         "rig",
         "network",
+        "shadows",
         "lighting",
         "composite",
         "total",
@@ -201,7 +206,10 @@ def test_an_edit_to_the_stage_invalidates_what_was_read_as_still(tmp_path):
     finally:
         e.close()
     assert "repeat_of_last_frame" not in second.report
-    assert second.report["lights"] == 1 and second.beauty.sum() < 0.5 * first.beauty.sum()
+    assert second.report["lights"] == first.report["lights"] - 1
+    # Without the sun and the lamp the prims and the character darken (a sky still shows).
+    covered = second.maps.mask > 0.5
+    assert second.beauty[covered].sum() < 0.5 * first.beauty[covered].sum()
 
 
 def test_characters_sharing_a_bundle_run_as_one_batch(tmp_path):
@@ -341,9 +349,8 @@ def test_a_light_with_a_nan_intensity_is_left_out_loudly(tmp_path, capsys):
         frame = e.render(700.0)
     finally:
         e.close()
-    assert (
-        frame.report["lights"] == 1 and "/World/Lights/Lamp" in frame.report["lights_left_out"][0]
-    )
+    assert frame.report["lights"] == len(light_prims(e.stage)) - 1
+    assert "/World/Lights/Lamp" in frame.report["lights_left_out"][0]
     assert np.all(np.isfinite(frame.beauty))
     assert "left out" in capsys.readouterr().err
 

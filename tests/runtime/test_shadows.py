@@ -1,0 +1,383 @@
+"""Shadows: the character's capsules onto prims, prims' shadow maps onto the character."""
+
+from __future__ import annotations
+
+import functools
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+
+from rigspace.runtime import shadows
+from rigspace.runtime.engine import Engine
+from rigspace.runtime.lights import DISTANT, POINT, Light
+from rigspace.runtime.shadows import PosedCapsules, capsule_visibility, cone_occlusion
+from rigspace.sdk.camera import Camera
+from rigspace.sdk.capsules import (
+    CapsuleError,
+    add_to_bundle,
+    fit_capsules,
+    read_capsules,
+    write_capsules,
+)
+from rigspace.sdk.posing import CharacterRig
+from rigspace.sdk.stage import open_stage, overlay_layer
+from tests.conftest import REPO
+
+PREVIS = REPO / "samples" / "scenes" / "previs.usda"
+SAMPLE_MODEL = REPO / "samples" / "models" / "sample"
+SIZE = (160, 90)
+REFERENCE_TOLERANCE = 0.09
+"""Largest gap between the analytic capsule occlusion and ray casting (4096 rays), as a
+fraction of the light (0.077 measured): the capsule stands in as its sphere nearest the
+ray, and a capsule lying across the light's cone hides a band, a little more than that
+sphere's disc. The penumbra's edges agree within 0.013."""
+REFERENCE_MEAN_TOLERANCE = 0.025
+"""Mean gap over the receivers of the same configuration (0.017 measured)."""
+"""Mean gap over the receivers of the same configuration."""
+
+
+@functools.cache
+def _previs() -> Usd.Stage:
+    return open_stage(PREVIS)
+
+
+@functools.cache
+def _rig() -> CharacterRig:
+    return CharacterRig(_previs().GetPrimAtPath("/World/Hero"))
+
+
+def _pelvis(time: float = 0.0) -> np.ndarray:
+    rig = _rig()
+    return rig.world_transforms(time)[rig.joints.index("pelvis")][:3, 3]
+
+
+def _stage(tmp_path: Path, name: str, build) -> Path:
+    """The previs scene without its set, lights and camera rig, plus what `build` adds."""
+    path = tmp_path / f"{name}.usda"
+    layer = overlay_layer(path, PREVIS)
+    stage = Usd.Stage.Open(layer)
+    for inactive in ("/World/Set", "/World/Lights"):
+        stage.OverridePrim(inactive).SetActive(False)
+    build(stage)
+    layer.Save()
+    return path
+
+
+def _camera(stage: Usd.Stage, eye, tilt: float) -> None:
+    cam = UsdGeom.Camera.Define(stage, "/World/Test/Cam")
+    cam.CreateFocalLengthAttr(35.0)
+    cam.CreateHorizontalApertureAttr(20.955)
+    cam.CreateVerticalApertureAttr(11.787)
+    cam.CreateClippingRangeAttr(Gf.Vec2f(10, 10000))
+    cam.AddTranslateOp().Set(Gf.Vec3d(*map(float, eye)))
+    cam.AddRotateXOp().Set(tilt)
+
+
+def _ground(stage: Usd.Stage) -> None:
+    plane = UsdGeom.Plane.Define(stage, "/World/Test/Ground")
+    plane.CreateAxisAttr("Y")
+    plane.CreateWidthAttr(3000.0)
+    plane.CreateLengthAttr(3000.0)
+    plane.CreateDisplayColorAttr([Gf.Vec3f(0.5, 0.5, 0.5)])
+
+
+def _sun(stage: Usd.Stage, tilt_z: float, tilt_x: float = -90.0) -> None:
+    """A DistantLight: -Z turned down (or by tilt_x towards -Z), then leaning towards +X."""
+    sun = UsdLux.DistantLight.Define(stage, "/World/Test/Sun")
+    sun.CreateIntensityAttr(2.0)
+    sun.AddRotateZOp().Set(tilt_z)
+    sun.AddRotateXOp().Set(tilt_x)
+
+
+def _pixel(engine: Engine, point) -> tuple[int, int]:
+    camera = Camera.from_usd(engine.camera_prim, 0.0, engine.width, engine.height)
+    xy, _ = camera.project(np.asarray(point, float)[None])
+    return int(xy[0, 1]), int(xy[0, 0])
+
+
+def _render(scene: Path, without_capsules: bool = False):
+    engine = Engine(scene, camera="/World/Test/Cam", width=SIZE[0], height=SIZE[1])
+    try:
+        if without_capsules:
+            for character in engine.characters:
+                character.capsules = None
+        return engine, engine.render(0.0)
+    finally:
+        engine.close()
+
+
+def test_the_capsules_darken_the_ground_under_the_character_and_nowhere_else(tmp_path):
+    pelvis = _pelvis()
+
+    def build(stage):
+        _ground(stage)
+        _sun(stage, 45.0)  # travels along (+1, -1, 0): the shadow falls towards +X
+        _camera(stage, pelvis + np.array((0, 150, 700)), -12.0)
+
+    scene = _stage(tmp_path, "sunny", build)
+    engine, lit = _render(scene)
+    _, bare = _render(scene, without_capsules=True)
+    assert lit.report["shadows"]["casters"] == 1 and bare.report["shadows"]["casters"] == 0
+    # Where the pelvis's shadow lands (its height along the 45-degree light), and a ground
+    # point on the side the light comes from.
+    under = _pixel(engine, pelvis + np.array((pelvis[1], -pelvis[1], 0)))
+    away = _pixel(engine, pelvis + np.array((-150, -pelvis[1], 0)))
+    assert min(under + away) >= 0 and max(under[0], away[0]) < SIZE[1]
+    assert lit.maps.mask[under] == 1.0 and lit.maps.mask[away] == 1.0
+    assert lit.beauty[under].sum() < 0.6 * bare.beauty[under].sum()
+    assert np.allclose(lit.beauty[away], bare.beauty[away], atol=1e-6)
+    # Every darkened pixel lies on the shadow's side of the character.
+    changed = np.abs(lit.beauty - bare.beauty).sum(axis=-1) > 1e-4
+    _, centre_col = _pixel(engine, pelvis * (1, 0, 1))
+    cols = np.nonzero(changed)[1]
+    assert changed.sum() > 20 and np.mean(cols > centre_col - 10) > 0.95
+
+
+def _roofed(tmp_path: Path, roof: bool) -> Path:
+    pelvis = _pelvis()
+
+    def build(stage):
+        _ground(stage)
+        _sun(stage, 0.0, -45.0)  # from above the camera, onto the character's front
+        UsdLux.DomeLight.Define(stage, "/World/Test/Sky").CreateIntensityAttr(0.2)
+        if roof:  # above the camera's view, between the sun and the character
+            cube = UsdGeom.Cube.Define(stage, "/World/Test/Roof")
+            cube.CreateSizeAttr(300.0)
+            cube.AddTranslateOp().Set(Gf.Vec3d(*(pelvis + np.array((0.0, 400.0, 400.0)))))
+        _camera(stage, pelvis * (1, 0, 1) + (0, 100, 900), 0.0)
+
+    return _stage(tmp_path, f"roof_{roof}", build)
+
+
+def test_a_prim_between_the_light_and_the_character_darkens_it_and_the_ground(tmp_path):
+    engine, shaded = _render(_roofed(tmp_path, True))
+    _, open_sky = _render(_roofed(tmp_path, False))
+    (hero,) = shaded.report["characters"]
+    x0, y0, w, h = hero["region"]
+    region = np.s_[y0 : y0 + h, x0 : x0 + w]
+    # The character's own pixels (the ground's albedo is a flat 0.5 grey): lit by the sky
+    # alone under the roof.
+    albedo = shaded.maps.albedo[region]
+    covered = (shaded.maps.mask[region] > 0.5) & (np.abs(albedo - 0.5).max(axis=-1) > 0.02)
+    assert covered.sum() > 50
+    assert shaded.beauty[region][covered].mean() < 0.4 * open_sky.beauty[region][covered].mean()
+    # The roof's shadow on the ground is 300 wide around the character, who stands in it.
+    pelvis = _pelvis()
+    inside = _pixel(engine, pelvis * (1, 0, 1) + (100, 0, 0))
+    outside = _pixel(engine, pelvis * (1, 0, 1) + (240, 0, 0))
+    assert shaded.beauty[inside].sum() < 0.4 * shaded.beauty[outside].sum()
+    assert np.allclose(shaded.beauty[outside], open_sky.beauty[outside], atol=1e-6)
+
+
+def test_no_light_no_shadows(tmp_path):
+    pelvis = _pelvis()
+
+    def build(stage):
+        _ground(stage)
+        _camera(stage, pelvis + np.array((0, 150, 700)), -12.0)
+
+    _, frame = _render(_stage(tmp_path, "dark", build))
+    assert frame.report["shadows"] == {"maps_drawn": 0, "casters": 0}
+    assert np.array_equal(frame.beauty, frame.maps.albedo)  # unlit: nothing darkened
+
+
+def test_a_moving_light_redraws_the_maps_and_the_frame(tmp_path):
+    pelvis = _pelvis()
+
+    def build(stage):
+        _ground(stage)
+        sun = UsdLux.DistantLight.Define(stage, "/World/Test/Sun")
+        sun.CreateIntensityAttr(2.0)
+        op = sun.AddRotateZOp()
+        op.Set(30.0, 0)
+        op.Set(-30.0, 10)
+        sun.AddRotateXOp().Set(-90.0)
+        _camera(stage, pelvis + np.array((0, 150, 700)), -12.0)
+
+    engine = Engine(
+        _stage(tmp_path, "moving", build), camera="/World/Test/Cam", width=80, height=45
+    )
+    try:
+        first, second = engine.render(0.0), engine.render(10.0)
+    finally:
+        engine.close()
+    assert first.report["shadows"]["maps_drawn"] >= 1
+    assert second.report["shadows"]["maps_drawn"] >= 1
+    assert not second.report["composite_reused"]
+    assert not np.array_equal(first.beauty, second.beauty)
+
+
+# -- the analytic occlusion against ray casting --------------------------------------------
+
+
+def _ray_cast(points: np.ndarray, capsule, light: Light, samples: int = 4096) -> np.ndarray:
+    """The fraction of rays from each point towards uniformly spread points of the light's
+    disc (cone of its angular radius) that miss the capsule: a slow, independent reference."""
+    a, b, r = capsule
+    rng = np.random.default_rng(0)
+    axis = -light.direction
+    e1 = np.cross(axis, [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    # Uniform over the cone's solid angle: cos(theta) uniform in [cos(angle), 1].
+    cos_t = 1 - rng.random(samples) * (1 - np.cos(light.angle))
+    sin_t = np.sqrt(1 - cos_t**2)
+    phi = rng.random(samples) * 2 * np.pi
+    rays = cos_t[:, None] * axis + sin_t[:, None] * (
+        np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2
+    )
+    seg = b - a
+    visible = []
+    for p in points:
+        # Closest approach of each ray (t >= 0) to the segment, sampled densely along it.
+        s = np.linspace(0.0, 1.0, 201)
+        q = a + s[:, None] * seg - p  # (S, 3)
+        t = np.maximum(q @ rays.T, 0.0)  # (S, R)
+        gap2 = (q**2).sum(1)[:, None] - 2 * t * (q @ rays.T) + t**2
+        visible.append(np.mean(gap2.min(axis=0) > r * r))
+    return np.array(visible)
+
+
+def test_the_analytic_capsule_occlusion_matches_ray_casting():
+    capsule = (np.array([-20.0, 60.0, 0.0]), np.array([20.0, 90.0, 0.0]), 10.0)
+    light = Light(DISTANT, np.ones(3), direction=np.array([0.0, -1.0, 0.0]),
+                  angle=np.radians(6.0))  # fmt: skip
+    x = np.linspace(-60.0, 60.0, 49)
+    points = np.stack([x, np.zeros_like(x), np.full_like(x, 4.0)], axis=-1)
+    posed = PosedCapsules(capsule[0][None], capsule[1][None], np.array([capsule[2]]))
+    analytic = capsule_visibility(points.T.astype(np.float32), posed, light)
+    reference = _ray_cast(points, capsule, light)
+    assert reference.min() < 0.05 and reference.max() == 1.0  # umbra, penumbra and light
+    gap = np.abs(analytic - reference)
+    assert gap.max() < REFERENCE_TOLERANCE and gap.mean() < REFERENCE_MEAN_TOLERANCE
+
+
+def test_cone_occlusion_limits():
+    light, sphere = np.float32(0.1), np.float32(0.3)
+    assert cone_occlusion(light, sphere, np.float32(0.0)) == pytest.approx(1.0)
+    assert cone_occlusion(light, sphere, np.float32(0.41)) == pytest.approx(0.0, abs=1e-6)
+    # A small sphere centred on a wide light hides its share of the light's disc.
+    share = (0.05 / 0.3) ** 2
+    assert cone_occlusion(np.float32(0.3), np.float32(0.05), np.float32(0.0)) == pytest.approx(
+        share, rel=1e-3
+    )
+
+
+@pytest.mark.parametrize("kind", [DISTANT, POINT])
+def test_the_light_space_table_keeps_every_pair_that_matters(kind, monkeypatch):
+    capsules = read_capsules(SAMPLE_MODEL / "capsules.json")
+    rig = _rig()
+    world = rig.world_transforms(100.0)
+    index = [rig.joints.index(j) for j in capsules.joints]
+    posed = shadows.pose_capsules(capsules.a, capsules.b, capsules.radius, world[index])
+    light = (
+        Light(
+            DISTANT,
+            np.ones(3),
+            direction=np.array([0.5, -0.8, 0.3]) / np.linalg.norm([0.5, -0.8, 0.3]),
+        )
+        if kind == DISTANT
+        else Light(POINT, np.ones(3), position=np.array([100.0, 300.0, 300.0]), radius=15.0)
+    )
+    rng = np.random.default_rng(1)
+    centre = world[index[0]][:3, 3]
+    points = centre + rng.uniform(-400, 400, (20000, 3)) * (1, 0, 1) - (0, centre[1], 0)
+    points = points.T.astype(np.float32)
+    fast = capsule_visibility(points, posed, light)
+    monkeypatch.setattr(shadows, "_light_plane", lambda *args: None)
+    every_pair = capsule_visibility(points, posed, light)
+    assert (every_pair < 0.5).sum() > 100  # a real shadow to compare
+    assert np.abs(fast - every_pair).max() < 1e-5
+
+
+# -- fitting and the bundle -------------------------------------------------------------------
+
+
+def test_fitted_capsules_follow_the_bones_and_cover_the_body():
+    rig = _rig()
+    capsules = fit_capsules(rig)
+    names = [j.rsplit("/", 1)[-1] for j in capsules.joints]
+    assert {"pelvis", "head", "thigh_l", "calf_r", "upperarm_l"} <= set(names)
+    thigh = names.index("thigh_l")
+    axis = capsules.b[thigh] - capsules.a[thigh]
+    bind = np.asarray(rig.skeleton.GetBindTransformsAttr().Get())
+    knee = np.linalg.inv(bind[rig.joints.index(capsules.joints[thigh])].T) @ np.append(
+        bind[rig.joints.index(capsules.joints[thigh] + "/calf_l")].T[:3, 3], 1.0
+    )
+    cosine = abs(axis @ knee[:3]) / (np.linalg.norm(axis) * np.linalg.norm(knee[:3]))
+    assert cosine > 0.99  # along the bone, towards the knee
+    assert 3.0 < capsules.radius[thigh] < 15.0  # a thigh's radius in centimetres
+    # Posed at a frame of the walk, most of the skinned mesh lies within its capsules.
+    time = 100.0
+    world = rig.world_transforms(time)
+    index = [rig.joints.index(j) for j in capsules.joints]
+    posed = shadows.pose_capsules(capsules.a, capsules.b, capsules.radius, world[index])
+    points = np.concatenate([m.points for m in rig.posed_meshes(time)])[::7]
+    seg = posed.b - posed.a
+    t = np.clip(
+        np.einsum("nkc,kc->nk", points[:, None] - posed.a[None], seg)
+        / np.maximum((seg**2).sum(1), 1e-9),
+        0,
+        1,
+    )
+    gap = np.linalg.norm(points[:, None] - (posed.a[None] + t[..., None] * seg[None]), axis=-1)
+    inside = (gap <= 1.5 * posed.radius[None]).any(axis=1)
+    assert inside.mean() > 0.9
+
+
+def test_capsules_round_trip_and_a_damaged_file_is_named(tmp_path):
+    rig = _rig()
+    capsules = fit_capsules(rig)
+    back = read_capsules(write_capsules(capsules, tmp_path / "capsules.json"))
+    assert back.joints == capsules.joints
+    assert np.allclose(back.a, capsules.a, atol=1e-4) and np.allclose(
+        back.radius, capsules.radius, atol=1e-4
+    )
+    (tmp_path / "bad.json").write_text('{"format": "rigspace.capsules", "format_version": 1}')
+    with pytest.raises(CapsuleError, match=r"bad\.json"):
+        read_capsules(tmp_path / "bad.json")
+
+
+def test_the_sample_bundle_holds_the_fit_of_the_previs_character():
+    manifest = json.loads((SAMPLE_MODEL / "manifest.json").read_text())
+    assert manifest["capsules"] == "capsules.json"
+    committed = read_capsules(SAMPLE_MODEL / "capsules.json")
+    fitted = fit_capsules(_rig())
+    assert committed.joints == fitted.joints
+    assert np.allclose(committed.a, fitted.a, atol=1e-3)
+
+
+def test_a_bundle_without_capsules_casts_no_shadow_and_says_so_once(tmp_path, capsys):
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    for file in SAMPLE_MODEL.iterdir():
+        if file.suffix == ".onnx":
+            (bundle / file.name).symlink_to(file)
+    manifest = json.loads((SAMPLE_MODEL / "manifest.json").read_text())
+    del manifest["capsules"]
+    (bundle / "manifest.json").write_text(json.dumps(manifest))
+    pelvis = _pelvis()
+
+    def build(stage):
+        _ground(stage)
+        _sun(stage, 45.0)
+        _camera(stage, pelvis + np.array((0, 150, 700)), -12.0)
+        model = stage.GetPrimAtPath("/World/Hero").GetAttribute("rigspace:model")
+        model.Set(Sdf.AssetPath(str(bundle)))
+
+    engine = Engine(_stage(tmp_path, "bare", build), camera="/World/Test/Cam", width=80, height=45)
+    try:
+        first, second = engine.render(0.0), engine.render(1.0)
+    finally:
+        engine.close()
+    err = capsys.readouterr().err
+    assert err.count("casts no shadow") == 1 and "capsules.json" in err
+    assert first.report["shadows"]["without_capsules"] == ["/World/Hero"]
+    assert "without_capsules" not in second.report["shadows"]
+    assert first.report["shadows"]["casters"] == 0
+    # Adding the fit to the bundle gives it its shadow.
+    add_to_bundle(fit_capsules(_rig()), bundle)
+    assert json.loads((bundle / "manifest.json").read_text())["capsules"] == "capsules.json"
