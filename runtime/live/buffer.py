@@ -152,7 +152,8 @@ class BindingCounters:
     jitter_p50_ms: float | None
     jitter_p99_ms: float | None
     latency_p50_ms: float | None
-    """Receive-to-pose latency: bytes read to samples available to pose()."""
+    """Receive-to-pose latency per read: bytes read to decoded, and pushed to pose() where
+    the read completes a frame."""
     latency_p99_ms: float | None
 
     def as_dict(self) -> dict:

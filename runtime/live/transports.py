@@ -82,8 +82,8 @@ class Source:
             frames = self.decoder.feed(data, received, **kw)
             for frame in frames:
                 buffer.push(frame, received)
-        if frames:
-            buffer.note_latency(time.monotonic() - received)
+        # Every read counts (a VMC bone bundle completes no frame but is most of the work).
+        buffer.note_latency(time.monotonic() - received)
 
     # Subclasses: open resources (raise LiveSourceError), give the loops, close resources.
     def _open(self) -> None: ...
