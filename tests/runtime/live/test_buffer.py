@@ -137,3 +137,25 @@ def test_history_is_bounded_and_pose_does_not_wait_for_a_flood():
         thread.join()
     assert len(b._snapshots) == 64 and b.samples > 0
     assert np.percentile(durations, 50) < 0.005  # generous: the machine is shared
+
+
+def test_settings_from_the_binding_tokens():
+    from types import SimpleNamespace
+
+    def b(buffering):
+        return SimpleNamespace(
+            buffering=buffering, buffer_seconds=0.08, smoothing="oneEuro",
+            smoothing_strength=0.3, timeout_seconds=0.25,
+        )  # fmt: skip
+
+    assert BufferSettings.from_binding(b("latest")).mode == "latest"
+    buffered = BufferSettings.from_binding(b("buffered"))
+    assert (buffered.mode, buffered.delay, buffered.lost_after) == ("delayed", 0.08, 1.0)
+    interpolate = BufferSettings.from_binding(b("interpolate"))
+    assert (interpolate.mode, interpolate.delay, interpolate.smoothing) == (
+        "delayed",
+        None,
+        "oneEuro",
+    )
+    with pytest.raises(ValueError, match="buffer mode"):
+        LiveBuffer(("a",), BufferSettings(mode="later"))

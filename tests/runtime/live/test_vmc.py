@@ -168,3 +168,27 @@ def test_port_in_use_names_the_source_and_the_fix():
         source = open_source(f"vmc://127.0.0.1:{port}", "suit")
         with pytest.raises(LiveSourceError, match=rf"'suit'.*UDP port {port}.*in use.*Fix"):
             source.start(LiveBuffer(source.bones))
+
+
+def test_a_flood_is_counted_and_bounded_and_the_receiver_keeps_going():
+    source = open_source("vmc://127.0.0.1:0", "suit")
+    buffer = LiveBuffer(source.bones)
+    source.start(buffer)
+    try:
+        address = source.address
+        rng = np.random.default_rng(5)
+        unknown = build_msg(BONE_POS, ["Tail", 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]).dgram
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            for k in range(3000):
+                s.sendto(rng.bytes(int(rng.integers(1, 1400))) if k % 2 else unknown, address)
+            assert wait_for(lambda: source.decoder.counters.packets > 100)
+            q = random_quats(len(HUMAN_BODY_BONES))
+            for dgram in encode_frame(HUMAN_BODY_BONES, q, np.zeros(3), None, 5.0):
+                s.sendto(dgram, address)
+            assert wait_for(lambda: source.decoder.counters.frames == 1)
+        c = source.decoder.counters
+        assert c.malformed > 0 and c.unknown_bones > 0 and source.decoder.buffered == 0
+        assert len(buffer._snapshots) <= buffer.settings.history
+        assert source._threads[0].is_alive()
+    finally:
+        source.stop()
