@@ -20,6 +20,7 @@ from rigspace.runtime.live.retarget import (
 )
 from rigspace.runtime.live.sources import open_source
 from rigspace.runtime.live.transports import Source
+from rigspace.sdk.rotations import quat_from_matrix
 
 DEFAULT_PRESET = {"vmc": "unity", "replay": "cmu", "bvh+tcp": "cmu"}
 """The bone-name preset a scheme gets when the binding authors no sourceBones (and the source's
@@ -75,6 +76,8 @@ def open_binding(
 ) -> LiveBindingRuntime:
     """Build (not start) the runtime of an sdk.schema.LiveBinding for a UsdSkel Skeleton.
 
+    A recorded take (replay:// of a .usd file) plays back onto its own skeleton exactly: same
+    joints, identity basis, the skeleton's rest as its rest pose, the take's units.
     Bone map: the binding's sourceBones -> targetJoints when authored; else `preset` (or the
     scheme's default preset when the source sends its bones); else source bones onto joints of
     the same name. Basis: the source's native one (VMC) or the binding's up axis and
@@ -86,8 +89,14 @@ def open_binding(
     joints, rest = target_skeleton(skeleton_prim)
     chosen = PRESETS.get(preset or DEFAULT_PRESET.get(scheme, ""))
     meters_per_unit = binding.source_meters_per_unit
+    native = bool(getattr(source, "native", False))  # a recorded take of this skeleton
+    if native:
+        meters_per_unit = getattr(source, "meters_per_unit", None) or meters_per_unit
     if binding.source_bones:
         bone_map = dict(zip(binding.source_bones, binding.target_joints, strict=True))
+    elif native:
+        leaves = {j.rsplit("/", 1)[-1] for j in joints}
+        bone_map = {b: b for b in source.bones if b in leaves}
     elif chosen is not None and set(chosen.bone_map) & set(source.bones):
         bone_map = chosen.bone_map
         if meters_per_unit == 1.0:
@@ -95,7 +104,7 @@ def open_binding(
     else:
         leaves = {j.rsplit("/", 1)[-1] for j in joints}
         bone_map = {b: b for b in source.bones if b in leaves}
-    basis = NATIVE_BASIS.get(scheme)
+    basis = np.eye(3) if native else NATIVE_BASIS.get(scheme)
     if basis is None:
         basis = source_basis(binding.source_up_axis, binding.source_handedness)
     hierarchy = source_hierarchy(source, chosen or PRESETS["unity"])
@@ -109,7 +118,18 @@ def open_binding(
         basis,
         meters_per_unit / stage_meters_per_unit,
     )
-    if binding.rest_pose:
+    if native:
+        # The take's rest is the skeleton's own: then each joint gets the take's rotation back.
+        leaf = {j.rsplit("/", 1)[-1]: i for i, j in enumerate(joints)}
+        rest_rotations = quat_from_matrix(np.swapaxes(rest[:, :3, :3], 1, 2))
+        full = np.tile([1.0, 0.0, 0.0, 0.0], (len(source.bones), 1))
+        for k, bone in enumerate(source.bones):
+            if bone in leaf:
+                full[k] = rest_rotations[leaf[bone]]
+        retargeter.calibrate_rotations(full)
+        root = retargeter._target_root
+        retargeter.rest_root = rest[root, 3, :3] * stage_meters_per_unit / meters_per_unit
+    elif binding.rest_pose:
         full = np.tile([1.0, 0.0, 0.0, 0.0], (len(source.bones), 1))
         index = {b: i for i, b in enumerate(source.bones)}
         for bone, q in zip(bone_map, binding.rest_pose, strict=False):

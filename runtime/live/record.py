@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -80,3 +81,67 @@ class TakeRecorder:
             anim.GetScalesAttr().Set(scales, t)
         stage.GetRootLayer().Save()
         return path
+
+
+@dataclass(frozen=True)
+class Take:
+    """A recorded take read back for replay: local rotations per time sample."""
+
+    joints: tuple[str, ...]
+    """Joint paths as recorded (the skeleton's)."""
+    bones: tuple[str, ...]
+    """Leaf joint names (the replay source's bone names)."""
+    parents: tuple[int, ...]
+    rotations: np.ndarray
+    """(F, J, 4) unit quaternions (w, x, y, z)."""
+    root_positions: np.ndarray
+    """(F, 3) the first root joint's translation, in the take's units."""
+    times: np.ndarray
+    """(F,) seconds from the take's first sample."""
+    meters_per_unit: float
+
+
+def read_take(path: str | Path) -> Take:
+    """Read a take written by TakeRecorder (any layer whose default prim is a SkelAnimation)."""
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    path = Path(path)
+    if not path.is_file():
+        raise TakeError(f"Take {path} does not exist.", "check the path.")
+    stage = Usd.Stage.Open(str(path))
+    prim = stage.GetDefaultPrim()
+    if not prim or not prim.IsA(UsdSkel.Animation):
+        raise TakeError(
+            f"{path} is not a recorded take: its default prim must be a SkelAnimation.",
+            "replay a take written by TakeRecorder (rigspace live --record).",
+        )
+    anim = UsdSkel.Animation(prim)
+    joints = tuple(str(j) for j in anim.GetJointsAttr().Get() or ())
+    times = anim.GetRotationsAttr().GetTimeSamples()
+    if not joints or not times:
+        raise TakeError(
+            f"Take {path} has no joints or no rotation time samples.", "record the take again."
+        )
+    index = {j: i for i, j in enumerate(joints)}
+    parents = tuple(index.get(j.rsplit("/", 1)[0], -1) if "/" in j else -1 for j in joints)
+    rotations = np.empty((len(times), len(joints), 4))
+    roots = np.zeros((len(times), 3))
+    root = parents.index(-1)
+    for k, t in enumerate(times):
+        q = anim.GetRotationsAttr().Get(t)
+        rotations[k, :, 0] = [r.GetReal() for r in q]
+        rotations[k, :, 1:] = [tuple(r.GetImaginary()) for r in q]
+        translations = anim.GetTranslationsAttr().Get(t)
+        if translations is not None and len(translations) == len(joints):
+            roots[k] = tuple(translations[root])
+    rotations /= np.linalg.norm(rotations, axis=2, keepdims=True)
+    tcps = stage.GetTimeCodesPerSecond()
+    return Take(
+        joints,
+        tuple(j.rsplit("/", 1)[-1] for j in joints),
+        parents,
+        rotations,
+        roots,
+        (np.array(times) - times[0]) / tcps,
+        UsdGeom.GetStageMetersPerUnit(stage),
+    )

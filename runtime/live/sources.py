@@ -7,6 +7,8 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qsl, urlsplit
 
+import numpy as np
+
 from rigspace.runtime.live.decoders.bvh import BvhError, BvhStreamDecoder, read_bvh
 from rigspace.runtime.live.decoders.vmc import VmcDecoder
 from rigspace.runtime.live.decoders.ximu3 import Ximu3Decoder
@@ -142,8 +144,8 @@ def open_serial(url: str, name: str = "") -> Source:
 
 
 def open_replay(url: str, name: str = "") -> Source:
-    """replay://PATH?speed=1&loop=1: plays a BVH file in real time (replay:///abs or
-    replay://relative/path)."""
+    """replay://PATH?speed=1&loop=1: plays a BVH file or a recorded take (.usd, .usda, .usdc)
+    in real time (replay:///abs or replay://relative/path)."""
     target, query = _after_scheme(url)
     options = _options(url, name, query, {"speed": _positive, "loop": _flag})
     if not target:
@@ -151,10 +153,23 @@ def open_replay(url: str, name: str = "") -> Source:
             f"{_label(url, name)}: no file.", "write replay://PATH.bvh?speed=1&loop=1."
         )
     path = Path(target)
-    if path.suffix.lower() != ".bvh":
+    speed, loop = options.get("speed", 1.0), options.get("loop", True)
+    suffix = path.suffix.lower()
+    if suffix in (".usd", ".usda", ".usdc"):
+        from rigspace.runtime.live.record import TakeError, read_take
+
+        try:
+            take = read_take(path)
+        except TakeError as exc:
+            raise LiveSourceError(f"{_label(url, name)}: {exc.what}", exc.fix) from None
+        return ReplaySource(
+            name, url, take.bones, take.rotations, take.root_positions, take.times, speed, loop,
+            take.parents, take.meters_per_unit, native=True,
+        )  # fmt: skip
+    if suffix != ".bvh":
         raise LiveSourceError(
-            f"{_label(url, name)}: {path} is not a .bvh file.",
-            "replay a BVH file (recorded USD takes are replayed by rigspace render).",
+            f"{_label(url, name)}: {path} is neither a .bvh file nor a recorded take.",
+            "replay a BVH file or a take written by rigspace (.usd, .usda, .usdc).",
         )
     skeleton, motion, frame_time = _skeleton(url, name, target)
     if len(motion) == 0:
@@ -163,16 +178,9 @@ def open_replay(url: str, name: str = "") -> Source:
         )
     rotations, roots = skeleton.pose(motion)
     return ReplaySource(
-        name,
-        url,
-        skeleton.names,
-        rotations,
-        roots,
-        frame_time,
-        options.get("speed", 1.0),
-        options.get("loop", True),
-        skeleton.parents,
-    )
+        name, url, skeleton.names, rotations, roots, np.arange(len(motion)) * frame_time, speed,
+        loop, skeleton.parents,
+    )  # fmt: skip
 
 
 VMC = SourceSpec(
@@ -189,7 +197,7 @@ SERIAL = SourceSpec(
     "serial://DEVICE[,DEVICE]?baud=115200&format=ximu3&bones=B1[,B2]  x-IMU3 over pyserial",
 )
 REPLAY = SourceSpec(
-    "replay", open_replay, "replay://PATH.bvh?speed=1&loop=1  a BVH file in real time"
+    "replay", open_replay, "replay://PATH?speed=1&loop=1  a BVH file or recorded take, in real time"
 )
 
 

@@ -263,7 +263,9 @@ class ClipPlayer:
 class ReplaySource(Source):
     """Plays decoded frames (F, B, 4) at their own times, scaled by 1/speed, looping or not.
 
-    Timestamps keep increasing across loops, so the buffer sees one continuous stream.
+    `times` are seconds from the clip's start (a BVH's frames are evenly spaced, a recorded
+    take's follow its time codes, gaps included). Timestamps keep increasing across loops, so
+    the buffer sees one continuous stream.
     """
 
     def __init__(
@@ -273,16 +275,23 @@ class ReplaySource(Source):
         bones: tuple[str, ...],
         rotations: np.ndarray,
         root_positions: np.ndarray | None,
-        frame_time: float,
+        times: np.ndarray,
         speed: float = 1.0,
         loop: bool = True,
         parents: tuple[int, ...] = (),
+        meters_per_unit: float | None = None,
+        native: bool = False,
     ) -> None:
         super().__init__(name, url, ClipPlayer(bones, "local"))
         self.parents = parents
         """The clip's hierarchy (parent index per bone, -1 for roots), for retargeting."""
         self.rotations, self.root_positions = rotations, root_positions
-        self.frame_time, self.speed, self.loop = frame_time, speed, loop
+        self.times = np.asarray(times, dtype=np.float64)
+        self.speed, self.loop = speed, loop
+        self.meters_per_unit = meters_per_unit
+        """Units of the root positions, when the file says (a USD take's stage)."""
+        self.native = native
+        """True for a recorded take: its bones are a skeleton's own joints and rest pose."""
         self.finished = threading.Event()
 
     def _loops(self) -> list:
@@ -293,20 +302,24 @@ class ReplaySource(Source):
         assert buffer is not None
         counters = self.decoder.counters
         count = len(self.rotations)
+        steps = np.diff(self.times)
+        # One loop lasts the clip plus one typical frame (the last frame is shown that long).
+        period = self.times[-1] - self.times[0] + (float(np.median(steps)) if count > 1 else 0.1)
         indices = np.arange(len(self.bones), dtype=np.int64)
-        step = self.frame_time / self.speed
         start = time.monotonic()
         n = 0
         while not self._stop.is_set():
             i = n % count
             if n and i == 0 and not self.loop:
                 break
-            wait = start + n * step - time.monotonic()
+            clip_time = (n // count) * period + self.times[i] - self.times[0]
+            due = clip_time / self.speed
+            wait = start + due - time.monotonic()
             if wait > 0 and self._stop.wait(wait):
                 break
             root = None if self.root_positions is None else self.root_positions[i]
             received = time.monotonic()
-            buffer.push(Frame(0, n * step, indices, self.rotations[i], root), received)
+            buffer.push(Frame(0, due, indices, self.rotations[i], root), received)
             buffer.note_latency(time.monotonic() - received)
             counters.packets += 1
             counters.frames += 1

@@ -57,3 +57,59 @@ def test_take_errors():
         TakeRecorder(["a", "a/b"]).add(0, np.eye(4)[None])
     with pytest.raises(TakeError, match="empty"):
         TakeRecorder(["a"]).write("/tmp/never.usda", 30.0)
+
+
+def test_a_recorded_take_replays_onto_its_skeleton_exactly(tmp_path):
+    from rigspace.runtime.live.binding import open_binding
+    from rigspace.sdk.schema import LiveBinding
+    from tests.runtime.live.conftest import wait_for
+
+    stage = Usd.Stage.Open(str(SAMPLE_CHARACTER))
+    skel_prim = stage.GetPrimAtPath("/Character/Skel")
+    joints, _ = target_skeleton(skel_prim)
+    anim = UsdSkel.Animation(stage.GetPrimAtPath("/Character/Skel/Anim"))
+    recorder = TakeRecorder(joints)
+    for t in range(360, 390):  # part of the wave clip, as the stage animates it
+        local = UsdSkel.MakeTransforms(
+            anim.GetTranslationsAttr().Get(t),
+            anim.GetRotationsAttr().Get(t),
+            anim.GetScalesAttr().Get(t),
+        )
+        recorder.add(t, np.array(local))
+    take = recorder.write(tmp_path / "wave.usda", 30.0)
+    binding = LiveBinding(
+        name="take", url=f"replay://{take}?speed=4&loop=0", enabled=True, source_bones=(),
+        target_joints=(), source_up_axis="Y", source_handedness="right",
+        source_meters_per_unit=1.0, rest_pose=(), smoothing="none", smoothing_strength=0.5,
+        buffering="latest", buffer_seconds=0.05, timeout_seconds=0.5,
+    )  # fmt: skip
+    runtime = open_binding(binding, skel_prim, 0.01)
+    runtime.start()
+    try:
+        assert runtime.source.finished.wait(5)  # type: ignore[attr-defined]
+        assert wait_for(lambda: runtime.buffer.samples == 30 * 22)
+        out, _ = runtime.apply(np.array(UsdSkel.MakeTransforms(
+            anim.GetTranslationsAttr().Get(0), anim.GetRotationsAttr().Get(0), anim.GetScalesAttr().Get(0)
+        )))  # fmt: skip
+    finally:
+        runtime.stop()
+    want = np.array(
+        UsdSkel.MakeTransforms(
+            anim.GetTranslationsAttr().Get(389),
+            anim.GetRotationsAttr().Get(389),
+            anim.GetScalesAttr().Get(389),
+        )
+    )
+    q = [quat_from_matrix(np.swapaxes(m[:, :3, :3], 1, 2)) for m in (out, want)]
+    assert quat_angle(q[0], q[1]).max() < 1e-5
+    np.testing.assert_allclose(out[:, 3, :3], want[:, 3, :3], atol=1e-4)
+
+
+def test_replay_of_something_that_is_not_a_take(tmp_path):
+    from rigspace.runtime.live.sources import open_source
+    from rigspace.runtime.live.transports import LiveSourceError
+
+    with pytest.raises(LiveSourceError, match=r"missing\.usda does not exist"):
+        open_source(f"replay://{tmp_path}/missing.usda", "take")
+    with pytest.raises(LiveSourceError, match="default prim must be a SkelAnimation"):
+        open_source(f"replay://{SAMPLE_CHARACTER}", "take")

@@ -81,7 +81,7 @@ def test_replay_loops_with_increasing_timestamps():
 def test_replay_errors_name_the_file(tmp_path):
     with pytest.raises(LiveSourceError, match=r"'take'.*missing\.bvh cannot be read"):
         open_source(f"replay://{tmp_path}/missing.bvh", "take")
-    with pytest.raises(LiveSourceError, match=r"not a \.bvh file"):
-        open_source(f"replay://{tmp_path}/take.usda", "take")
+    with pytest.raises(LiveSourceError, match=r"neither a \.bvh file nor a recorded take"):
+        open_source(f"replay://{tmp_path}/take.mp4", "take")
     with pytest.raises(LiveSourceError, match=r"speed='0'"):
         open_source(f"replay://{CMU_CLIP}?speed=0", "take")
