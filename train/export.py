@@ -40,6 +40,8 @@ from torch import nn
 
 from rigspace.capture.dataset import read_manifest
 from rigspace.sdk.bundle import FORMAT, FORMAT_VERSION
+from rigspace.sdk.capsules import FILE_NAME as CAPSULES_FILE
+from rigspace.sdk.capsules import read_capsules
 from rigspace.train.budget import trained_levels
 from rigspace.train.config import TrainConfig
 from rigspace.train.data import SampleSet, depth_scale
@@ -163,8 +165,8 @@ def _sha256(path: Path) -> str:
 
 BUNDLE_GRAPHS = ("trunk*.onnx", "albedo_*.onnx", "geometry_*.onnx")
 """Names of the graphs an export writes: a re-export removes those it no longer writes."""
-CAPSULES = "capsules.json"
-"""Capsule shadow proxies a capture may leave in its dataset folder; copied into the bundle."""
+CAPSULES = CAPSULES_FILE
+"""Capsule shadow proxies a capture leaves in its dataset folder; copied into the bundle."""
 INT8_CHECK_SAMPLES = 32
 """Held-out rows (training rows when there are none) each int8 graph is checked on."""
 
@@ -206,6 +208,12 @@ def export_bundle(
     resolutions = [r for r in model.albedo.resolutions if r <= trained[-1]]
     dataset = Path(run["dataset"])
     data_manifest = read_manifest(dataset)
+    # Capsules are fitted to the character, not trained: the dataset's copy wins; without
+    # one, those already in the bundle (added by `python -m rigspace.sdk.capsules`) stay.
+    source = dataset / CAPSULES
+    capsules = source if source.is_file() else out / CAPSULES
+    if capsules.is_file():
+        read_capsules(capsules)  # before any graph is written: a CapsuleError naming the file
     out.mkdir(parents=True, exist_ok=True)
     rig_calibration = features_calibration = None
     if int8:
@@ -297,17 +305,9 @@ def export_bundle(
             "tolerances": {k: f"{op} {limit:g}" for k, (op, limit) in TOLERANCES.items()},
             "graphs": check_int8(out, trunk, levels, rows),
         }
-    source = dataset / CAPSULES
     if source.is_file():
-        try:
-            json.loads(source.read_text())
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise TrainingError(
-                f"{source} is not readable JSON ({exc}).",
-                "re-run the capture with --resume to rewrite it, or delete it to export "
-                "without capsule shadows.",
-            ) from exc
         shutil.copyfile(source, out / CAPSULES)
+    if capsules.is_file():
         manifest["capsules"] = CAPSULES
         written.append(CAPSULES)
     manifest["files"] = {
@@ -322,9 +322,8 @@ def export_bundle(
 
 
 def remove_stale(out: Path, keep: set[str]) -> list[str]:
-    """Delete the bundle files in `out` an earlier export wrote and this one did not."""
+    """Delete the graphs in `out` an earlier export wrote and this one did not."""
     stale = {p.name for pattern in BUNDLE_GRAPHS for p in out.glob(pattern)}
-    stale.add(CAPSULES)
     removed = sorted(name for name in stale - keep if (out / name).is_file())
     for name in removed:
         (out / name).unlink()

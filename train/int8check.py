@@ -23,12 +23,19 @@ MASK_VALID = 0.5
 """Coverage from which a pixel counts as covered (the evaluation's threshold)."""
 ZERO_NORMAL = 0.5
 """A normal shorter than this (the graphs output unit normals) counts as vanished."""
+MIN_IOU_PIXELS = 256
+"""Covered pixels (over all rows) below which an IoU is not judged: with fewer, one pixel
+flipping across the threshold moves it by more than the tolerance's margin (the sample
+model's level 8 covers about one pixel per row)."""
 PSNR_EXACT = 100.0
 """PSNR recorded for an exact match (finite, so the manifest stays strict JSON)."""
 
 TOLERANCES: dict[str, tuple[str, float]] = {
     # Set to catch broken graphs, not imprecise ones. The committed sample model's int8
-    # graphs, the least accurate measured here (docs/training.md), pass each by a margin.
+    # graphs (docs/training.md: 8 dB below fp32 at 128x128) measure, on 32 held-out rows:
+    # albedo PSNR 19.2-45.4 dB, mask IoU 0.70-0.97, alpha IoU 0.46-0.98, normals 1.0-21.2
+    # degrees with at most 0.4 % vanished, depth 0.002-0.10. All pass but albedo_32, whose
+    # alpha IoU of 0.46 (half its silhouette) fails: its fp32 graph would run instead.
     "albedo_psnr": (">=", 15.0),
     "alpha_iou": (">=", 0.5),
     "mask_iou": (">=", 0.5),
@@ -40,17 +47,20 @@ TOLERANCES: dict[str, tuple[str, float]] = {
 bundle's depth units (depth.scale, half the view's extent at the joint's distance)."""
 
 
-def _iou(a: np.ndarray, b: np.ndarray) -> float:
+def _iou(a: np.ndarray, b: np.ndarray) -> float | None:
     a, b = a >= MASK_VALID, b >= MASK_VALID
     union = np.logical_or(a, b).sum()
-    return 1.0 if union == 0 else float(np.logical_and(a, b).sum() / union)
+    if union < MIN_IOU_PIXELS:
+        return None
+    return float(np.logical_and(a, b).sum() / union)
 
 
 def drift(fp32: dict[str, np.ndarray], int8: dict[str, np.ndarray]) -> dict[str, float | None]:
     """Metrics of int8 outputs against fp32 outputs (NCHW, the bundle's names).
 
     Normals and depth are compared where the fp32 mask covers; a vanished int8 normal
-    counts as 90 degrees. A metric with nothing to measure is None.
+    counts as 90 degrees. A metric with nothing (or too little, MIN_IOU_PIXELS) to measure
+    is None and not judged.
     """
     out: dict[str, float | None] = {}
     if "albedo" in fp32:
@@ -86,7 +96,7 @@ def verdict(metrics: dict[str, float | None], finite: bool) -> list[str]:
             continue
         op, limit = TOLERANCES[key]
         if not (value >= limit if op == ">=" else value <= limit):
-            failed.append(f"{key} {value:.3g} (needs {op} {limit:g})")
+            failed.append(f"{key} {value:.3g}, needs {op} {limit:g}")
     return failed
 
 

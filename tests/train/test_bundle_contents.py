@@ -16,6 +16,7 @@ import pytest
 torch = pytest.importorskip("torch", reason="training needs the train extra (torch)")
 
 from rigspace.sdk.bundle import read_manifest  # noqa: E402
+from rigspace.sdk.capsules import CapsuleError, read_capsules  # noqa: E402
 from rigspace.sdk.cli import main  # noqa: E402
 from rigspace.sdk.model import BundleModel  # noqa: E402
 from rigspace.train import loop  # noqa: E402
@@ -123,7 +124,8 @@ def test_out_with_a_bundle_is_refused_or_replaced_with_force(
     assert main(_train_args(tiny_dataset, bundle, "--steps", "2", "--force")) == 0
     out = capsys.readouterr()
     manifest = json.loads((bundle / "manifest.json").read_text())
-    assert sorted(p.name for p in bundle.glob("*.onnx")) == sorted(manifest["files"])
+    graphs = sorted(name for name in manifest["files"] if name.endswith(".onnx"))
+    assert sorted(p.name for p in bundle.glob("*.onnx")) == graphs
     assert not (bundle / "albedo_64.onnx").exists() and levels(manifest) == [8, 16]
     assert (bundle / "notes.txt").read_text() == "mine"
     assert "levels 8, 16" in out.out and "before level 32 was trained" in out.err
@@ -227,8 +229,8 @@ def test_a_broken_int8_graph_is_flagged_and_the_runtime_runs_fp32_instead(
 def test_capsules_in_the_dataset_travel_with_the_bundle(tmp_path, tiny_run, tiny_dataset):
     dataset = tmp_path / "ds"
     shutil.copytree(tiny_dataset, dataset)
-    capsules = {"capsules": [{"joint": "Skeleton_torso_joint_1", "radius": 0.1}]}
-    (dataset / "capsules.json").write_text(json.dumps(capsules))
+    capsules = dataset / "capsules.json"  # the capture fits them (rigspace.sdk.capsules)
+    assert read_capsules(capsules).joints
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
     record = json.loads((run / loop.RUN_FILE).read_text())
@@ -236,10 +238,14 @@ def test_capsules_in_the_dataset_travel_with_the_bundle(tmp_path, tiny_run, tiny
     bundle = tmp_path / "bundle"
     manifest = export_bundle(run, bundle, int8=False)
     assert manifest["capsules"] == "capsules.json" and "capsules.json" in manifest["files"]
-    assert json.loads((bundle / "capsules.json").read_text()) == capsules
+    assert (bundle / "capsules.json").read_bytes() == capsules.read_bytes()
     assert read_manifest(bundle).raw["capsules"] == "capsules.json"
     assert BundleModel(bundle).resolutions == [8, 16, 32]
-    # The dataset without them: a re-export leaves no stale copy behind.
-    (dataset / "capsules.json").unlink()
+    # A dataset without them (captured before capsules): the bundle's own stay named.
+    capsules.unlink()
     manifest = export_bundle(run, bundle, int8=False)
-    assert "capsules" not in manifest and not (bundle / "capsules.json").exists()
+    assert manifest["capsules"] == "capsules.json" and (bundle / "capsules.json").is_file()
+    # Unusable capsules are refused, naming the file.
+    capsules.write_text("{not json")
+    with pytest.raises(CapsuleError, match=r"capsules\.json are not readable"):
+        export_bundle(run, bundle, int8=False)
