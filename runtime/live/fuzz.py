@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from rigspace.runtime.live.decoders.bvh import BvhStreamDecoder, parse_bvh
+from rigspace.runtime.live.decoders.evdev import EV_ABS, EV_KEY, EV_SYN, EVENT, EvdevDecoder
 from rigspace.runtime.live.decoders.vmc import HUMAN_BODY_BONES, VmcDecoder, encode_frame
 from rigspace.runtime.live.decoders.ximu3 import Ximu3Decoder
 
@@ -67,6 +68,17 @@ def _ximu3_seed(rng: np.random.Generator) -> list[bytes]:
     return lines
 
 
+def _evdev_seed(rng: np.random.Generator) -> list[bytes]:
+    events = [
+        EVENT.pack(1, int(rng.integers(0, 10**6)), EV_ABS, int(rng.integers(0, 6)), int(v))
+        for v in rng.integers(-40000, 40000, size=int(rng.integers(1, 5)))
+    ]
+    if rng.random() < 0.3:
+        events.append(EVENT.pack(1, 0, EV_KEY, 304, 1))
+    events.append(EVENT.pack(1, 0, EV_SYN, 0, 0))
+    return [b"".join(events)]
+
+
 def mutate(data: bytes, rng: np.random.Generator) -> bytes:
     """One random mutation: bit flips, byte overwrites, truncation, insertion, or duplication."""
     if not data:
@@ -100,6 +112,7 @@ def _decoders() -> dict[str, tuple[Callable[[], Any], Callable, int]]:
     return {
         "vmc": (VmcDecoder, _vmc_seed, len(HUMAN_BODY_BONES) + 1),
         "bvh": (lambda: BvhStreamDecoder(skeleton), _bvh_seed, BvhStreamDecoder.MAX_LINE + 4096),
+        "evdev": (EvdevDecoder, _evdev_seed, EVENT.size),
         "ximu3": (
             lambda: Ximu3Decoder(("pelvis", "thigh_l")),
             _ximu3_seed,

@@ -247,7 +247,8 @@ class Retargeter:
         rest_root: np.ndarray | None = None,
         root_motion: bool = True,
     ) -> None:
-        """`target_rest_local` is (J, 4, 4) in USD's row-vector layout (restTransforms);
+        """`space` is "local", "world" or "additive" (offsets on the stage animation, in each
+        joint's frame). `target_rest_local` is (J, 4, 4) in USD's row-vector layout (restTransforms);
         `scale` takes source units to stage units (root motion: the source root's position
         relative to `rest_root`, else to where it first was, moves the target's root joint); `rest_pose` is (B, 4), the calibration."""
         self.source_bones = tuple(source_bones)
@@ -354,6 +355,8 @@ class Retargeter:
         # Row-vector layout: the upper 3x3 is S R^T, its rows the scaled axes.
         row_scale = np.linalg.norm(stage_local[:, :3, :3], axis=2)
         stage_rot = np.swapaxes(stage_local[:, :3, :3] / row_scale[:, :, None], 1, 2)
+        if self.space == "additive":
+            return self._apply_additive(out, stage_rot, row_scale, pose)
         received = pose.valid[self.map_source]
         targets = self.map_target[received]
         desired = np.zeros((n, 3, 3))
@@ -382,6 +385,20 @@ class Retargeter:
             move = self.basis @ (pose.root_position - self.rest_root) * self.scale
             live_t = self._rest_t[root] + move
             out[root, 3, :3] = (1 - pose.weight) * stage_local[root, 3, :3] + pose.weight * live_t
+        return out
+
+    def _apply_additive(
+        self, out: np.ndarray, stage_rot: np.ndarray, row_scale: np.ndarray, pose: LivePose
+    ) -> np.ndarray:
+        """Additive sources (game controllers): each mapped joint's stage rotation turned by the
+        source's rotation in the joint's own frame, scaled by the weight."""
+        received = pose.valid[self.map_source]
+        targets = self.map_target[received]
+        offsets = pose.rotations[self.map_source[received]]
+        if pose.weight < 1:
+            offsets = quat_slerp(np.array([1.0, 0.0, 0.0, 0.0]), offsets, pose.weight)
+        live = stage_rot[targets] @ (self._a @ matrix_from_quat(offsets) @ self._a.T)
+        out[targets, :3, :3] = np.swapaxes(live, 1, 2) * row_scale[targets][:, :, None]
         return out
 
 

@@ -117,9 +117,12 @@ def serve_bvh(
     frame_time: float,
     speed: float = 1.0,
     stop: threading.Event | None = None,
+    loop: bool = False,
 ) -> int:
     """Serve a BVH clip's lines to one TCP client at a time in real time (what a
-    bvh+tcp:// source connects to); returns the lines sent when `stop` is set."""
+    bvh+tcp:// source connects to). At the clip's end the connection stays open and silent
+    (a paused performer) unless `loop` starts the clip again; returns the lines sent when
+    `stop` is set."""
     stop = stop or threading.Event()
     lines = bvh_lines(motion)
     sent = 0
@@ -130,15 +133,21 @@ def serve_bvh(
                 conn, _ = server.accept()
             except TimeoutError:
                 continue
-            start = time.monotonic()
             with conn:
-                for k, line in enumerate(lines):
+                start, k = time.monotonic(), 0
+                while not stop.is_set():
+                    if k == len(lines):
+                        if not loop:
+                            stop.wait()
+                            break
+                        start, k = start + k * frame_time / speed, 0
                     wait = start + k * frame_time / speed - time.monotonic()
-                    if (wait > 0 and stop.wait(wait)) or stop.is_set():
+                    if wait > 0 and stop.wait(wait):
                         break
                     try:
-                        conn.sendall(line)
+                        conn.sendall(lines[k])
                     except OSError:
-                        break
+                        break  # the client left: wait for the next one
                     sent += 1
+                    k += 1
     return sent

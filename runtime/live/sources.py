@@ -10,9 +10,11 @@ from urllib.parse import parse_qsl, urlsplit
 import numpy as np
 
 from rigspace.runtime.live.decoders.bvh import BvhError, BvhStreamDecoder, read_bvh
+from rigspace.runtime.live.decoders.evdev import DEFAULT_AXES, EvdevDecoder, parse_axes
 from rigspace.runtime.live.decoders.vmc import VmcDecoder
 from rigspace.runtime.live.decoders.ximu3 import Ximu3Decoder
 from rigspace.runtime.live.transports import (
+    DeviceFileSource,
     LiveSourceError,
     ReplaySource,
     SerialSource,
@@ -27,6 +29,8 @@ VMC_PORT = 39539
 AXIS_NEURON_BVH_PORT = 7001
 """Axis Neuron's default BVH data-stream port."""
 DEFAULT_HOST = "127.0.0.1"
+EXPECTS = {"axes": "CODE:JOINT:AXIS:DEGREES[:MIN:MAX],... (such as ABS_RX:head:Y:-60)"}
+"""What an option's value looks like, where its parser's name does not say."""
 
 
 def _label(url: str, name: str) -> str:
@@ -47,7 +51,7 @@ def _options(url: str, name: str, query: str, allowed: dict[str, Callable[[str],
         except ValueError:
             raise LiveSourceError(
                 f"{_label(url, name)}: option {key}={value!r} is not valid.",
-                f"give {key} a {allowed[key].__name__} value.",
+                f"give {key} a {EXPECTS.get(key, allowed[key].__name__)} value.",
             ) from None
     return options
 
@@ -183,6 +187,27 @@ def open_replay(url: str, name: str = "") -> Source:
     )  # fmt: skip
 
 
+def open_gamepad(url: str, name: str = "") -> Source:
+    """gamepad://[DEVICE]?axes=CODE:JOINT:AXIS:DEGREES[:MIN:MAX],...: a Linux evdev game
+    controller whose axes turn joints on top of the stage animation (default: right stick
+    head yaw/pitch, left stick spine lean). No DEVICE: the first /dev/input/by-id joystick."""
+    import glob
+
+    target, query = _after_scheme(url)
+    options = _options(url, name, query, {"axes": parse_axes})
+    device = target
+    if not device:
+        found = sorted(glob.glob("/dev/input/by-id/*-event-joystick"))
+        if not found:
+            raise LiveSourceError(
+                f"{_label(url, name)}: no game controller is connected.",
+                "plug one in (it appears in /dev/input/by-id), or name its device: "
+                "gamepad:///dev/input/eventN.",
+            )
+        device = found[0]
+    return DeviceFileSource(name, url, EvdevDecoder(options.get("axes", DEFAULT_AXES)), device)
+
+
 VMC = SourceSpec(
     "vmc", open_vmc, "vmc://HOST:PORT  VMC protocol (OSC over UDP), default port 39539"
 )
@@ -195,6 +220,11 @@ SERIAL = SourceSpec(
     "serial",
     open_serial,
     "serial://DEVICE[,DEVICE]?baud=115200&format=ximu3&bones=B1[,B2]  x-IMU3 over pyserial",
+)
+GAMEPAD = SourceSpec(
+    "gamepad",
+    open_gamepad,
+    "gamepad://[DEVICE]?axes=ABS_RX:head:Y:-60,...  a Linux evdev controller, additive offsets",
 )
 REPLAY = SourceSpec(
     "replay", open_replay, "replay://PATH?speed=1&loop=1  a BVH file or recorded take, in real time"

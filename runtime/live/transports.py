@@ -250,6 +250,63 @@ class SerialSource(Source):
             port.close()
 
 
+class DeviceFileSource(Source):
+    """Reads a character device (a Linux evdev node such as /dev/input/event5) on a thread."""
+
+    def __init__(self, name: str, url: str, decoder: Any, device: str) -> None:
+        super().__init__(name, url, decoder)
+        self.device = device
+        self.fd: int | None = None
+
+    def _open(self) -> None:
+        import os
+
+        try:
+            self.fd = os.open(self.device, os.O_RDONLY | os.O_NONBLOCK)
+        except OSError as exc:
+            raise LiveSourceError(
+                f"{self.label}: device {self.device} cannot be opened ({exc.strerror}).",
+                "plug the controller in and check the path (ls /dev/input/by-id) and that you "
+                "may read it (the input group).",
+            ) from None
+
+    def _loops(self) -> list:
+        return [self._run]
+
+    def _run(self) -> None:
+        import os
+        import select
+
+        fd = self.fd
+        assert fd is not None
+        while not self._stop.is_set():
+            ready, _, _ = select.select([fd], [], [], POLL_SECONDS)
+            if not ready:
+                continue
+            try:
+                data = os.read(fd, 4096)
+            except BlockingIOError:
+                continue
+            except OSError as exc:  # unplugged
+                self.error = f"{self.device}: {exc}"
+                if self._stop.wait(POLL_SECONDS):
+                    return
+                continue
+            if not data:  # end of a file or pipe: nothing more will come
+                self.error = f"{self.device}: end of data"
+                if self._stop.wait(POLL_SECONDS):
+                    return
+                continue
+            self._deliver(data, time.monotonic())
+
+    def _close(self) -> None:
+        import os
+
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+
+
 class ClipPlayer:
     """A decoded clip as a decoder-like object: bones, space, counters (no bytes to parse)."""
 

@@ -37,13 +37,13 @@ def test_extra_plugins_and_failed_plugins():
     fake = SourceSpec("fake", lambda url, name: made.append((url, name)) or "source", "fake://")
 
     def broken():
-        raise ImportError("No module named 'evdev'")
+        raise ImportError("No module named 'mido'")
 
-    extra = {"fake": lambda: fake, "gamepad": broken}
+    extra = {"fake": lambda: fake, "midi": broken}
     assert open_source("fake://x", "pad", extra=extra) == "source"
     assert made == [("fake://x", "pad")]
-    with pytest.raises(LiveSourceError, match=r"'gamepad' source plugin failed.*evdev"):
-        open_source("gamepad://", "pad", extra=extra)
+    with pytest.raises(LiveSourceError, match=r"'midi' source plugin failed.*mido"):
+        open_source("midi://", "pad", extra=extra)
 
 
 def test_replay_plays_the_clip_in_order_at_speed():
