@@ -45,6 +45,15 @@ class BundlePredictor:
         if table.resolution not in self.model.levels:
             from rigspace.sdk.bundle import BundleError
 
+            training = self.model.manifest.raw.get("training", {})
+            if table.resolution in training.get("planned_levels", ()):
+                raise BundleError(
+                    f"The model {model} has levels {self.model.resolutions}: its run stopped at "
+                    f"step {training.get('steps')} of {training.get('planned_steps')}, before "
+                    f"level {table.resolution} (the dataset's resolution) was trained.",
+                    f"continue training: `rigspace train {table.folder} --out {model} --resume` "
+                    "(with the original options).",
+                )
             raise BundleError(
                 f"The model has levels {self.model.resolutions}, the dataset is {table.resolution}x"
                 f"{table.resolution}.",

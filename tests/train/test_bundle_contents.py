@@ -47,7 +47,7 @@ def test_a_level_counts_as_trained_once_it_has_faded_in():
     assert trained_levels(TINY, 31) == [16, 32]
 
 
-def test_a_run_stopped_early_exports_only_the_levels_it_trained(tmp_path, tiny_dataset):
+def test_a_run_stopped_early_exports_only_the_levels_it_trained(tmp_path, tiny_dataset, capsys):
     model = tmp_path / "model"
     loop.train(tiny_dataset, model / "training", TINY, steps=25, progress=False)  # 32 fading
     manifest = export_bundle(model / "training", model, int8=False)
@@ -57,6 +57,10 @@ def test_a_run_stopped_early_exports_only_the_levels_it_trained(tmp_path, tiny_d
     assert not list(model.glob("*_32*.onnx"))
     runtime = BundleModel(model)
     assert runtime.resolutions == [8, 16] and runtime.level_for(999) == 16
+    # eval at the untrained level says why, and how to go on.
+    assert main(["eval", str(model), str(tiny_dataset), "--no-baselines"]) == 2
+    err = capsys.readouterr().err
+    assert "before level 32 (the dataset's resolution) was trained" in err and "--resume" in err
 
 
 def test_the_plan_fits_every_level_into_the_budget():
@@ -72,12 +76,12 @@ def test_the_plan_fits_every_level_into_the_budget():
 
 
 def test_a_time_budget_plans_the_schedule_before_training(tmp_path, tiny_dataset, capsys):
-    # Far more steps than 9 seconds hold. Whether the plan reaches 32x32 depends on the
+    # Far more steps than 6 seconds hold. Whether the plan reaches 32x32 depends on the
     # machine's load (the plan's arithmetic is tested above); the run must plan, say so, and
     # export exactly what it trained.
     config = replace(TINY, steps_per_level=100_000)
     model = tmp_path / "model"
-    result = loop.train(tiny_dataset, model / "training", config, minutes=0.15, progress=False)
+    result = loop.train(tiny_dataset, model / "training", config, minutes=0.1, progress=False)
     record = json.loads((model / "training" / loop.RUN_FILE).read_text())
     plan = record["plan"]
     planned = plan["steps_per_level"]
