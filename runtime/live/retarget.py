@@ -59,9 +59,6 @@ def _sided(pairs: Mapping[str, str], left: str, right: str, tl: str, tr: str) ->
     return out
 
 
-_SPINE_SAMPLE = {"spine_01", "spine_02", "spine_03", "neck_01", "head"}
-
-
 @dataclass(frozen=True)
 class Preset:
     """A source skeleton family: its bone map to the sample character, hierarchy, basis, units."""
@@ -295,12 +292,50 @@ class Retargeter:
         # Roots take their parent from a padded identity slot, so each level is one matmul.
         self._parent_slot = np.where(self.target_parents < 0, n, self.target_parents)
         self._rest_world = self._compose_target(_rotations(rest_local))
+        self._rest_positions = _world_positions(rest_local, self.target_levels, self._parent_slot)
         self._rest_t = rest_local[:, 3, :3]
         self._target_root = int(np.flatnonzero(self.target_parents < 0)[0])
         """Root motion moves the skeleton's (first) root joint, in stage units."""
         self.root_motion = root_motion
         self.rest_root = None if rest_root is None else np.asarray(rest_root, dtype=np.float64)
         self.calibrate_rotations(rest_pose)
+
+    def align_rest(self, source_rest_positions: np.ndarray) -> np.ndarray:
+        """Make the source's rest pose the target's: turn each mapped joint's rest so its bone
+        points where the source bone points in the source's rest pose (this CMU conversion rests
+        with the arms hanging, the sample character is bound in an A-pose).
+
+        `source_rest_positions` are (B, 3) joint positions in the source's rest pose. A bone's
+        direction runs to its mapped child that needs the smallest turn (the neck, not a
+        clavicle, for the chest); joints without a mapped child turn with their parent. Returns
+        the (M, 3, 3) turns applied (rest world rotations are turned in place)."""
+        src = (self.basis @ np.asarray(source_rest_positions, dtype=np.float64).T).T
+        target_of = dict(zip(self.map_target.tolist(), self.map_source.tolist(), strict=True))
+        mapped = set(target_of)
+        nearest: dict[int, int] = {}  # target joint -> its nearest mapped ancestor
+        for j in range(len(self.target_joints)):
+            p = int(self.target_parents[j])
+            while p >= 0 and p not in mapped:
+                p = int(self.target_parents[p])
+            nearest[j] = p
+        turns: dict[int, np.ndarray] = {}
+        for level in self.target_levels:
+            for j in (int(x) for x in level if int(x) in mapped):
+                best = None
+                for c in (c for c in mapped if nearest[c] == j):
+                    u = self._rest_positions[c] - self._rest_positions[j]
+                    v = src[target_of[c]] - src[target_of[j]]
+                    if np.linalg.norm(u) > 1e-9 and np.linalg.norm(v) > 1e-9:
+                        turn = _swing(u, v)
+                        angle = np.arccos(np.clip((np.trace(turn) - 1) / 2, -1, 1))
+                        if best is None or angle < best[0]:
+                            best = (angle, turn)
+                parent = nearest[j]
+                turns[j] = best[1] if best else turns.get(parent, np.eye(3))
+        order = list(turns)
+        applied = np.array([turns[j] for j in order])
+        self._rest_world[order] = applied @ self._rest_world[order]
+        return applied
 
     def _compose_target(self, local: np.ndarray) -> np.ndarray:
         world = np.empty((len(local) + 1, 3, 3))
@@ -400,6 +435,34 @@ class Retargeter:
         live = stage_rot[targets] @ (self._a @ matrix_from_quat(offsets) @ self._a.T)
         out[targets, :3, :3] = np.swapaxes(live, 1, 2) * row_scale[targets][:, :, None]
         return out
+
+
+def _swing(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The smallest rotation (3, 3) taking direction u to direction v."""
+    u, v = u / np.linalg.norm(u), v / np.linalg.norm(v)
+    axis = np.cross(u, v)
+    s, c = np.linalg.norm(axis), float(np.dot(u, v))
+    if s < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        # Opposite: a half turn about any axis perpendicular to u.
+        perp = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+        perp /= np.linalg.norm(perp)
+        return 2.0 * np.outer(perp, perp) - np.eye(3)
+    k = axis / s
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + s * kx + (1 - c) * (kx @ kx)
+
+
+def _world_positions(
+    rest_local: np.ndarray, levels: list[np.ndarray], parent_slot: np.ndarray
+) -> np.ndarray:
+    """(J, 3) rest positions from (J, 4, 4) row-vector parent-space transforms."""
+    world = np.empty((len(rest_local) + 1, 4, 4))
+    world[-1] = np.eye(4)
+    for level in levels:
+        world[level] = rest_local[level] @ world[parent_slot[level]]  # row vectors: local first
+    return world[:-1, 3, :3]
 
 
 def _rotations(transforms: np.ndarray) -> np.ndarray:

@@ -183,7 +183,7 @@ def open_replay(url: str, name: str = "") -> Source:
     rotations, roots = skeleton.pose(motion)
     return ReplaySource(
         name, url, skeleton.names, rotations, roots, np.arange(len(motion)) * frame_time, speed,
-        loop, skeleton.parents,
+        loop, skeleton.parents, rest_positions=skeleton.rest_positions(),
     )  # fmt: skip
 
 

@@ -338,6 +338,7 @@ class ReplaySource(Source):
         parents: tuple[int, ...] = (),
         meters_per_unit: float | None = None,
         native: bool = False,
+        rest_positions: np.ndarray | None = None,
     ) -> None:
         super().__init__(name, url, ClipPlayer(bones, "local"))
         self.parents = parents
@@ -349,6 +350,8 @@ class ReplaySource(Source):
         """Units of the root positions, when the file says (a USD take's stage)."""
         self.native = native
         """True for a recorded take: its bones are a skeleton's own joints and rest pose."""
+        self.rest_positions = rest_positions
+        """(B, 3) joint positions in the clip's rest pose (a BVH's), for rest alignment."""
         self.finished = threading.Event()
 
     def _loops(self) -> list:

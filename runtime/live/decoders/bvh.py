@@ -42,6 +42,13 @@ class BvhSkeleton:
     def channel_count(self) -> int:
         return sum(len(c) for c in self.channels)
 
+    def rest_positions(self) -> np.ndarray:
+        """(J, 3) joint positions in the rest pose (all rotations zero), in file units."""
+        positions = np.zeros((len(self.names), 3))
+        for j, parent in enumerate(self.parents):  # BVH lists parents before children
+            positions[j] = self.offsets[j] + (positions[parent] if parent >= 0 else 0.0)
+        return positions
+
     def pose(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F, C) channel values -> local rotations (F, J, 4) and root positions (F, 3)."""
         values = np.asarray(values, dtype=np.float64)

@@ -176,3 +176,30 @@ def test_bad_maps_name_the_joint(character, cmu):
         cmu_retargeter(character, cmu, bone_map={"Hips": "tail"})
     with pytest.raises(RetargetError, match="maps none"):
         cmu_retargeter(character, cmu, bone_map={"NoSuchBone": "pelvis"})
+
+
+def test_align_rest_puts_the_character_in_the_clips_rest_pose(character, cmu):
+    joints, rest, _ = character
+    skeleton, _, _ = cmu
+    r = cmu_retargeter(character, cmu)
+    r.align_rest(skeleton.rest_positions())
+    identity = np.tile([1.0, 0.0, 0.0, 0.0], (len(skeleton.names), 1))
+    out = r.apply(rest, live_pose(identity))  # the clip's rest: a T-pose
+    skel = np.array(
+        UsdSkel.ConcatJointTransforms(UsdSkel.Topology(joints), Vt.Matrix4dArray.FromNumpy(out))
+    )
+    position = {j.rsplit("/", 1)[-1]: skel[k, 3, :3] for k, j in enumerate(joints)}
+    src = dict(zip(skeleton.names, skeleton.rest_positions(), strict=True))
+    for (a, b), (sa, sb) in {
+        ("upperarm_l", "lowerarm_l"): ("LeftShoulder", "LeftElbow"),
+        ("lowerarm_r", "hand_r"): ("RightElbow", "RightWrist"),
+        ("thigh_l", "calf_l"): ("LeftHip", "LeftKnee"),
+        ("spine_03", "neck_01"): ("Chest2", "Neck"),
+    }.items():
+        u, v = position[b] - position[a], src[sb] - src[sa]
+        angle = np.arctan2(np.linalg.norm(np.cross(u, v)), np.dot(u, v))  # exact near 0
+        assert angle < 1e-9, (a, b)
+    # This CMU conversion rests with the arms hanging: so does the character now, not in its
+    # A-pose (arms 40 degrees below horizontal).
+    arm = position["lowerarm_l"] - position["upperarm_l"]
+    assert arm[1] < -0.999 * np.linalg.norm(arm)
