@@ -13,6 +13,7 @@ from rigspace.runtime.live.buffer import BindingCounters, BufferSettings, LiveBu
 from rigspace.runtime.live.retarget import (
     PRESETS,
     Y_180,
+    Preset,
     Retargeter,
     source_basis,
     source_hierarchy,
@@ -81,8 +82,8 @@ def open_binding(
     Bone map: the binding's sourceBones -> targetJoints when authored; else `preset` (or the
     scheme's default preset when the source sends its bones); else source bones onto joints of
     the same name. Basis: the source's native one (VMC) or the binding's up axis and
-    handedness. A BVH source without an authored restPose gets its rest pose aligned onto the
-    character's (`Retargeter.align_rest`). Units: sourceMetersPerUnit, or the preset's when the preset supplies the map and
+    handedness. Without an authored restPose, the character's rest is aligned onto the
+    source's (`Retargeter.align_rest`): a BVH's own, or the preset's canonical T-pose (VMC). Units: sourceMetersPerUnit, or the preset's when the preset supplies the map and
     the binding leaves the default 1. restPose is parallel to the map's source bones.
     """
     source = open_source(binding.url, binding.name, extra)
@@ -130,10 +131,10 @@ def open_binding(
         retargeter.calibrate_rotations(full)
         root = retargeter._target_root
         retargeter.rest_root = rest[root, 3, :3] * stage_meters_per_unit / meters_per_unit
-    elif not binding.rest_pose and _rest_positions(source) is not None:
-        # A BVH's rest (this CMU conversion: arms hanging) is not the character's (an A-pose):
-        # turn the character's rest onto the source's so a hanging arm hangs.
-        retargeter.align_rest(_rest_positions(source))
+    elif not binding.rest_pose and (positions := _rest_positions(source, chosen)) is not None:
+        # The source's rest (this CMU conversion: arms hanging; VMC: a T-pose) is not the
+        # character's (an A-pose): turn the character's rest onto the source's.
+        retargeter.align_rest(positions)
     elif binding.rest_pose:
         full = np.tile([1.0, 0.0, 0.0, 0.0], (len(source.bones), 1))
         index = {b: i for i, b in enumerate(source.bones)}
@@ -149,9 +150,13 @@ def open_binding(
     )
 
 
-def _rest_positions(source: Source) -> np.ndarray | None:
-    """The source skeleton's rest joint positions where it has one (BVH stream and replay)."""
+def _rest_positions(source: Source, preset: Preset | None) -> np.ndarray | None:
+    """The source's rest joint positions: its own skeleton's (BVH stream and replay), else its
+    preset's canonical rest (VMC: a VRM-style T-pose), else None."""
     skeleton = getattr(getattr(source, "decoder", None), "skeleton", None)
     if skeleton is not None:
         return skeleton.rest_positions()
-    return getattr(source, "rest_positions", None)
+    own = getattr(source, "rest_positions", None)
+    if own is not None:
+        return own
+    return preset.rest_positions_for(source.bones) if preset is not None else None

@@ -71,6 +71,35 @@ class Preset:
     basis: np.ndarray = field(default_factory=lambda: np.eye(3))
     """Source (as decoded) to the sample character's frame (Y up, facing +Z, left +X)."""
     meters_per_unit: float = 1.0
+    rest_positions: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    """Joint positions in the family's rest pose, in the source's frame and units, where the
+    wire carries no rest geometry (VMC); empty: the source supplies its own (BVH)."""
+
+    def rest_positions_for(self, bones: Sequence[str]) -> np.ndarray | None:
+        """(B, 3) rest positions for a source's bones (zeros for bones the preset lacks)."""
+        if not self.rest_positions:
+            return None
+        return np.array([self.rest_positions.get(b, (0.0, 0.0, 0.0)) for b in bones])
+
+
+def _unity_t_pose() -> dict[str, tuple[float, float, float]]:
+    """A VRM-style humanoid T-pose (all local rotations identity), metres, in VmcDecoder's frame:
+    Y up, the avatar facing -Z with its left at -X (Unity's +Z forward, mirrored)."""
+    pose = {ROOT: (0.0, 0.0, 0.0), "Hips": (0.0, 0.95, 0.0), "Spine": (0.0, 1.05, 0.0)}
+    pose |= {"Chest": (0.0, 1.2, 0.0), "UpperChest": (0.0, 1.32, 0.0)}
+    pose |= {"Neck": (0.0, 1.48, 0.0), "Head": (0.0, 1.58, 0.0)}
+    for side, x in (("Left", -1.0), ("Right", 1.0)):
+        pose |= {
+            f"{side}Shoulder": (0.04 * x, 1.42, 0.0),
+            f"{side}UpperArm": (0.17 * x, 1.42, 0.0),
+            f"{side}LowerArm": (0.45 * x, 1.42, 0.0),
+            f"{side}Hand": (0.70 * x, 1.42, 0.0),
+            f"{side}UpperLeg": (0.09 * x, 0.92, 0.0),
+            f"{side}LowerLeg": (0.09 * x, 0.50, 0.0),
+            f"{side}Foot": (0.09 * x, 0.08, 0.0),
+            f"{side}Toes": (0.09 * x, 0.02, -0.13),
+        }
+    return pose
 
 
 def _unity_parents() -> dict[str, str]:
@@ -121,6 +150,7 @@ UNITY = Preset(
     # VmcDecoder already mirrored Unity's Z: the avatar faces -Z with its left at -X; turn it.
     Y_180,
     1.0,
+    _unity_t_pose(),
 )
 
 CMU = Preset(

@@ -35,13 +35,16 @@ def humanoid_clip(
     roots: np.ndarray,
     frame_time: float,
     preset: Preset = CMU,
+    align: bool = True,
 ) -> HumanoidClip:
     """Re-express a BVH clip's pose on HumanBodyBones (an avatar whose rest locals are identity).
 
     Each humanoid bone takes the world rotation of the BVH bone that the two presets map to the
-    same sample-character joint (CMU's LHipJoint, lowerneck, ... fold into their children), so
-    retargeting the result with the `unity` preset gives what retargeting the clip with `preset`
-    gives (tested to float32 precision through real UDP).
+    same sample-character joint (CMU's LHipJoint, lowerneck, ... fold into their children).
+    With `align` (the default) the humanoid rests in a T-pose, as VMC receivers assume, and the
+    clip's rest is aligned onto it, so its bones point where the clip's do. Without, identity is
+    the clip's own rest, and retargeting the result with the `unity` preset gives exactly what
+    retargeting the clip with `preset` gives (tested to float32 precision through real UDP).
     """
     by_joint = {joint: bone for bone, joint in UNITY.bone_map.items()}
     bone_map = {src: by_joint[joint] for src, joint in preset.bone_map.items()}
@@ -55,12 +58,21 @@ def humanoid_clip(
             b = UNITY.parents.get(b)
         paths[bone] = "/".join(reversed(chain))
     order = sorted(humanoid, key=lambda b: paths[b].count("/"))
+    # The humanoid rests in UNITY's T-pose with identity rotations (VRM's normalised rest, what
+    # VMC receivers assume): its rest translations are the T-pose's bone offsets.
+    tpose = UNITY.rest_positions
     rest = np.tile(np.eye(4), (len(order), 1, 1))
+    for k, bone in enumerate(order):
+        parent = paths[bone].rsplit("/", 2)[-2] if "/" in paths[bone] else None
+        origin = np.array(tpose[parent]) if parent else np.zeros(3)
+        rest[k, 3, :3] = np.array(tpose[bone]) - origin
     # Humanoid frame = VMC-decoded frame; A maps the BVH frame into it (the inverse of unity's).
     basis = UNITY.basis.T @ preset.basis
     r = Retargeter(
         skeleton.names, skeleton.parents, "local", [paths[b] for b in order], rest, bone_map, basis
     )
+    if align:
+        r.align_rest(skeleton.rest_positions())  # the clip's rest onto the T-posed humanoid
     frames = np.empty((len(rotations), len(order), 4))
     stage = np.tile(np.eye(4), (len(order), 1, 1))
     valid = np.ones(len(skeleton.names), dtype=bool)

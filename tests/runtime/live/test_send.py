@@ -9,11 +9,11 @@ import threading
 
 import numpy as np
 import pytest
-from pxr import Usd
+from pxr import Usd, UsdSkel, Vt
 
 from rigspace.runtime.live.buffer import LiveBuffer, LivePose
 from rigspace.runtime.live.decoders.bvh import read_bvh
-from rigspace.runtime.live.decoders.vmc import encode_frame
+from rigspace.runtime.live.decoders.vmc import VmcDecoder, encode_frame
 from rigspace.runtime.live.frames import quat_angle
 from rigspace.runtime.live.retarget import PRESETS, Retargeter, for_preset, target_skeleton
 from rigspace.runtime.live.send import humanoid_clip, send_vmc, serve_bvh
@@ -40,10 +40,10 @@ def local_rotations(transforms: np.ndarray) -> np.ndarray:
 def test_cmu_over_vmc_matches_the_clip_retargeted_directly(scene):
     _stage, skel, skeleton, _, frame_time, rotations, roots = scene
     joints, rest = target_skeleton(skel)
-    clip = humanoid_clip(skeleton, rotations, roots, frame_time)
+    clip = humanoid_clip(skeleton, rotations, roots, frame_time, align=False)
     source = open_source("vmc://127.0.0.1:0", "suit")
     buffer = LiveBuffer(source.bones)
-    via_vmc = for_preset(source, skel, "unity", 0.01)
+    via_vmc = for_preset(source, skel, "unity", 0.01)  # the plain convention, no rest alignment
     p = PRESETS["cmu"]
     direct = Retargeter(
         skeleton.names, skeleton.parents, "local", joints, rest, p.bone_map, p.basis,
@@ -115,3 +115,50 @@ def test_humanoid_clip_is_a_humanoid(scene):
     assert len(clip.bones) == 22 and "UpperChest" in clip.bones and "Hips" == clip.bones[0]
     np.testing.assert_allclose(np.linalg.norm(clip.rotations, axis=2), 1.0, atol=1e-12)
     assert dataclasses.is_dataclass(clip)
+
+
+def test_aligned_send_and_receive_point_the_bones_where_the_clip_does(scene):
+    """Sender on a T-posed humanoid, receiver aligned to the T-pose (open_binding's default):
+    the character's limbs point where the directly retargeted, rest-aligned clip's do."""
+    _stage, skel, skeleton, _, frame_time, rotations, roots = scene
+    joints, rest = target_skeleton(skel)
+    leaves = [j.rsplit("/", 1)[-1] for j in joints]
+    clip = humanoid_clip(skeleton, rotations[::200], roots[::200], frame_time)
+    source = open_source("vmc://127.0.0.1:0", "suit")
+    via_vmc = for_preset(source, skel, "unity", 0.01)
+    via_vmc.align_rest(PRESETS["unity"].rest_positions_for(source.bones))
+    p = PRESETS["cmu"]
+    direct = Retargeter(
+        skeleton.names, skeleton.parents, "local", joints, rest, p.bone_map, p.basis,
+        p.meters_per_unit / 0.01,
+    )  # fmt: skip
+    direct.align_rest(skeleton.rest_positions())
+    decoder = VmcDecoder()
+    for f in range(len(clip.rotations)):
+        received = np.tile([1.0, 0.0, 0.0, 0.0], (len(decoder.bones), 1))
+        # The wire is float32: go through the decoder like the UDP test does.
+        frames = [
+            x
+            for d in encode_frame(clip.bones, clip.rotations[f], None, None, float(f))
+            for x in decoder.feed(d, 0.0)
+        ]
+        for frame in frames:
+            received[frame.indices] = frame.rotations
+        a = via_vmc.apply(rest, LivePose(received, np.ones(len(received), bool), None, "", 1, 0))
+        b = direct.apply(rest, LivePose(rotations[::200][f], np.ones(31, bool), None, "", 1, 0))
+        pos = [
+            np.array(
+                UsdSkel.ConcatJointTransforms(
+                    UsdSkel.Topology(joints), Vt.Matrix4dArray.FromNumpy(m)
+                )
+            )[:, 3, :3]
+            for m in (a, b)
+        ]
+        for parent, child in (
+            ("upperarm_l", "lowerarm_l"),
+            ("lowerarm_r", "hand_r"),
+            ("thigh_l", "calf_l"),
+            ("calf_r", "foot_r"),
+        ):
+            u, v = (q[leaves.index(child)] - q[leaves.index(parent)] for q in pos)
+            assert np.arctan2(np.linalg.norm(np.cross(u, v)), np.dot(u, v)) < 1e-4, (f, parent)
