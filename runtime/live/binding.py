@@ -77,14 +77,17 @@ def open_binding(
 ) -> LiveBindingRuntime:
     """Build (not start) the runtime of an sdk.schema.LiveBinding for a UsdSkel Skeleton.
 
-    A recorded take (replay:// of a .usd file) plays back onto its own skeleton exactly: same
-    joints, identity basis, the skeleton's rest as its rest pose, the take's units.
-    Bone map: the binding's sourceBones -> targetJoints when authored; else `preset` (or the
-    scheme's default preset when the source sends its bones); else source bones onto joints of
-    the same name. Basis: the source's native one (VMC) or the binding's up axis and
-    handedness. Without an authored restPose, the character's rest is aligned onto the
-    source's (`Retargeter.align_rest`): a BVH's own, or the preset's canonical T-pose (VMC). Units: sourceMetersPerUnit, or the preset's when the preset supplies the map and
-    the binding leaves the default 1. restPose is parallel to the map's source bones.
+    - Bone map: the binding's sourceBones -> targetJoints when authored; else `preset` (or the
+      scheme's default preset when the source sends its bones); else source bones onto joints
+      of the same name.
+    - Basis: the source's native one (VMC) or the binding's up axis and handedness.
+    - Rest: restPose when authored (parallel to the map's source bones); else the character's
+      rest aligned onto the source's (`Retargeter.align_rest`): a BVH's own, or the preset's
+      canonical T-pose (VMC).
+    - Units: sourceMetersPerUnit, or the preset's when the preset supplies the map and the
+      binding leaves the default 1.
+    - A recorded take (replay:// of a .usd file) plays back onto its own skeleton exactly: same
+      joints, identity basis, the skeleton's rest as its rest pose, the take's units.
     """
     source = open_source(binding.url, binding.name, extra)
     scheme = binding.url.split("://", 1)[0].lower()
@@ -129,7 +132,7 @@ def open_binding(
             if bone in leaf:
                 full[k] = rest_rotations[leaf[bone]]
         retargeter.calibrate_rotations(full)
-        root = retargeter._target_root
+        root = retargeter.target_root
         retargeter.rest_root = rest[root, 3, :3] * stage_meters_per_unit / meters_per_unit
     elif not binding.rest_pose and (positions := _rest_positions(source, chosen)) is not None:
         # The source's rest (this CMU conversion: arms hanging; VMC: a T-pose) is not the

@@ -324,7 +324,7 @@ class Retargeter:
         self._rest_world = self._compose_target(_rotations(rest_local))
         self._rest_positions = _world_positions(rest_local, self.target_levels, self._parent_slot)
         self._rest_t = rest_local[:, 3, :3]
-        self._target_root = int(np.flatnonzero(self.target_parents < 0)[0])
+        self.target_root = int(np.flatnonzero(self.target_parents < 0)[0])
         """Root motion moves the skeleton's (first) root joint, in stage units."""
         self.root_motion = root_motion
         self.rest_root = None if rest_root is None else np.asarray(rest_root, dtype=np.float64)
@@ -446,7 +446,7 @@ class Retargeter:
         if self.root_motion and pose.root_position is not None:
             if self.rest_root is None:
                 self.rest_root = np.array(pose.root_position, dtype=np.float64)  # start = here
-            root = self._target_root
+            root = self.target_root
             move = self.basis @ (pose.root_position - self.rest_root) * self.scale
             live_t = self._rest_t[root] + move
             out[root, 3, :3] = (1 - pose.weight) * stage_local[root, 3, :3] + pose.weight * live_t

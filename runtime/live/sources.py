@@ -29,8 +29,15 @@ VMC_PORT = 39539
 AXIS_NEURON_BVH_PORT = 7001
 """Axis Neuron's default BVH data-stream port."""
 DEFAULT_HOST = "127.0.0.1"
-EXPECTS = {"axes": "CODE:JOINT:AXIS:DEGREES[:MIN:MAX],... (such as ABS_RX:head:Y:-60)"}
-"""What an option's value looks like, where its parser's name does not say."""
+EXPECTS = {
+    "axes": "CODE:JOINT:AXIS:DEGREES[:MIN:MAX],... (such as ABS_RX:head:Y:-60)",
+    "speed": "positive number",
+    "retry": "positive number of seconds",
+    "loop": "0, 1, true or false",
+    "baud": "whole number",
+    "baudrate": "whole number",
+}
+"""What an option's value looks like, for the error that names a bad one."""
 
 
 def _label(url: str, name: str) -> str:
@@ -51,7 +58,7 @@ def _options(url: str, name: str, query: str, allowed: dict[str, Callable[[str],
         except ValueError:
             raise LiveSourceError(
                 f"{_label(url, name)}: option {key}={value!r} is not valid.",
-                f"give {key} a {EXPECTS.get(key, allowed[key].__name__)} value.",
+                f"{key} takes a {EXPECTS.get(key, allowed[key].__name__)}.",
             ) from None
     return options
 
