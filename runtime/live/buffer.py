@@ -266,7 +266,8 @@ class LiveBuffer:
 
     def note_latency(self, seconds: float) -> None:
         """Record one packet's receive-to-pose latency (the transport times read to push)."""
-        self._latency.append(seconds)
+        with self._lock:  # counters() copies the deque; iterating it during an append raises
+            self._latency.append(seconds)
 
     # -- frame side ----------------------------------------------------------------------
     def status_at(self, now: float) -> str:
