@@ -10,7 +10,7 @@ from rigspace.runtime.live.decoders.vmc import VmcDecoder
 from rigspace.runtime.live.fuzz import fuzz, main
 
 
-@pytest.mark.parametrize("name", ["vmc", "bvh", "ximu3"])
+@pytest.mark.parametrize("name", ["vmc", "bvh", "ximu3", "evdev"])
 def test_fuzz_decoder(name):
     result = fuzz(name, 60_000, seed=11)
     assert result["failures"] == []
