@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from rigspace.capture.dataset import read_manifest
@@ -47,7 +48,7 @@ from rigspace.train.config import TrainConfig
 from rigspace.train.data import SampleSet, depth_scale
 from rigspace.train.int8check import TOLERANCES, check_int8
 from rigspace.train.loop import TrainingError, build_model
-from rigspace.train.network import Rig2Image, albedo_alpha, albedo_maps, geometry_maps
+from rigspace.train.network import Rig2Image
 
 OPSET = 17
 CALIBRATION_SAMPLES = 128
@@ -65,19 +66,34 @@ class Trunk(nn.Module):
         return self.model.features(rig)
 
 
+HEAD_GROUPS = {"albedo": ((0, 3), (3, 4)), "geometry": ((0, 1), (1, 4), (4, 5))}
+"""Channels of each branch's 1x1 head that make one output: albedo, alpha; depth, normal,
+mask (network.ALBEDO_CHANNELS, GEOMETRY_CHANNELS)."""
+
+
 class BranchAtLevel(nn.Module):
-    """features -> one branch's activated maps at one resolution."""
+    """features -> one branch's activated maps at one resolution.
+
+    Each output gets its own 1x1 convolution (the head's rows for its channels) and its own
+    activation, the same as network.albedo_maps, albedo_alpha and geometry_maps: the fp32
+    graph computes exactly what the one head does, but static int8 now gives each output
+    its own activation scale. With one shared scale a confident mask (logits spanning
+    hundreds) rounded every normal to zero (train.int8check; measured in docs/training.md).
+    """
 
     def __init__(self, model: Rig2Image, branch: str, resolution: int) -> None:
         super().__init__()
         self.branch = getattr(model, branch)
         self.name, self.resolution = branch, resolution
+        self.head = self.branch.heads[self.branch.resolutions.index(resolution)]
 
     def forward(self, features: torch.Tensor):
-        head = self.branch(features, self.resolution)[-1]
+        x = self.branch.features_at(features, self.resolution)
+        w, b = self.head.weight, self.head.bias
+        parts = [F.conv2d(x, w[i:j], b[i:j]) for i, j in HEAD_GROUPS[self.name]]
         if self.name == "albedo":
-            return albedo_maps(head), albedo_alpha(head)
-        return geometry_maps(head)
+            return torch.sigmoid(parts[0]), torch.sigmoid(parts[1])
+        return parts[0], F.normalize(parts[1], dim=1, eps=1e-6), torch.sigmoid(parts[2])
 
 
 OUTPUTS = {
@@ -137,10 +153,11 @@ class _Calibration:
 def quantize_int8(fp32: Path, int8: Path, input_name: str, calibration: np.ndarray) -> None:
     """Static QDQ int8 (measured 2.7x faster than fp32 on this CPU; dynamic int8 is slower).
 
-    Every node is quantised. Keeping the geometry head in float removes the zero-length
-    normals int8 gives on a few covered pixels (180 of 66,296 at level 128), but doubles the
-    depth error (17 % of height against 10 %, docs/training.md); the runtime turns a
-    zero-length normal towards the camera instead.
+    Every node is quantised. Keeping the geometry head in float removed the zero-length
+    normals int8 gave on a few covered pixels (180 of 66,296 at level 128, when one head
+    conv made every output) but doubled the depth error (17 % of height against 10 %,
+    docs/training.md); each output now has its own head conv and int8 scale (BranchAtLevel),
+    and the runtime turns a zero-length normal towards the camera.
     """
     from onnxruntime.quantization import QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process

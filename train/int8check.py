@@ -1,9 +1,10 @@
 """Check each exported int8 graph against its fp32 graph: drift per map, and a verdict.
 
-Static int8 can break a graph outright rather than blur it: one activation scale is
-shared by a 1x1 head's channels, so a geometry head whose mask logits span hundreds (a
-confident, saturated mask) quantises its normal channels, which span +-1, to zero: all
-normals inside the mask vanish (reproduced in tests/train). Such a graph must not
+Static int8 can break a graph outright rather than blur it: one activation scale per
+tensor, so a tensor whose channels span very different ranges loses the small ones. A
+head that made every output at once rounded all normals to zero under a confident mask
+(export.BranchAtLevel now gives each output its own); an outlier channel in the trunk's
+features zeroes the others (both reproduced in tests/train). Such a graph must not
 reach the runtime. At export every int8 graph runs on held-out rows beside its fp32
 graph, on the same inputs (a branch on the fp32 trunk's features; the trunk through
 the fp32 branches of the top level), and fails when a map drifts past TOLERANCES or an

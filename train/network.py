@@ -72,6 +72,14 @@ class Branch(nn.Module):
             nn.Conv2d(width(config, r), head_channels, 1) for r in self.resolutions
         )
 
+    def features_at(self, x: torch.Tensor, resolution: int) -> torch.Tensor:
+        """The blocks' features at `resolution` (the input of that level's head)."""
+        for r, block in zip(self.resolutions[1:], self.blocks, strict=True):
+            if r > resolution:
+                break
+            x = block(x)
+        return x
+
     def forward(self, x: torch.Tensor, resolution: int) -> list[torch.Tensor]:
         """Head outputs (pre-activation) at every resolution from 8x8 up to `resolution`."""
         outs = [self.heads[0](x)]

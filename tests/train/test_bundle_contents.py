@@ -193,41 +193,73 @@ def test_healthy_int8_graphs_pass_the_export_check(tmp_path, tiny_run):
         assert BundleModel(tmp_path / "bundle", "int8").int8_fallbacks == {}
 
 
-def test_a_broken_int8_graph_is_flagged_and_the_runtime_runs_fp32_instead(
-    tmp_path, tiny_run, tiny_dataset
-):
+def _edited_run(tmp_path: Path, tiny_run: Path, edit) -> Path:
+    """A copy of the tiny run whose weights `edit` changed in place."""
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
     state = loop.load_checkpoint(run / loop.CHECKPOINT)
-    for name, value in state["model"].items():
+    edit(state["model"])
+    torch.save(state, run / loop.CHECKPOINT)
+    return run
+
+
+def _confident_mask(weights: dict) -> None:
+    # Mask logits spanning hundreds, as a well-trained character's do (the 2-joint case).
+    for name, value in weights.items():
         if name.startswith("geometry.heads."):
-            # A confident mask: logits spanning hundreds, as a well-trained character's do.
-            # One int8 scale is shared by the head's channels, so the normals round to zero.
             value[4:5] *= 100.0
             if value.ndim == 1:
                 value[4:5] += 100.0
-    torch.save(state, run / loop.CHECKPOINT)
-    bundle = tmp_path / "bundle"
-    manifest = export_bundle(run, bundle)
-    graphs = manifest["int8_check"]["graphs"]
-    failed = sorted(name for name, result in graphs.items() if not result["ok"])
-    assert "geometry_32.int8.onnx" in failed and all(n.startswith("geometry_") for n in failed)
-    assert graphs["geometry_32.int8.onnx"]["metrics"]["normal_zero_fraction"] > 0.5
-    assert graphs["albedo_32.int8.onnx"]["ok"] and graphs["trunk.int8.onnx"]["ok"]
-    lines = failure_lines(manifest["int8_check"])
-    assert len(lines) == len(failed) and "geometry_32.int8.onnx" in lines[-1]
 
-    with pytest.warns(UserWarning, match=r"geometry_32\.int8\.onnx"):
-        int8 = BundleModel(bundle, "int8")
+
+def test_a_confident_mask_keeps_its_int8_normals(tmp_path, tiny_run, tiny_dataset):
+    """One shared int8 scale for the geometry head's channels rounded every normal to zero."""
+    bundle = tmp_path / "bundle"
+    manifest = export_bundle(_edited_run(tmp_path, tiny_run, _confident_mask), bundle)
+    check = manifest["int8_check"]["graphs"]["geometry_32.int8.onnx"]
+    assert check["ok"] and check["metrics"]["normal_zero_fraction"] == 0.0
     samples = SampleSet(tiny_dataset, "heldout-views")
     rig = samples.rig[samples.rows[:8]]
-    fp32 = BundleModel(bundle).predict(rig, 32)
-    out = int8.predict(rig, 32)
-    covered = fp32["mask"][:, 0] >= 0.5
+    covered = BundleModel(bundle).predict(rig, 32)["mask"][:, 0] >= 0.5
     assert covered.sum() > 100
-    # The fp32 geometry graph ran (on the int8 trunk's features): no normal vanished.
-    assert np.all(np.linalg.norm(np.moveaxis(out["normal"], 1, -1)[covered], axis=-1) > 0.9)
-    assert int8.levels[32]["albedo"] == "albedo_32.int8.onnx"
+    normal = BundleModel(bundle, "int8").predict(rig, 32)["normal"]
+    assert np.all(np.linalg.norm(np.moveaxis(normal, 1, -1)[covered], axis=-1) > 0.9)
+
+
+def _outlier_channel(weights: dict, scale: float = 1000.0) -> None:
+    # One trunk channel 1000x larger, its readers' weights 1000x smaller: the same fp32
+    # model (leaky ReLU is positively homogeneous), but one int8 scale for every channel
+    # of the features rounds the others to zero.
+    weights["trunk.conv2.weight"][0] *= scale
+    weights["trunk.conv2.bias"][0] *= scale
+    for branch in ("albedo", "geometry"):
+        weights[f"{branch}.blocks.0.conv1.weight"][:, 0] /= scale
+        weights[f"{branch}.heads.0.weight"][:, 0] /= scale
+
+
+def test_a_broken_int8_graph_is_flagged_and_the_runtime_runs_fp32_instead(
+    tmp_path, tiny_run, tiny_dataset
+):
+    bundle = tmp_path / "bundle"
+    manifest = export_bundle(_edited_run(tmp_path, tiny_run, _outlier_channel), bundle)
+    graphs = manifest["int8_check"]["graphs"]
+    failed = sorted(name for name, result in graphs.items() if not result["ok"])
+    assert "trunk.int8.onnx" in failed
+    assert any("albedo_psnr" in why for why in graphs["trunk.int8.onnx"]["failed"])
+    lines = failure_lines(manifest["int8_check"])
+    assert len(lines) == len(failed) and all(name in " ".join(lines) for name in failed)
+
+    with pytest.warns(UserWarning, match=r"trunk\.int8\.onnx"):
+        int8 = BundleModel(bundle, "int8")
+    assert sorted(int8.int8_fallbacks) == failed
+    for level in manifest["levels"]:
+        for branch, name in level["int8"].items():
+            used = int8.levels[level["resolution"]][branch]
+            assert used == (level["graphs"][branch] if name in failed else name)
+    samples = SampleSet(tiny_dataset, "heldout-views")
+    rig = samples.rig[samples.rows[:8]]
+    fp32 = BundleModel(bundle)
+    assert np.array_equal(int8.features(rig), fp32.features(rig))  # the fp32 trunk ran
 
 
 def test_capsules_in_the_dataset_travel_with_the_bundle(tmp_path, tiny_run, tiny_dataset):
