@@ -163,3 +163,71 @@ def serve_bvh(
                     sent += 1
                     k += 1
     return sent
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m rigspace.runtime.live.send URL --bvh FILE`: stream a BVH clip to a VMC
+    receiver (vmc://HOST:PORT) or serve it to BVH-TCP clients (bvh+tcp://HOST:PORT)."""
+    import argparse
+    import sys
+
+    from rigspace.runtime.live.decoders.bvh import read_bvh
+    from rigspace.sdk.errors import RigspaceError
+
+    parser = argparse.ArgumentParser(
+        prog="python -m rigspace.runtime.live.send", description=main.__doc__
+    )
+    parser.add_argument("url", help="vmc://HOST:PORT or bvh+tcp://HOST:PORT")
+    parser.add_argument(
+        "--bvh", required=True, help="the clip (for example samples/motion/cmu_131_01.bvh)"
+    )
+    parser.add_argument("--speed", type=float, default=1.0, help="playback speed (1 = real time)")
+    parser.add_argument("--loop", action="store_true", help="start the clip again at its end")
+    parser.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    args = parser.parse_args(argv)
+    try:
+        if not args.speed > 0:
+            raise RigspaceError(
+                f"--speed {args.speed} is not a positive number.", "give --speed > 0."
+            )
+        skeleton, motion, frame_time = read_bvh(args.bvh)
+        scheme = args.url.split("://", 1)[0].lower() if "://" in args.url else ""
+        if scheme not in ("vmc", "bvh+tcp"):
+            raise RigspaceError(
+                f"{args.url!r} is not a URL this sender speaks.",
+                "send to vmc://HOST:PORT or serve on bvh+tcp://HOST:PORT.",
+            )
+        stop = threading.Event()
+        timer = threading.Timer(args.seconds or 0.0, stop.set)
+        timer.daemon = True
+        if args.seconds is not None:
+            timer.start()
+        if scheme == "vmc":
+            rotations, roots = skeleton.pose(motion)
+            clip = humanoid_clip(skeleton, rotations, roots, frame_time)
+            sent = send_vmc(args.url, clip, args.speed, args.loop, stop)
+            print(f"sent {sent} frames to {args.url}")
+        else:
+            parts = urlsplit(args.url)
+            try:
+                sent = serve_bvh(
+                    parts.hostname or "127.0.0.1", parts.port or 7001, motion, frame_time,
+                    args.speed, stop, args.loop,
+                )  # fmt: skip
+            except OSError as exc:
+                raise RigspaceError(
+                    f"Cannot serve on {args.url} ({exc.strerror or exc}).",
+                    "choose a free port in the URL.",
+                ) from None
+            print(f"served {sent} lines on {args.url}")
+        timer.cancel()
+    except RigspaceError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -157,7 +157,10 @@ class VmcDecoder:
             return None
         c.frames += 1
         c.samples += int(np.count_nonzero(ok))
-        return Frame(0, timestamp, indices[ok], quats[ok], root_position)
+        # T's clock and the receive clock are different streams (the first frames of a sender
+        # that sends T close on OK with receive times): no false clock reset between them.
+        stream = 1 if self._sender_time else 0
+        return Frame(stream, timestamp, indices[ok], quats[ok], root_position)
 
 
 def encode_frame(

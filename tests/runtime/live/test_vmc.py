@@ -192,3 +192,16 @@ def test_a_flood_is_counted_and_bounded_and_the_receiver_keeps_going():
         assert source._threads[0].is_alive()
     finally:
         source.stop()
+
+
+def test_switching_to_sender_time_is_a_new_stream_not_a_clock_reset():
+    decoder = VmcDecoder()
+    buffer = LiveBuffer(decoder.bones)
+    q = random_quats(len(HUMAN_BODY_BONES))
+    for k in range(3):  # T runs from 0 while receive times are ~1000 s
+        for f in feed_all(
+            decoder, encode_frame(HUMAN_BODY_BONES, q, None, None, k / 60), 1000.0 + k
+        ):
+            buffer.push(f, 1000.0 + k)
+    assert buffer.samples == 3 * len(HUMAN_BODY_BONES)
+    assert buffer.clock_resets == buffer.out_of_order == buffer.duplicates == 0

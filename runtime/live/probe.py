@@ -1,0 +1,72 @@
+"""Print what a live source sends: `python -m rigspace.runtime.live.probe URL [--seconds S]`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import numpy as np
+
+from rigspace.runtime.live.buffer import LiveBuffer
+from rigspace.runtime.live.sources import open_source
+from rigspace.sdk.errors import RigspaceError
+
+
+def probe(url: str, seconds: float, every: float = 1.0, out=sys.stdout) -> dict:
+    """Listen on `url` for `seconds`, printing one JSON line of status every `every` seconds;
+    returns the last one: status, counters, sample rate, and the bones seen so far."""
+    source = open_source(url, "probe")
+    buffer = LiveBuffer(source.bones)
+    source.start(buffer)
+    report: dict = {}
+    try:
+        start = last_time = time.monotonic()
+        last_samples = 0
+        while True:
+            time.sleep(max(0.0, min(every, start + seconds - time.monotonic())))
+            now = time.monotonic()
+            counters = source.counters(now).as_dict()
+            pose = buffer.pose(now)
+            seen = [b for b, ok in zip(source.bones, pose.valid, strict=True) if ok]
+            rate = (counters["samples"] - last_samples) / max(now - last_time, 1e-9)
+            report = {
+                "url": url,
+                "seconds": round(now - start, 2),
+                **counters,
+                "samples_per_second": round(rate, 1),
+                "bones_seen": len(seen),
+                "bones": seen[:12] + (["..."] if len(seen) > 12 else []),
+                "root": None
+                if pose.root_position is None
+                else np.round(pose.root_position, 3).tolist(),
+                "transport": source.error,
+            }
+            print(json.dumps(report), file=out, flush=True)
+            last_time, last_samples = now, counters["samples"]
+            if now - start >= seconds:
+                return report
+    finally:
+        source.stop()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m rigspace.runtime.live.probe", description=__doc__
+    )
+    parser.add_argument("url", help="a live-source URL, such as vmc://127.0.0.1:39539")
+    parser.add_argument("--seconds", type=float, default=10.0, help="how long to listen")
+    args = parser.parse_args(argv)
+    try:
+        probe(args.url, args.seconds)
+    except RigspaceError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,70 @@
+"""The send and probe tools (the cores of `rigspace live send` and `rigspace live probe`)."""
+
+from __future__ import annotations
+
+import io
+import json
+import socket
+import threading
+
+from rigspace.runtime.live import probe, send
+from rigspace.runtime.live.buffer import LiveBuffer
+from rigspace.runtime.live.sources import open_source
+from tests.runtime.live.conftest import CMU_CLIP, wait_for
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_probe_reports_a_vmc_sender():
+    port = free_udp_port()
+    out = io.StringIO()
+    result: dict = {}
+    listener = threading.Thread(
+        target=lambda: result.update(probe.probe(f"vmc://127.0.0.1:{port}", 1.0, 0.25, out))
+    )
+    listener.start()
+    code = send.main(
+        [f"vmc://127.0.0.1:{port}", "--bvh", str(CMU_CLIP), "--speed", "4", "--seconds", "0.8"]
+    )
+    listener.join()
+    assert code == 0
+    lines = [json.loads(line) for line in out.getvalue().splitlines()]
+    assert len(lines) >= 4 and result == lines[-1]
+    seen = max(lines, key=lambda r: r["bones_seen"])
+    assert seen["bones_seen"] == 23  # the 22 mapped humanoid bones and Root
+    assert any(r["samples_per_second"] > 0 and r["status"] == "connected" for r in lines)
+    assert result["malformed"] == 0
+
+
+def test_send_serves_bvh_tcp_clients(free_tcp_port):
+    url = f"bvh+tcp://127.0.0.1:{free_tcp_port}"
+    codes = []
+    server = threading.Thread(
+        target=lambda: codes.append(
+            send.main([url, "--bvh", str(CMU_CLIP), "--speed", "8", "--seconds", "1.5"])
+        )
+    )
+    server.start()
+    source = open_source(f"{url}?skeleton={CMU_CLIP}&retry=0.05", "neuron")
+    buffer = LiveBuffer(source.bones)
+    source.start(buffer)
+    try:
+        assert wait_for(lambda: source.decoder.counters.frames >= 20)
+    finally:
+        source.stop()
+        server.join()
+    assert codes == [0] and source.decoder.counters.malformed == 0
+
+
+def test_tool_errors_are_one_line(capsys):
+    assert send.main(["osc://127.0.0.1:1", "--bvh", str(CMU_CLIP)]) == 2
+    assert "not a URL this sender speaks" in capsys.readouterr().err
+    assert send.main(["vmc://127.0.0.1:1", "--bvh", "missing.bvh"]) == 2
+    assert "missing.bvh cannot be read" in capsys.readouterr().err
+    assert probe.main(["nope://x", "--seconds", "0.1"]) == 2
+    err = capsys.readouterr().err
+    assert "no live source handles the scheme 'nope'" in err and "Traceback" not in err
