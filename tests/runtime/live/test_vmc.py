@@ -205,3 +205,32 @@ def test_switching_to_sender_time_is_a_new_stream_not_a_clock_reset():
             buffer.push(f, 1000.0 + k)
     assert buffer.samples == 3 * len(HUMAN_BODY_BONES)
     assert buffer.clock_resets == buffer.out_of_order == buffer.duplicates == 0
+
+
+def test_sender_stops_and_restarts_stale_lost_connected():
+    from rigspace.runtime.live.buffer import BufferSettings
+
+    source = open_source("vmc://127.0.0.1:0", "suit")
+    buffer = LiveBuffer(source.bones, BufferSettings(timeout=0.1, blend=0.2))
+    source.start(buffer)
+    q = random_quats(len(HUMAN_BODY_BONES))
+
+    def send(count: int, sender_time: float) -> None:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            for k in range(count):
+                for d in encode_frame(HUMAN_BODY_BONES, q, None, None, sender_time + k / 60):
+                    s.sendto(d, source.address)
+
+    try:
+        send(5, 100.0)
+        assert wait_for(lambda: buffer.pose().status == "connected")
+        assert wait_for(lambda: buffer.pose().status == "stale", timeout=2)
+        held = buffer.pose()
+        assert held.weight == 1.0 and held.valid[1:].all()  # the last pose is held
+        assert wait_for(lambda: buffer.pose().status == "lost", timeout=2)
+        assert wait_for(lambda: buffer.pose().weight == 0.0, timeout=2)  # blended back
+        send(5, 0.0)  # the sender restarts: its clock starts again
+        assert wait_for(lambda: buffer.pose().status == "connected")
+        assert buffer.pose().weight == 1.0 and buffer.clock_resets == 1
+    finally:
+        source.stop()
