@@ -52,7 +52,7 @@ class TrainingView:
         return self.distance * self.horizontal_aperture / self.focal_length
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Cross product of two 3-vectors (np.cross's generality costs 20 us a call)."""
     return np.array(
         [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
@@ -63,12 +63,12 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The minimal rotation taking unit vector a onto unit vector b (Rodrigues)."""
     a = a / np.linalg.norm(a)
     b = b / np.linalg.norm(b)
-    v = _cross(a, b)
+    v = cross(a, b)
     c = float(np.dot(a, b))
     if c < -1 + 1e-12:  # opposite: any half turn about an axis perpendicular to a
-        axis = _cross(a, np.array([1.0, 0.0, 0.0]))
+        axis = cross(a, np.array([1.0, 0.0, 0.0]))
         if np.linalg.norm(axis) < 1e-6:
-            axis = _cross(a, np.array([0.0, 1.0, 0.0]))
+            axis = cross(a, np.array([0.0, 1.0, 0.0]))
         axis /= np.linalg.norm(axis)
         return 2 * np.outer(axis, axis) - np.eye(3)
     vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
@@ -140,12 +140,12 @@ def upright_rotation(ray: np.ndarray, up: np.ndarray) -> np.ndarray | None:
     """Axes (columns X, Y, Z) of a camera looking along `ray` with `up` upright, or None when
     the ray is (nearly) parallel to up. Both in the same frame."""
     forward = ray / np.linalg.norm(ray)
-    right = _cross(forward, up)
+    right = cross(forward, up)
     norm = np.linalg.norm(right)
     if norm < UPRIGHT_LIMIT:
         return None
     right /= norm
-    return np.stack([right, _cross(right, forward), -forward], axis=-1)
+    return np.stack([right, cross(right, forward), -forward], axis=-1)
 
 
 def place(

@@ -43,9 +43,9 @@ from rigspace.runtime.shadows import (
     PosedCapsules,
     PrimShadows,
     capsule_visibility,
-    light_softness,
     region_mask,
-    shadow_region,
+    shadow_regions,
+    sparse_visibility,
 )
 from rigspace.sdk import schema, validation
 from rigspace.sdk.camera import Camera
@@ -163,13 +163,14 @@ class Engine:
         self.reference = reference
         self.scene = SceneGeometry(self.stage)
         self.light_prims = light_prims(self.stage)
-        self.renderer = choose_renderer(renderer).create(RenderSettings(prim_samples))
+        spec = choose_renderer(renderer)
+        self.renderer = spec.create(RenderSettings(prim_samples))
         self._prims_key: tuple = ()
         self._prims: Maps | None = None
         self._layers: dict[str, _CachedLayer] = {}
-        self._lit_prims: tuple[bytes, np.ndarray, list[np.ndarray | None]] | None = None
+        self._lit_prims: tuple[bytes, np.ndarray, list[np.ndarray | None] | None] | None = None
         """The lit prims, keyed by lights and shadow maps, with each light's shadow factor."""
-        self.shadows = PrimShadows(self.renderer)
+        self.shadows = PrimShadows(spec)
         self._box: tuple[tuple, np.ndarray] | None = None
         self._background: tuple[bytes, np.ndarray] | None = None
         self._no_shadow = [(c.path, c.no_shadow) for c in self.characters if c.no_shadow]
@@ -206,6 +207,7 @@ class Engine:
     def close(self) -> None:
         self._listener.Revoke()
         self.renderer.close()
+        self.shadows.close()
 
     def _scene_maps(self, meshes, camera: Camera, camera_key: bytes) -> tuple[Maps, bool]:
         key = (tuple(id(m) for m in meshes), camera_key)
@@ -309,86 +311,101 @@ class Engine:
         self, prims: Maps, camera: Camera, lights: list[Light], meshes
     ) -> list[np.ndarray | None] | None:
         """Per light, the prims' (H, W) shadow factor from the shadow maps (None: unshadowed),
-        looked up only where some prim's shadow can fall."""
+        each map looked up only where its casters' shadows can fall, sparsely."""
         if not self._shadowing(lights):
             return None
         box = self._scene_box(meshes)
         covered = prims.mask > 0
         out: list[np.ndarray | None] = []
-        for index, light in enumerate(lights):
-            regions = self.shadows.regions(light, box, camera) if self.shadows.maps(index) else []
-            pixels = np.flatnonzero(covered & region_mask(regions, camera.height, camera.width))
-            if pixels.size == 0:
+        for index in range(len(lights)):
+            maps = self.shadows.regions(index, box, camera)
+            if not maps:
                 out.append(None)
                 continue
-            rows, cols = np.divmod(pixels, camera.width)
-            points, normals = _world_points(
-                prims.depth.reshape(-1)[pixels], rows, cols, prims.normal.reshape(-1, 3)[pixels],
-                camera, (0, 0),
-            )  # fmt: skip
-            full = np.ones(camera.height * camera.width, np.float32)
-            full[pixels] = self.shadows.visibility(index, points, normals)
-            out.append(full.reshape(camera.height, camera.width))
+            window = _window([r for rects, _ in maps for r in rects])
+            areas = [covered[window] & region_mask(rects, camera, window) for rects, _ in maps]
+
+            def evaluate(pixels: np.ndarray, maps=maps, areas=areas, window=window):
+                frame = _in_frame(pixels, window, camera)
+                points, normals = self._prim_points(prims, camera, frame)
+                v = np.ones(pixels.size, np.float32)
+                for area, (_, handle) in zip(areas, maps, strict=True):
+                    mine = np.flatnonzero(area.reshape(-1)[pixels])
+                    v[mine] *= self.shadows.lookup(handle, points[:, mine], normals[:, mine])
+                return v
+
+            full = np.ones((camera.height, camera.width), np.float32)
+            full[window] = sparse_visibility(np.logical_or.reduce(areas), evaluate)
+            out.append(full)
         return out
+
+    @staticmethod
+    def _prim_points(prims: Maps, camera: Camera, pixels: np.ndarray):
+        """Planar world positions and normals of flat pixel indices of the prims' G-buffer."""
+        rows, cols = np.divmod(pixels, camera.width)
+        return _world_points(
+            prims.depth.reshape(-1)[pixels], rows, cols, prims.normal.reshape(-1, 3)[pixels],
+            camera, (0, 0),
+        )  # fmt: skip
 
     def _capsule_shadows_on_prims(
         self, beauty, prims: Maps, camera: Camera, lights, casters, meshes
     ) -> None:
         """Re-shade, in `beauty`, the prim pixels the characters' capsules shadow."""
         box = self._scene_box(meshes)
-        h, w = camera.height, camera.width
+        covered = prims.mask > 0
         # Per light and caster, the regions its limbs' shadows can fall on (a limb's region
         # is much smaller than the whole body's).
-        regions: list[list[tuple[np.ndarray, PosedCapsules]]] = []
+        bounds = [(posed, [part.bounds() for part in posed.parts()]) for _, posed in casters]
+        hidden: list[np.ndarray | None] = []
         for light in lights:
-            mine = []
+            found = []
             if light.kind in (DISTANT, POINT):
-                for _, posed in casters:
-                    rects = []
-                    for part in posed.parts():
-                        centre, reach = part.bounds()
-                        distance = float(np.linalg.norm(centre - light.position))
-                        angle = light_softness(light, distance)
-                        lo, hi = centre - reach, centre + reach
-                        rect = shadow_region(lo, hi, light, box, camera, angle)
-                        if rect is not None:
-                            rects.append(rect)
+                for posed, spheres in bounds:
+                    centres = np.array([c for c, _ in spheres])
+                    reach = np.array([r for _, r in spheres])[:, None]
+                    rects = shadow_regions(centres - reach, centres + reach, light, box, camera)
+                    rects = [r for r in rects if r is not None]
                     if rects:
-                        mine.append((region_mask(rects, h, w) & (prims.mask > 0), posed))
-            regions.append(mine)
-        if not any(regions):
+                        found.append((rects, posed))
+            if not found:
+                hidden.append(None)
+                continue
+            window = _window([r for rects, _ in found for r in rects])
+            mine = [(covered[window] & region_mask(rects, camera, window), p) for rects, p in found]
+
+            def evaluate(pixels: np.ndarray, mine=mine, light=light, window=window):
+                points, _ = self._prim_points(prims, camera, _in_frame(pixels, window, camera))
+                v = np.ones(pixels.size, np.float32)
+                for mask, posed in mine:
+                    inside = np.flatnonzero(mask.reshape(-1)[pixels])
+                    v[inside] *= capsule_visibility(points[:, inside], posed, light)
+                return v
+
+            full = np.ones((camera.height, camera.width), np.float32)
+            full[window] = sparse_visibility(np.logical_or.reduce([m for m, _ in mine]), evaluate)
+            hidden.append(full)
+        dark = [v < 1.0 for v in hidden if v is not None]
+        if not dark:
             return
-        union = np.logical_or.reduce([m for mine in regions for m, _ in mine])
-        flat = np.flatnonzero(union)
+        flat = np.flatnonzero(np.logical_or.reduce(dark))
         if flat.size == 0:
-            return
-        rows, cols = np.divmod(flat, w)
-        depth = prims.depth.reshape(-1)[flat]
-        normal = prims.normal.reshape(-1, 3)[flat]
-        points, _ = _world_points(depth, rows, cols, normal, camera, (0, 0))
-        hidden = []
-        for index, mine in enumerate(regions):
-            v = np.ones(flat.size, np.float32)
-            for mask, posed in mine:
-                inside = np.flatnonzero(mask.reshape(-1)[flat])
-                v[inside] *= capsule_visibility(points[:, inside], posed, lights[index])
-            hidden.append(v)
-        changed = np.flatnonzero(np.logical_or.reduce([v < 1.0 for v in hidden]))
-        if changed.size == 0:
             return
         # Only the pixels a capsule shadows are shaded again, with every light's shadows.
         shadowed = self._lit_prims[2] if self._lit_prims is not None else None
         visibility: list[np.ndarray | None] = []
         for index, v in enumerate(hidden):
-            v = v[changed]
-            if shadowed is not None and shadowed[index] is not None:
-                v = v * shadowed[index].reshape(-1)[flat[changed]]
-            visibility.append(v)
-        rows, cols, flat = rows[changed], cols[changed], flat[changed]
+            seen = None if v is None else v.reshape(-1)[flat]
+            factor = None if shadowed is None else shadowed[index]
+            if factor is not None:
+                mapped = factor.reshape(-1)[flat]
+                seen = mapped if seen is None else seen * mapped
+            visibility.append(seen)
+        rows, cols = np.divmod(flat, camera.width)
         beauty.reshape(-1, 3)[flat] = shade_pixels(
             prims.albedo.reshape(-1, 3)[flat],
-            normal[changed],
-            pixel_positions(depth[changed], rows, cols, camera),
+            prims.normal.reshape(-1, 3)[flat],
+            pixel_positions(prims.depth.reshape(-1)[flat], rows, cols, camera),
             prims.mask.reshape(-1)[flat],
             camera.world_to_camera,
             lights,
@@ -396,7 +413,7 @@ class Engine:
         )
 
     def _layer_visibility(
-        self, layer: Layer, camera: Camera, lights: list[Light], others
+        self, layer: Layer, camera: Camera, lights: list[Light], others, meshes
     ) -> list[np.ndarray | None] | None:
         """Per light, a character layer's (h, w) shadow factor: the prims' shadow maps and the
         other characters' capsules (its own capsules would shadow its own surface)."""
@@ -409,9 +426,15 @@ class Engine:
             layer.depth.reshape(-1)[covered], rows, cols, layer.normal.reshape(-1, 3)[covered],
             camera, (layer.x0, layer.y0),
         )  # fmt: skip
+        box = self._scene_box(meshes)
         out: list[np.ndarray | None] = []
         for index, light in enumerate(lights):
-            v = self.shadows.visibility(index, points, normals)
+            v = None
+            for rects, handle in self.shadows.regions(index, box, camera):
+                # Only the maps whose shadows can reach the layer's rectangle.
+                if any(_overlaps(_rect(r), (layer.x0, layer.y0, w, h)) for r in rects):
+                    seen = self.shadows.lookup(handle, points, normals)
+                    v = seen if v is None else v * seen
             if light.kind in (DISTANT, POINT):
                 for _, posed in others:
                     v = capsule_visibility(points, posed, light) * (1.0 if v is None else v)
@@ -604,7 +627,7 @@ class Engine:
             key = light_key + self.shadows.key + b"".join(posed.key for _, posed in others)
             if cached.lit is None or cached.lit_key != key:
                 cached.lit_key = key
-                visibility = self._layer_visibility(layer, camera, lights, others)
+                visibility = self._layer_visibility(layer, camera, lights, others, scene_meshes)
                 timings["shadows"] += clock.perf_counter() - t
                 t = clock.perf_counter()
                 cached.lit = (
@@ -631,6 +654,7 @@ class Engine:
         if dome is not None:  # behind everything: over it goes the premultiplied frame
             beauty += (1.0 - mask)[..., None] * self._dome_background(dome, camera, camera_key)
         timings["composite"] += clock.perf_counter() - t
+        report["shadows"]["maps_drawn"] = self.shadows.drawn  # maps are drawn when first needed
         for array in (beauty, albedo, normal, depth, mask):
             array.flags.writeable = False  # shared with the frame cache
         frame = Frame(beauty, Maps(albedo, normal, depth, mask), report, dome is not None)
@@ -710,6 +734,25 @@ def _seconds(timings: dict[str, float], start: float) -> dict[str, float]:
     seconds = {k: round(v, 6) for k, v in timings.items()}
     seconds["total"] = round(clock.perf_counter() - start, 6)
     return seconds
+
+
+def _window(regions: list[tuple[int, int, int, int]]) -> tuple[slice, slice]:
+    """The frame rows and columns holding every region (x0, y0, x1, y1)."""
+    return (
+        slice(min(r[1] for r in regions), max(r[3] for r in regions)),
+        slice(min(r[0] for r in regions), max(r[2] for r in regions)),
+    )
+
+
+def _in_frame(pixels: np.ndarray, window: tuple[slice, slice], camera: Camera) -> np.ndarray:
+    """Flat indices of a window's pixels as flat indices of the frame."""
+    rows, cols = np.divmod(pixels, window[1].stop - window[1].start)
+    return (rows + window[0].start) * camera.width + cols + window[1].start
+
+
+def _rect(region: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) as (x0, y0, w, h)."""
+    return region[0], region[1], region[2] - region[0], region[3] - region[1]
 
 
 def _overlaps(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:

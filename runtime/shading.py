@@ -139,8 +139,9 @@ def shade_pixels(
             half += view
         else:
             raise ValueError(f"unknown light kind {light.kind!r}")
-        if visibility is not None and visibility[index] is not None:
-            strength = strength * np.reshape(visibility[index], -1).astype(np.float32)
+        shadow = None if visibility is None else visibility[index]
+        if shadow is not None:
+            strength = strength * np.reshape(shadow, -1).astype(np.float32)
         diffuse += radiance * strength
         half *= 1.0 / np.maximum(np.sqrt(_dot(half, half)), MIN_DISTANCE)
         highlight = _power(np.maximum(_dot(n, half), 0.0), SHININESS)

@@ -20,8 +20,8 @@
   smoothstep estimate, ApproximateConeConeIntersection, came out up to 0.16 darker than ray
   casting in the test's penumbra; this is within 0.08, and within 0.013 at the penumbra). Only pixels in
   the screen rectangles of the limbs' shadow volumes are visited, and only the (pixel,
-  capsule) pairs that a light-space table (the capsules' 2-D shadows binned in GRID x GRID
-  cells) puts near each other are computed.
+  capsule) pairs that lie close in the light's 2-D view (a capsule's shadow is a 2-D
+  capsule there, widened by each pixel's penumbra) are computed.
 
 Shadowing multiplies each light's contribution (diffuse and specular), never the ambient.
 """
@@ -33,9 +33,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rigspace.runtime.billboard import cross
 from rigspace.runtime.lights import DISTANT, POINT, Light
 from rigspace.sdk.camera import Camera
-from rigspace.sdk.render import DrawMesh
+from rigspace.sdk.render import DrawMesh, Renderer, RendererSpec, RenderSettings
 
 SHADOW_MAP_SIZE = 512
 """Texels per side of the still prims' map (drawn once; 6 scene units a texel over the
@@ -48,16 +49,15 @@ DISTANT_RANGE = 100.0
 MAX_HALF_ANGLE = np.radians(60.0)
 """A point light's map covers at most this angle around its axis (a 120-degree frustum)."""
 MIN_SOFTNESS = np.radians(3.0)
-"""Capsule shadows see the light at least this wide (angular radius): capsules are a coarse
-stand-in for the body, and a sharp capsule outline would show it; Unreal softens its capsule
-shadows the same way. The sun (0.27 degrees) is widened to it, a lamp 15 cm across at 4 m
-(2.1 degrees) too."""
+"""Capsule shadows see the light at least this wide (angular radius) from the character:
+capsules are a coarse stand-in for the body, and a sharp capsule outline would show it;
+Unreal softens its capsule shadows the same way. A DistantLight's angle is widened to it
+(the sun's 0.27 degrees), a point light's radius to what subtends it at the character (a
+lamp 15 units across, 400 away: 2.1 degrees), so it still shrinks with distance beyond."""
 NORMAL_OFFSET_TEXELS = 1.0
 """Receivers move this many texels along their normal before the map lookup (acne)."""
 DEPTH_BIAS_TEXELS = 1.5
 """And count as lit up to this many texels behind the map's depth."""
-GRID = 32
-"""Cells per side of the light-space table that pairs receivers with nearby capsules."""
 MIN_VISIBILITY = 1e-6
 """Capsule occlusions are summed as log(visibility): fully hidden stays finite."""
 
@@ -121,14 +121,20 @@ def _corners(box: np.ndarray) -> np.ndarray:
     )
 
 
+def _frame_axes(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors e1, e2 perpendicular to unit `w`, with e1 x e2 = w."""
+    helper = np.array([0.0, 1.0, 0.0]) if abs(w[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    e1 = cross(helper, w)
+    e1 /= np.linalg.norm(e1)
+    return e1, cross(w, e1)
+
+
 def _frame(forward: np.ndarray, position: np.ndarray) -> np.ndarray:
     """(4, 4) camera-to-world looking along `forward` from `position`, rolled anyhow."""
     z = -forward / np.linalg.norm(forward)
-    helper = np.array([0.0, 1.0, 0.0]) if abs(z[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    x = np.cross(helper, z)
-    x /= np.linalg.norm(x)
+    x, y = _frame_axes(z)
     m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, np.cross(z, x), z, position
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, y, z, position
     return m
 
 
@@ -168,81 +174,107 @@ def light_camera(light: Light, box: np.ndarray, size: int) -> Camera | None:
 
 
 class PrimShadows:
-    """Shadow maps of the scene prims per light, redrawn only when casters or light move."""
+    """Shadow maps of the scene prims per light, drawn when first needed in a frame and
+    kept while their casters and light are still."""
 
-    def __init__(self, renderer) -> None:
-        self.renderer = renderer
+    def __init__(self, spec: RendererSpec) -> None:
+        self._spec = spec
+        self._renderer: Renderer | None = None
+        """Its own renderer, made on the first map: one sample per texel, and the frame's
+        renderer keeps its meshes uploaded (a renderer releases what a call does not draw)."""
         self._maps: dict[tuple[int, str], tuple[bytes, ShadowMap | None]] = {}
-        self._casters: list[DrawMesh] = []
+        self._groups: dict[int, list[tuple[str, bytes, list[DrawMesh]]]] = {}
+        self._lights: list[Light] = []
         self._bounds: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._regions: dict[tuple, list] = {}
+        """This frame's regions per light (asked by the prims' and each layer's lighting)."""
         self.key = b""
-        """Changes whenever any map does (the frame and layer caches compare it)."""
+        """Changes whenever any map's casters or light do (the frame and layer caches
+        compare it)."""
         self.drawn = 0
-        """Maps drawn by the last update (the report's)."""
+        """Maps drawn since the last update (the report's)."""
 
     def update(
         self, lights: Sequence[Light], groups: Sequence[tuple[str, Sequence[DrawMesh]]]
     ) -> None:
-        """Bring each shadowing light's maps up to date with the prims in `groups` (a name,
-        its meshes): "still" for the prims that never move, one group per moving prim."""
+        """Take this frame's lights and prims in `groups` (a name, its meshes): "still" for
+        the prims that never move, one group per moving prim. Maps are drawn on demand."""
         self.drawn = 0
+        self._lights = list(lights)
+        self._groups = {}
+        self._regions = {}
         keys = []
-        live = set()
         for i, light in enumerate(lights):
             if light.kind not in (DISTANT, POINT):
                 continue
             light_key = light.direction.tobytes() + light.position.tobytes()
+            self._groups[i] = []
             for name, meshes in groups:
-                size = SHADOW_MAP_SIZE if name == "still" else MOVING_MAP_SIZE
-                key = light_key + b"".join(np.int64(id(m)).tobytes() for m in meshes)
-                live.add((i, name))
-                cached = self._maps.get((i, name))
-                if cached is None or cached[0] != key:
-                    self._maps[(i, name)] = (key, self._draw(light, meshes, size))
-                    self.drawn += 1
-                keys.append(key)
+                if meshes:
+                    key = light_key + b"".join(np.int64(id(m)).tobytes() for m in meshes)
+                    self._groups[i].append((name, key, list(meshes)))
+                    keys.append(key)
+        live = {(i, name) for i, group in self._groups.items() for name, _, _ in group}
         for stale in set(self._maps) - live:
             del self._maps[stale]
         self.key = b"|".join(keys)
-        self._casters = [m for _, meshes in groups for m in meshes] if live else []
+        casters = [m for group in self._groups.values() for _, _, ms in group for m in ms]
         self._bounds = {
             id(m): self._bounds.get(id(m)) or (m.points.min(axis=0), m.points.max(axis=0))
-            for m in self._casters
+            for m in casters
         }
 
-    def _draw(self, light: Light, meshes: Sequence[DrawMesh], size: int) -> ShadowMap | None:
-        if not meshes:
-            return None
-        camera = light_camera(light, _box(meshes), size)
-        if camera is None:
-            return None
-        return ShadowMap(camera, self.renderer.render(meshes, camera).depth)
+    def _map(self, index: int, name: str, key: bytes, meshes: list[DrawMesh]) -> ShadowMap | None:
+        cached = self._maps.get((index, name))
+        if cached is None or cached[0] != key:
+            size = SHADOW_MAP_SIZE if name == "still" else MOVING_MAP_SIZE
+            light = self._lights[index]
+            camera = light_camera(light, _box(meshes), size)
+            drawn = None if camera is None else ShadowMap(camera, self._render(meshes, camera))
+            self._maps[(index, name)] = cached = (key, drawn)
+            self.drawn += 1
+        return cached[1]
 
-    def maps(self, index: int) -> list[ShadowMap]:
-        """The maps of light `index` (of the lights last updated with)."""
-        return [m for (i, _), (_, m) in self._maps.items() if i == index and m is not None]
+    def _render(self, meshes: list[DrawMesh], camera: Camera) -> np.ndarray:
+        if self._renderer is None:
+            self._renderer = self._spec.create(RenderSettings(1))
+        return self._renderer.render(meshes, camera).depth
 
-    def regions(self, light: Light, box: np.ndarray, camera: Camera) -> list[Region]:
-        """The frame regions the prims' shadows from `light` can fall on."""
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    def regions(
+        self, index: int, box: np.ndarray, camera: Camera
+    ) -> list[tuple[list[Region], tuple]]:
+        """Light `index`'s maps (as handles for `lookup`) with the frame regions where their
+        casters' shadows can fall; maps whose shadows miss the view are left out (not drawn)."""
+        cache_key = (
+            index,
+            box.tobytes(),
+            camera.camera_to_world.tobytes(),
+            camera.fx,
+            camera.width,
+        )
+        if cache_key in self._regions:
+            return self._regions[cache_key]
         out = []
-        for mesh in self._casters:
-            lo, hi = self._bounds[id(mesh)]
-            distance = float(np.linalg.norm((lo + hi) / 2 - light.position))
-            region = shadow_region(lo, hi, light, box, camera, light_softness(light, distance))
-            if region is not None:
-                out.append(region)
+        for name, key, meshes in self._groups.get(index, []):
+            lo = np.array([self._bounds[id(m)][0] for m in meshes])
+            hi = np.array([self._bounds[id(m)][1] for m in meshes])
+            rects = [r for r in shadow_regions(lo, hi, self._lights[index], box, camera) if r]
+            if rects:
+                out.append((rects, (index, name, key, meshes)))
+        self._regions[cache_key] = out
         return out
 
-    def visibility(self, index: int, points: np.ndarray, normals: np.ndarray | None):
-        """(N,) light `index`'s visibility past every prim at planar (3, N) world points, or
-        None when nothing shadows it."""
-        maps = self.maps(index)
-        if not maps:
-            return None
-        out = maps[0].visibility(points, normals)
-        for m in maps[1:]:
-            out *= m.visibility(points, normals)
-        return out
+    def lookup(self, handle: tuple, points: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
+        """(N,) visibility past one map (a handle from `regions`), drawing it if needed."""
+        shadow_map = self._map(*handle)
+        if shadow_map is None:
+            return np.ones(points.shape[1], np.float32)
+        return shadow_map.visibility(points, normals)
 
 
 # -- capsules ---------------------------------------------------------------------------------
@@ -310,16 +342,26 @@ def pose_capsules(
     )
 
 
-def _towards_light(light: Light, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit directions (3, N) from planar points towards the light, and its angular radius (N,)."""
+def _soft_radius(light: Light, capsules: PosedCapsules) -> float:
+    """A point light's radius for capsule shadows: its own, or what subtends MIN_SOFTNESS at
+    the capsules, if more."""
+    centre, _ = capsules.bounds()
+    return max(light.radius, float(np.linalg.norm(centre - light.position)) * np.tan(MIN_SOFTNESS))
+
+
+def _towards_light(
+    light: Light, points: np.ndarray, radius: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unit directions (3, N) from planar points towards the light, and its angular radius
+    (N,); a point light's `radius` from _soft_radius."""
     n = points.shape[1]
     if light.kind == DISTANT:
         direction = np.repeat(-light.direction.astype(np.float32)[:, None], n, axis=1)
         return direction, np.full(n, max(light.angle, MIN_SOFTNESS), np.float32)
     offset = light.position.astype(np.float32)[:, None] - points
     distance = np.maximum(np.sqrt(_dot(offset, offset)), 1e-6)
-    angle = np.arcsin(np.clip(light.radius / distance, 0.0, 1.0))
-    return offset / distance, np.maximum(angle, MIN_SOFTNESS).astype(np.float32)
+    angle = np.arcsin(np.clip(radius / distance, 0.0, 1.0)).astype(np.float32)
+    return offset / distance, angle
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -344,15 +386,7 @@ def cone_occlusion(
     return np.clip(area / (np.pi * r1 * r1), 0.0, 1.0)
 
 
-def _frame_axes(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors perpendicular to unit `w` and to each other."""
-    helper = np.array([0.0, 1.0, 0.0]) if abs(w[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    e1 = np.cross(helper, w)
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(w, e1)
-
-
-def _light_plane(light: Light, capsules: PosedCapsules, points: np.ndarray):
+def _light_plane(light: Light, capsules: PosedCapsules, points: np.ndarray, soft: float):
     """Receivers and capsules in the light's 2-D view, where a capsule's shadow is a 2-D
     capsule: for a DistantLight the plane across its direction (u, v in scene units), for a
     point light the directions from it (u, v: tangents about the axis towards the capsules).
@@ -360,9 +394,9 @@ def _light_plane(light: Light, capsules: PosedCapsules, points: np.ndarray):
     Returns the points' u, v (N,), the capsules' ends (K, 2) twice, their radii there (K,),
     each point's penumbra margin (N,: how far beyond a capsule's outline its shadow can
     still reach that point, which grows with the point's distance behind the capsules) and
-    the tangent stretch (a function of the margin: 1 / cos^2 of the largest angle off the
-    axis, for a point light; None when that reaches 80 degrees). None when the light is
-    among the capsules: every pair is computed then."""
+    the tangent stretch (a function of the margins: for a point light 1 / cos^2 of the
+    largest angle off the axis, NaN where that reaches 80 degrees). None when the light is
+    among the capsules: every pair is computed then. `soft`: a point light's _soft_radius."""
     centre, reach = capsules.bounds()
     if light.kind == DISTANT:
         w = light.direction
@@ -374,7 +408,7 @@ def _light_plane(light: Light, capsules: PosedCapsules, points: np.ndarray):
         front = float(centre @ w - reach)  # the capsules' nearest depth along the light
         margin = np.maximum(depth - front, 0.0) * np.tan(max(light.angle, MIN_SOFTNESS))
         flat = capsules.a @ m[:2].T, capsules.b @ m[:2].T
-        return u, v, flat[0], flat[1], capsules.radius, margin, lambda _: 1.0
+        return u, v, flat[0], flat[1], capsules.radius, margin, np.ones_like
     offset = centre - light.position
     distance = float(np.linalg.norm(offset))
     if distance <= reach * 1.05:
@@ -397,67 +431,64 @@ def _light_plane(light: Light, capsules: PosedCapsules, points: np.ndarray):
         np.linalg.norm(capsules.b - light.position, axis=1),
     )
     angular = np.arcsin(np.clip(capsules.radius / np.maximum(closest, 1e-9), 0.0, 1.0))
-    # A receiver at distance D sees the light at most `widest` wide; seen from the light, a
-    # caster at distance d shifts the penumbra by that angle times (D - d) / d.
+    # A receiver at distance D sees the light R / D wide; seen from the light, a caster at
+    # distance d shifts the penumbra by that angle times (D - d) / d: at most R / d.
     nearest = max(float(closest.min()), 1e-9)
-    widest = max(float(np.arcsin(min(light.radius / nearest, 1.0))), MIN_SOFTNESS)
     far = np.sqrt(x * x + y * y + z * z)
-    margin = widest * np.maximum(far - nearest, 0.0) / nearest
+    margin = soft * np.maximum(far - nearest, 0.0) / (np.maximum(far, nearest) * nearest)
     base = float(np.arctan(np.linalg.norm(np.concatenate(ends), axis=1).max()))
     base += float(angular.max())
 
-    def stretch(largest_margin: float) -> float | None:
-        off_axis = base + largest_margin
-        return None if off_axis >= np.radians(80.0) else 1.0 / np.cos(off_axis) ** 2
+    def stretch(margin: np.ndarray) -> np.ndarray:
+        off_axis = base + margin
+        return np.where(off_axis < np.radians(80.0), 1.0 / np.cos(off_axis) ** 2, np.nan)
 
     # Angles become tangent units (times the stretch) in _candidate_pairs.
     return u, v, ends[0], ends[1], np.tan(angular), margin, stretch
 
 
-def _candidate_pairs(u, v, a2, b2, radius, margin, stretch) -> tuple[np.ndarray, np.ndarray]:
-    """(receiver, capsule) pairs whose 2-D distance may lie within the capsule's shadow.
+def _candidate_pairs(
+    u, v, a2, b2, radius, margin, stretch, parts: Sequence[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """(receiver, capsule) pairs whose 2-D distance may lie within the capsule's shadow: a
+    receiver's reach is the capsule's radius plus its own penumbra margin (times the tangent
+    stretch). The 2-D bounds of all capsules, then of each limb (`parts`), cull most
+    receivers with a few operations each; the rest meet each of the limb's 2-D segments."""
+    factor = stretch(margin)  # per receiver; NaN where too far off the axis to bound
+    unbounded = np.isnan(factor) & np.isfinite(u)
+    reach = (float(radius.max()) + margin) * factor
+    lo, hi = np.minimum(a2, b2), np.maximum(a2, b2)
 
-    Receivers are grouped in slabs of similar penumbra margin (doubling from the smallest
-    capsule radius); per slab the capsules' 2-D shadows, widened by the slab's largest
-    margin, are binned into a GRID x GRID table of cells, and each receiver reads its cell's
-    row: it meets only the capsules near it, with the margin its own distance needs."""
-    base = max(float(radius.min()), 1e-12)
-    slab = np.ceil(np.log2(margin / base + 1.0)).astype(np.int64)
+    def within(index: np.ndarray, part: np.ndarray) -> np.ndarray:
+        low, high, r = lo[part].min(axis=0), hi[part].max(axis=0), reach[index]
+        pu, pv = u[index], v[index]
+        return index[
+            (pu >= low[0] - r) & (pu <= high[0] + r) & (pv >= low[1] - r) & (pv <= high[1] + r)
+        ]
+
+    near = within(np.arange(len(u)), np.arange(len(radius)))
+    seg = (b2 - a2).astype(np.float32)
+    length2 = np.maximum(seg[:, 0] * seg[:, 0] + seg[:, 1] * seg[:, 1], 1e-18)
     receivers, capsules = [], []
-    for s in np.unique(slab[np.isfinite(u)]):
-        members = np.flatnonzero((slab == s) & np.isfinite(u))
-        widest = float(margin[members].max())
-        factor = stretch(widest)
-        if factor is None:  # too far off the light's axis to bin: every pair of the slab
-            receivers.append(np.repeat(members, len(radius)))
-            capsules.append(np.tile(np.arange(len(radius)), len(members)))
+    for part in parts:
+        mine = within(near, part)
+        if mine.size == 0:
             continue
-        grow = (radius + widest) * factor
-        lo = np.minimum(a2, b2).min(axis=0) - grow.max()
-        hi = np.maximum(a2, b2).max(axis=0) + grow.max()
-        size = np.maximum((hi - lo) / GRID, 1e-12)
-        mu, mv = u[members], v[members]
-        inside = (mu >= lo[0]) & (mu < hi[0]) & (mv >= lo[1]) & (mv < hi[1])
-        members, mu, mv = members[inside], mu[inside], mv[inside]
-        if members.size == 0:
-            continue
-        # Which capsules reach each cell: its centre's distance to the capsule's 2-D segment.
-        cells = np.stack(np.divmod(np.arange(GRID * GRID), GRID), -1)[:, ::-1]
-        centres = lo + (cells + 0.5) * size
-        seg = b2 - a2
-        length2 = np.maximum(np.einsum("kc,kc->k", seg, seg), 1e-18)
-        t = np.einsum("nkc,kc->nk", centres[:, None, :] - a2[None], seg) / length2
-        nearest = a2[None] + np.clip(t, 0.0, 1.0)[..., None] * seg[None]
-        gap = np.linalg.norm(centres[:, None, :] - nearest, axis=-1)
-        table = gap <= grow[None, :] + 0.5 * float(np.hypot(*size))
-        col = np.minimum(((mu - lo[0]) / size[0]).astype(np.int64), GRID - 1)
-        row = np.minimum(((mv - lo[1]) / size[1]).astype(np.int64), GRID - 1)
-        hit, k = np.nonzero(table[row * GRID + col])
-        receivers.append(members[hit])
-        capsules.append(k)
+        du = u[mine, None] - a2[None, part, 0].astype(np.float32)
+        dv = v[mine, None] - a2[None, part, 1].astype(np.float32)
+        t = np.clip((du * seg[part, 0] + dv * seg[part, 1]) / length2[part], 0.0, 1.0)
+        du -= t * seg[part, 0]
+        dv -= t * seg[part, 1]
+        limit = (radius[None, part] + margin[mine, None]) * factor[mine, None]
+        hit, k = np.nonzero(du * du + dv * dv <= limit * limit)
+        receivers.append(mine[hit])
+        capsules.append(part[k])
+    if unbounded.any():  # every pair of the receivers seen too far off the light's axis
+        members = np.flatnonzero(unbounded)
+        receivers.append(np.repeat(members, len(radius)))
+        capsules.append(np.tile(np.arange(len(radius)), len(members)))
     if not receivers:
-        empty = np.zeros(0, np.int64)
-        return empty, empty
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
     return np.concatenate(receivers), np.concatenate(capsules)
 
 
@@ -468,16 +499,19 @@ def capsule_visibility(points: np.ndarray, capsules: PosedCapsules, light: Light
     if n == 0 or len(capsules.radius) == 0:
         return out
     p = np.asarray(points, dtype=np.float32)
-    plane = _light_plane(light, capsules, p)
+    soft = _soft_radius(light, capsules) if light.kind == POINT else 0.0
+    plane = _light_plane(light, capsules, p, soft)
     if plane is None:  # no 2-D view to bin in: every pair
         i, k = np.divmod(np.arange(n * len(capsules.radius)), len(capsules.radius))
     else:
-        i, k = _candidate_pairs(*plane)
+        parts = capsules.chains or (np.arange(len(capsules.radius)),)
+        u, v, a2, b2, radius, margin, stretch = plane
+        i, k = _candidate_pairs(u, v, a2, b2, radius, margin, stretch, parts)
     if i.size == 0:
         return out
     receivers, i = np.unique(i, return_inverse=True)
     p = p[:, receivers]
-    to_light, light_angle = _towards_light(light, p)
+    to_light, light_angle = _towards_light(light, p, soft)
     a = capsules.a.astype(np.float32).T  # planar (3, K)
     u = (capsules.b - capsules.a).astype(np.float32).T
     r = capsules.radius.astype(np.float32)
@@ -499,65 +533,108 @@ def capsule_visibility(points: np.ndarray, capsules: PosedCapsules, light: Light
     return out
 
 
-def _exit_distance(origin: np.ndarray, direction: np.ndarray, box: np.ndarray) -> float:
-    """How far a ray from inside `box` travels before leaving it."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(direction > 0, (box[1] - origin) / direction, (box[0] - origin) / direction)
-    t = np.where(direction == 0, np.inf, t)
-    return max(float(t.min()), 0.0)
-
-
 Region = tuple[int, int, int, int]
 """(x0, y0, x1, y1) pixels of a frame."""
 
 
-def shadow_region(
-    lo: np.ndarray, hi: np.ndarray, light: Light, box: np.ndarray, camera: Camera, angle: float
-) -> Region | None:
-    """The frame pixels the shadow of a caster within bounds (lo, hi) can fall on: its box
-    swept away from `light` until it leaves the scene's bounds `box`, widened by `angle`
-    (the shadow's softness) along the way. None: it casts onto nothing in view (a flat
-    caster on the scene's boundary, the ground, casts onto nothing at all)."""
-    corners = _corners(np.array([lo, hi]))
-    box = np.array([np.minimum(box[0], lo), np.maximum(box[1], hi)])
+_CORNER_PICK = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+"""Which of (lo, hi) each of a box's 8 corners takes, per axis."""
+
+
+def shadow_regions(
+    lo: np.ndarray, hi: np.ndarray, light: Light, box: np.ndarray, camera: Camera
+) -> list[Region | None]:
+    """Per caster with bounds lo, hi (M, 3): the frame pixels its shadow can fall on, or
+    None. Its box is swept away from `light` until it leaves the scene's bounds `box`,
+    widened along the way by the shadow's softness (light_softness). None: it casts onto
+    nothing in view (a flat caster on the scene's boundary, the ground, onto nothing)."""
+    m = len(lo)
+    bounds = np.stack([lo, hi], axis=1)  # (M, 2, 3)
+    corners = bounds[:, _CORNER_PICK, np.arange(3)]  # (M, 8, 3)
+    scene = np.stack([np.minimum(box[0], lo), np.maximum(box[1], hi)], axis=1)
+    full: Region = (0, 0, camera.width, camera.height)
     if light.kind == DISTANT:
-        directions = np.repeat(light.direction[None], 8, axis=0)
+        directions = np.broadcast_to(light.direction, corners.shape)
+        angles = np.full(m, max(light.angle, MIN_SOFTNESS))
+        around = np.zeros(m, bool)
     else:
-        if np.all(light.position >= lo) and np.all(light.position <= hi):
-            return 0, 0, camera.width, camera.height  # the light among the caster
         offsets = corners - light.position
-        directions = offsets / np.linalg.norm(offsets, axis=1, keepdims=True)
-    lengths = np.array(
-        [_exit_distance(c, d, box) for c, d in zip(corners, directions, strict=True)]
-    )
-    size = float(np.linalg.norm(hi - lo))
-    if lengths.max() <= 1e-6 * max(size, 1e-9) and np.min(hi - lo) <= 1e-6 * max(size, 1e-9):
-        return None  # flat and on the boundary: nothing lies beyond it
-    grow = lengths.max() * np.tan(angle)
-    ends = corners + directions * lengths[:, None]
-    points = np.concatenate([corners, _corners(np.array([ends.min(0) - grow, ends.max(0) + grow]))])
-    xy, depth = camera.project(points)
-    if np.any(depth <= camera.near):
-        return 0, 0, camera.width, camera.height  # reaches behind the camera: all of it
-    lo_px = np.floor(xy.min(axis=0)).astype(int) - 1
-    hi_px = np.ceil(xy.max(axis=0)).astype(int) + 1
-    x0, y0 = max(int(lo_px[0]), 0), max(int(lo_px[1]), 0)
-    x1, y1 = min(int(hi_px[0]), camera.width), min(int(hi_px[1]), camera.height)
-    if x1 <= x0 or y1 <= y0:
-        return None
-    return x0, y0, x1, y1
+        directions = offsets / np.maximum(np.linalg.norm(offsets, axis=-1, keepdims=True), 1e-12)
+        distance = np.linalg.norm((lo + hi) / 2 - light.position, axis=-1)
+        angles = np.maximum(np.arcsin(np.clip(light.radius / np.maximum(distance, 1e-9), 0, 1)),
+                            MIN_SOFTNESS)  # fmt: skip
+        around = np.all((light.position >= lo) & (light.position <= hi), axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(directions > 0, scene[:, None, 1] - corners, scene[:, None, 0] - corners)
+        t = np.where(directions == 0, np.inf, t / directions)
+    lengths = np.maximum(t.min(axis=-1), 0.0)  # (M, 8): to the scene's boundary
+    size = np.maximum(np.linalg.norm(hi - lo, axis=-1), 1e-9)
+    flat = (lengths.max(axis=1) <= 1e-6 * size) & ((hi - lo).min(axis=-1) <= 1e-6 * size)
+    grow = lengths.max(axis=1) * np.tan(angles)
+    ends = corners + directions * lengths[..., None]
+    far = np.stack([ends.min(axis=1) - grow[:, None], ends.max(axis=1) + grow[:, None]], axis=1)
+    points = np.concatenate([corners, far[:, _CORNER_PICK, np.arange(3)]], axis=1)  # (M, 16, 3)
+    w2c = camera.world_to_camera
+    pc = points @ w2c[:3, :3].T + w2c[:3, 3]
+    depth = -pc[..., 2]
+    behind = np.any(depth <= camera.near, axis=1)
+    inv = 1.0 / np.where(depth > camera.near, depth, 1.0)
+    x = camera.cx + camera.fx * pc[..., 0] * inv
+    y = camera.cy - camera.fy * pc[..., 1] * inv
+    x0 = np.maximum(np.floor(x.min(axis=1)) - 1, 0).astype(int)
+    y0 = np.maximum(np.floor(y.min(axis=1)) - 1, 0).astype(int)
+    x1 = np.minimum(np.ceil(x.max(axis=1)) + 1, camera.width).astype(int)
+    y1 = np.minimum(np.ceil(y.max(axis=1)) + 1, camera.height).astype(int)
+    out: list[Region | None] = []
+    for i in range(m):
+        if flat[i]:
+            out.append(None)
+        elif around[i] or behind[i]:  # the light among it, or reaching behind the camera
+            out.append(full)
+        elif x1[i] <= x0[i] or y1[i] <= y0[i]:
+            out.append(None)
+        else:
+            out.append((int(x0[i]), int(y0[i]), int(x1[i]), int(y1[i])))
+    return out
 
 
-def light_softness(light: Light, distance: float) -> float:
-    """A capsule shadow's angular radius of the light, seen from `distance` (point lights)."""
-    if light.kind == DISTANT:
-        return max(light.angle, MIN_SOFTNESS)
-    return max(float(np.arcsin(min(light.radius / max(distance, 1e-9), 1.0))), MIN_SOFTNESS)
-
-
-def region_mask(regions: Sequence[Region], height: int, width: int) -> np.ndarray:
-    """(H, W) bool: the union of the regions."""
-    mask = np.zeros((height, width), bool)
+def region_mask(regions: Sequence[Region], camera: Camera, window=None) -> np.ndarray:
+    """(H, W) bool: the union of the regions, within `window` (rows, columns slices of the
+    frame) when given."""
+    rows, cols = window or (slice(0, camera.height), slice(0, camera.width))
+    mask = np.zeros((rows.stop - rows.start, cols.stop - cols.start), bool)
     for x0, y0, x1, y1 in regions:
-        mask[y0:y1, x0:x1] = True
+        top, left = max(y0 - rows.start, 0), max(x0 - cols.start, 0)
+        mask[top : y1 - rows.start, left : x1 - cols.start] = True
     return mask
+
+
+def sparse_visibility(candidates: np.ndarray, evaluate) -> np.ndarray:
+    """(H, W) shadow factors of the `candidates` pixels (1 elsewhere), with `evaluate(flat)`
+    giving them for flat pixel indices: first every other pixel along both axes, then all
+    pixels of the 2x2 blocks at or beside a sample that is shadowed (or missing). Shadows
+    here are soft (MIN_SOFTNESS, a shadow map's bilinear taps), so a lit block amid lit
+    blocks stays lit: about a quarter of the work outside the shadows themselves."""
+    h, w = candidates.shape
+    out = np.ones(h * w, np.float32)
+    coarse = np.zeros_like(candidates)
+    coarse[::2, ::2] = candidates[::2, ::2]
+    first = np.flatnonzero(coarse)
+    if first.size:
+        out[first] = evaluate(first)
+    padded = np.zeros((h + h % 2, w + w % 2), bool)
+    padded[:h, :w] = candidates
+    blocks = padded.reshape(padded.shape[0] // 2, 2, padded.shape[1] // 2, 2).any(axis=(1, 3))
+    sample = out.reshape(h, w)[::2, ::2]
+    dark = blocks & ((sample < 1.0) | ~candidates[::2, ::2])
+    near = dark.copy()  # and the blocks beside them: a penumbra's edge crosses blocks
+    near[1:] |= dark[:-1]
+    near[:-1] |= dark[1:]
+    wide = near.copy()
+    wide[:, 1:] |= near[:, :-1]
+    wide[:, :-1] |= near[:, 1:]
+    need = np.repeat(np.repeat(wide, 2, axis=0), 2, axis=1)[:h, :w] & candidates & ~coarse
+    second = np.flatnonzero(need)
+    if second.size:
+        out[second] = evaluate(second)
+    return out.reshape(h, w)

@@ -195,6 +195,9 @@ def test_a_moving_light_redraws_the_maps_and_the_frame(tmp_path):
         op.Set(30.0, 0)
         op.Set(-30.0, 10)
         sun.AddRotateXOp().Set(-90.0)
+        crate = UsdGeom.Cube.Define(stage, "/World/Test/Crate")
+        crate.CreateSizeAttr(50.0)
+        crate.AddTranslateOp().Set(Gf.Vec3d(*(pelvis * (1, 0, 1) + np.array((-120.0, 25.0, 0.0)))))
         _camera(stage, pelvis + np.array((0, 150, 700)), -12.0)
 
     engine = Engine(
@@ -204,8 +207,9 @@ def test_a_moving_light_redraws_the_maps_and_the_frame(tmp_path):
         first, second = engine.render(0.0), engine.render(10.0)
     finally:
         engine.close()
-    assert first.report["shadows"]["maps_drawn"] >= 1
-    assert second.report["shadows"]["maps_drawn"] >= 1
+    # The crate's map is drawn for the first frame and again for the turned light.
+    assert first.report["shadows"]["maps_drawn"] == 1
+    assert second.report["shadows"]["maps_drawn"] == 1
     assert not second.report["composite_reused"]
     assert not np.array_equal(first.beauty, second.beauty)
 
@@ -267,12 +271,14 @@ def test_cone_occlusion_limits():
 
 
 @pytest.mark.parametrize("kind", [DISTANT, POINT])
-def test_the_light_space_table_keeps_every_pair_that_matters(kind, monkeypatch):
+def test_the_light_space_culling_keeps_every_pair_that_matters(kind, monkeypatch):
     capsules = read_capsules(SAMPLE_MODEL / "capsules.json")
     rig = _rig()
     world = rig.world_transforms(100.0)
     index = [rig.joints.index(j) for j in capsules.joints]
-    posed = shadows.pose_capsules(capsules.a, capsules.b, capsules.radius, world[index])
+    limbs = shadows.chains(capsules.joints)
+    assert len(limbs) == 5  # spine and head, two arms, two legs
+    posed = shadows.pose_capsules(capsules.a, capsules.b, capsules.radius, world[index], limbs)
     light = (
         Light(
             DISTANT,
