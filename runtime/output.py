@@ -12,14 +12,19 @@ import OpenImageIO as oiio
 
 from rigspace.sdk.exr import write_channels
 
-CHANNELS = ("R", "G", "B", "A", "albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z")
-"""R,G,B,A: lit beauty premultiplied by A (coverage); albedo.*: premultiplied albedo;
-N.*: camera-space normals; Z: camera depth along -Z in scene units, +inf where empty."""
+CHANNELS = (
+    *("R", "G", "B", "A", "mask.A"),
+    *("albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z"),
+)
+"""R,G,B,A: lit beauty premultiplied by A (1 where a DomeLight fills the background, else
+the coverage); mask.A: the coverage of prims and characters, whatever the background;
+albedo.*: premultiplied albedo; N.*: camera-space normals; Z: camera depth along -Z in
+scene units, +inf where empty."""
 
 
 AOV_CHANNELS = {
     "beauty": ("R", "G", "B", "A"),
-    "mask": ("A",),
+    "mask": ("mask.A",),
     "albedo": ("albedo.R", "albedo.G", "albedo.B"),
     "normal": ("N.X", "N.Y", "N.Z"),
     "depth": ("Z",),
@@ -31,7 +36,10 @@ def write_frame_exr(path: str | Path, frame, aovs: tuple[str, ...] = tuple(AOV_C
     atomically; the channels keep CHANNELS' order."""
     maps = frame.maps
     pixels = np.concatenate(
-        [frame.beauty, maps.mask[..., None], maps.albedo, maps.normal, maps.depth[..., None]],
+        [
+            *(frame.beauty, frame.alpha[..., None], maps.mask[..., None]),
+            *(maps.albedo, maps.normal, maps.depth[..., None]),
+        ],
         axis=-1,
     )
     wanted = {c for aov in aovs for c in AOV_CHANNELS[aov]}

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 from fractions import Fraction
+from types import SimpleNamespace
 
 import av
 import numpy as np
+import OpenImageIO as oiio
 
-from rigspace.runtime.output import VideoWriter
+from rigspace.runtime.output import VideoWriter, write_frame_exr
 
 CHROMA_TOLERANCE = 6
 """8-bit levels a flat colour may move through yuv420p and x264 at crf 18 (measured 2)."""
@@ -51,3 +53,32 @@ def test_video_keeps_a_fractional_frame_rate(tmp_path):
     video.close()
     with av.open(str(path)) as container:
         assert container.streams.video[0].average_rate == Fraction(30000, 1001)
+
+
+def test_the_beauty_alpha_is_one_over_a_sky_and_the_mask_stays_the_coverage(tmp_path):
+    """With a DomeLight the beauty is opaque (A = 1) while mask.A is still the coverage."""
+    h, w = 4, 6
+    mask = np.zeros((h, w), np.float32)
+    mask[1:3, 2:4] = 1.0
+    maps = SimpleNamespace(
+        mask=mask,
+        albedo=np.zeros((h, w, 3), np.float32),
+        normal=np.zeros((h, w, 3), np.float32),
+        depth=np.full((h, w), np.inf, np.float32),
+    )
+    for opaque in (True, False):
+        frame = SimpleNamespace(
+            beauty=np.full((h, w, 3), 0.5, np.float32),
+            maps=maps,
+            alpha=np.ones_like(mask) if opaque else mask,
+        )
+        path = tmp_path / f"opaque_{opaque}.exr"
+        write_frame_exr(path, frame, ("beauty", "mask"))
+        image = oiio.ImageInput.open(str(path))
+        names = list(image.spec().channelnames)
+        pixels = image.read_image(oiio.FLOAT)
+        image.close()
+        assert names == ["R", "G", "B", "A", "mask.A"]
+        np.testing.assert_array_equal(pixels[..., names.index("mask.A")], mask)
+        expected_alpha = np.ones_like(mask) if opaque else mask
+        np.testing.assert_array_equal(pixels[..., names.index("A")], expected_alpha)
