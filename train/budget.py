@@ -15,6 +15,7 @@ trained: the fade blends in the level below); the heads below the first level tr
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -85,6 +86,7 @@ def plan_schedule(
 ) -> Plan:
     """The steps per level that fit every level of `config` into `budget_seconds`."""
     levels = config.levels()
+    budget_seconds = max(0.0, budget_seconds)
     per_round = sum(seconds_per_step[r] for r in levels)
     fit = math.floor(PLAN_SHARE * max(budget_seconds, 0.0) / max(per_round, 1e-9))
     steps = min(config.steps_per_level, max(MIN_STEPS_PER_LEVEL, fit))
@@ -127,3 +129,57 @@ def trained_levels(config: TrainConfig, step: int) -> list[int]:
         if step > begin + (0 if i == 0 else fade_steps(config)):
             out.append(r)
     return out
+
+
+PACE_WARMUP = 5
+"""First steps of each level the pace does not time: a run's first steps are slow (thread
+pools and caches warming up: 5 s for the first 7 steps of a `small` run here, against 0.2 s
+a step after), and so is a level's first step at its new size."""
+PACE_WINDOW = 20
+"""Steps over which the pace measures the current rate (the last ones)."""
+
+
+class Pace:
+    """Keeps a run with a time budget on course for its final level while it trains.
+
+    The plan's step times come from a few probe steps; a shared machine can run several
+    times slower later (measured here: 1.7 s a step against the probe's 0.16 s while other
+    work ran). At each step past a level's fade-in, the rate of its last PACE_WINDOW steps,
+    scaled by the probe's ratios between levels, projects the time the rest of this level
+    and the later levels need. When that exceeds what is left of the budget (PLAN_SHARE of
+    it, as planned), the level ends here: the step jumps to the next level's first step.
+    Batches are a pure function of the step, so skipping steps changes nothing else; the
+    final level is never cut (the budget stops it).
+    """
+
+    def __init__(
+        self, config: TrainConfig, seconds_per_step: dict[int, float], deadline: float
+    ) -> None:
+        self.config, self.deadline = config, deadline
+        self.probe = [float(seconds_per_step[r]) for r in config.levels()]
+        self._level, self._seen = -1, 0
+        self._recent: deque[tuple[int, float]] = deque(maxlen=PACE_WINDOW + 1)
+
+    def next_step(self, step: int, now: float) -> int:
+        """The step to train next: `step`, or the next level's first step when behind."""
+        per_level = self.config.steps_per_level
+        level = step // per_level
+        if level >= len(self.probe) - 1:
+            return step
+        if level != self._level:
+            self._level, self._seen = level, 0
+            self._recent.clear()
+        self._seen += 1
+        if self._seen > PACE_WARMUP:
+            self._recent.append((step, now))
+        local = step - level * per_level
+        fade = 0 if level == 0 else fade_steps(self.config)
+        if len(self._recent) <= PACE_WINDOW or local <= fade:
+            return step
+        (first, began), (last, latest) = self._recent[0], self._recent[-1]
+        rate = (latest - began) / (last - first)
+        scale = rate / self.probe[level]
+        needed = (per_level - local) * rate + scale * per_level * sum(self.probe[level + 1 :])
+        if needed <= PLAN_SHARE * (self.deadline - now):
+            return step
+        return (level + 1) * per_level

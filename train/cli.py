@@ -7,6 +7,7 @@ import dataclasses
 import json
 import os
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 from rigspace.sdk.cli import CommandSpec
@@ -263,7 +264,10 @@ def run_eval(args: argparse.Namespace) -> int:
         ]
     result = compare(predictors, table, args.split, limit=args.limit or None, out_dir=args.errors)
     if args.record:
-        record_metrics(Path(args.model), args.split, "int8" if args.int8 else "fp32", result)
+        fallbacks = sorted(predictors[0].model.int8_fallbacks)
+        record_metrics(
+            Path(args.model), args.split, "int8" if args.int8 else "fp32", result, fallbacks
+        )
     if args.json:
         json.dump(result, sys.stdout, indent=2, default=float)
         sys.stdout.write("\n")
@@ -272,8 +276,11 @@ def run_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def record_metrics(model: Path, split: str, precision: str, result: dict) -> None:
-    """Write the evaluation's aggregated rows into the bundle manifest's metrics."""
+def record_metrics(
+    model: Path, split: str, precision: str, result: dict, fp32_in_place: Sequence[str] = ()
+) -> None:
+    """Write the evaluation's aggregated rows into the bundle manifest's metrics (with the
+    int8 graphs whose fp32 graphs ran in their place, failed at export, when there are any)."""
     import os
 
     from rigspace.train.evaluate import to_json
@@ -281,6 +288,8 @@ def record_metrics(model: Path, split: str, precision: str, result: dict) -> Non
     path = model / "manifest.json"
     manifest = json.loads(path.read_text())
     rows = json.loads(to_json({"samples": result["samples"], "rows": result["rows"]}))
+    if fp32_in_place:
+        rows["fp32_in_place_of"] = list(fp32_in_place)
     manifest.setdefault("metrics", {}).setdefault(split, {})[precision] = rows
     tmp = path.with_name(f".manifest.json.{os.getpid()}.tmp")
     tmp.write_text(json.dumps(manifest, indent=2) + "\n")

@@ -168,6 +168,8 @@ class Prefetcher:
             self._pending[step] = self._pool.submit(self.samples.batch, ks)
 
     def get(self, step: int) -> dict[str, np.ndarray]:
+        for other in [s for s in self._pending if s != step]:  # a skipped step's read
+            self._pending.pop(other).cancel()
         self._submit(step)
         result = self._pending.pop(step).result()
         self._submit(step + 1)

@@ -47,7 +47,7 @@ from rigspace.train.budget import trained_levels
 from rigspace.train.config import TrainConfig
 from rigspace.train.data import SampleSet, depth_scale
 from rigspace.train.int8check import TOLERANCES, check_int8
-from rigspace.train.loop import TrainingError, build_model
+from rigspace.train.loop import CHECKPOINT, RUN_FILE, TrainingError, build_model
 from rigspace.train.network import Rig2Image
 
 OPSET = 17
@@ -214,6 +214,11 @@ def export_bundle(
     this one does not write are removed, after the new manifest is in place.
     """
     run_folder, out = Path(run_folder), Path(out)
+    if (run_folder / RUN_FILE).is_file() and not (run_folder / CHECKPOINT).is_file():
+        raise TrainingError(
+            f"The run in {run_folder} has trained no level yet (no step, no checkpoint).",
+            "train longer: continue it with --resume (and a larger --steps or --minutes).",
+        )
     model, run, step = build_model(run_folder)
     config = TrainConfig.from_json(run["config"])
     trained = trained_levels(config, step)

@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 from rigspace.capture.dataset import DatasetError, read_manifest
 from rigspace.sdk.errors import RigspaceError
-from rigspace.train.budget import apply_plan, plan_schedule
+from rigspace.train.budget import Pace, apply_plan, plan_schedule
 from rigspace.train.config import TrainConfig
 from rigspace.train.data import Prefetcher, SampleSet
 from rigspace.train.loss import targets_for, total_loss
@@ -332,11 +332,30 @@ def train(
     )
     step, stopped, last_loss, t0 = start, "done", math.nan, time.monotonic()
     last_good = checkpoint_path if checkpoint_path.exists() else None
+    planned = plan.to_json() if plan is not None else (existing or {}).get("plan") or {}
+    pace = None
+    if minutes and planned:
+        rates = {int(r): float(s) for r, s in planned["seconds_per_step"].items()}
+        pace = Pace(config, rates, deadline)
+    trained = 0  # optimizer steps in this call (a slow run's pace skips some steps)
     try:
         while step < total:
-            if time.monotonic() > deadline:
+            now = time.monotonic()
+            if now > deadline:
                 stopped = "time budget"
                 break
+            ahead = pace.next_step(step, now) if pace is not None else step
+            if ahead != step:
+                level = schedule(config, step).resolution
+                tqdm.write(
+                    f"rigspace train: slower than planned: level {level} ends at step {step} "
+                    f"(of {ahead}) so that the run reaches the final level within the budget",
+                    file=sys.stderr,
+                )
+                log.write(json.dumps({"step": step, "skipped_to": ahead}) + "\n")
+                bar.update(ahead - step)
+                step = ahead
+                continue
             where = schedule(config, step)
             if where.first_step_of_level and step > start:
                 # A new block joins: fresh optimizer state (the paper resets per level).
@@ -352,9 +371,10 @@ def train(
                 )
             optimise(model, optimizer, loss, config)
             step += 1
+            trained += 1
             last_loss = float(loss.detach())
             elapsed = time.monotonic() - t0
-            rate = (step - start) * config.batch / max(elapsed, 1e-9)
+            rate = trained * config.batch / max(elapsed, 1e-9)
             bar.set_postfix(loss=f"{last_loss:.4f}", res=where.resolution, img_s=f"{rate:.1f}")
             bar.update(1)
             record: dict[str, Any] = {
@@ -395,7 +415,7 @@ def train(
             save_checkpoint(out, model, optimizer, step, schedule(config, max(step - 1, 0)).level)
     seconds = time.monotonic() - t0
     return TrainResult(
-        out, step, seconds, stopped, last_loss, (step - start) * config.batch / max(seconds, 1e-9)
+        out, step, seconds, stopped, last_loss, trained * config.batch / max(seconds, 1e-9)
     )
 
 
