@@ -137,6 +137,10 @@ pools and caches warming up: 5 s for the first 7 steps of a `small` run here, ag
 a step after), and so is a level's first step at its new size."""
 PACE_WINDOW = 20
 """Steps over which the pace measures the current rate (the last ones)."""
+PACE_SHARE = 0.95
+"""Share of the time left the pace lets the later levels fill: the plan kept 1 - PLAN_SHARE
+spare for noise, which the pace spends (the probe's step is the fastest of three, the run's
+is an average); the rest covers the final checkpoint."""
 
 
 class Pace:
@@ -145,11 +149,15 @@ class Pace:
     The plan's step times come from a few probe steps; a shared machine can run several
     times slower later (measured here: 1.7 s a step against the probe's 0.16 s while other
     work ran). At each step past a level's fade-in, the rate of its last PACE_WINDOW steps,
-    scaled by the probe's ratios between levels, projects the time the rest of this level
-    and the later levels need. When that exceeds what is left of the budget (PLAN_SHARE of
-    it, as planned), the level ends here: the step jumps to the next level's first step.
-    Batches are a pure function of the step, so skipping steps changes nothing else; the
-    final level is never cut (the budget stops it).
+    scaled by the probe's ratios between levels, projects the later levels' times. The
+    target is the highest later level whose block can still fade in (the levels between
+    given just their fade and a measured rate); none: this level trains on until the budget
+    ends, the best the run can reach (`out_of_reach` says so). Else, once the levels up to
+    the target need what is left of the budget for their planned steps (PACE_SHARE of it),
+    this level ends: the step jumps to the next level's first step. So a level is shortened
+    only as much as the later ones need, only when the run is behind, and never for a level
+    it cannot reach. Batches are a pure function of the step, so skipping steps changes
+    nothing else; the final level is never cut (the budget stops it).
     """
 
     def __init__(
@@ -157,6 +165,8 @@ class Pace:
     ) -> None:
         self.config, self.deadline = config, deadline
         self.probe = [float(seconds_per_step[r]) for r in config.levels()]
+        self.out_of_reach = False
+        """Whether the last look found no later level reachable at the current rate."""
         self._level, self._seen = -1, 0
         self._recent: deque[tuple[int, float]] = deque(maxlen=PACE_WINDOW + 1)
 
@@ -173,13 +183,21 @@ class Pace:
         if self._seen > PACE_WARMUP:
             self._recent.append((step, now))
         local = step - level * per_level
-        fade = 0 if level == 0 else fade_steps(self.config)
-        if len(self._recent) <= PACE_WINDOW or local <= fade:
+        fade = fade_steps(self.config)
+        if len(self._recent) <= PACE_WINDOW or local <= (0 if level == 0 else fade):
             return step
         (first, began), (last, latest) = self._recent[0], self._recent[-1]
-        rate = (latest - began) / (last - first)
-        scale = rate / self.probe[level]
-        needed = (per_level - local) * rate + scale * per_level * sum(self.probe[level + 1 :])
-        if needed <= PLAN_SHARE * (self.deadline - now):
+        scale = (latest - began) / (last - first) / self.probe[level]
+        left = PACE_SHARE * (self.deadline - now)
+        # Fewest steps that pass a level: its fade-in, and the pace's own measuring.
+        passing = max(fade + 1, PACE_WARMUP + PACE_WINDOW + 1)
+        reach, target = 0.0, level
+        for j in range(level + 1, len(self.probe)):
+            if reach + scale * (fade + 1) * self.probe[j] > left:
+                break
+            target, reach = j, reach + scale * passing * self.probe[j]
+        self.out_of_reach = target == level
+        later = scale * per_level * sum(self.probe[level + 1 : target + 1])
+        if self.out_of_reach or later < left:
             return step
         return (level + 1) * per_level

@@ -338,6 +338,7 @@ def train(
         rates = {int(r): float(s) for r, s in planned["seconds_per_step"].items()}
         pace = Pace(config, rates, deadline)
     trained = 0  # optimizer steps in this call (a slow run's pace skips some steps)
+    reported_reach = False
     try:
         while step < total:
             now = time.monotonic()
@@ -345,6 +346,14 @@ def train(
                 stopped = "time budget"
                 break
             ahead = pace.next_step(step, now) if pace is not None else step
+            if pace is not None and pace.out_of_reach and not reported_reach:
+                reported_reach = True
+                tqdm.write(
+                    f"rigspace train: slower than planned: at this rate the budget reaches no "
+                    f"level after {schedule(config, step).resolution}, which trains on until "
+                    "it ends",
+                    file=sys.stderr,
+                )
             if ahead != step:
                 level = schedule(config, step).resolution
                 tqdm.write(

@@ -85,16 +85,25 @@ def test_a_run_slower_than_planned_ends_a_level_early_to_reach_the_final_one():
     on_pace = Pace(config, probe, deadline=20.0)
     times = [min(s, PACE_WARMUP) + 0.01 * max(0, s - PACE_WARMUP) for s in range(100)]
     assert all(on_pace.next_step(s, t) == s for s, t in enumerate(times))
-    # Ten times slower: level 16 ends once the rate is measured, as 32 and 64 would not fit.
-    slow = Pace(config, probe, deadline=20.0)
+    # Ten times slower: level 16 ends once the rate is measured (32 and 64 need 60 s).
+    slow = Pace(config, probe, deadline=60.0)
     measured = PACE_WARMUP + PACE_WINDOW
     assert all(slow.next_step(s, 0.1 * s) == s for s in range(measured))
     assert slow.next_step(measured, 0.1 * measured) == 100
-    # Level 32 is not cut before its block has faded in (steps 100-150).
-    assert all(slow.next_step(s, 5.0 + 0.2 * (s - 100)) == s for s in range(100, 151))
-    assert slow.next_step(151, 5.0 + 0.2 * 51) == 200
+    # Level 32 is not cut before its block has faded in (steps 100-150); then 64's 40 s
+    # are more than the 39.7 s left, though its fade-in (20 s) still fits.
+    assert all(slow.next_step(s, 8.0 + 0.2 * (s - 100)) == s for s in range(100, 151))
+    assert slow.next_step(151, 8.0 + 0.2 * 51) == 200 and not slow.out_of_reach
     # The final level is never cut: the budget stops it.
-    assert all(slow.next_step(s, 15.0 + s) == s for s in range(200, 300))
+    assert all(slow.next_step(s, 20.0 + s) == s for s in range(200, 300))
+    # Twice slower: level 16 goes on until the time left is what 32 and 64 need (12 s).
+    behind = Pace(config, probe, deadline=13.5)
+    cut = next(s for s in range(100) if behind.next_step(s, 0.02 * s) != s)
+    assert 40 <= cut <= 50 and behind.next_step(cut + 1, 0.02 * (cut + 1)) == 100
+    # A hundred times slower: no later level can fade in, so 16 trains on, said once.
+    stuck = Pace(config, probe, deadline=100.0)
+    assert all(stuck.next_step(s, 1.0 * s) == s for s in range(60))
+    assert stuck.out_of_reach
 
 
 def test_a_time_budget_plans_the_schedule_before_training(tmp_path, tiny_dataset, capsys):
