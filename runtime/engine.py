@@ -37,6 +37,7 @@ from rigspace.runtime.lights import (
     light_prims,
     lights_at,
 )
+from rigspace.runtime.live.engine import LiveInput
 from rigspace.runtime.scene import SceneGeometry
 from rigspace.runtime.shading import pixel_positions, shade, shade_pixels
 from rigspace.runtime.shadows import (
@@ -122,6 +123,8 @@ class Engine:
         aovs: tuple[str, ...] = AOVS,
         prim_samples: int = 2,
         max_level: int | None = None,
+        live: bool = True,
+        sources: dict[str, str] | None = None,
     ) -> None:
         """`reference=True` draws each character's real skinned mesh with the renderer instead
         of its network (the ground truth that `rigspace render --reference` compares with).
@@ -129,7 +132,10 @@ class Engine:
         with no lights on it and nothing overlapping its billboard runs its albedo branch only.
         `prim_samples` per axis anti-alias the scene prims (2: 2x2 per pixel; 1: none, about
         twice as fast on a software renderer). `max_level` caps the level of detail (the
-        network's output resolution) to trade detail for time."""
+        network's output resolution) to trade detail for time. `live`: enabled
+        RigspaceLiveBindingAPI bindings drive their characters (runtime/live; their sources
+        open at the first frame, or `open_live()`; `close()` or `with` stops them);
+        `sources` maps binding names to URLs that replace theirs and enable them."""
         unknown = sorted(set(aovs) - set(AOVS))
         if unknown:
             raise SceneError(
@@ -161,6 +167,8 @@ class Engine:
                     models[folder].preload()  # a damaged bundle fails here, not mid-sequence
             self.characters.append(NeuralCharacter(prim, models[folder]))
         self.reference = reference
+        self.live = LiveInput(self.stage, self.characters, sources or {}, live and not reference)
+        """The characters' live bindings (runtime/live/engine.py)."""
         self.scene = SceneGeometry(self.stage)
         self.light_prims = light_prims(self.stage)
         spec = choose_renderer(renderer)
@@ -204,7 +212,19 @@ class Engine:
             )
         return cameras[0]
 
+    def __enter__(self) -> Engine:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def open_live(self) -> None:
+        """Start the live bindings' sources now (else at the first frame): a source that
+        cannot open raises one LiveSourceError naming the binding and the fix."""
+        self.live.open()
+
     def close(self) -> None:
+        self.live.close()
         self._listener.Revoke()
         self.renderer.close()
         self.shadows.close()
@@ -335,7 +355,8 @@ class Engine:
                 return v
 
             full = np.ones((camera.height, camera.width), np.float32)
-            full[window] = sparse_visibility(np.logical_or.reduce(areas), evaluate)
+            candidates = np.logical_or.reduce(areas)
+            full[window] = sparse_visibility(candidates, evaluate, prims.depth[window])
             out.append(full)
         return out
 
@@ -383,7 +404,8 @@ class Engine:
                 return v
 
             full = np.ones((camera.height, camera.width), np.float32)
-            full[window] = sparse_visibility(np.logical_or.reduce([m for m, _ in mine]), evaluate)
+            candidates = np.logical_or.reduce([m for m, _ in mine])
+            full[window] = sparse_visibility(candidates, evaluate, prims.depth[window])
             hidden.append(full)
         dark = [v < 1.0 for v in hidden if v is not None]
         if not dark:
@@ -458,7 +480,8 @@ class Engine:
         """The frame at stage time `time`. Its arrays may be shared with later frames that
         change nothing (the frame cache): they are read-only; copy them to edit."""
         start = clock.perf_counter()
-        if self._frame is not None and self._frame_at == time:
+        self.live.open()
+        if self._frame is not None and self._frame_at == time and not self.live.active:
             # The same time code and no edit to the stage since (the listener clears _frame):
             # every value read at this time is the same, so is the frame (a viewer redrawing).
             return self._repeat(self._frame[1], start)
@@ -514,7 +537,7 @@ class Engine:
                 continue
             t = clock.perf_counter()
             try:
-                world = character.pose(time)
+                world = character.pose(time, self.live.local(character, time, entry))
             except SceneError as exc:
                 # One bad frame of animation must not end a sequence, nor draw a wrong image:
                 # the character is left out of this frame, loudly.
@@ -571,6 +594,8 @@ class Engine:
         for c in candidates:
             self._describe(c, self._layers[c.character.path].layer)
         report["counts"] = _counts(report["characters"])
+        if self.live.active:
+            report["live"] = self.live.report()
         report["shadows"]["casters"] = len(casters)
         # Nothing changed since the last frame: the same prims, lights, shadows and layers.
         frame_key = (

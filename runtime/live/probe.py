@@ -14,9 +14,10 @@ from rigspace.runtime.live.sources import open_source
 from rigspace.sdk.errors import RigspaceError
 
 
-def probe(url: str, seconds: float, every: float = 1.0, out=sys.stdout) -> dict:
+def probe(url: str, seconds: float, every: float = 1.0, out=None) -> dict:
     """Listen on `url` for `seconds`, printing one JSON line of status every `every` seconds;
     returns the last one: status, counters, sample rate, and the bones seen so far."""
+    out = out or sys.stdout  # looked up per call: a redirected stdout is honoured
     source = open_source(url, "probe")
     buffer = LiveBuffer(source.bones)
     source.start(buffer)
@@ -51,9 +52,9 @@ def probe(url: str, seconds: float, every: float = 1.0, out=sys.stdout) -> dict:
         source.stop()
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m rigspace.runtime.live.probe", description=__doc__
+        prog=prog or "python -m rigspace.runtime.live.probe", description=__doc__
     )
     parser.add_argument("url", help="a live-source URL, such as vmc://127.0.0.1:39539")
     parser.add_argument("--seconds", type=float, default=10.0, help="how long to listen")
@@ -61,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         probe(args.url, args.seconds)
     except RigspaceError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130

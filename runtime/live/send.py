@@ -165,7 +165,7 @@ def serve_bvh(
     return sent
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     """`python -m rigspace.runtime.live.send URL --bvh FILE`: stream a BVH clip to a VMC
     receiver (vmc://HOST:PORT) or serve it to BVH-TCP clients (bvh+tcp://HOST:PORT)."""
     import argparse
@@ -175,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     from rigspace.sdk.errors import RigspaceError
 
     parser = argparse.ArgumentParser(
-        prog="python -m rigspace.runtime.live.send", description=main.__doc__
+        prog=prog or "python -m rigspace.runtime.live.send", description=main.__doc__
     )
     parser.add_argument("url", help="vmc://HOST:PORT or bvh+tcp://HOST:PORT")
     parser.add_argument(
@@ -222,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"served {sent} lines on {args.url}")
         timer.cancel()
     except RigspaceError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130

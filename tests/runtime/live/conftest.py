@@ -24,6 +24,16 @@ def wait_for(condition: Callable[[], bool], timeout: float = 5.0) -> bool:
     return condition()
 
 
+def udp_port_bound(port: int) -> bool:
+    """Whether something listens on UDP 127.0.0.1:port (a receiver thread has started)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return True
+    return False
+
+
 @pytest.fixture
 def free_tcp_port() -> int:
     with socket.socket() as s:

@@ -10,7 +10,7 @@ import threading
 from rigspace.runtime.live import probe, send
 from rigspace.runtime.live.buffer import LiveBuffer
 from rigspace.runtime.live.sources import open_source
-from tests.runtime.live.conftest import CMU_CLIP, wait_for
+from tests.runtime.live.conftest import CMU_CLIP, udp_port_bound, wait_for
 
 
 def free_udp_port() -> int:
@@ -27,6 +27,7 @@ def test_probe_reports_a_vmc_sender():
         target=lambda: result.update(probe.probe(f"vmc://127.0.0.1:{port}", 1.0, 0.25, out))
     )
     listener.start()
+    assert wait_for(lambda: udp_port_bound(port))  # sending before it listens loses the clip
     code = send.main(
         [f"vmc://127.0.0.1:{port}", "--bvh", str(CMU_CLIP), "--speed", "4", "--seconds", "0.8"]
     )

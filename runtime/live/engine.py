@@ -1,0 +1,180 @@
+"""The engine's live input: enabled bindings replace their characters' stage animation per frame."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from pxr import Usd, UsdGeom, Vt
+
+from rigspace.runtime.live.transports import LiveSourceError
+from rigspace.sdk import schema
+
+if TYPE_CHECKING:
+    from rigspace.runtime.character import NeuralCharacter
+    from rigspace.runtime.live.binding import LiveBindingRuntime
+
+
+@dataclass
+class LiveCharacter:
+    """One character's enabled bindings (applied in authored order) and its last live pose."""
+
+    character: NeuralCharacter
+    bindings: list[schema.LiveBinding]
+    runtimes: list[LiveBindingRuntime] = field(default_factory=list)
+    last: dict[str, Any] = field(default_factory=dict)
+    """binding name -> {status, weight, sample_time} of the last frame's pose."""
+    last_local: np.ndarray | None = None
+    """(J, 4, 4) the last frame's merged local transforms."""
+
+
+class LiveInput:
+    """The live bindings of an Engine's characters: opened lazily, merged into each frame's pose.
+
+    Receivers run on their sources' threads and push into each binding's LiveBuffer; a frame
+    takes one consistent pose per binding from `LiveBuffer.pose` (a constant-time copy under
+    the buffer's lock), so a frame never waits on the network. The merged local transforms
+    go through the same UsdSkel concatenation as the stage's, so a source that holds still
+    gives the same joint transforms, and the engine's pose comparison reuses the layer.
+    """
+
+    def __init__(
+        self,
+        stage: Usd.Stage,
+        characters: Sequence[NeuralCharacter],
+        sources: dict[str, str],
+        enabled: bool,
+    ) -> None:
+        self.meters_per_unit = UsdGeom.GetStageMetersPerUnit(stage)
+        self.characters: dict[str, LiveCharacter] = {}
+        self._lock = threading.Lock()  # open/close may race with a recorder thread's reads
+        self._opened = False
+        named: set[str] = set()
+        for character in characters:
+            chosen = []
+            for binding in schema.read_live_bindings(character.prim):
+                named.add(binding.name)
+                if binding.name in sources:
+                    # --source NAME=URL: that URL, enabled whatever the stage says.
+                    fields = {**binding.__dict__, "url": sources[binding.name], "enabled": True}
+                    binding = schema.LiveBinding(**fields)
+                if binding.enabled and enabled:
+                    chosen.append(binding)
+            if chosen:
+                self.characters[character.path] = LiveCharacter(character, chosen)
+        unknown = sorted(set(sources) - named)
+        if unknown:
+            raise LiveSourceError(
+                f"--source {', '.join(unknown)}: the stage's neural characters have no live "
+                f"binding of that name (they have: {', '.join(sorted(named)) or 'none'}).",
+                "name a RigspaceLiveBindingAPI instance of the stage, as in --source suit=URL.",
+            )
+
+    @property
+    def active(self) -> bool:
+        """Whether any character is driven by a live binding."""
+        return bool(self.characters)
+
+    def open(self) -> None:
+        """Build and start every binding's source (idempotent). A source that cannot start
+        stops the ones already started and raises one error naming the binding and the fix."""
+        if self._opened or not self.characters:
+            return
+        from rigspace.runtime.live.binding import open_binding
+
+        with self._lock:
+            started: list[LiveBindingRuntime] = []
+            try:
+                for live in self.characters.values():
+                    skeleton = live.character.rig.skeleton.GetPrim()
+                    for binding in live.bindings:
+                        where = f"Live binding {binding.name!r} of {live.character.path}"
+                        try:
+                            runtime = open_binding(binding, skeleton, self.meters_per_unit)
+                            runtime.start()
+                        except LiveSourceError as exc:
+                            raise LiveSourceError(
+                                f"{where}: {exc.what}",
+                                f"{exc.fix} Or give the binding another source (--source "
+                                f"{binding.name}=URL), or author rigspace:live:{binding.name}:"
+                                "enabled = false to render the stage animation.",
+                            ) from None
+                        started.append(runtime)
+                        live.runtimes.append(runtime)
+            except BaseException:
+                for runtime in started:
+                    runtime.stop()
+                for live in self.characters.values():
+                    live.runtimes.clear()
+                raise
+            self._opened = True
+
+    def close(self) -> None:
+        """Stop every started source (their sockets, ports and threads are released)."""
+        with self._lock:
+            for live in self.characters.values():
+                for runtime in live.runtimes:
+                    runtime.stop()
+                live.runtimes.clear()
+            self._opened = False
+
+    def merged(self, character: NeuralCharacter, time_code: float, now: float | None = None):
+        """(J, 4, 4) the character's local transforms at `time_code` with its bindings' poses
+        merged in (None without live bindings), and each binding's pose."""
+        live = self.characters.get(character.path)
+        if live is None or not live.runtimes:
+            return None, []
+        now = time.monotonic() if now is None else now
+        local = np.asarray(character.rig.local_transforms(time_code), dtype=np.float64)
+        poses = []
+        for runtime in live.runtimes:
+            local, pose = runtime.apply(local, now)
+            poses.append((runtime, pose))
+        return local, poses
+
+    def local(
+        self, character: NeuralCharacter, time_code: float, entry: dict[str, Any]
+    ) -> Vt.Matrix4dArray | None:
+        """The frame's local transforms for `character` (None: the stage animation's), noting
+        each binding's status and weight in the character's report entry."""
+        local, poses = self.merged(character, time_code)
+        if local is None:
+            return None
+        live = self.characters[character.path]
+        entry["live"] = []
+        for runtime, pose in poses:
+            state = {"status": pose.status, "weight": round(pose.weight, 4)}
+            live.last[runtime.name] = {**state, "sample_time": pose.sample_time}
+            entry["live"].append({"binding": runtime.name, **state})
+        live.last_local = local
+        return Vt.Matrix4dArray.FromNumpy(local)
+
+    def sample_times(self) -> dict[str, float]:
+        """binding name -> local monotonic time of the newest sample in the last frame's pose."""
+        return {
+            name: state["sample_time"]
+            for live in self.characters.values()
+            for name, state in live.last.items()
+        }
+
+    def report(self, now: float | None = None) -> list[dict[str, Any]]:
+        """Every binding's status, blend weight and counters, for the frame's report."""
+        now = time.monotonic() if now is None else now
+        out = []
+        for path, live in self.characters.items():
+            for runtime in live.runtimes:
+                last = live.last.get(runtime.name, {})
+                out.append(
+                    {
+                        "character": path,
+                        "binding": runtime.name,
+                        "url": runtime.source.url,
+                        "weight": last.get("weight"),
+                        **runtime.counters(now).as_dict(),
+                    }
+                )
+        return out
