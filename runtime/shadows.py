@@ -36,7 +36,7 @@ import numpy as np
 from rigspace.runtime.billboard import cross
 from rigspace.runtime.lights import DISTANT, POINT, Light
 from rigspace.sdk.camera import Camera
-from rigspace.sdk.render import DrawMesh, Renderer, RendererSpec, RenderSettings
+from rigspace.sdk.render import DrawMesh, Renderer, RendererSpec, RenderSettings, render_depth
 
 SHADOW_MAP_SIZE = 512
 """Texels per side of the still prims' map (drawn once; 6 scene units a texel over the
@@ -60,6 +60,15 @@ DEPTH_BIAS_TEXELS = 1.5
 """And count as lit up to this many texels behind the map's depth."""
 MIN_VISIBILITY = 1e-6
 """Capsule occlusions are summed as log(visibility): fully hidden stays finite."""
+SPARSE_STEP = 4
+"""sparse_visibility evaluates every SPARSE_STEP-th pixel along both axes (a power of two),
+blends or evaluates the pixels between."""
+SMOOTH_SPREAD = 0.1
+"""A cell whose four samples' shadow factors differ by more than this is evaluated in full
+(a shadow's edge): blending across it would blur the edge or miss a thin shadow."""
+SURFACE_TOLERANCE = 0.01
+"""A pixel whose inverse depth is off its cell's blend by more than this fraction lies on
+another surface (a silhouette, a crease) and is evaluated exactly."""
 
 
 @dataclass
@@ -238,7 +247,7 @@ class PrimShadows:
     def _render(self, meshes: list[DrawMesh], camera: Camera) -> np.ndarray:
         if self._renderer is None:
             self._renderer = self._spec.create(RenderSettings(1))
-        return self._renderer.render(meshes, camera).depth
+        return render_depth(self._renderer, meshes, camera)  # its depth-only pass
 
     def close(self) -> None:
         if self._renderer is not None:
@@ -452,37 +461,37 @@ def _candidate_pairs(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(receiver, capsule) pairs whose 2-D distance may lie within the capsule's shadow: a
     receiver's reach is the capsule's radius plus its own penumbra margin (times the tangent
-    stretch). The 2-D bounds of all capsules, then of each limb (`parts`), cull most
-    receivers with a few operations each; the rest meet each of the limb's 2-D segments."""
+    stretch). The 2-D bounds of all capsules cull most receivers with a few operations each;
+    the rest are tested against each capsule's 2-D bounds at once (receivers x capsules, a
+    block of float32 comparisons), and the pairs left meet the capsule's 2-D segment. (`parts`
+    is kept for the callers' signature: one block over every capsule measured faster than a
+    loop over the limbs.)"""
+    del parts
     factor = stretch(margin)  # per receiver; NaN where too far off the axis to bound
     unbounded = np.isnan(factor) & np.isfinite(u)
-    reach = (float(radius.max()) + margin) * factor
-    lo, hi = np.minimum(a2, b2), np.maximum(a2, b2)
-
-    def within(index: np.ndarray, part: np.ndarray) -> np.ndarray:
-        low, high, r = lo[part].min(axis=0), hi[part].max(axis=0), reach[index]
-        pu, pv = u[index], v[index]
-        return index[
-            (pu >= low[0] - r) & (pu <= high[0] + r) & (pv >= low[1] - r) & (pv <= high[1] + r)
-        ]
-
-    near = within(np.arange(len(u)), np.arange(len(radius)))
-    seg = (b2 - a2).astype(np.float32)
-    length2 = np.maximum(seg[:, 0] * seg[:, 0] + seg[:, 1] * seg[:, 1], 1e-18)
+    lo, hi = np.minimum(a2, b2).astype(np.float32), np.maximum(a2, b2).astype(np.float32)
+    reach = (np.float32(radius.max()) + margin) * factor
+    near = np.flatnonzero(
+        (u >= lo[:, 0].min() - reach) & (u <= hi[:, 0].max() + reach)
+        & (v >= lo[:, 1].min() - reach) & (v <= hi[:, 1].max() + reach)
+    )  # fmt: skip
     receivers, capsules = [], []
-    for part in parts:
-        mine = within(near, part)
-        if mine.size == 0:
-            continue
-        du = u[mine, None] - a2[None, part, 0].astype(np.float32)
-        dv = v[mine, None] - a2[None, part, 1].astype(np.float32)
-        t = np.clip((du * seg[part, 0] + dv * seg[part, 1]) / length2[part], 0.0, 1.0)
-        du -= t * seg[part, 0]
-        dv -= t * seg[part, 1]
-        limit = (radius[None, part] + margin[mine, None]) * factor[mine, None]
-        hit, k = np.nonzero(du * du + dv * dv <= limit * limit)
-        receivers.append(mine[hit])
-        capsules.append(part[k])
+    if near.size:
+        pu, pv, f = u[near, None], v[near, None], factor[near, None]
+        limit = (radius.astype(np.float32)[None] + margin[near, None]) * f  # (n, K)
+        box = (pu >= lo[None, :, 0] - limit) & (pu <= hi[None, :, 0] + limit)
+        box &= (pv >= lo[None, :, 1] - limit) & (pv <= hi[None, :, 1] + limit)
+        hit, k = np.nonzero(box)
+        seg = (b2 - a2).astype(np.float32)
+        length2 = np.maximum(seg[:, 0] * seg[:, 0] + seg[:, 1] * seg[:, 1], 1e-18)
+        du = u[near[hit]] - a2[k, 0].astype(np.float32)
+        dv = v[near[hit]] - a2[k, 1].astype(np.float32)
+        t = np.clip((du * seg[k, 0] + dv * seg[k, 1]) / length2[k], 0.0, 1.0)
+        du -= t * seg[k, 0]
+        dv -= t * seg[k, 1]
+        keep = du * du + dv * dv <= limit[hit, k] ** 2
+        receivers.append(near[hit[keep]])
+        capsules.append(k[keep])
     if unbounded.any():  # every pair of the receivers seen too far off the light's axis
         members = np.flatnonzero(unbounded)
         receivers.append(np.repeat(members, len(radius)))
@@ -609,32 +618,91 @@ def region_mask(regions: Sequence[Region], camera: Camera, window=None) -> np.nd
     return mask
 
 
-def sparse_visibility(candidates: np.ndarray, evaluate) -> np.ndarray:
+def _around(cells: np.ndarray) -> np.ndarray:
+    """Cells and their 8 neighbours (a boolean dilation by one cell)."""
+    out = cells.copy()
+    out[1:] |= cells[:-1]
+    out[:-1] |= cells[1:]
+    wide = out.copy()
+    wide[:, 1:] |= out[:, :-1]
+    wide[:, :-1] |= out[:, 1:]
+    return wide
+
+
+def sparse_visibility(
+    candidates: np.ndarray, evaluate, depth: np.ndarray | None = None, step: int = SPARSE_STEP
+) -> np.ndarray:
     """(H, W) shadow factors of the `candidates` pixels (1 elsewhere), with `evaluate(flat)`
-    giving them for flat pixel indices: first every other pixel along both axes, then all
-    pixels of the 2x2 blocks at or beside a sample that is shadowed (or missing). Shadows
-    here are soft (MIN_SOFTNESS, a shadow map's bilinear taps), so a lit block amid lit
-    blocks stays lit: about a quarter of the work outside the shadows themselves."""
+    giving them for flat pixel indices. Shadows here are soft (MIN_SOFTNESS, a shadow map's
+    bilinear taps), so most pixels are blended rather than evaluated: every `step`th pixel
+    (a power of two) along both axes is evaluated, then each grid of half the spacing is
+    filled in from the one above, down to every pixel. A new pixel (the middle of a cell's
+    edge or of the cell) is the blend of its cell's samples where that cell and its
+    neighbours are smooth (their values within SMOOTH_SPREAD: no shadow edge, no thin
+    shadow in between) and where it lies on their surface; every other candidate is
+    evaluated exactly. With the pixels' `depth` the surface test is that the inverse depth
+    (affine in screen space across a plane) is within SURFACE_TOLERANCE of the samples'
+    blend (no silhouette, no crease), and a sample that is no candidate counts as lit (it
+    lies where no shadow reaches); without it, all four samples must be candidates."""
     h, w = candidates.shape
-    out = np.ones(h * w, np.float32)
-    coarse = np.zeros_like(candidates)
-    coarse[::2, ::2] = candidates[::2, ::2]
-    first = np.flatnonzero(coarse)
-    if first.size:
-        out[first] = evaluate(first)
-    padded = np.zeros((h + h % 2, w + w % 2), bool)
-    padded[:h, :w] = candidates
-    blocks = padded.reshape(padded.shape[0] // 2, 2, padded.shape[1] // 2, 2).any(axis=(1, 3))
-    sample = out.reshape(h, w)[::2, ::2]
-    dark = blocks & ((sample < 1.0) | ~candidates[::2, ::2])
-    near = dark.copy()  # and the blocks beside them: a penumbra's edge crosses blocks
-    near[1:] |= dark[:-1]
-    near[:-1] |= dark[1:]
-    wide = near.copy()
-    wide[:, 1:] |= near[:, :-1]
-    wide[:, :-1] |= near[:, 1:]
-    need = np.repeat(np.repeat(wide, 2, axis=0), 2, axis=1)[:h, :w] & candidates & ~coarse
-    second = np.flatnonzero(need)
-    if second.size:
-        out[second] = evaluate(second)
-    return out.reshape(h, w)
+    if h < 2 or w < 2:  # no cells to blend in
+        out = np.ones(h * w, np.float32)
+        exact = np.flatnonzero(candidates)
+        if exact.size:
+            out[exact] = evaluate(exact)
+        return out.reshape(h, w)
+    # Padded to whole cells; the padding is no candidate (its cells are evaluated exactly).
+    size_y, size_x = (-(-(n - 1) // step) * step + 1 for n in (h, w))
+    wanted = np.zeros((size_y, size_x), bool)
+    wanted[:h, :w] = candidates
+    out = np.ones((size_y, size_x), np.float32)
+    inverse = None
+    if depth is not None:  # 1 / depth is affine in screen space across a plane; empty: 0
+        inverse = np.zeros((size_y, size_x), np.float32)
+        inverse[:h, :w] = 1.0 / np.maximum(depth, 1e-30)
+    flat = np.arange(size_y)[:, None] * w + np.arange(size_x)[None, :]
+
+    def fill(pixels: np.ndarray) -> None:
+        if pixels.size:
+            rows, cols = np.divmod(pixels, w)
+            out[rows, cols] = evaluate(pixels)
+
+    grid = (slice(None, None, step),) * 2
+    fill(flat[grid][wanted[grid]])
+    spacing = step
+    while spacing > 1:
+        half = spacing // 2
+        on, mid = slice(None, None, spacing), slice(half, None, spacing)
+        c, valid = out[on, on], wanted[on, on]
+        corners = (c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:])
+        spread = np.maximum.reduce(corners) - np.minimum.reduce(corners)
+        rough = spread > SMOOTH_SPREAD
+        if inverse is None:  # nothing tells a non-candidate's surface: evaluate beside one
+            rough |= ~(valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:])
+        smooth = ~_around(rough)
+        # The middles of horizontal edges, of vertical edges, and of cells; an edge is
+        # smooth where a cell beside it is (the dilation has looked at the other).
+        parts = [
+            ((on, mid), (c[:, :-1] + c[:, 1:]) * 0.5, np.concatenate([smooth, smooth[-1:]])),
+            ((mid, on), (c[:-1] + c[1:]) * 0.5, np.concatenate([smooth, smooth[:, -1:]], 1)),
+            ((mid, mid), (corners[0] + corners[1] + corners[2] + corners[3]) * 0.25, smooth),
+        ]
+        exact = []
+        for at, blended, ok in parts:
+            new = wanted[at]
+            blend = new & ok
+            if inverse is not None:
+                i = inverse[on, on]
+                if at == (on, mid):
+                    expected = (i[:, :-1] + i[:, 1:]) * 0.5
+                elif at == (mid, on):
+                    expected = (i[:-1] + i[1:]) * 0.5
+                else:
+                    expected = (i[:-1, :-1] + i[:-1, 1:] + i[1:, :-1] + i[1:, 1:]) * 0.25
+                mine = inverse[at]
+                blend &= np.abs(expected - mine) <= np.float32(SURFACE_TOLERANCE) * mine
+            out[at][blend] = blended[blend]
+            exact.append(flat[at][new & ~blend])
+        fill(np.concatenate(exact))
+        spacing = half
+    return out[:h, :w]

@@ -118,6 +118,29 @@ def mesh_arrays(mesh: DrawMesh) -> MeshArrays:
     return MeshArrays(points, tris, normals, uv, texture, color)
 
 
+def depth_arrays(mesh: DrawMesh) -> tuple[np.ndarray, np.ndarray]:
+    """A DrawMesh's points (N,3) float32 and triangles (T,3) int32, checked as mesh_arrays
+    checks them: all a depth-only pass (render_depth) reads."""
+    points = _array(mesh, "points", mesh.points, np.float32, (None, 3))
+    tris = _array(mesh, "triangles", mesh.triangles, np.int32, (None, 3))
+    if len(tris) and (tris.min() < 0 or tris.max() >= len(points)):
+        raise ValueError(
+            f"DrawMesh {mesh.name or '(unnamed)'}: triangle indices must lie in "
+            f"[0, {len(points)}), got [{tris.min()}, {tris.max()}]."
+        )
+    return points, tris
+
+
+def render_depth(renderer: Renderer, meshes: Sequence[DrawMesh], camera: Camera) -> np.ndarray:
+    """(H, W) float32 depth of `meshes` at one sample per pixel: the renderer's depth-only
+    pass (`render_depth`, as gl and embree have) where it has one, else render()'s depth
+    (which a renderer made with samples_per_axis 1 samples identically)."""
+    own = getattr(renderer, "render_depth", None)
+    if own is not None:
+        return np.asarray(own(meshes, camera), np.float32)
+    return renderer.render(meshes, camera).depth
+
+
 @dataclass
 class Maps:
     """The maps of one rendered frame (conventions at the top of this module)."""
@@ -217,7 +240,9 @@ class Renderer(Protocol):
     """A live renderer; keep it for many frames (it caches GPU state), then close() it.
 
     A renderer may also keep `last_timings`, a dict of seconds per phase of its last
-    render (gl: draw, readback), which benchmarks report.
+    render (gl: draw, readback), which benchmarks report, and a depth-only pass
+    `render_depth(meshes, camera) -> (H, W) float32` (one sample per pixel centre; shadow
+    maps draw through it, see the module function render_depth).
     """
 
     name: str
@@ -294,9 +319,11 @@ __all__ = [
     "Renderer",
     "RendererSpec",
     "choose_renderer",
+    "depth_arrays",
     "empty_maps",
     "maps_from_samples",
     "mesh_arrays",
+    "render_depth",
     "renderer_plugins",
     "vertex_normals",
 ]

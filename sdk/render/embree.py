@@ -13,6 +13,7 @@ from rigspace.sdk.render import (
     MeshArrays,
     RendererSpec,
     RenderSettings,
+    depth_arrays,
     empty_maps,
     maps_from_samples,
     mesh_arrays,
@@ -112,27 +113,50 @@ class EmbreeRenderer:
         assert self._ray_dirs is not None
         return self._ray_dirs
 
-    def render(self, meshes: Sequence[DrawMesh], camera: Camera) -> Maps:
-        s = self.settings.samples_per_axis
-        prepared = [a for a in (mesh_arrays(m) for m in meshes) if len(a.triangles)]
-        h, w = camera.height, camera.width
-        if not prepared:
-            return empty_maps(h, w)
-        dirs_cam = self._camera_dirs(camera)
+    def _cast(self, arrays: Sequence[tuple[np.ndarray, np.ndarray]], camera: Camera, s: int):
+        """One ray per sub-sample through `arrays` (points, triangles): embree's hits, and per
+        ray the near plane's distance and the -Z distance per unit of ray length."""
+        if s == self.settings.samples_per_axis:
+            dirs_cam = self._camera_dirs(camera)
+        else:  # render_depth's one sample per pixel
+            dirs_cam = Camera(
+                np.eye(4), camera.width, camera.height, camera.focal_length,
+                camera.horizontal_aperture, camera.vertical_aperture,
+            ).rays(s)[1]  # fmt: skip
         cos = -dirs_cam[:, 2]  # distance along -Z per unit of ray length
         dirs = dirs_cam @ camera.camera_to_world[:3, :3].T
         # Start rays on the near plane and stop them at the far plane: GL's clipping.
         t_near = camera.near / cos
         origins = camera.position + dirs * t_near[:, None]
         scene = self._rtcs.EmbreeScene()
-        for arrays in prepared:  # embree numbers them 0, 1, ... in this order (geomID)
-            self._triangle_mesh(scene, arrays.points, arrays.triangles)
+        for points, triangles in arrays:  # embree numbers them 0, 1, ... (geomID)
+            self._triangle_mesh(scene, points, triangles)
         hits = scene.run(
             origins.astype(np.float32),
             dirs.astype(np.float32),
             dists=(camera.far / cos - t_near).astype(np.float32),
             output=1,
         )
+        return hits, t_near, cos
+
+    def render_depth(self, meshes: Sequence[DrawMesh], camera: Camera) -> np.ndarray:
+        """(H, W) float32 depth along -Z, +inf where empty, one ray per pixel centre: the
+        depth map of render() at one sample, without shading (shadow maps)."""
+        arrays = [a for a in (depth_arrays(m) for m in meshes) if len(a[1])]
+        if not arrays:
+            return np.full((camera.height, camera.width), np.inf, np.float32)
+        hits, t_near, cos = self._cast(arrays, camera, 1)
+        depth = (hits["tfar"].astype(np.float64) + t_near) * cos
+        depth = np.where(hits["geomID"] >= 0, depth, np.inf).astype(np.float32)
+        return depth.reshape(camera.height, camera.width)
+
+    def render(self, meshes: Sequence[DrawMesh], camera: Camera) -> Maps:
+        s = self.settings.samples_per_axis
+        prepared = [a for a in (mesh_arrays(m) for m in meshes) if len(a.triangles)]
+        h, w = camera.height, camera.width
+        if not prepared:
+            return empty_maps(h, w)
+        hits, t_near, cos = self._cast([(a.points, a.triangles) for a in prepared], camera, s)
         geom = hits["geomID"]
         hit = geom >= 0
         count = len(geom)

@@ -17,6 +17,7 @@ from rigspace.sdk.render import (
     MeshArrays,
     RendererSpec,
     RenderSettings,
+    depth_arrays,
     empty_maps,
     maps_from_samples,
     mesh_arrays,
@@ -64,6 +65,32 @@ void main() {
     out_geometry = vec4(len > 0.0 ? v_normal / len : vec3(0.0), v_depth);
 }
 """
+
+DEPTH_VERTEX_SHADER = """
+#version 330 core
+uniform mat4 world_to_camera;
+uniform mat4 projection;
+in vec3 in_position;
+out float v_depth;
+void main() {
+    vec4 p = world_to_camera * vec4(in_position, 1.0);
+    v_depth = -p.z;
+    gl_Position = projection * p;
+}
+"""
+
+DEPTH_FRAGMENT_SHADER = """
+#version 330 core
+in float v_depth;
+out float out_depth;  // distance along -Z; the target is cleared to 0 where nothing is
+void main() {
+    out_depth = v_depth;
+}
+"""
+
+DEPTH_SLOT_IDLE = 16
+"""render_depth keeps a mesh's buffers until this many depth calls have not drawn it: the
+shadow maps draw one moving prim per call, so each call's meshes differ from the last's."""
 
 INSTALL_HINT = (
     "install Mesa's EGL and software rasteriser (Debian/Ubuntu: apt install libegl1 "
@@ -155,7 +182,16 @@ class GLRenderer:
                 vertex_shader=VERTEX_SHADER, fragment_shader=FRAGMENT_SHADER
             )
             self._program["albedo_texture"].value = 0
+            self._depth_program = self._ctx.program(
+                vertex_shader=DEPTH_VERTEX_SHADER, fragment_shader=DEPTH_FRAGMENT_SHADER
+            )
         self._slots: dict[tuple, _Slot] = {}
+        self._depth_slots: dict[tuple, tuple[Any, Any, Any, tuple, int]] = {}
+        """render_depth's: key -> (position buffer, index buffer, vao, source refs, last call)."""
+        self._depth_calls = 0
+        self._depth_fbo: Any = None
+        self._depth_targets: list[Any] = []
+        self._depth_size: tuple[int, int] = (0, 0)
         self._fbo: Any = None
         self._targets: list[Any] = []
         self._fine_size: tuple[int, int] = (0, 0)
@@ -290,6 +326,71 @@ class GLRenderer:
         self.last_timings = {"draw": drawn - started, "readback": time.perf_counter() - drawn}
         return maps
 
+    def render_depth(self, meshes: Sequence[DrawMesh], camera: Camera) -> np.ndarray:
+        """(H, W) float32 depth along -Z, +inf where empty, one sample per pixel centre: the
+        depth map of render() at one sample, drawn without colour or normals (shadow maps)."""
+        if self._ctx is None:
+            raise RuntimeError("gl renderer: render_depth() after close().")
+        started = time.perf_counter()
+        arrays = [depth_arrays(m) for m in meshes]
+        arrays = [(m, p, t) for m, (p, t) in zip(meshes, arrays, strict=True) if len(t)]
+        width, height = camera.width, camera.height
+        if not arrays:
+            return np.full((height, width), np.inf, np.float32)
+        self._depth_calls += 1
+        with self._ctx:
+            if self._depth_size != (width, height):
+                self._release_depth_framebuffer()
+                self._depth_targets = [
+                    self._ctx.renderbuffer((width, height), 1, dtype="f4"),
+                    self._ctx.depth_renderbuffer((width, height)),
+                ]
+                self._depth_fbo = self._ctx.framebuffer(*self._depth_targets)
+                self._depth_size = (width, height)
+            fbo = self._depth_fbo
+            fbo.use()
+            fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+            self._ctx.enable(self._gl.DEPTH_TEST)
+            self._ctx.disable(self._gl.CULL_FACE | self._gl.BLEND)
+            self._depth_program["world_to_camera"].write(_mat(camera.world_to_camera))
+            self._depth_program["projection"].write(_mat(camera.gl_projection))
+            used: set[tuple] = set()
+            for mesh, points, triangles in arrays:
+                key = (id(mesh.triangles), triangles.shape, len(points))
+                while key in used:
+                    key = (*key, "again")
+                used.add(key)
+                slot = self._depth_slots.get(key)
+                if slot is None:
+                    position = self._ctx.buffer(reserve=len(points) * 12, dynamic=True)
+                    index = self._ctx.buffer(triangles.tobytes())
+                    vao = self._ctx.vertex_array(
+                        self._depth_program, [(position, "3f", "in_position")],
+                        index_buffer=index, index_element_size=4,
+                    )  # fmt: skip
+                    slot = (position, index, vao, (mesh.triangles,), 0)
+                self._depth_slots[key] = slot = (*slot[:4], self._depth_calls)
+                slot[0].write(points)
+                slot[2].render(self._gl.TRIANGLES)
+            for key, slot in list(self._depth_slots.items()):
+                if self._depth_calls - slot[4] >= DEPTH_SLOT_IDLE:
+                    for resource in slot[2::-1]:
+                        resource.release()
+                    del self._depth_slots[key]
+            depth = np.empty((height, width), np.float32)
+            fbo.read_into(depth, components=1, attachment=0, dtype="f4")
+        self.last_timings = {"draw": time.perf_counter() - started, "readback": 0.0}
+        # GL's rows run bottom-up; a cleared (0) texel is empty: depths lie beyond near > 0.
+        depth = depth[::-1]
+        return np.where(depth > 0, depth, np.float32(np.inf))
+
+    def _release_depth_framebuffer(self) -> None:
+        if self._depth_fbo is not None:
+            self._depth_fbo.release()
+            for target in self._depth_targets:
+                target.release()
+        self._depth_fbo, self._depth_targets, self._depth_size = None, [], (0, 0)
+
     def close(self) -> None:
         if self._ctx is None:
             return
@@ -297,7 +398,14 @@ class GLRenderer:
             for slot in self._slots.values():
                 slot.release()
             self._slots.clear()
+            for position, index, vao, _, _ in self._depth_slots.values():
+                vao.release()
+                index.release()
+                position.release()
+            self._depth_slots.clear()
+            self._release_depth_framebuffer()
             self._release_framebuffer()
+            self._depth_program.release()
             self._program.release()
         self._ctx.release()
         self._ctx = None
