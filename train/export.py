@@ -21,6 +21,10 @@ frame even when both branches are needed. Graph inputs and outputs:
     depth   float32 (N, 1, R, R)      (depth - joint depth) / depth_scale, valid where mask > 0.5
     normal  float32 (N, 3, R, R)      camera-space unit normals
     mask    float32 (N, 1, R, R)      coverage, [0, 1]
+    alpha   float32 (N, 1, R, R)      coverage from the albedo branch, [0, 1]
+
+Only the levels the run trained are exported, each int8 graph is checked against its fp32
+graph (train.int8check), and the dataset's capsules.json (rigspace.sdk.capsules) is copied.
 """
 
 from __future__ import annotations
@@ -41,7 +45,7 @@ from torch import nn
 
 from rigspace.capture.dataset import read_manifest
 from rigspace.sdk.bundle import FORMAT, FORMAT_VERSION
-from rigspace.sdk.capsules import FILE_NAME as CAPSULES_FILE
+from rigspace.sdk.capsules import FILE_NAME as CAPSULES
 from rigspace.sdk.capsules import read_capsules
 from rigspace.train.budget import trained_levels
 from rigspace.train.config import TrainConfig
@@ -182,8 +186,6 @@ def _sha256(path: Path) -> str:
 
 BUNDLE_GRAPHS = ("trunk*.onnx", "albedo_*.onnx", "geometry_*.onnx")
 """Names of the graphs an export writes: a re-export removes those it no longer writes."""
-CAPSULES = CAPSULES_FILE
-"""Capsule shadow proxies a capture leaves in its dataset folder; copied into the bundle."""
 INT8_CHECK_SAMPLES = 32
 """Held-out rows (training rows when there are none) each int8 graph is checked on."""
 
