@@ -192,12 +192,123 @@ def jitter_error(jitter_ms: float = 10.0, latency_ms: float = 20.0, delay_ms: fl
     return results
 
 
+LIVE_SCENE = REPO / "samples" / "scenes" / "live.usda"
+
+
+class _Performer:
+    """The CMU clip sent over VMC to a free local port on a thread, looping, until closed."""
+
+    def __init__(self) -> None:
+        import threading
+
+        from rigspace.runtime.live.send import humanoid_clip, send_vmc
+
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind(("127.0.0.1", 0))
+            self.url = f"vmc://127.0.0.1:{s.getsockname()[1]}"
+        skeleton, motion, frame_time = read_bvh(CLIP)
+        rotations, roots = skeleton.pose(motion)
+        clip = humanoid_clip(skeleton, rotations, roots, frame_time)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(
+            target=send_vmc, args=(self.url, clip, 1.0, True, self.stop), daemon=True
+        )
+
+    def __enter__(self) -> _Performer:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop.set()
+        self.thread.join()
+
+
+def frame_cost(frames: int = 40, size: int = 256) -> dict:
+    """The same time codes of live.usda rendered from the stage animation and with its suit
+    binding fed over real UDP (both evaluate the network: both poses change every frame),
+    alternating; and the live work alone per frame (pose, retarget, report)."""
+    from rigspace.runtime.engine import Engine
+
+    codes = 100.0 + np.arange(frames)
+    shape = {"width": size, "height": size}
+    with _Performer() as performer:
+        with (
+            Engine(LIVE_SCENE, live=False, **shape) as stage,
+            Engine(LIVE_SCENE, sources={"suit": performer.url}, **shape) as live,
+        ):
+            live.open_live()
+            time.sleep(0.5)  # the first packets arrive
+            seconds: dict[str, list] = {"stage": [], "live": [], "stage_rig": [], "live_rig": []}
+            work = []
+            hero = live.characters[0]
+            for t in codes:
+                for name, engine in (("stage", stage), ("live", live)):
+                    report = engine.render(float(t)).report
+                    seconds[name].append(report["seconds"]["total"])
+                    seconds[f"{name}_rig"].append(report["seconds"]["rig"])
+                start = time.perf_counter()
+                live.live.local(hero, float(t), {})
+                live.live.report()
+                work.append(time.perf_counter() - start)
+            status = live.live.report()[0]["status"]
+
+    def ms(values, q=50):
+        return round(float(np.percentile(values, q)) * 1e3, 3)
+
+    return {
+        "frames": frames,
+        "resolution": f"{size}x{size}",
+        "binding_status": status,
+        "stage_frame_ms_p50": ms(seconds["stage"]),
+        "live_frame_ms_p50": ms(seconds["live"]),
+        "stage_rig_ms_p50": ms(seconds["stage_rig"]),
+        "live_rig_ms_p50": ms(seconds["live_rig"]),
+        "live_work_ms_p50": ms(work),
+        "live_work_ms_p99": ms(work, 99),
+    }
+
+
+def end_to_end(seconds: float = 5.0, size: int = 256) -> dict:
+    """`rigspace live` on live.usda for `seconds` at size x size with the CMU clip arriving over
+    VMC: frames rendered and dropped, and sample received to frame written (PNG), p50/p99."""
+    import contextlib
+    import io
+    import tempfile
+
+    from rigspace.sdk.cli import main as rigspace
+
+    with _Performer() as performer, tempfile.TemporaryDirectory() as out:
+        argv = ["live", str(LIVE_SCENE), "--out", out, "--seconds", str(seconds),
+                "--source", f"suit={performer.url}", "--resolution", f"{size}x{size}"]  # fmt: skip
+        with contextlib.redirect_stdout(io.StringIO()):
+            code = rigspace(argv)
+        if code != 0:
+            raise RuntimeError(f"rigspace live exited {code}")
+        report = json.loads((Path(out) / "report.json").read_text())
+    return {
+        "resolution": f"{size}x{size}",
+        "seconds": report["seconds"],
+        "ticks": report["ticks"],
+        "rendered": report["rendered"],
+        "dropped": report["dropped"],
+        "frame_ms": report["frame_ms"],
+        "received_to_written_ms": report["latency_ms"]["suit"],
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m rigspace.runtime.live.bench", description=__doc__
     )
     parser.add_argument("--seconds", type=float, default=2.0, help="per decode-rate measurement")
     parser.add_argument("--json", type=Path, help="also write the results here")
+    parser.add_argument(
+        "--frames",
+        type=int,
+        default=40,
+        help="frames for the engine's frame cost and seconds of `rigspace live` for the "
+        "end-to-end latency (0: skip both)",
+    )
     args = parser.parse_args(argv)
     results = {
         "decode": decode_rates(args.seconds),
@@ -205,6 +316,9 @@ def main(argv: list[str] | None = None) -> int:
         "retarget": retarget_cost(300),
         "jitter": jitter_error(),
     }
+    if args.frames > 0:
+        results["frame"] = frame_cost(args.frames)
+        results["end_to_end"] = end_to_end(max(2.0, args.frames / 8))
     text = json.dumps(results, indent=2)
     print(text)
     if args.json:

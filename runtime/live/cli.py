@@ -20,7 +20,7 @@ rigspace live SCENE --out DIR [--seconds S] [--record TAKE.usda] [--source NAME=
     Render SCENE in real time at its frame rate with its enabled live bindings (RigspaceLiveBindingAPI)
     driving their characters: a PNG per rendered frame, report.json (per frame: each binding's status
     and counters; overall: frames rendered and dropped, end-to-end latency from sample received to
-    frame written, p50/p99). A frame that is not ready in time is dropped, never queued (the video
+    frame written while the binding is connected, p50/p99). A frame that is not ready in time is dropped, never queued (the video
     repeats the last frame there, so it plays in real time). --record writes the received, retargeted
     poses at the stage's rate as a UsdSkel SkelAnimation (TAKE.usda) and a stage that plays it
     (TAKE.shot.usda: `rigspace render TAKE.shot.usda --out DIR` re-renders the take). Ctrl-C stops
@@ -285,9 +285,10 @@ def _loop(engine, out, video, start_code, fps, t0, ticks, cv2, np, linear_to_srg
                 time.sleep(wait)
     except KeyboardInterrupt:
         stopped = True
-    if video is not None and last_rgb is not None and not stopped:
-        for _ in range(ticks - k):  # the tail the run ended in
-            video.write(last_rgb)
+    if not stopped:  # the ticks the run ended in, while its last frame rendered
+        if video is not None and last_rgb is not None:
+            for _ in range(ticks - k):
+                video.write(last_rgb)
         dropped += ticks - k
     return frames, latencies, dropped, stopped
 

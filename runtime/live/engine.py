@@ -154,11 +154,13 @@ class LiveInput:
         return Vt.Matrix4dArray.FromNumpy(local)
 
     def sample_times(self) -> dict[str, float]:
-        """binding name -> local monotonic time of the newest sample in the last frame's pose."""
+        """binding name -> local monotonic time of the newest sample in the last frame's pose,
+        for the bindings that were connected (a held or lost pose's age is not a latency)."""
         return {
             name: state["sample_time"]
             for live in self.characters.values()
             for name, state in live.last.items()
+            if state["status"] == "connected"
         }
 
     def report(self, now: float | None = None) -> list[dict[str, Any]]:

@@ -197,14 +197,15 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
                 f"{args.url!r} is not a URL this sender speaks.",
                 "send to vmc://HOST:PORT or serve on bvh+tcp://HOST:PORT.",
             )
+        if scheme == "vmc":  # prepared before --seconds starts counting
+            rotations, roots = skeleton.pose(motion)
+            clip = humanoid_clip(skeleton, rotations, roots, frame_time)
         stop = threading.Event()
         timer = threading.Timer(args.seconds or 0.0, stop.set)
         timer.daemon = True
         if args.seconds is not None:
             timer.start()
         if scheme == "vmc":
-            rotations, roots = skeleton.pose(motion)
-            clip = humanoid_clip(skeleton, rotations, roots, frame_time)
             sent = send_vmc(args.url, clip, args.speed, args.loop, stop)
             print(f"sent {sent} frames to {args.url}")
         else:

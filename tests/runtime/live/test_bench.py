@@ -15,3 +15,12 @@ def test_decode_rates_are_measured():
     r = decode_rates(0.05)
     assert set(r) >= {"vmc_bone_messages_per_s", "bvh_frames_per_s", "ximu3_messages_per_s"}
     assert all(v > 0 for v in r.values())
+
+
+def test_frame_cost_compares_live_and_stage_frames():
+    from rigspace.runtime.live.bench import frame_cost
+
+    r = frame_cost(frames=2, size=48)
+    assert r["binding_status"] == "connected"  # the live engine really rendered the stream
+    assert r["live_frame_ms_p50"] > 0 and r["stage_frame_ms_p50"] > 0
+    assert 0 < r["live_work_ms_p50"] <= r["live_work_ms_p99"]

@@ -6,6 +6,7 @@ import io
 import json
 import socket
 import threading
+import time
 
 from rigspace.runtime.live import probe, send
 from rigspace.runtime.live.buffer import LiveBuffer
@@ -69,3 +70,19 @@ def test_tool_errors_are_one_line(capsys):
     assert probe.main(["nope://x", "--seconds", "0.1"]) == 2
     err = capsys.readouterr().err
     assert "no live source handles the scheme 'nope'" in err and "Traceback" not in err
+
+
+def test_send_seconds_count_from_the_first_frame(monkeypatch, capsys):
+    """A slow preparation (the clip re-expressed on HumanBodyBones, slow on a loaded machine)
+    must not eat --seconds: the sender still sends for the time asked."""
+    prepare = send.humanoid_clip
+
+    def slow(*args, **kwargs):
+        time.sleep(0.5)
+        return prepare(*args, **kwargs)
+
+    monkeypatch.setattr(send, "humanoid_clip", slow)
+    url = f"vmc://127.0.0.1:{free_udp_port()}"
+    assert send.main([url, "--bvh", str(CMU_CLIP), "--seconds", "0.3"]) == 0
+    sent = int(capsys.readouterr().out.split()[1])
+    assert sent >= 20  # about 36 at 120 Hz
