@@ -63,9 +63,10 @@ MIN_VISIBILITY = 1e-6
 SPARSE_STEP = 4
 """sparse_visibility evaluates every SPARSE_STEP-th pixel along both axes (a power of two),
 blends or evaluates the pixels between."""
-SMOOTH_SPREAD = 0.1
-"""A cell whose four samples' shadow factors differ by more than this is evaluated in full
-(a shadow's edge): blending across it would blur the edge or miss a thin shadow."""
+BEND_TOLERANCE = 0.1
+"""A cell where the shadow factor's second difference at a sample exceeds this (the factor
+does not change linearly there: a shadow's edge, its end, a thin shadow) is evaluated, and
+so are its neighbours; elsewhere a blend errs by about an eighth of it."""
 SURFACE_TOLERANCE = 0.01
 """A pixel whose inverse depth is off its cell's blend by more than this fraction lies on
 another surface (a silhouette, a crease) and is evaluated exactly."""
@@ -618,6 +619,23 @@ def region_mask(regions: Sequence[Region], camera: Camera, window=None) -> np.nd
     return mask
 
 
+def _bend(values: np.ndarray) -> np.ndarray:
+    """Per sample of a grid, the largest second difference along either axis around it
+    (|a - 2b + c|; at the grid's border, its neighbour's): zero where the values change
+    linearly, which a blend reproduces exactly; a shadow's edge between samples shows."""
+    out = np.zeros_like(values)
+    for axis in (0, 1):
+        if values.shape[axis] < 3:
+            continue
+        v = np.moveaxis(values, axis, 0)
+        bend = np.abs(v[:-2] - 2 * v[1:-1] + v[2:])
+        mine = np.moveaxis(out, axis, 0)
+        np.maximum(mine[1:-1], bend, out=mine[1:-1])
+        np.maximum(mine[:1], bend[:1], out=mine[:1])
+        np.maximum(mine[-1:], bend[-1:], out=mine[-1:])
+    return out
+
+
 def _around(cells: np.ndarray) -> np.ndarray:
     """Cells and their 8 neighbours (a boolean dilation by one cell)."""
     out = cells.copy()
@@ -638,7 +656,7 @@ def sparse_visibility(
     (a power of two) along both axes is evaluated, then each grid of half the spacing is
     filled in from the one above, down to every pixel. A new pixel (the middle of a cell's
     edge or of the cell) is the blend of its cell's samples where that cell and its
-    neighbours are smooth (their values within SMOOTH_SPREAD: no shadow edge, no thin
+    neighbours are smooth (their values change linearly, BEND_TOLERANCE: no shadow edge, no thin
     shadow in between) and where it lies on their surface; every other candidate is
     evaluated exactly. With the pixels' `depth` the surface test is that the inverse depth
     (affine in screen space across a plane) is within SURFACE_TOLERANCE of the samples'
@@ -675,8 +693,8 @@ def sparse_visibility(
         on, mid = slice(None, None, spacing), slice(half, None, spacing)
         c, valid = out[on, on], wanted[on, on]
         corners = (c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:])
-        spread = np.maximum.reduce(corners) - np.minimum.reduce(corners)
-        rough = spread > SMOOTH_SPREAD
+        rough = _bend(c) > BEND_TOLERANCE
+        rough = rough[:-1, :-1] | rough[:-1, 1:] | rough[1:, :-1] | rough[1:, 1:]
         if inverse is None:  # nothing tells a non-candidate's surface: evaluate beside one
             rough |= ~(valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:])
         smooth = ~_around(rough)
