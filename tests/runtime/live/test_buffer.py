@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 
 from rigspace.runtime.live.buffer import (
+    DELAYED,
+    LATEST,
     BufferSettings,
     LiveBuffer,
     OneEuroFilter,
@@ -204,3 +206,34 @@ def test_one_euro_matches_the_reference_ground_truth():
     f = OneEuroFilter(1, 1, min_cutoff=1.0, beta=0.1, d_cutoff=1.0)
     for t, noisy, filtered in GROUND_TRUTH:
         assert f(np.array([0]), np.array([[noisy]]), t)[0, 0] == pytest.approx(filtered, abs=1e-5)
+
+
+def test_counter_percentiles_are_numpys_from_one_sort():
+    rng = np.random.default_rng(3)
+    b = LiveBuffer(("a",))
+    values = rng.exponential(0.004, 1500)
+    b._jitter.extend(values)  # bounded: the last 1024 are kept
+    b._latency.extend(values[:7])
+    c = b.counters()
+    assert c.jitter_p50_ms == pytest.approx(np.percentile(values[-1024:], 50) * 1e3, rel=1e-12)
+    assert c.jitter_p99_ms == pytest.approx(np.percentile(values[-1024:], 99) * 1e3, rel=1e-12)
+    assert c.latency_p99_ms == pytest.approx(np.percentile(values[:7], 99) * 1e3, rel=1e-12)
+
+
+@pytest.mark.parametrize("mode", [LATEST, DELAYED])
+def test_pose_never_waits_for_a_push_in_progress(mode):
+    b = LiveBuffer(("a", "b"), BufferSettings(mode, 0.01))
+    q = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]])
+    now = time.monotonic()
+    for k in range(3):
+        b.push(Frame(0, 0.01 * k, np.array([0, 1]), q), now + 0.01 * k)
+    before = b.pose(now + 0.05)
+    with b._lock:  # a receiver mid-push (it can lose the GIL while holding the lock)
+        start = time.perf_counter()
+        during = b.pose(now + 0.05)
+        counters = b.counters(now + 0.05)
+        waited = time.perf_counter() - start
+    assert waited < 0.05  # a blocking pose would wait here forever
+    assert during.status == before.status == "connected" and counters.samples == 6
+    np.testing.assert_array_equal(during.rotations, before.rotations)
+    np.testing.assert_array_equal(during.valid, before.valid)
