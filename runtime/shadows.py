@@ -270,12 +270,16 @@ class PrimShadows:
         if cache_key in self._regions:
             return self._regions[cache_key]
         out = []
-        for name, key, meshes in self._groups.get(index, []):
-            lo = np.array([self._bounds[id(m)][0] for m in meshes])
-            hi = np.array([self._bounds[id(m)][1] for m in meshes])
-            rects = [r for r in shadow_regions(lo, hi, self._lights[index], box, camera) if r]
-            if rects:
-                out.append((rects, (index, name, key, meshes)))
+        groups = self._groups.get(index, [])
+        casters = [m for _, _, meshes in groups for m in meshes]
+        if casters:  # one call for every map's casters: its cost is mostly per call
+            lo = np.array([self._bounds[id(m)][0] for m in casters])
+            hi = np.array([self._bounds[id(m)][1] for m in casters])
+            found = iter(shadow_regions(lo, hi, self._lights[index], box, camera))
+            for name, key, meshes in groups:
+                rects = [r for r in (next(found) for _ in meshes) if r]
+                if rects:
+                    out.append((rects, (index, name, key, meshes)))
         self._regions[cache_key] = out
         return out
 
@@ -519,25 +523,30 @@ def capsule_visibility(points: np.ndarray, capsules: PosedCapsules, light: Light
         i, k = _candidate_pairs(u, v, a2, b2, radius, margin, stretch, parts)
     if i.size == 0:
         return out
-    receivers, i = np.unique(i, return_inverse=True)
+    if np.all(i[1:] >= i[:-1]):  # pairs come receiver by receiver: no sort needed
+        first = np.empty(i.size, bool)
+        first[0], first[1:] = True, i[1:] != i[:-1]
+        receivers, i = i[first], np.cumsum(first) - 1
+    else:
+        receivers, i = np.unique(i, return_inverse=True)
     p = p[:, receivers]
     to_light, light_angle = _towards_light(light, p, soft)
     a = capsules.a.astype(np.float32).T  # planar (3, K)
     u = (capsules.b - capsules.a).astype(np.float32).T
-    r = capsules.radius.astype(np.float32)
+    r = capsules.radius.astype(np.float32)[k]
     # The segment's point closest to the ray p + t L (exact for a segment against a line).
     d = to_light[:, i]
     uk = u[:, k]
     w0 = a[:, k] - p[:, i]
-    uu, ud, uw, dw = _dot(uk, uk), _dot(uk, d), _dot(uk, w0), _dot(d, w0)
+    uu, ud, uw, dw = _dot(u, u)[k], _dot(uk, d), _dot(uk, w0), _dot(d, w0)
     denominator = uu - ud * ud
     s = np.where(denominator > 1e-9, (ud * dw - uw) / np.maximum(denominator, 1e-9), 0.0)
     c = w0 + np.clip(s, 0.0, 1.0) * uk  # from the receiver to the sphere's centre
     distance = np.maximum(np.sqrt(_dot(c, c)), 1e-6)
-    sphere_angle = np.arcsin(np.clip(r[k] / distance, 0.0, 1.0))
+    sphere_angle = np.arcsin(np.clip(r / distance, 0.0, 1.0))
     between = np.arccos(np.clip(_dot(c, d) / distance, -1.0, 1.0))
     occlusion = cone_occlusion(light_angle[i], sphere_angle, between)
-    occlusion = np.where(distance > r[k], occlusion, 0.0)  # a receiver inside: not its caster
+    occlusion = np.where(distance > r, occlusion, 0.0)  # a receiver inside: not its caster
     log_visibility = np.log(np.maximum(1.0 - occlusion, MIN_VISIBILITY))
     out[receivers] = np.exp(np.bincount(i, weights=log_visibility, minlength=receivers.size))
     return out
