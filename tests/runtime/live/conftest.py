@@ -14,8 +14,9 @@ CMU_CLIP = REPO / "samples" / "motion" / "cmu_131_01.bvh"
 SAMPLE_CHARACTER = REPO / "samples" / "character" / "sample_character.usda"
 
 
-def wait_for(condition: Callable[[], bool], timeout: float = 5.0) -> bool:
-    """Poll `condition` until it holds or `timeout` seconds pass (receivers run on threads)."""
+def wait_for(condition: Callable[[], bool], timeout: float = 15.0) -> bool:
+    """Poll `condition` until it holds or `timeout` seconds pass (receivers run on threads;
+    the timeout is generous because CI shares 2 cores, and a passing test never waits it out)."""
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         if condition():
