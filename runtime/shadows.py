@@ -714,7 +714,7 @@ def sparse_visibility(
             ((mid, on), (c[:-1] + c[1:]) * 0.5, np.concatenate([smooth, smooth[:, -1:]], 1)),
             ((mid, mid), (corners[0] + corners[1] + corners[2] + corners[3]) * 0.25, smooth),
         ]
-        exact = []
+        pending: list[np.ndarray] = []
         for at, blended, ok in parts:
             new = wanted[at]
             blend = new & ok
@@ -729,7 +729,7 @@ def sparse_visibility(
                 mine = inverse[at]
                 blend &= np.abs(expected - mine) <= np.float32(SURFACE_TOLERANCE) * mine
             out[at][blend] = blended[blend]
-            exact.append(flat[at][new & ~blend])
-        fill(np.concatenate(exact))
+            pending.append(flat[at][new & ~blend])
+        fill(np.concatenate(pending))
         spacing = half
     return out[:h, :w]

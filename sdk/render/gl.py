@@ -356,7 +356,7 @@ class GLRenderer:
             self._depth_program["projection"].write(_mat(camera.gl_projection))
             used: set[tuple] = set()
             for mesh, points, triangles in arrays:
-                key = (id(mesh.triangles), triangles.shape, len(points))
+                key: tuple = (id(mesh.triangles), triangles.shape, len(points))
                 while key in used:
                     key = (*key, "again")
                 used.add(key)
