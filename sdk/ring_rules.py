@@ -186,7 +186,12 @@ def _check_clips(prim: Usd.Prim, ring: schema.CaptureRing) -> Iterator[Issue]:
 
 URL_SCHEME = re.compile(r"^[a-z][a-z0-9+.-]*$")
 SMOOTHING = ("none", "exponential", "oneEuro")
-BUFFERING = ("latest", "interpolate", "buffered")
+BUFFERING = ("latest", "delayed")
+BONE_PRESETS = ("auto", "none", "unityHumanoid", "cmu", "mixamo")
+GAMEPAD_OFFSET = re.compile(
+    r"^(ABS|BTN)_[A-Z0-9]+:[^:\s]+:[XYZ]:[-+]?[0-9.]+(e[-+]?[0-9]+)?(:-?[0-9]+:-?[0-9]+)?$"
+)
+GAMEPAD_CLIP = re.compile(r"^(ABS|BTN)_[A-Z0-9]+:[^:\s]+(:-?[0-9]+:-?[0-9]+)?$")
 
 
 def url_problem(url: str) -> str | None:
@@ -254,6 +259,14 @@ def check_live_binding(prim: Usd.Prim) -> Iterator[Issue]:
                     f"{where}: restPose holds non-unit quaternions (norms "
                     f"{min(norms):.4g} to {max(norms):.4g}). Fix: normalise them.",
                 )
+        if b.buffering_authored:
+            yield warning(
+                "DeprecatedToken",
+                f"{where}: {ns}buffering = {b.buffering_authored!r} is a token of an earlier "
+                f'schema, read as {b.buffering!r}. Fix: author buffering = "delayed" (the '
+                "delay is bufferSeconds; 0: one sample interval).",
+            )
+        yield from _preset_and_gamepad(prim, b, where, ns, skeleton)
         for ok, prop, value, allowed in (
             (0 <= b.smoothing_strength < 1, "smoothingStrength", b.smoothing_strength, "[0, 1)"),
             (
@@ -263,6 +276,12 @@ def check_live_binding(prim: Usd.Prim) -> Iterator[Issue]:
                 f"[0, {MAX_BUFFER_SECONDS:g}]",
             ),
             (b.timeout_seconds > 0, "timeoutSeconds", b.timeout_seconds, "> 0"),
+            (
+                b.lost_seconds == 0 or b.lost_seconds > b.timeout_seconds,
+                "lostSeconds",
+                b.lost_seconds,
+                f"0 or > timeoutSeconds ({b.timeout_seconds:g})",
+            ),
             (b.source_meters_per_unit > 0, "sourceMetersPerUnit", b.source_meters_per_unit, "> 0"),
         ):
             if not ok:
@@ -271,6 +290,72 @@ def check_live_binding(prim: Usd.Prim) -> Iterator[Issue]:
                     f"{where}: {ns}{prop} is {value}; allowed: {allowed}. Fix: author a value "
                     "that is allowed.",
                 )
+
+
+def _preset_and_gamepad(
+    prim: Usd.Prim, b: schema.LiveBinding, where: str, ns: str, skeleton: Usd.Prim | None
+) -> Iterator[Issue]:
+    """bonePreset is a known token; gamepadOffsets/gamepadClips parse, name joints of the
+    skeleton and clips of the character's capture ring, and sit on a gamepad:// binding."""
+    from rigspace.runtime.live.decoders.evdev import CONTROL_CODES
+
+    if b.bone_preset not in BONE_PRESETS:
+        yield error(
+            "BadToken",
+            f"{where}: {ns}bonePreset {b.bone_preset!r} is not a preset. Fix: author one of "
+            f"{', '.join(BONE_PRESETS)}.",
+        )
+    if not (b.gamepad_offsets or b.gamepad_clips):
+        return
+    if not b.url.lower().startswith("gamepad://"):
+        yield warning(
+            "GamepadMapUnused",
+            f"{where}: gamepadOffsets/gamepadClips are authored but the url {b.url!r} is not a "
+            "gamepad:// source, so they are ignored. Fix: remove them or bind a gamepad://.",
+        )
+    joints = schema.skeleton_joints(skeleton) if skeleton is not None else None
+    for prop, items, pattern, form in (
+        (
+            "gamepadOffsets",
+            b.gamepad_offsets,
+            GAMEPAD_OFFSET,
+            "CONTROL:JOINT:AXIS:DEGREES[:MIN:MAX]",
+        ),
+        ("gamepadClips", b.gamepad_clips, GAMEPAD_CLIP, "CONTROL:CLIP[:MIN:MAX]"),
+    ):
+        for item in items:
+            code = item.split(":", 1)[0]
+            if not pattern.match(item) or code not in CONTROL_CODES:
+                yield error(
+                    "BadGamepadMap",
+                    f"{where}: {ns}{prop} entry {item!r} is not {form} with a known evdev "
+                    "control. Fix: write it like "
+                    + ("'ABS_RX:head:Y:-60'" if prop == "gamepadOffsets" else "'ABS_RZ:wave'")
+                    + " (controls: ABS_X, ABS_Y, ABS_Z, ABS_RX, ABS_RY, ABS_RZ, ABS_HAT0X, "
+                    "ABS_HAT0Y, ABS_GAS, ABS_BRAKE, BTN_SOUTH, BTN_EAST, ...).",
+                )
+                continue
+            name = item.split(":")[1]
+            if prop == "gamepadOffsets" and joints is not None and _missing_joints((name,), joints):
+                yield error(
+                    "TargetJointsMissing",
+                    f"{where}: {ns}gamepadOffsets entry {item!r} names joint {name!r}, which "
+                    f"skeleton {skeleton.GetPath()} lacks. Fix: use a name from its joint list.",
+                )
+            if prop == "gamepadClips":
+                clips = (
+                    schema.read_capture_ring(prim).clip_names
+                    if schema.has_capture_ring(prim)
+                    else ()
+                )
+                if name not in clips:
+                    yield error(
+                        "ClipMissing",
+                        f"{where}: {ns}gamepadClips entry {item!r} names clip {name!r}, which "
+                        f"{prim.GetPath()} does not name in rigspace:captureRing:clipNames "
+                        f"({', '.join(clips) or 'none'}). Fix: name one of them, or add the clip "
+                        "(clipNames and clipRanges).",
+                    )
 
 
 CAPTURE_RING = ValidatorSpec(

@@ -7,6 +7,7 @@ validators (`rigspace.sdk.validation`) judge them.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -150,9 +151,34 @@ class LiveBinding:
     smoothing: str
     smoothing_strength: float
     buffering: str
+    """latest or delayed (a deprecated token authored is read as one of them)."""
     buffer_seconds: float
+    """The delay of `delayed`, seconds; 0: one sample interval."""
     timeout_seconds: float
+    lost_seconds: float = 0.0
+    """Seconds without data before the binding is lost; 0: LOST_FACTOR x timeout_seconds."""
+    bone_preset: str = "auto"
+    gamepad_offsets: tuple[str, ...] = ()
+    gamepad_clips: tuple[str, ...] = ()
+    buffering_authored: str = ""
+    """The buffering token as authored when it was a deprecated one (validation warns)."""
     extra: dict = field(default_factory=dict)
+
+    @property
+    def lost_after(self) -> float:
+        """Seconds without data before the binding is lost (lostSeconds, or its fallback)."""
+        return self.lost_seconds if self.lost_seconds > 0 else LOST_FACTOR * self.timeout_seconds
+
+
+LOST_FACTOR = 4.0
+"""lostSeconds = 0 (the fallback) means this many timeoutSeconds."""
+DEPRECATED_BUFFERING = {"interpolate": ("delayed", 0.0), "buffered": ("delayed", None)}
+"""Buffering tokens of earlier schema versions -> (token, bufferSeconds; None: as authored)."""
+
+
+class LiveBindingDeprecationWarning(FutureWarning):
+    """A live binding authors a token this schema version only reads for old files
+    (FutureWarning: shown by default, the user who authored the file can fix it)."""
 
 
 def _wxyz(q) -> tuple[float, float, float, float]:
@@ -173,6 +199,21 @@ def read_live_bindings(prim: Usd.Prim) -> list[LiveBinding]:
             return _get(prim, f"{LIVE_NAMESPACE}:{_name}:{prop}", default)
 
         rest = get("restPose", ())
+        buffering = str(get("buffering", "latest"))
+        buffer_seconds = float(get("bufferSeconds", 0.05))
+        authored = ""
+        if buffering in DEPRECATED_BUFFERING:
+            authored = buffering
+            buffering, seconds = DEPRECATED_BUFFERING[authored]
+            buffer_seconds = buffer_seconds if seconds is None else seconds
+            warnings.warn(
+                f"{prim.GetPath()}: {LIVE_NAMESPACE}:{name}:buffering = {authored!r} is "
+                f"deprecated; it is read as {buffering!r}"
+                + (" with bufferSeconds = 0 (one sample interval)" if seconds == 0.0 else "")
+                + '. Fix: author buffering = "delayed" (and bufferSeconds).',
+                LiveBindingDeprecationWarning,
+                stacklevel=2,
+            )
         bindings.append(
             LiveBinding(
                 name=name,
@@ -186,9 +227,14 @@ def read_live_bindings(prim: Usd.Prim) -> list[LiveBinding]:
                 rest_pose=tuple(_wxyz(q) for q in rest),
                 smoothing=str(get("smoothing", "none")),
                 smoothing_strength=float(get("smoothingStrength", 0.5)),
-                buffering=str(get("buffering", "latest")),
-                buffer_seconds=float(get("bufferSeconds", 0.05)),
+                buffering=buffering,
+                buffer_seconds=buffer_seconds,
                 timeout_seconds=float(get("timeoutSeconds", 0.5)),
+                lost_seconds=float(get("lostSeconds", 0.0)),
+                bone_preset=str(get("bonePreset", "auto")),
+                gamepad_offsets=tuple(str(v) for v in get("gamepadOffsets", ())),
+                gamepad_clips=tuple(str(v) for v in get("gamepadClips", ())),
+                buffering_authored=authored,
             )
         )
     return bindings

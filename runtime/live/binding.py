@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
+from urllib.parse import parse_qsl, quote
 
 import numpy as np
 
@@ -15,17 +16,23 @@ from rigspace.runtime.live.retarget import (
     Y_180,
     Preset,
     Retargeter,
+    RetargetError,
+    blend_transforms,
     source_basis,
     source_hierarchy,
     target_skeleton,
 )
 from rigspace.runtime.live.sources import open_source
-from rigspace.runtime.live.transports import Source
+from rigspace.runtime.live.transports import LiveSourceError, Source
 from rigspace.sdk.rotations import quat_from_matrix
 
 DEFAULT_PRESET = {"vmc": "unity", "replay": "cmu", "bvh+tcp": "cmu"}
-"""The bone-name preset a scheme gets when the binding authors no sourceBones (and the source's
-bones match the preset's)."""
+"""The bone-name preset a scheme gets for bonePreset = auto when the binding authors no
+sourceBones (and the source's bones match the preset's)."""
+BONE_PRESETS = {"unityHumanoid": "unity", "cmu": "cmu", "mixamo": "mixamo"}
+"""bonePreset token -> retarget.PRESETS name ("auto": DEFAULT_PRESET, "none": same names)."""
+CLIP_FADE_SECONDS = 0.25
+"""A clip blend moves at most this fast from 0 to 1 (a button press does not pop the pose)."""
 NATIVE_BASIS = {"vmc": Y_180}
 """Sources whose decoder already converted to right-handed Y up, but whose performer faces
 -Z: their basis replaces the binding's sourceUpAxis/sourceHandedness (no double conversion)."""
@@ -39,6 +46,11 @@ class LiveBindingRuntime:
     source: Source
     buffer: LiveBuffer
     retargeter: Retargeter
+    clip_ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """Clip name -> (first, last) stage time code, for the source's clip controls (gamepad)."""
+    clip_blend: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    """The eased blend per clip of the source's clip_names, as of the last frame."""
+    _last_now: float | None = None
 
     def start(self) -> None:
         self.source.start(self.buffer)
@@ -50,12 +62,49 @@ class LiveBindingRuntime:
         return self.buffer.pose(now)
 
     def apply(
-        self, stage_local: np.ndarray, now: float | None = None
+        self,
+        stage_local: np.ndarray,
+        now: float | None = None,
+        sample: Callable[[float], Any] | None = None,
+        time_code: float | None = None,
     ) -> tuple[np.ndarray, LivePose]:
         """The stage's (J, 4, 4) local transforms with this binding's pose merged in, and the pose
-        (its status and weight belong in the frame's report)."""
-        pose = self.buffer.pose(time.monotonic() if now is None else now)
+        (its status and weight belong in the frame's report). A source with clip controls
+        first blends the stage pose towards its clips: `sample(time_code)` gives the stage's
+        local transforms at another time code (without it, clips are not blended)."""
+        now = time.monotonic() if now is None else now
+        pose = self.buffer.pose(now)
+        if self.clip_ranges and sample is not None and time_code is not None:
+            stage_local = self._blend_clips(stage_local, pose, now, sample, time_code)
         return self.retargeter.apply(stage_local, pose), pose
+
+    def _blend_clips(
+        self,
+        stage_local: np.ndarray,
+        pose: LivePose,
+        now: float,
+        sample: Callable[[float], Any],
+        time_code: float,
+    ) -> np.ndarray:
+        """The stage pose blended towards each clip by its control (eased, times the binding's
+        weight: a lost controller lets go); each clip loops on the stage's time code."""
+        decoder = getattr(self.source, "decoder", None)
+        names = getattr(decoder, "clip_names", ())
+        target = np.asarray(getattr(decoder, "clip_weights", np.zeros(len(names)))) * pose.weight
+        if len(self.clip_blend) != len(names):
+            self.clip_blend = np.zeros(len(names))
+        step = 0.0 if self._last_now is None else max(0.0, now - self._last_now) / CLIP_FADE_SECONDS
+        self._last_now = now
+        self.clip_blend = self.clip_blend + np.clip(target - self.clip_blend, -step, step)
+        out = stage_local
+        for clip, weight in zip(names, self.clip_blend, strict=True):
+            if weight <= 0:
+                continue
+            first, last = self.clip_ranges[clip]
+            length = last - first
+            at = first + (time_code - first) % length if length > 0 else first
+            out = blend_transforms(out, np.asarray(sample(at), dtype=np.float64), float(weight))
+        return out
 
     def counters(self, now: float | None = None) -> BindingCounters:
         return self.source.counters(now)
@@ -74,12 +123,16 @@ def open_binding(
     stage_meters_per_unit: float,
     preset: str | None = None,
     extra: dict[str, Callable[[], Any]] | None = None,
+    clips: dict[str, tuple[float, float]] | None = None,
 ) -> LiveBindingRuntime:
     """Build (not start) the runtime of an sdk.schema.LiveBinding for a UsdSkel Skeleton.
 
-    - Bone map: the binding's sourceBones -> targetJoints when authored; else `preset` (or the
-      scheme's default preset when the source sends its bones); else source bones onto joints
-      of the same name.
+    - Bone map: the binding's sourceBones -> targetJoints when authored; else `preset` (a
+      retarget.PRESETS name) or the binding's bonePreset (auto: the scheme's default preset
+      when the source sends its bones); else source bones onto joints of the same name.
+    - Gamepad: the binding's gamepadOffsets/gamepadClips become the URL's axes=/clips= where
+      the URL has none; `clips` (clip name -> (first, last) time code, the character's capture
+      ring) are the clips a control may blend towards.
     - Basis: the source's native one (VMC) or the binding's up axis and handedness.
     - Rest: restPose when authored (parallel to the map's source bones); else the character's
       rest aligned onto the source's (`Retargeter.align_rest`): a BVH's own, or the preset's
@@ -89,12 +142,25 @@ def open_binding(
     - A recorded take (replay:// of a .usd file) plays back onto its own skeleton exactly: same
       joints, identity basis, the skeleton's rest as its rest pose, the take's units.
     """
-    source = open_source(binding.url, binding.name, extra)
     scheme = binding.url.split("://", 1)[0].lower()
+    source = open_source(_with_gamepad_map(binding, scheme), binding.name, extra)
     joints, rest = target_skeleton(skeleton_prim)
-    chosen = PRESETS.get(preset or DEFAULT_PRESET.get(scheme, ""))
-    meters_per_unit = binding.source_meters_per_unit
+    explicit = preset or BONE_PRESETS.get(binding.bone_preset)
+    if explicit is None and binding.bone_preset == "auto":
+        chosen = PRESETS.get(DEFAULT_PRESET.get(scheme, ""))
+    else:
+        chosen = PRESETS.get(explicit or "")  # "none": no preset, same-name joints
     native = bool(getattr(source, "native", False))  # a recorded take of this skeleton
+    if chosen is not None and explicit and not (binding.source_bones or native):
+        if not set(chosen.bone_map) & set(source.bones):
+            raise RetargetError(
+                f"Live binding {binding.name!r}: bonePreset {binding.bone_preset!r} names none "
+                f"of the bones {binding.url} sends ({', '.join(source.bones[:6])}, ...).",
+                f'author rigspace:live:{binding.name}:bonePreset = "auto" or the source\'s '
+                "family, or author sourceBones/targetJoints.",
+            )
+    clip_ranges = _clip_ranges(binding, source, clips or {})
+    meters_per_unit = binding.source_meters_per_unit
     if native:
         meters_per_unit = getattr(source, "meters_per_unit", None) or meters_per_unit
     if binding.source_bones:
@@ -107,8 +173,8 @@ def open_binding(
         if meters_per_unit == 1.0:
             meters_per_unit = chosen.meters_per_unit
     else:
-        leaves = {j.rsplit("/", 1)[-1] for j in joints}
-        bone_map = {b: b for b in source.bones if b in leaves}
+        names = {j.rsplit("/", 1)[-1] for j in joints} | set(joints)
+        bone_map = {b: b for b in source.bones if b in names}
     basis = np.eye(3) if native else NATIVE_BASIS.get(scheme)
     if basis is None:
         basis = source_basis(binding.source_up_axis, binding.source_handedness)
@@ -150,7 +216,45 @@ def open_binding(
         source,
         LiveBuffer(source.bones, BufferSettings.from_binding(binding)),
         retargeter,
+        clip_ranges,
     )
+
+
+def _with_gamepad_map(binding: Any, scheme: str) -> str:
+    """The binding's URL with its gamepadOffsets/gamepadClips as axes=/clips= options (the
+    URL's own options win: `--source pad=gamepad://...?axes=...` overrides the stage)."""
+    url = binding.url
+    if scheme != "gamepad":
+        return url
+    query = dict(parse_qsl(url.partition("?")[2]))
+    added = [
+        f"{key}={quote(','.join(items), safe=':,')}"
+        for key, items in (
+            ("axes", getattr(binding, "gamepad_offsets", ())),
+            ("clips", getattr(binding, "gamepad_clips", ())),
+        )
+        if items and key not in query
+    ]
+    if not added:
+        return url
+    return url + ("&" if "?" in url else "?") + "&".join(added)
+
+
+def _clip_ranges(
+    binding: Any, source: Source, clips: dict[str, tuple[float, float]]
+) -> dict[str, tuple[float, float]]:
+    """The ranges of the clips the source's controls blend towards; an unknown clip is an
+    error naming the binding and the character's clips."""
+    wanted = getattr(getattr(source, "decoder", None), "clip_names", ())
+    missing = [c for c in wanted if c not in clips]
+    if missing:
+        raise LiveSourceError(
+            f"Live binding {binding.name!r}: gamepadClips names {', '.join(map(repr, missing))}, "
+            f"which the character's capture ring does not (clipNames: "
+            f"{', '.join(clips) or 'none'}).",
+            "name clips of rigspace:captureRing:clipNames (with their clipRanges).",
+        )
+    return {c: clips[c] for c in wanted}
 
 
 def _rest_positions(source: Source, preset: Preset | None) -> np.ndarray | None:

@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from rigspace.runtime.live.frames import DecodeCounters, Frame, quat_slerp
+from rigspace.sdk.schema import LOST_FACTOR
 
 LATEST = "latest"
 DELAYED = "delayed"
@@ -21,9 +22,6 @@ CONNECTED = "connected"
 STALE = "stale"
 LOST = "lost"
 
-LOST_FACTOR = 4.0
-"""A binding is stale after `timeout` seconds without data and lost after LOST_FACTOR times that
-(Live Link holds a subject's last pose before it drops it; the hold here is 3 timeouts long)."""
 CLOCK_RESET_SECONDS = 1.0
 """A source timestamp this far behind the stream's last one is a restarted sender (a new clock),
 not a late packet: the stream starts over instead of dropping everything until it catches up."""
@@ -51,6 +49,9 @@ class BufferSettings:
     """Smoothing strength in [0, 1): 0 passes samples through."""
     timeout: float = 0.5
     """Seconds without data before the binding is stale (holds its last pose)."""
+    lost: float | None = None
+    """Seconds without data before the binding is lost (blends back to the stage animation);
+    None: LOST_FACTOR x timeout (Live Link too holds a subject's last pose before dropping it)."""
     blend: float = 0.5
     """Seconds over which a lost binding blends back to the stage animation."""
     history: int = 256
@@ -58,20 +59,24 @@ class BufferSettings:
 
     @property
     def lost_after(self) -> float:
-        return self.timeout * LOST_FACTOR
+        return self.timeout * LOST_FACTOR if self.lost is None else self.lost
 
     @classmethod
     def from_binding(cls, binding) -> BufferSettings:
-        """From an sdk.schema.LiveBinding: buffered/delayed -> delayed by bufferSeconds,
-        interpolate -> delayed by one sample interval, latest -> latest."""
-        mode = LATEST if binding.buffering == LATEST else DELAYED
-        delay = None if binding.buffering == "interpolate" else float(binding.buffer_seconds)
+        """From an sdk.schema.LiveBinding (whose reader already turned deprecated buffering
+        tokens into these): latest, or delayed by bufferSeconds (0: one sample interval);
+        stale after timeoutSeconds, lost after lostSeconds (0: LOST_FACTOR x timeoutSeconds)."""
+        if binding.buffering not in MODES:
+            raise ValueError(f"buffering {binding.buffering!r} is not one of {MODES}")
+        seconds = float(binding.buffer_seconds)
+        lost = float(getattr(binding, "lost_seconds", 0.0))
         return cls(
-            mode=mode,
-            delay=delay,
+            mode=binding.buffering,
+            delay=seconds if seconds > 0 else None,
             smoothing=binding.smoothing,
             strength=float(binding.smoothing_strength),
             timeout=float(binding.timeout_seconds),
+            lost=lost if lost > 0 else None,
         )
 
 

@@ -32,6 +32,14 @@ class LiveCharacter:
     """(J, 4, 4) the last frame's merged local transforms."""
 
 
+def _clip_ranges(prim: Usd.Prim) -> dict[str, tuple[float, float]]:
+    """The character's named clips (capture ring clipNames -> clipRanges), for clip blends."""
+    if not schema.has_capture_ring(prim):
+        return {}
+    ring = schema.read_capture_ring(prim)
+    return dict(zip(ring.clip_names, ring.clip_ranges, strict=False))
+
+
 class LiveInput:
     """The live bindings of an Engine's characters: opened lazily, merged into each frame's pose.
 
@@ -91,10 +99,13 @@ class LiveInput:
             try:
                 for live in self.characters.values():
                     skeleton = live.character.rig.skeleton.GetPrim()
+                    clips = _clip_ranges(live.character.prim)
                     for binding in live.bindings:
                         where = f"Live binding {binding.name!r} of {live.character.path}"
                         try:
-                            runtime = open_binding(binding, skeleton, self.meters_per_unit)
+                            runtime = open_binding(
+                                binding, skeleton, self.meters_per_unit, clips=clips
+                            )
                             runtime.start()
                         except LiveSourceError as exc:
                             raise LiveSourceError(
@@ -129,10 +140,11 @@ class LiveInput:
         if live is None or not live.runtimes:
             return None, []
         now = time.monotonic() if now is None else now
-        local = np.asarray(character.rig.local_transforms(time_code), dtype=np.float64)
+        rig = character.rig
+        local = np.asarray(rig.local_transforms(time_code), dtype=np.float64)
         poses = []
         for runtime in live.runtimes:
-            local, pose = runtime.apply(local, now)
+            local, pose = runtime.apply(local, now, rig.local_transforms, time_code)
             poses.append((runtime, pose))
         return local, poses
 

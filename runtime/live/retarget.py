@@ -467,6 +467,23 @@ class Retargeter:
         return out
 
 
+def blend_transforms(a: np.ndarray, b: np.ndarray, weight: float) -> np.ndarray:
+    """(J, 4, 4) row-vector local transforms a and b blended by `weight` in [0, 1]: rotations
+    slerped, translations and scales interpolated linearly (as UsdSkel interpolates samples)."""
+    if weight <= 0:
+        return a
+    scale_a = np.linalg.norm(a[:, :3, :3], axis=2)
+    scale_b = np.linalg.norm(b[:, :3, :3], axis=2)
+    qa = quat_from_matrix(np.swapaxes(a[:, :3, :3] / scale_a[:, :, None], 1, 2))
+    qb = quat_from_matrix(np.swapaxes(b[:, :3, :3] / scale_b[:, :, None], 1, 2))
+    rotation = np.swapaxes(matrix_from_quat(quat_slerp(qa, qb, weight)), 1, 2)
+    scale = (1 - weight) * scale_a + weight * scale_b
+    out = a.copy()
+    out[:, :3, :3] = rotation * scale[:, :, None]
+    out[:, 3, :3] = (1 - weight) * a[:, 3, :3] + weight * b[:, 3, :3]
+    return out
+
+
 def _swing(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """The smallest rotation (3, 3) taking direction u to direction v."""
     u, v = u / np.linalg.norm(u), v / np.linalg.norm(v)

@@ -10,7 +10,12 @@ from urllib.parse import parse_qsl, urlsplit
 import numpy as np
 
 from rigspace.runtime.live.decoders.bvh import BvhError, BvhStreamDecoder, read_bvh
-from rigspace.runtime.live.decoders.evdev import DEFAULT_AXES, EvdevDecoder, parse_axes
+from rigspace.runtime.live.decoders.evdev import (
+    DEFAULT_AXES,
+    EvdevDecoder,
+    parse_axes,
+    parse_clips,
+)
 from rigspace.runtime.live.decoders.vmc import VmcDecoder
 from rigspace.runtime.live.decoders.ximu3 import Ximu3Decoder
 from rigspace.runtime.live.transports import (
@@ -30,7 +35,8 @@ AXIS_NEURON_BVH_PORT = 7001
 """Axis Neuron's default BVH data-stream port."""
 DEFAULT_HOST = "127.0.0.1"
 EXPECTS = {
-    "axes": "CODE:JOINT:AXIS:DEGREES[:MIN:MAX],... (such as ABS_RX:head:Y:-60)",
+    "axes": "CONTROL:JOINT:AXIS:DEGREES[:MIN:MAX],... (such as ABS_RX:head:Y:-60)",
+    "clips": "CONTROL:CLIP[:MIN:MAX],... (such as ABS_RZ:wave or BTN_SOUTH:wave)",
     "speed": "positive number",
     "retry": "positive number of seconds",
     "loop": "0, 1, true or false",
@@ -195,13 +201,15 @@ def open_replay(url: str, name: str = "") -> Source:
 
 
 def open_gamepad(url: str, name: str = "") -> Source:
-    """gamepad://[DEVICE]?axes=CODE:JOINT:AXIS:DEGREES[:MIN:MAX],...: a Linux evdev game
-    controller whose axes turn joints on top of the stage animation (default: right stick
-    head yaw/pitch, left stick spine lean). No DEVICE: the first /dev/input/by-id joystick."""
+    """gamepad://[DEVICE]?axes=CONTROL:JOINT:AXIS:DEGREES[:MIN:MAX],...&clips=CONTROL:CLIP,...:
+    a Linux evdev game controller whose axes and buttons turn joints on top of the stage
+    animation (default: right stick head yaw/pitch, left stick spine lean) and blend towards
+    the stage's clips (the binding's gamepadOffsets/gamepadClips arrive as these options).
+    No DEVICE: the first /dev/input/by-id joystick."""
     import glob
 
     target, query = _after_scheme(url)
-    options = _options(url, name, query, {"axes": parse_axes})
+    options = _options(url, name, query, {"axes": parse_axes, "clips": parse_clips})
     device = target
     if not device:
         found = sorted(glob.glob("/dev/input/by-id/*-event-joystick"))
@@ -212,7 +220,8 @@ def open_gamepad(url: str, name: str = "") -> Source:
                 "gamepad:///dev/input/eventN.",
             )
         device = found[0]
-    return DeviceFileSource(name, url, EvdevDecoder(options.get("axes", DEFAULT_AXES)), device)
+    decoder = EvdevDecoder(options.get("axes", DEFAULT_AXES), options.get("clips", ()))
+    return DeviceFileSource(name, url, decoder, device)
 
 
 VMC = SourceSpec(
@@ -231,7 +240,8 @@ SERIAL = SourceSpec(
 GAMEPAD = SourceSpec(
     "gamepad",
     open_gamepad,
-    "gamepad://[DEVICE]?axes=ABS_RX:head:Y:-60,...  a Linux evdev controller, additive offsets",
+    "gamepad://[DEVICE]?axes=ABS_RX:head:Y:-60,...&clips=ABS_RZ:wave  a Linux evdev controller: "
+    "additive offsets, clip blends",
 )
 REPLAY = SourceSpec(
     "replay", open_replay, "replay://PATH?speed=1&loop=1  a BVH file or recorded take, in real time"

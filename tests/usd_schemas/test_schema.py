@@ -96,9 +96,36 @@ def test_every_property_is_namespaced_uniform_and_documented():
 
 def test_enums_declare_allowed_tokens():
     definition = Usd.SchemaRegistry().FindAppliedAPIPrimDefinition(schemas.LIVE_BINDING_API)
-    for prop in ("smoothing", "buffering", "sourceUpAxis", "sourceHandedness"):
+    for prop in ("smoothing", "buffering", "sourceUpAxis", "sourceHandedness", "bonePreset"):
         spec = definition.GetSchemaAttributeSpec(f"rigspace:live:__INSTANCE_NAME__:{prop}")
         assert spec is not None and list(spec.allowedTokens), prop
+
+
+def test_live_binding_says_what_issue_11_says():
+    """Buffering is latest/delayed, a bone preset and the stale/lost thresholds are attributes,
+    the gamepad map lives on the binding, and each doc starts with its unit or range."""
+    layer = Sdf.Layer.FindOrOpen(os.path.join(schemas.plugin_path(), "schema.usda"))
+    properties = layer.GetPrimAtPath("/RigspaceLiveBindingAPI").properties
+
+    def spec(prop):
+        return properties[prop]
+
+    assert list(spec("buffering").allowedTokens) == ["latest", "delayed"]
+    assert list(spec("bonePreset").allowedTokens) == [
+        "auto", "none", "unityHumanoid", "cmu", "mixamo"
+    ]  # fmt: skip
+    assert spec("bonePreset").default == "auto" and spec("lostSeconds").default == 0
+    assert spec("gamepadOffsets").typeName == Sdf.ValueTypeNames.StringArray
+    assert spec("gamepadClips").typeName == Sdf.ValueTypeNames.StringArray
+    assert "stale" in spec("timeoutSeconds").documentation
+    assert "lost" in spec("lostSeconds").documentation
+    for prop, unit in (
+        ("bufferSeconds", "in seconds"), ("timeoutSeconds", "Seconds"), ("lostSeconds", "Seconds"),
+        ("smoothingStrength", "[0, 1)"), ("sourceMetersPerUnit", "meters"),
+        ("restPose", "(w, x, y, z)"), ("enabled", "true or false"),
+    ):  # fmt: skip
+        first = spec(prop).documentation.split(". ")[0]
+        assert unit in first, (prop, first)
 
 
 def test_plugin_path_needs_no_pxr():

@@ -15,15 +15,27 @@ EV_SYN, EV_KEY, EV_ABS = 0, 1, 3
 EV_MAX = 0x1F
 SYN_REPORT, SYN_DROPPED = 0, 3
 ABS_CODES = {"ABS_X": 0, "ABS_Y": 1, "ABS_Z": 2, "ABS_RX": 3, "ABS_RY": 4, "ABS_RZ": 5}
-ABS_CODES |= {"ABS_HAT0X": 16, "ABS_HAT0Y": 17}
+ABS_CODES |= {"ABS_GAS": 9, "ABS_BRAKE": 10, "ABS_HAT0X": 16, "ABS_HAT0Y": 17}
+BTN_CODES = {"BTN_SOUTH": 0x130, "BTN_EAST": 0x131, "BTN_NORTH": 0x133, "BTN_WEST": 0x134}
+BTN_CODES |= {"BTN_TL": 0x136, "BTN_TR": 0x137, "BTN_TL2": 0x138, "BTN_TR2": 0x139}
+BTN_CODES |= {"BTN_SELECT": 0x13A, "BTN_START": 0x13B, "BTN_MODE": 0x13C}
+BTN_CODES |= {"BTN_THUMBL": 0x13D, "BTN_THUMBR": 0x13E}
+CONTROL_CODES = {**{k: (EV_ABS, v) for k, v in ABS_CODES.items()}}
+CONTROL_CODES |= {k: (EV_KEY, v) for k, v in BTN_CODES.items()}
+"""Control name -> (event type, code), as the kernel's input-event-codes.h names them (the
+gamepad's standard mapping, Documentation/input/gamepad.rst)."""
+TRIGGERS = ("ABS_Z", "ABS_RZ", "ABS_GAS", "ABS_BRAKE")
+TRIGGER_RANGE = (0, 1023)
+"""Analogue triggers rest at their minimum (the xpad driver reports 0 to 1023)."""
+STICK_RANGE = (-32768, 32767)
 
 
 @dataclass(frozen=True)
 class AxisMap:
-    """One controller axis driving one joint rotation axis."""
+    """One controller axis (or button) driving one joint rotation axis."""
 
     code: int
-    """EV_ABS code (ABS_CODES)."""
+    """EV_ABS code (ABS_CODES), or EV_KEY code (BTN_CODES) when `kind` is EV_KEY."""
     joint: str
     axis: str
     """Joint-local rotation axis: X, Y or Z."""
@@ -34,6 +46,20 @@ class AxisMap:
     """The axis range (the device's absinfo; Xbox-style sticks by default)."""
     deadzone: float = 0.1
     """Fraction of half the range around the centre that reads as zero (stick drift)."""
+    kind: int = EV_ABS
+    """EV_ABS (deflection in [-1, 1]) or EV_KEY (a button: 1 while held, else 0)."""
+
+
+@dataclass(frozen=True)
+class ClipControl:
+    """One trigger, axis or button that blends the stage animation towards a named clip."""
+
+    kind: int
+    code: int
+    clip: str
+    minimum: int = TRIGGER_RANGE[0]
+    maximum: int = TRIGGER_RANGE[1]
+    """The blend is the control's position in [minimum, maximum], clipped to [0, 1]."""
 
 
 DEFAULT_AXES = (
@@ -58,15 +84,32 @@ class EvdevDecoder:
 
     space = "additive"
 
-    def __init__(self, axes: tuple[AxisMap, ...] = DEFAULT_AXES) -> None:
+    def __init__(
+        self, axes: tuple[AxisMap, ...] = DEFAULT_AXES, clips: tuple[ClipControl, ...] = ()
+    ) -> None:
         self.axes = axes
+        self.clips = clips
         self.bones: tuple[str, ...] = tuple(dict.fromkeys(a.joint for a in axes))
+        self.clip_names: tuple[str, ...] = tuple(dict.fromkeys(c.clip for c in clips))
+        self.clip_weights = np.zeros(len(self.clip_names))
+        """Blend per clip name in [0, 1] as of the last report (replaced whole on each report:
+        the frame thread reads it without a lock); the strongest control of a clip wins."""
         self.counters = DecodeCounters()
         self._buffer = bytearray()
         self._value = np.zeros(len(axes))  # normalised deflection per mapped axis
-        self._by_code: dict[int, list[int]] = {}
+        self._clip_value = np.zeros(len(clips))
+        self._by_code: dict[tuple[int, int], list[int]] = {}
         for i, a in enumerate(axes):
-            self._by_code.setdefault(a.code, []).append(i)
+            self._by_code.setdefault((a.kind, a.code), []).append(i)
+        self._clip_by_code: dict[tuple[int, int], list[int]] = {}
+        for i, c in enumerate(clips):
+            self._clip_by_code.setdefault((c.kind, c.code), []).append(i)
+        self._clip_column = np.array([self.clip_names.index(c.clip) for c in clips], dtype=int)
+        # Per-frame constants: which output row and Euler column each axis feeds.
+        index = {b: k for k, b in enumerate(self.bones)}
+        self._row = np.array([index[a.joint] for a in axes], dtype=int)
+        self._col = np.array([{"X": 0, "Y": 1, "Z": 2}[a.axis] for a in axes], dtype=int)
+        self._degrees = np.array([a.degrees for a in axes], dtype=np.float64)
         self._dropping = False
         self._changed = False
 
@@ -95,9 +138,14 @@ class EvdevDecoder:
                     frames.append(self._frame(sec + usec * 1e-6))
             elif self._dropping:
                 continue
-            elif kind == EV_ABS and code in self._by_code:
-                for i in self._by_code[code]:
-                    self._value[i] = self._normalise(self.axes[i], value)
+            elif (kind, code) in self._by_code or (kind, code) in self._clip_by_code:
+                for i in self._by_code.get((kind, code), ()):
+                    a = self.axes[i]
+                    self._value[i] = (
+                        float(value != 0) if kind == EV_KEY else self._normalise(a, value)
+                    )
+                for i in self._clip_by_code.get((kind, code), ()):
+                    self._clip_value[i] = self._position(self.clips[i], kind, value)
                 self._changed = True
             elif kind > EV_MAX or not (0 <= usec < 1_000_000):
                 c.malformed += 1  # not an event the kernel can send
@@ -116,26 +164,66 @@ class EvdevDecoder:
             return 0.0
         return float(np.sign(x) * (abs(x) - a.deadzone) / (1.0 - a.deadzone))
 
+    @staticmethod
+    def _position(c: ClipControl, kind: int, value: int) -> float:
+        if kind == EV_KEY:
+            return float(value != 0)  # pressed (1) or auto-repeat (2); released is 0
+        span = c.maximum - c.minimum
+        return float(np.clip((value - c.minimum) / span, 0.0, 1.0)) if span > 0 else 0.0
+
     def _frame(self, timestamp: float) -> Frame:
         self._changed = False
         angles = np.zeros((len(self.bones), 3))
-        column = {"X": 0, "Y": 1, "Z": 2}
-        index = {b: k for k, b in enumerate(self.bones)}
-        for i, a in enumerate(self.axes):
-            angles[index[a.joint], column[a.axis]] += a.degrees * self._value[i]
+        np.add.at(angles, (self._row, self._col), self._degrees * self._value)
         rotations = quat_from_euler(angles, "XYZ")
+        if len(self.clips):
+            weights = np.zeros(len(self.clip_names))
+            np.maximum.at(weights, self._clip_column, self._clip_value)
+            self.clip_weights = weights
         self.counters.frames += 1
         self.counters.samples += len(self.bones)
         return Frame(0, timestamp, np.arange(len(self.bones), dtype=np.int64), rotations)
 
 
-def parse_axes(text: str) -> tuple[AxisMap, ...]:
-    """`CODE:JOINT:AXIS:DEGREES[:MIN:MAX],...` (e.g. `ABS_RX:head:Y:-60`) -> axis maps."""
+def _range(name: str, parts: list[str]) -> tuple[int, int]:
+    if parts:
+        return int(parts[0]), int(parts[1])
+    return TRIGGER_RANGE if name in TRIGGERS else STICK_RANGE
+
+
+def parse_axes(text: str | list[str] | tuple[str, ...]) -> tuple[AxisMap, ...]:
+    """`CONTROL:JOINT:AXIS:DEGREES[:MIN:MAX]` items (a comma-separated string, as the URL's
+    axes= option, or a sequence, as the binding's gamepadOffsets) -> axis maps. CONTROL is an
+    axis (ABS_RX; range MIN:MAX, default the stick's or the trigger's) or a button (BTN_TL)."""
     axes = []
-    for item in text.split(","):
+    for item in text.split(",") if isinstance(text, str) else text:
         parts = item.split(":")
-        if len(parts) not in (4, 6) or parts[0] not in ABS_CODES or parts[2] not in ("X", "Y", "Z"):
+        if (
+            len(parts) not in (4, 6)
+            or parts[0] not in CONTROL_CODES
+            or parts[2] not in ("X", "Y", "Z")
+        ):
             raise ValueError(item)
-        extra = {"minimum": int(parts[4]), "maximum": int(parts[5])} if len(parts) == 6 else {}
-        axes.append(AxisMap(ABS_CODES[parts[0]], parts[1], parts[2], float(parts[3]), **extra))
+        kind, code = CONTROL_CODES[parts[0]]
+        low, high = _range(parts[0], parts[4:])
+        degrees = float(parts[3])
+        if not (np.isfinite(degrees) and high > low):
+            raise ValueError(item)
+        axes.append(AxisMap(code, parts[1], parts[2], degrees, low, high, kind=kind))
     return tuple(axes)
+
+
+def parse_clips(text: str | list[str] | tuple[str, ...]) -> tuple[ClipControl, ...]:
+    """`CONTROL:CLIP[:MIN:MAX]` items (a comma-separated string, as the URL's clips= option,
+    or a sequence, as the binding's gamepadClips) -> clip controls (default range 0:1023)."""
+    clips = []
+    for item in text.split(",") if isinstance(text, str) else text:
+        parts = item.split(":")
+        if len(parts) not in (2, 4) or parts[0] not in CONTROL_CODES or not parts[1]:
+            raise ValueError(item)
+        kind, code = CONTROL_CODES[parts[0]]
+        low, high = (int(parts[2]), int(parts[3])) if len(parts) == 4 else TRIGGER_RANGE
+        if high <= low:
+            raise ValueError(item)
+        clips.append(ClipControl(kind, code, parts[1], low, high))
+    return tuple(clips)

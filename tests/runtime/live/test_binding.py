@@ -3,17 +3,24 @@
 from __future__ import annotations
 
 import socket
+import warnings
 
 import numpy as np
 import pytest
-from pxr import Usd, UsdSkel
+from pxr import Sdf, Usd, UsdSkel
 
 from rigspace.runtime.live.binding import open_binding
+from rigspace.runtime.live.buffer import BufferSettings
 from rigspace.runtime.live.decoders.vmc import HUMAN_BODY_BONES, encode_frame
 from rigspace.runtime.live.frames import quat_angle
+from rigspace.runtime.live.retarget import RetargetError
+from rigspace.sdk.ring_rules import check_live_binding
 from rigspace.sdk.rotations import quat_from_matrix
-from rigspace.sdk.schema import LiveBinding
+from rigspace.sdk.schema import LiveBinding, LiveBindingDeprecationWarning, read_live_bindings
+from tests.conftest import REPO
 from tests.runtime.live.conftest import CMU_CLIP, SAMPLE_CHARACTER, wait_for
+
+PREVIS = REPO / "samples" / "scenes" / "previs.usda"
 
 
 def binding(url: str, **kw) -> LiveBinding:
@@ -103,3 +110,85 @@ def test_vmc_binding_with_an_authored_map_and_rest_pose(skel):
         np.testing.assert_allclose(rests[0], rest, atol=1e-7)
     finally:
         runtime.stop()
+
+
+def test_bone_preset_chooses_the_map_when_no_bones_are_authored(skel):
+    _, skel_prim, _ = skel
+    url = f"replay://{CMU_CLIP}"
+    auto = open_binding(binding(url), skel_prim, 0.01).retargeter
+    cmu = open_binding(binding(url, bone_preset="cmu"), skel_prim, 0.01).retargeter
+    np.testing.assert_array_equal(auto.map_target, cmu.map_target)  # auto: replay -> cmu
+    assert len(cmu.map_source) == 22
+    # none: source bones onto joints of the same name; a CMU clip shares none with the sample.
+    with pytest.raises(RetargetError, match="maps none of the source's bones"):
+        open_binding(binding(url, bone_preset="none"), skel_prim, 0.01)
+    with pytest.raises(RetargetError, match=r"bonePreset 'mixamo' names none of the bones"):
+        open_binding(binding(url, bone_preset="mixamo"), skel_prim, 0.01)
+    # Authored sourceBones win over any preset.
+    own = binding(url, bone_preset="mixamo", source_bones=("Head",), target_joints=("head",))
+    assert len(open_binding(own, skel_prim, 0.01).retargeter.map_source) == 1
+
+
+_STAGES: list[Usd.Stage] = []
+
+
+def hero_with(**attributes) -> Usd.Prim:
+    """previs.usda's Hero with more of its `suit` binding's attributes authored."""
+    stage = Usd.Stage.Open(str(PREVIS))
+    _STAGES.append(stage)  # a prim does not keep its stage alive
+    stage.SetEditTarget(stage.GetSessionLayer())
+    hero = stage.GetPrimAtPath("/World/Hero")
+    types = {
+        "buffering": Sdf.ValueTypeNames.Token, "bonePreset": Sdf.ValueTypeNames.Token,
+        "bufferSeconds": Sdf.ValueTypeNames.Float, "lostSeconds": Sdf.ValueTypeNames.Float,
+        "timeoutSeconds": Sdf.ValueTypeNames.Float, "url": Sdf.ValueTypeNames.String,
+        "gamepadOffsets": Sdf.ValueTypeNames.StringArray,
+        "gamepadClips": Sdf.ValueTypeNames.StringArray,
+    }  # fmt: skip
+    for name, value in attributes.items():
+        attr = hero.CreateAttribute(f"rigspace:live:suit:{name}", types[name], False)
+        attr.Set(value)
+    return hero
+
+
+def codes(prim: Usd.Prim) -> dict[str, str]:
+    return {i.code: i.message for i in check_live_binding(prim)}
+
+
+def test_deprecated_buffering_tokens_still_read_with_a_warning():
+    hero = hero_with(buffering="interpolate", bufferSeconds=0.2)
+    with pytest.warns(LiveBindingDeprecationWarning, match=r"suit:buffering = 'interpolate'"):
+        (b,) = read_live_bindings(hero)
+    assert (b.buffering, b.buffer_seconds, b.buffering_authored) == ("delayed", 0.0, "interpolate")
+    settings = BufferSettings.from_binding(b)
+    assert (settings.mode, settings.delay) == ("delayed", None)  # one sample interval, as before
+    hero = hero_with(buffering="buffered", bufferSeconds=0.2)
+    with pytest.warns(LiveBindingDeprecationWarning):
+        (b,) = read_live_bindings(hero)
+    assert (b.buffering, b.buffer_seconds) == ("delayed", pytest.approx(0.2))
+    with pytest.warns(LiveBindingDeprecationWarning):
+        found = codes(hero)
+    assert 'author buffering = "delayed"' in found["DeprecatedToken"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the current tokens warn nothing
+        (b,) = read_live_bindings(hero_with(buffering="delayed"))
+    assert b.buffering == "delayed" and "DeprecatedToken" not in codes(hero_with())
+
+
+def test_validation_checks_the_new_attributes():
+    assert codes(hero_with()) == {}  # previs.usda as committed
+    found = codes(hero_with(bonePreset="unity", lostSeconds=0.3, timeoutSeconds=0.5))
+    assert "bonePreset 'unity' is not a preset" in found["BadToken"]
+    assert "lostSeconds is 0.3" in found["ValueOutOfRange"]
+    assert "lostSeconds" not in str(codes(hero_with(lostSeconds=3.0)))
+    pad = hero_with(
+        url="gamepad:///dev/input/event3",
+        gamepadOffsets=["ABS_RX:head:Y:-60", "ABS_RX:tail:Y:10", "ABS_Q:head:Y:5"],
+        gamepadClips=["ABS_RZ:wave", "BTN_SOUTH:dance"],
+    )
+    found = codes(pad)
+    assert "'ABS_Q:head:Y:5' is not CONTROL:JOINT:AXIS:DEGREES" in found["BadGamepadMap"]
+    assert "names joint 'tail'" in found["TargetJointsMissing"]
+    assert "clip 'dance'" in found["ClipMissing"] and "(walk, wave," in found["ClipMissing"]
+    unused = codes(hero_with(gamepadClips=["ABS_RZ:wave"]))  # on the vmc:// suit
+    assert set(unused) == {"GamepadMapUnused"}

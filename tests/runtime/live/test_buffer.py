@@ -146,23 +146,31 @@ def test_history_is_bounded_and_pose_does_not_wait_for_a_flood():
 def test_settings_from_the_binding_tokens():
     from types import SimpleNamespace
 
-    def b(buffering):
+    def b(buffering, seconds=0.08, lost=0.0):
         return SimpleNamespace(
-            buffering=buffering, buffer_seconds=0.08, smoothing="oneEuro",
-            smoothing_strength=0.3, timeout_seconds=0.25,
+            buffering=buffering, buffer_seconds=seconds, smoothing="oneEuro",
+            smoothing_strength=0.3, timeout_seconds=0.25, lost_seconds=lost,
         )  # fmt: skip
 
     assert BufferSettings.from_binding(b("latest")).mode == "latest"
-    buffered = BufferSettings.from_binding(b("buffered"))
-    assert (buffered.mode, buffered.delay, buffered.lost_after) == ("delayed", 0.08, 1.0)
-    interpolate = BufferSettings.from_binding(b("interpolate"))
-    assert (interpolate.mode, interpolate.delay, interpolate.smoothing) == (
-        "delayed",
-        None,
-        "oneEuro",
-    )
+    delayed = BufferSettings.from_binding(b("delayed"))
+    assert (delayed.mode, delayed.delay, delayed.lost_after) == ("delayed", 0.08, 1.0)
+    one_sample = BufferSettings.from_binding(b("delayed", seconds=0.0, lost=3.0))
+    assert (one_sample.delay, one_sample.smoothing, one_sample.lost_after) == (None, "oneEuro", 3.0)
+    with pytest.raises(ValueError, match="buffering 'buffered'"):
+        BufferSettings.from_binding(b("buffered"))  # the reader maps old tokens; this does not
     with pytest.raises(ValueError, match="buffer mode"):
         LiveBuffer(("a",), BufferSettings(mode="later"))
+
+
+def test_lost_seconds_sets_the_lost_threshold():
+    b = LiveBuffer(("a",), BufferSettings(timeout=0.1, lost=0.3, blend=0.5))
+    b.push(Frame(0, 1.0, np.array([0]), np.array([[1.0, 0, 0, 0]])), received=10.0)
+    assert b.pose(10.05).status == "connected"
+    assert b.pose(10.2).status == "stale"  # past timeoutSeconds, before lostSeconds: held
+    assert b.pose(10.29).weight == 1.0
+    lost = b.pose(10.55)
+    assert lost.status == "lost" and lost.weight == pytest.approx(0.5)  # 0.25 s into the blend
 
 
 # casiez/OneEuroFilter groundTruth.csv (BSD-3-Clause, Inria): the first 30 rows of

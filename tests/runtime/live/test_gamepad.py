@@ -126,5 +126,5 @@ def test_gamepad_errors_name_the_fix(monkeypatch):
     monkeypatch.setattr(glob, "glob", lambda pattern: [])  # a machine without controllers
     with pytest.raises(LiveSourceError, match="no game controller is connected"):
         open_source("gamepad://", "pad")
-    with pytest.raises(LiveSourceError, match=r"axes=.*CODE:JOINT:AXIS:DEGREES"):
+    with pytest.raises(LiveSourceError, match=r"axes=.*CONTROL:JOINT:AXIS:DEGREES"):
         open_source("gamepad:///dev/input/event0?axes=ABS_Q:head:Y:10", "pad")
