@@ -336,7 +336,8 @@ def _preset_and_gamepad(
                 )
                 continue
             name = item.split(":")[1]
-            if prop == "gamepadOffsets" and joints is not None and _missing_joints((name,), joints):
+            missing = joints is not None and _missing_joints((name,), joints)
+            if prop == "gamepadOffsets" and skeleton is not None and missing:
                 yield error(
                     "TargetJointsMissing",
                     f"{where}: {ns}gamepadOffsets entry {item!r} names joint {name!r}, which "

@@ -6,7 +6,7 @@ import math
 import threading
 import time
 from collections import deque
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -162,7 +162,7 @@ class BindingCounters:
     latency_p99_ms: float | None
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        return dict(self.__dict__)  # flat scalars: asdict's deep copy cost 0.1 ms a frame
 
 
 class _Stream:
@@ -179,6 +179,50 @@ class _Stream:
         """A new clock (the sender restarted): forget order and offset."""
         self.last_ts = self.last_received = -math.inf
         self.offsets.clear()
+
+
+class _Ring:
+    """The last `size` values of a measurement (jitter, latency) and their p50/p99 in ms.
+
+    A preallocated array, not a deque: counters() runs every frame, and turning a 1,024-item
+    deque into an array cost more than the rest of the binding's frame work. Appends come from
+    receiver threads; `percentiles` reads without a lock (a value written meanwhile is either in
+    this frame's figures or the next's) and recomputes only when values arrived since.
+    """
+
+    __slots__ = ("_cached", "count", "values")
+
+    def __init__(self, size: int = 1024) -> None:
+        self.values = np.zeros(size)
+        self.count = 0
+        self._cached: tuple[int, float | None, float | None] = (0, None, None)
+
+    def append(self, value: float) -> None:
+        self.values[self.count % len(self.values)] = value
+        self.count += 1
+
+    def extend(self, values) -> None:
+        for value in values:
+            self.append(float(value))
+
+    def percentiles(self) -> tuple[float | None, float | None]:
+        """p50 and p99 in ms of the kept values (numpy's default linear method)."""
+        count, p50, p99 = self._cached
+        if count == self.count:
+            return p50, p99
+        count = self.count
+        n = min(count, len(self.values))
+        if n == 0:
+            return None, None
+        # One partition (linear time) puts the four order statistics both percentiles need
+        # where a full sort would.
+        at = np.array([0.5, 0.99]) * (n - 1)
+        lo = np.floor(at).astype(int)
+        hi = np.minimum(lo + 1, n - 1)
+        part = np.partition(self.values[:n], np.unique(np.concatenate([lo, hi])))
+        p50, p99 = (part[lo] + (part[hi] - part[lo]) * (at - lo)) * 1e3
+        self._cached = (count, float(p50), float(p99))
+        return float(p50), float(p99)
 
 
 @dataclass(frozen=True)
@@ -223,8 +267,8 @@ class LiveBuffer:
         self._held: tuple[np.ndarray, np.ndarray | None, float, np.ndarray] | None = None
         """The last delayed pose (rotations, root, sample time, valid), for a frame that
         finds the receiver mid-push."""
-        self._jitter: deque[float] = deque(maxlen=1024)
-        self._latency: deque[float] = deque(maxlen=1024)
+        self._jitter = _Ring()
+        self._latency = _Ring()
         self.samples = self.duplicates = self.out_of_order = self.clock_resets = 0
         self._filter: OneEuroFilter | None = None
         if s.smoothing == "oneEuro" and s.strength > 0:
@@ -291,7 +335,7 @@ class LiveBuffer:
 
     def note_latency(self, seconds: float) -> None:
         """Record one packet's receive-to-pose latency (the transport times read to push)."""
-        with self._lock:  # counters() copies the deque; iterating it during an append raises
+        with self._lock:  # receivers of a multi-device source append from several threads
             self._latency.append(seconds)
 
     # -- frame side ----------------------------------------------------------------------
@@ -390,28 +434,13 @@ class LiveBuffer:
         """A snapshot of this binding's status and counters (decoder counts from `decoded`)."""
         now = time.monotonic() if now is None else now
         d = decoded or DecodeCounters()
-        # No lock (the frame thread calls this every frame): tuple() copies a deque in one C
-        # call, which no other Python thread can interleave with; the rest are single reads.
-        jitter = np.array(tuple(self._jitter), dtype=np.float64)
-        latency = np.array(tuple(self._latency), dtype=np.float64)
+        # No lock (the frame thread calls this every frame): single reads, and the rings'
+        # percentiles from their own arrays.
         seen = self._last_seen
         status = self._status(now, seen)
         last_seen = None if math.isnan(seen) else now - seen
-
-        def ms(values: np.ndarray) -> tuple[float | None, float | None]:
-            """p50 and p99 in ms, one sort for both (counters are read every frame)."""
-            if not len(values):
-                return None, None
-            # np.percentile's default (linear) method on one sort: ten times cheaper.
-            ordered = np.sort(values)
-            at = np.array([0.5, 0.99]) * (len(ordered) - 1)
-            lo = np.floor(at).astype(int)
-            hi = np.minimum(lo + 1, len(ordered) - 1)
-            p50, p99 = (ordered[lo] + (ordered[hi] - ordered[lo]) * (at - lo)) * 1e3
-            return float(p50), float(p99)
-
-        jitter_p50, jitter_p99 = ms(jitter)
-        latency_p50, latency_p99 = ms(latency)
+        jitter_p50, jitter_p99 = self._jitter.percentiles()
+        latency_p50, latency_p99 = self._latency.percentiles()
 
         return BindingCounters(
             status=status,

@@ -328,7 +328,29 @@ class Retargeter:
         """Root motion moves the skeleton's (first) root joint, in stage units."""
         self.root_motion = root_motion
         self.rest_root = None if rest_root is None else np.asarray(rest_root, dtype=np.float64)
+        self._index_arrays()
         self.calibrate_rotations(rest_pose)
+
+    def _index_arrays(self) -> None:
+        """Per-binding constants for `apply`, computed once: the source bones a frame composes
+        (the mapped ones and their ancestors, not the fingers VMC also sends) and their levels."""
+        need = np.zeros(len(self.source_bones), dtype=bool)
+        for bone in self.map_source.tolist():
+            while bone >= 0 and not need[bone]:
+                need[bone] = True
+                bone = int(self.source_parents[bone])
+        self._need = np.flatnonzero(need)
+        position = np.full(len(self.source_bones), -1)
+        position[self._need] = np.arange(len(self._need))
+        parents = self.source_parents[self._need]
+        self._need_parents = np.where(parents >= 0, position[np.maximum(parents, 0)], -1)
+        self._need_levels = hierarchy_levels(self._need_parents)
+        self._map_in_need = position[self.map_source]
+        self._right: np.ndarray | None = None
+        """(M, 3, 3) source rest^-1 A^T target rest world per mapped pair (None: recompute after
+        a calibration or a rest alignment)."""
+        self._structure: dict[bytes, tuple] = {}
+        """Received-bones mask -> the index arrays of `apply` for it (usually one entry)."""
 
     def align_rest(self, source_rest_positions: np.ndarray) -> np.ndarray:
         """Make the source's rest pose the target's: turn each mapped joint's rest so its bone
@@ -365,6 +387,7 @@ class Retargeter:
         order = list(turns)
         applied = np.array([turns[j] for j in order])
         self._rest_world[order] = applied @ self._rest_world[order]
+        self._right = None
         return applied
 
     def _compose_target(self, local: np.ndarray) -> np.ndarray:
@@ -381,6 +404,7 @@ class Retargeter:
         rest = np.asarray(rest, dtype=np.float64)
         self.rest_pose = rest / np.linalg.norm(rest, axis=1, keepdims=True)
         self._source_rest_world = self._source_world(self.rest_pose)
+        self._right = None
 
     def calibrate(self, pose: LivePose) -> np.ndarray:
         """Take `pose` (the performer in the skeleton's rest pose) as the rest pose; returns the
@@ -399,10 +423,46 @@ class Retargeter:
             m[level] = m[self.source_parents[level]] @ m[level]
         return m
 
+    def _mapped_world(self, rotations: np.ndarray) -> np.ndarray:
+        """(B, 4) source rotations -> (M, 3, 3) world rotations of the mapped bones, composing
+        only the bones they hang from."""
+        m = _unit_matrices(rotations[self._need])
+        if self.space != "world":
+            for level in self._need_levels[1:]:
+                m[level] = m[self._need_parents[level]] @ m[level]
+        return m[self._map_in_need]
+
     def _world_deltas(self, rotations: np.ndarray) -> np.ndarray:
-        w = self._source_world(rotations)[self.map_source]
-        d = w @ np.swapaxes(self._source_rest_world[self.map_source], 1, 2)
-        return self._a @ d @ self._a.T
+        rest_inverse = np.swapaxes(self._source_rest_world[self.map_source], 1, 2)
+        return self._a @ (self._mapped_world(rotations) @ rest_inverse) @ self._a.T
+
+    def _desired(self, rotations: np.ndarray) -> np.ndarray:
+        """(M, 3, 3) each mapped joint's desired world rotation: A W R_src^-1 A^T R_target,
+        with everything right of W fixed per calibration."""
+        if self._right is None:
+            rest_inverse = np.swapaxes(self._source_rest_world[self.map_source], 1, 2)
+            self._right = rest_inverse @ self._a.T @ self._rest_world[self.map_target]
+        return self._a @ self._mapped_world(rotations) @ self._right
+
+    def _structure_for(self, received: np.ndarray) -> tuple:
+        """(pair rows, mapped joints, their parent slots, free joints per level) for a mask of
+        received mapped bones, cached: the mask rarely changes once every bone has arrived."""
+        key = received.tobytes()
+        found = self._structure.get(key)
+        if found is None:
+            n = len(self.target_joints)
+            mapped = np.zeros(n, dtype=bool)
+            mapped[self.map_target[received]] = True
+            # The last pair for a joint wins (as a fancy-index assignment would).
+            last = np.full(n, -1)
+            last[self.map_target[received]] = np.flatnonzero(received)
+            joints = np.flatnonzero(mapped)
+            free = [level[~mapped[level]] for level in self.target_levels]
+            found = (last[joints], joints, self._parent_slot[joints], [f for f in free if len(f)])
+            if len(self._structure) > 64:  # bounded: masks of a source whose bones trickle in
+                self._structure.clear()
+            self._structure[key] = found
+        return found
 
     def world_deltas(self, rotations: np.ndarray) -> np.ndarray:
         """(B, 4) source rotations -> (M, 4) stage-frame world deltas of the mapped bones."""
@@ -416,33 +476,25 @@ class Retargeter:
         out = stage_local.copy()
         if pose.weight <= 0:
             return out
-        n = len(self.target_joints)
         # Row-vector layout: the upper 3x3 is S R^T, its rows the scaled axes.
         row_scale = np.linalg.norm(stage_local[:, :3, :3], axis=2)
         stage_rot = np.swapaxes(stage_local[:, :3, :3] / row_scale[:, :, None], 1, 2)
         if self.space == "additive":
             return self._apply_additive(out, stage_rot, row_scale, pose)
-        received = pose.valid[self.map_source]
-        targets = self.map_target[received]
-        desired = np.zeros((n, 3, 3))
-        desired[targets] = self._world_deltas(pose.rotations)[received] @ self._rest_world[targets]
-        mapped = np.zeros(n, dtype=bool)
-        mapped[targets] = True
+        rows, joints, parent_slots, free_levels = self._structure_for(pose.valid[self.map_source])
+        desired = self._desired(pose.rotations)[rows]
         # Final world rotations: mapped joints take the desired ones; the others chain the
         # stage's local rotation onto their parent's final world, level by level.
-        world = np.empty((n + 1, 3, 3))
-        world[-1] = np.eye(3)
-        world[:-1][mapped] = desired[mapped]
-        for level in self.target_levels:
-            free = level[~mapped[level]]
-            if len(free):
-                world[free] = world[self._parent_slot[free]] @ stage_rot[free]
-        parent_world = world[self._parent_slot[mapped]]
-        live = np.swapaxes(parent_world, 1, 2) @ desired[mapped]
+        world = np.empty((len(self.target_joints) + 1, 3, 3))  # per call: the take thread
+        world[-1] = np.eye(3)  # merges poses too
+        world[joints] = desired
+        for free in free_levels:
+            world[free] = world[self._parent_slot[free]] @ stage_rot[free]
+        live = np.swapaxes(world[parent_slots], 1, 2) @ desired
         if pose.weight < 1:
-            q = quat_slerp(quat_from_matrix(stage_rot[mapped]), quat_from_matrix(live), pose.weight)
+            q = quat_slerp(quat_from_matrix(stage_rot[joints]), quat_from_matrix(live), pose.weight)
             live = matrix_from_quat(q)
-        out[mapped, :3, :3] = np.swapaxes(live, 1, 2) * row_scale[mapped][:, :, None]
+        out[joints, :3, :3] = np.swapaxes(live, 1, 2) * row_scale[joints][:, :, None]
         if self.root_motion and pose.root_position is not None:
             if self.rest_root is None:
                 self.rest_root = np.array(pose.root_position, dtype=np.float64)  # start = here
@@ -465,6 +517,26 @@ class Retargeter:
         live = stage_rot[targets] @ (self._a @ matrix_from_quat(offsets) @ self._a.T)
         out[targets, :3, :3] = np.swapaxes(live, 1, 2) * row_scale[targets][:, :, None]
         return out
+
+
+def _unit_matrices(q: np.ndarray) -> np.ndarray:
+    """(k, 4) quaternions (w, x, y, z) -> (k, 3, 3) rotation matrices: sdk.rotations'
+    matrix_from_quat without its stacking (the per-frame hot path: three times faster)."""
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    m = np.empty((len(q), 3, 3))
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    m[:, 0, 0] = 1 - 2 * (yy + zz)
+    m[:, 0, 1] = 2 * (xy - wz)
+    m[:, 0, 2] = 2 * (xz + wy)
+    m[:, 1, 0] = 2 * (xy + wz)
+    m[:, 1, 1] = 1 - 2 * (xx + zz)
+    m[:, 1, 2] = 2 * (yz - wx)
+    m[:, 2, 0] = 2 * (xz - wy)
+    m[:, 2, 1] = 2 * (yz + wx)
+    m[:, 2, 2] = 1 - 2 * (xx + yy)
+    return m
 
 
 def blend_transforms(a: np.ndarray, b: np.ndarray, weight: float) -> np.ndarray:

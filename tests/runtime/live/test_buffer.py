@@ -216,7 +216,7 @@ def test_one_euro_matches_the_reference_ground_truth():
         assert f(np.array([0]), np.array([[noisy]]), t)[0, 0] == pytest.approx(filtered, abs=1e-5)
 
 
-def test_counter_percentiles_are_numpys_from_one_sort():
+def test_counter_percentiles_are_numpys_from_one_partition():
     rng = np.random.default_rng(3)
     b = LiveBuffer(("a",))
     values = rng.exponential(0.004, 1500)
@@ -226,6 +226,11 @@ def test_counter_percentiles_are_numpys_from_one_sort():
     assert c.jitter_p50_ms == pytest.approx(np.percentile(values[-1024:], 50) * 1e3, rel=1e-12)
     assert c.jitter_p99_ms == pytest.approx(np.percentile(values[-1024:], 99) * 1e3, rel=1e-12)
     assert c.latency_p99_ms == pytest.approx(np.percentile(values[:7], 99) * 1e3, rel=1e-12)
+    b.note_latency(1.0)  # a new value invalidates the cached figures
+    assert b.counters().latency_p99_ms == pytest.approx(
+        np.percentile([*values[:7], 1.0], 99) * 1e3, rel=1e-12
+    )
+    assert b.counters().as_dict()["latency_p50_ms"] == b.counters().latency_p50_ms
 
 
 @pytest.mark.parametrize("mode", [LATEST, DELAYED])
