@@ -236,8 +236,9 @@ def frame_cost(frames: int = 40, size: int = 256) -> dict:
             while live.live.report()[0]["samples"] == 0 and time.monotonic() < end:
                 time.sleep(0.05)
             seconds: dict[str, list] = {"stage": [], "live": [], "stage_rig": [], "live_rig": []}
-            work = []
+            work, own = [], []
             hero = live.characters[0]
+            runtimes = live.live.characters[hero.path].runtimes
             for t in codes:
                 for name, engine in (("stage", stage), ("live", live)):
                     report = engine.render(float(t)).report
@@ -247,6 +248,14 @@ def frame_cost(frames: int = 40, size: int = 256) -> dict:
                 live.live.local(hero, float(t), {})
                 live.live.report()
                 work.append(time.perf_counter() - start)
+                # What the binding adds to a frame that reads the stage anyway: its pose,
+                # retarget and counters (the stage read is the stage path's too).
+                local = np.asarray(hero.rig.local_transforms(float(t)), dtype=np.float64)
+                start = time.perf_counter()
+                for runtime in runtimes:
+                    local, _ = runtime.apply(local, None, hero.rig.local_transforms, float(t))
+                live.live.report()
+                own.append(time.perf_counter() - start)
             status = live.live.report()[0]["status"]
 
     def ms(values, q=50):
@@ -262,6 +271,8 @@ def frame_cost(frames: int = 40, size: int = 256) -> dict:
         "live_rig_ms_p50": ms(seconds["live_rig"]),
         "live_work_ms_p50": ms(work),
         "live_work_ms_p99": ms(work, 99),
+        "binding_own_ms_p50": ms(own),
+        "binding_own_ms_p99": ms(own, 99),
     }
 
 

@@ -24,3 +24,4 @@ def test_frame_cost_compares_live_and_stage_frames():
     assert r["binding_status"] == "connected"  # the live engine really rendered the stream
     assert r["live_frame_ms_p50"] > 0 and r["stage_frame_ms_p50"] > 0
     assert 0 < r["live_work_ms_p50"] <= r["live_work_ms_p99"]
+    assert 0 < r["binding_own_ms_p50"] <= r["binding_own_ms_p99"]

@@ -203,3 +203,32 @@ def test_align_rest_puts_the_character_in_the_clips_rest_pose(character, cmu):
     # A-pose (arms 40 degrees below horizontal).
     arm = position["lowerarm_l"] - position["upperarm_l"]
     assert arm[1] < -0.999 * np.linalg.norm(arm)
+
+
+def test_cached_index_arrays_follow_the_bones_that_have_arrived(character, cmu):
+    """The per-mask structure cache: bones arriving later change the mapped set; each mask's
+    result equals a fresh retargeter's (no state leaks between masks or calibrations)."""
+    _, _, stage_local = character
+    _, rotations, _ = cmu
+    r = cmu_retargeter(character, cmu)
+    base = stage_local(60.0)
+    full = r.apply(base, live_pose(rotations[300]))
+    partial_valid = np.zeros(len(rotations[300]), bool)
+    partial_valid[r.map_source[:5]] = True  # the root chain first
+    partial = LivePose(rotations[300], partial_valid, None, "connected", 1.0, 0.0)
+    got = r.apply(base, partial)
+    assert len(r._structure) == 2
+    fresh = cmu_retargeter(character, cmu).apply(base, partial)
+    np.testing.assert_array_equal(got, fresh)
+    untouched = np.setdiff1d(np.arange(len(base)), r.map_target[:5])
+    np.testing.assert_array_equal(got[untouched], base[untouched])
+    np.testing.assert_array_equal(r.apply(base, live_pose(rotations[300])), full)
+    # A new calibration drops the cached rest products.
+    r.calibrate_rotations(rotations[0])
+    recalibrated = cmu_retargeter(character, cmu, rest_pose=rotations[0])
+    np.testing.assert_allclose(
+        r.apply(base, live_pose(rotations[300])),
+        recalibrated.apply(base, live_pose(rotations[300])),
+        atol=1e-12,
+    )
+    assert not np.allclose(r.apply(base, live_pose(rotations[300])), full, atol=1e-6)
