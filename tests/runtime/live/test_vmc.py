@@ -183,9 +183,14 @@ def test_a_flood_is_counted_and_bounded_and_the_receiver_keeps_going():
                 s.sendto(rng.bytes(int(rng.integers(1, 1400))) if k % 2 else unknown, address)
             assert wait_for(lambda: source.decoder.counters.packets > 100)
             q = random_quats(len(HUMAN_BODY_BONES))
-            for dgram in encode_frame(HUMAN_BODY_BONES, q, np.zeros(3), None, 5.0):
-                s.sendto(dgram, address)
-            assert wait_for(lambda: source.decoder.counters.frames == 1)
+            # The flood can still fill the socket's receive buffer on a loaded machine, and UDP
+            # then drops what comes next: resend the frame until one arrives whole.
+            for _ in range(20):
+                for dgram in encode_frame(HUMAN_BODY_BONES, q, np.zeros(3), None, 5.0):
+                    s.sendto(dgram, address)
+                if wait_for(lambda: source.decoder.counters.frames >= 1, timeout=1.0):
+                    break
+            assert source.decoder.counters.frames >= 1
         c = source.decoder.counters
         assert c.malformed > 0 and c.unknown_bones > 0 and source.decoder.buffered == 0
         assert len(buffer._snapshots) <= buffer.settings.history
