@@ -17,6 +17,7 @@ from rigspace.sdk.character_rules import (
     character_animation,
     character_skeleton,
 )
+from rigspace.sdk.input_codes import CONTROL_CODES
 from rigspace.sdk.issues import CAPTURE, RENDER, Issue, ValidatorSpec, error, warning
 
 # Limits documented on the schema properties (usd_schemas/schema.usda).
@@ -297,8 +298,6 @@ def _preset_and_gamepad(
 ) -> Iterator[Issue]:
     """bonePreset is a known token; gamepadOffsets/gamepadClips parse, name joints of the
     skeleton and clips of the character's capture ring, and sit on a gamepad:// binding."""
-    from rigspace.runtime.live.decoders.evdev import CONTROL_CODES
-
     if b.bone_preset not in BONE_PRESETS:
         yield error(
             "BadToken",

@@ -8,22 +8,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from rigspace.runtime.live.frames import DecodeCounters, Frame, quat_from_euler
+from rigspace.sdk.input_codes import (  # noqa: F401  (re-exported for the fuzzer and tests)
+    ABS_CODES,
+    BTN_CODES,
+    CONTROL_CODES,
+    EV_ABS,
+    EV_KEY,
+    EV_SYN,
+)
 
 EVENT = struct.Struct("@qqHHi")
 """struct input_event on 64-bit Linux: timeval (seconds, microseconds), type, code, value."""
-EV_SYN, EV_KEY, EV_ABS = 0, 1, 3
 EV_MAX = 0x1F
 SYN_REPORT, SYN_DROPPED = 0, 3
-ABS_CODES = {"ABS_X": 0, "ABS_Y": 1, "ABS_Z": 2, "ABS_RX": 3, "ABS_RY": 4, "ABS_RZ": 5}
-ABS_CODES |= {"ABS_GAS": 9, "ABS_BRAKE": 10, "ABS_HAT0X": 16, "ABS_HAT0Y": 17}
-BTN_CODES = {"BTN_SOUTH": 0x130, "BTN_EAST": 0x131, "BTN_NORTH": 0x133, "BTN_WEST": 0x134}
-BTN_CODES |= {"BTN_TL": 0x136, "BTN_TR": 0x137, "BTN_TL2": 0x138, "BTN_TR2": 0x139}
-BTN_CODES |= {"BTN_SELECT": 0x13A, "BTN_START": 0x13B, "BTN_MODE": 0x13C}
-BTN_CODES |= {"BTN_THUMBL": 0x13D, "BTN_THUMBR": 0x13E}
-CONTROL_CODES = {**{k: (EV_ABS, v) for k, v in ABS_CODES.items()}}
-CONTROL_CODES |= {k: (EV_KEY, v) for k, v in BTN_CODES.items()}
-"""Control name -> (event type, code), as the kernel's input-event-codes.h names them (the
-gamepad's standard mapping, Documentation/input/gamepad.rst)."""
 TRIGGERS = ("ABS_Z", "ABS_RZ", "ABS_GAS", "ABS_BRAKE")
 TRIGGER_RANGE = (0, 1023)
 """Analogue triggers rest at their minimum (the xpad driver reports 0 to 1023)."""
