@@ -43,7 +43,6 @@ from rigspace.runtime.shading import pixel_positions, shade, shade_pixels
 from rigspace.runtime.shadows import (
     PosedCapsules,
     PrimShadows,
-    capsule_visibility,
     region_mask,
     shadow_regions,
     sparse_visibility,
@@ -400,7 +399,7 @@ class Engine:
                 v = np.ones(pixels.size, np.float32)
                 for mask, posed in mine:
                     inside = np.flatnonzero(mask.reshape(-1)[pixels])
-                    v[inside] *= capsule_visibility(points[:, inside], posed, light)
+                    v[inside] *= self.shadows.capsule_visibility(points[:, inside], posed, light)
                 return v
 
             full = np.ones((camera.height, camera.width), np.float32)
@@ -459,7 +458,8 @@ class Engine:
                     v = seen if v is None else v * seen
             if light.kind in (DISTANT, POINT):
                 for _, posed in others:
-                    v = capsule_visibility(points, posed, light) * (1.0 if v is None else v)
+                    seen = self.shadows.capsule_visibility(points, posed, light)
+                    v = seen if v is None else v * seen
             if v is None:
                 out.append(None)
                 continue

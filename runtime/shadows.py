@@ -21,7 +21,8 @@
   casting in the test's penumbra; this is within 0.08, and within 0.013 at the penumbra). Only pixels in
   the screen rectangles of the limbs' shadow volumes are visited, and only the (pixel,
   capsule) pairs that lie close in the light's 2-D view (a capsule's shadow is a 2-D
-  capsule there, widened by each pixel's penumbra) are computed.
+  capsule there, widened by each pixel's penumbra) are computed. With a GPU behind the gl
+  renderer the same maths runs in a fragment shader instead (gl_shadows.py, GL_CAPSULES).
 
 Shadowing multiplies each light's contribution (diffuse and specular), never the ambient.
 """
@@ -34,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rigspace.runtime.billboard import cross
+from rigspace.runtime.gl_shadows import GLCapsuleShadows
 from rigspace.runtime.lights import DISTANT, POINT, Light
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.render import DrawMesh, Renderer, RendererSpec, RenderSettings, render_depth
@@ -67,6 +69,14 @@ BEND_TOLERANCE = 0.1
 """A cell where the shadow factor's second difference at a sample exceeds this (the factor
 does not change linearly there: a shadow's edge, its end, a thin shadow) is evaluated, and
 so are its neighbours; elsewhere a blend errs by about an eighth of it."""
+GL_CAPSULES = "hardware"
+"""Where capsule occlusion runs in a fragment shader (gl_shadows.py) rather than numpy:
+"hardware" with the gl renderer on a GPU, "always" with the gl renderer (Mesa's llvmpipe
+too), "never". On llvmpipe, 2 shared cores, the shader measured no faster than numpy per
+frame (each draw hands its pixels to llvmpipe's threads and waits for them), so numpy
+stays there; the numpy pairs are also the reference and the fallback (embree, no EGL)."""
+SOFTWARE_GL = ("llvmpipe", "softpipe", "swrast", "software")
+"""GL_RENDERER strings (lower case) of a rasteriser on the CPU."""
 SURFACE_TOLERANCE = 0.01
 """A pixel whose inverse depth is off its cell's blend by more than this fraction lies on
 another surface (a silhouette, a crease) and is evaluated exactly."""
@@ -203,6 +213,8 @@ class PrimShadows:
         compare it)."""
         self.drawn = 0
         """Maps drawn since the last update (the report's)."""
+        self._gl: GLCapsuleShadows | None = None
+        self._gl_tried = False
 
     def update(
         self, lights: Sequence[Light], groups: Sequence[tuple[str, Sequence[DrawMesh]]]
@@ -254,6 +266,33 @@ class PrimShadows:
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+        if self._gl is not None:
+            self._gl.close()
+            self._gl = None
+        self._gl_tried = False
+
+    def capsule_visibility(
+        self, points: np.ndarray, capsules: PosedCapsules, light: Light
+    ) -> np.ndarray:
+        """capsule_visibility, in the fragment shader where GL_CAPSULES says so."""
+        return capsule_visibility(points, capsules, light, self._capsule_shader())
+
+    @property
+    def capsule_backend(self) -> str:
+        """What computes the capsules' occlusion, "gl" or "numpy" (decided on first use)."""
+        return "numpy" if self._capsule_shader() is None else "gl"
+
+    def _capsule_shader(self) -> GLCapsuleShadows | None:
+        if not self._gl_tried:
+            self._gl_tried = True
+            wanted = GL_CAPSULES != "never" and self._spec.name == "gl"
+            if wanted and self._spec.unavailable() is None:
+                self._gl = GLCapsuleShadows(MIN_VISIBILITY)
+                software = any(name in self._gl.renderer.lower() for name in SOFTWARE_GL)
+                if software and GL_CAPSULES != "always":
+                    self._gl.close()
+                    self._gl = None
+        return self._gl
 
     def regions(
         self, index: int, box: np.ndarray, camera: Camera
@@ -461,6 +500,20 @@ def _light_plane(light: Light, capsules: PosedCapsules, points: np.ndarray, soft
     return u, v, ends[0], ends[1], np.tan(angular), margin, stretch
 
 
+def _near(u, v, a2, b2, radius, margin, stretch) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each receiver's tangent stretch (NaN where it is too far off the light's axis to
+    bound), whether that is so, and the receivers within reach of all capsules' 2-D bounds."""
+    factor = stretch(margin)
+    unbounded = np.isnan(factor) & np.isfinite(u)
+    lo, hi = np.minimum(a2, b2).astype(np.float32), np.maximum(a2, b2).astype(np.float32)
+    reach = (np.float32(radius.max()) + margin) * factor
+    near = np.flatnonzero(
+        (u >= lo[:, 0].min() - reach) & (u <= hi[:, 0].max() + reach)
+        & (v >= lo[:, 1].min() - reach) & (v <= hi[:, 1].max() + reach)
+    )  # fmt: skip
+    return factor, unbounded, near
+
+
 def _candidate_pairs(
     u, v, a2, b2, radius, margin, stretch, parts: Sequence[np.ndarray]
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -472,14 +525,8 @@ def _candidate_pairs(
     is kept for the callers' signature: one block over every capsule measured faster than a
     loop over the limbs.)"""
     del parts
-    factor = stretch(margin)  # per receiver; NaN where too far off the axis to bound
-    unbounded = np.isnan(factor) & np.isfinite(u)
+    factor, unbounded, near = _near(u, v, a2, b2, radius, margin, stretch)
     lo, hi = np.minimum(a2, b2).astype(np.float32), np.maximum(a2, b2).astype(np.float32)
-    reach = (np.float32(radius.max()) + margin) * factor
-    near = np.flatnonzero(
-        (u >= lo[:, 0].min() - reach) & (u <= hi[:, 0].max() + reach)
-        & (v >= lo[:, 1].min() - reach) & (v <= hi[:, 1].max() + reach)
-    )  # fmt: skip
     receivers, capsules = [], []
     if near.size:
         pu, pv, f = u[near, None], v[near, None], factor[near, None]
@@ -506,8 +553,13 @@ def _candidate_pairs(
     return np.concatenate(receivers), np.concatenate(capsules)
 
 
-def capsule_visibility(points: np.ndarray, capsules: PosedCapsules, light: Light) -> np.ndarray:
-    """(N,) how much of `light` reaches world points (planar (3, N)) past the capsules."""
+def capsule_visibility(
+    points: np.ndarray, capsules: PosedCapsules, light: Light, gl: GLCapsuleShadows | None = None
+) -> np.ndarray:
+    """(N,) how much of `light` reaches world points (planar (3, N)) past the capsules. With
+    `gl`, the receivers within reach of all capsules' 2-D bounds go to its fragment shader
+    (the same maths, every capsule per receiver, a limb's capsules skipped together where
+    its bounding sphere misses the light) instead of pair by pair here."""
     n = points.shape[1]
     out = np.ones(n, np.float32)
     if n == 0 or len(capsules.radius) == 0:
@@ -515,6 +567,19 @@ def capsule_visibility(points: np.ndarray, capsules: PosedCapsules, light: Light
     p = np.asarray(points, dtype=np.float32)
     soft = _soft_radius(light, capsules) if light.kind == POINT else 0.0
     plane = _light_plane(light, capsules, p, soft)
+    if gl is not None:  # receivers near all capsules' 2-D bounds; the shader skips the rest
+        if plane is None:
+            receivers = np.arange(n)
+        else:
+            _, unbounded, near = _near(*plane)
+            receivers = np.union1d(near, np.flatnonzero(unbounded))
+        if receivers.size:
+            angle = max(light.angle, MIN_SOFTNESS)
+            out[receivers] = gl.visibility(
+                p[:, receivers], capsules.a, capsules.b, capsules.radius, capsules.chains,
+                light, angle, soft,
+            )  # fmt: skip
+        return out
     if plane is None:  # no 2-D view to bin in: every pair
         i, k = np.divmod(np.arange(n * len(capsules.radius)), len(capsules.radius))
     else:

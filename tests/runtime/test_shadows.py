@@ -504,3 +504,126 @@ def test_the_depth_only_pass_draws_the_maps_depth(name):
         assert np.array_equal(again, renderer.render(meshes[1:], camera).depth)
     finally:
         renderer.close()
+
+
+# -- the fragment shader ----------------------------------------------------------------------
+
+SHADER_TOLERANCE = 1e-3
+"""Largest gap between the shader's capsule occlusion and numpy's, as a fraction of the light
+(measured 7e-5 for a DistantLight, 4e-4 for a point light: float32 both, the shader's angles
+by atan where numpy takes arccos)."""
+
+
+def _shader():
+    from rigspace.runtime.gl_shadows import GLCapsuleShadows
+    from rigspace.sdk.render import gl as gl_module
+
+    if gl_module.unavailable() is not None:
+        pytest.skip(f"the gl renderer cannot run here: {gl_module.unavailable()}")
+    return GLCapsuleShadows(shadows.MIN_VISIBILITY)
+
+
+_LIGHTS = {
+    DISTANT: Light(DISTANT, np.ones(3), direction=np.array([0.5, -0.8, 0.3]) / np.sqrt(0.98)),
+    POINT: Light(POINT, np.ones(3), position=np.array([100.0, 300.0, 300.0]), radius=15.0),
+}
+
+
+@pytest.mark.parametrize("kind", [DISTANT, POINT])
+def test_the_shader_matches_numpy_on_the_sample_capsules(kind):
+    capsules = read_capsules(SAMPLE_MODEL / "capsules.json")
+    rig = _rig()
+    world = rig.world_transforms(100.0)
+    index = [rig.joints.index(j) for j in capsules.joints]
+    limbs = shadows.chains(capsules.joints)
+    posed = shadows.pose_capsules(capsules.a, capsules.b, capsules.radius, world[index], limbs)
+    rng = np.random.default_rng(2)
+    centre = world[index[0]][:3, 3]
+    points = centre + rng.uniform(-300, 300, (20000, 3)) * (1, 0, 1) - (0, centre[1], 0)
+    points = np.concatenate([points, centre + rng.normal(0, 30, (2000, 3))])  # among them
+    points = points.T.astype(np.float32)
+    shader = _shader()
+    try:
+        on_gl = shadows.capsule_visibility(points, posed, _LIGHTS[kind], shader)
+    finally:
+        shader.close()
+    on_numpy = capsule_visibility(points, posed, _LIGHTS[kind])
+    assert (on_numpy < 0.5).sum() > 100 and (on_numpy == 1.0).sum() > 1000
+    assert np.abs(on_gl - on_numpy).max() < SHADER_TOLERANCE
+
+
+def test_the_shader_draws_more_capsules_than_one_draw_holds():
+    """70 random capsules in uneven groups: two draws (MAX_CAPSULES each), their visibilities
+    multiplied, the same as numpy's product over all of them."""
+    from rigspace.runtime.gl_shadows import MAX_CAPSULES
+
+    rng = np.random.default_rng(3)
+    k = MAX_CAPSULES + 6
+    a = rng.uniform(-50, 50, (k, 3)) + np.array([0.0, 120.0, 0.0])
+    b = a + rng.normal(0, 8, (k, 3))
+    groups = (np.arange(0, 5), np.arange(5, 50), np.arange(50, k))
+    posed = PosedCapsules(a, b, rng.uniform(1, 6, k), groups)
+    x, z = np.meshgrid(np.linspace(-120, 120, 90), np.linspace(-120, 120, 90))
+    points = np.stack([x.ravel(), np.zeros(x.size), z.ravel()]).astype(np.float32)
+    shader = _shader()
+    try:
+        for light in _LIGHTS.values():
+            on_gl = shadows.capsule_visibility(points, posed, light, shader)
+            on_numpy = capsule_visibility(points, posed, light)
+            assert (on_numpy < 0.9).sum() > 200
+            assert np.abs(on_gl - on_numpy).max() < SHADER_TOLERANCE
+    finally:
+        shader.close()
+
+
+def test_the_previs_frame_through_the_shader_matches_numpy(monkeypatch):
+    """A previs frame with the character's shadow under both lights, its capsules by the
+    shader (forced onto llvmpipe) and by numpy."""
+    from rigspace.sdk.render import gl as gl_module
+
+    if gl_module.unavailable() is not None:
+        pytest.skip(f"the gl renderer cannot run here: {gl_module.unavailable()}")
+
+    def frame(where: str) -> tuple[np.ndarray, str]:
+        monkeypatch.setattr(shadows, "GL_CAPSULES", where)
+        engine = Engine(PREVIS, width=320, height=180, precision="int8", prim_samples=1,
+                        renderer="gl")  # fmt: skip
+        try:
+            return np.array(engine.render(600.0).beauty), engine.shadows.capsule_backend
+        finally:
+            engine.close()
+
+    (on_gl, used), (on_numpy, reference) = frame("always"), frame("never")
+    assert (used, reference) == ("gl", "numpy")
+    gap = np.abs(on_gl - on_numpy).max(axis=-1)
+    assert gap.max() < SHADER_TOLERANCE
+    # What is compared holds the character's shadow: without capsule occlusion it is gone.
+    monkeypatch.setattr(
+        shadows.PrimShadows, "capsule_visibility", lambda self, p, c, light: np.ones(p.shape[1])
+    )
+    unshadowed, _ = frame("always")
+    assert ((unshadowed - on_gl).max(axis=-1) > 0.01).sum() > 100
+
+
+@pytest.mark.parametrize("name", ["gl", "embree"])
+def test_the_shader_runs_only_with_the_gl_renderer_on_a_gpu(name, monkeypatch):
+    from rigspace.sdk.render import choose_renderer
+
+    spec = choose_renderer(name)
+    prim_shadows = shadows.PrimShadows(spec)
+    try:
+        backend = prim_shadows.capsule_backend
+        if name == "embree":
+            assert backend == "numpy"
+            return
+        shader = _shader()
+        try:
+            software = any(s in shader.renderer.lower() for s in shadows.SOFTWARE_GL)
+        finally:
+            shader.close()
+        assert backend == ("numpy" if software else "gl")
+    finally:
+        prim_shadows.close()
+    monkeypatch.setattr(shadows, "GL_CAPSULES", "always")
+    assert prim_shadows.capsule_backend == "gl"  # decided again after close
+    prim_shadows.close()
