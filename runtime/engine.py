@@ -175,7 +175,9 @@ class Engine:
         self._prims_key: tuple = ()
         self._prims: Maps | None = None
         self._layers: dict[str, _CachedLayer] = {}
-        self._lit_prims: tuple[bytes, np.ndarray, list[np.ndarray | None] | None] | None = None
+        self._lit_prims: tuple[bytes, np.ndarray | None, list[np.ndarray | None] | None] | None = (
+            None
+        )
         """The lit prims, keyed by lights and shadow maps, with each light's shadow factor."""
         self.shadows = PrimShadows(spec)
         self._box: tuple[tuple, np.ndarray] | None = None
@@ -326,38 +328,63 @@ class Engine:
             self._box = (key, np.array([lo, hi], dtype=np.float64))
         return self._box[1]
 
-    def _prim_visibility(
-        self, prims: Maps, camera: Camera, lights: list[Light], meshes
-    ) -> list[np.ndarray | None] | None:
-        """Per light, the prims' (H, W) shadow factor from the shadow maps (None: unshadowed),
-        each map looked up only where its casters' shadows can fall, sparsely."""
-        if not self._shadowing(lights):
-            return None
+    def _prim_shadows(
+        self, prims: Maps, camera: Camera, lights: list[Light], meshes, casters, maps: bool
+    ) -> tuple[list[np.ndarray | None], list[np.ndarray | None]]:
+        """Per light, the prims' (H, W) shadow factor from the shadow maps (with `maps`) and
+        from the characters' capsules (None: none can fall), each found coarse to fine
+        (sparse_visibility) in the window of its own screen regions. (One pass for both, on
+        the union of their windows, measured slower: the capsules' small window grew to the
+        maps' and more pixels were evaluated.)"""
         box = self._scene_box(meshes)
-        covered = prims.mask > 0
-        out: list[np.ndarray | None] = []
-        for index in range(len(lights)):
-            maps = self.shadows.regions(index, box, camera)
-            if not maps:
-                out.append(None)
+        bounds = [(posed, [part.bounds() for part in posed.parts()]) for _, posed in casters]
+        jobs: list[tuple[int, int, list, Any]] = []  # (light, pass, regions, map or capsules)
+        passes: dict[tuple[int, str], int] = {}  # a pass per light and kind
+        for index, light in enumerate(lights):
+            if light.kind not in (DISTANT, POINT):
                 continue
-            window = _window([r for rects, _ in maps for r in rects])
-            areas = [covered[window] & region_mask(rects, camera, window) for rects, _ in maps]
+            if maps:
+                for rects, handle in self.shadows.regions(index, box, camera):
+                    number = passes.setdefault((index, "map"), len(passes))
+                    jobs.append((index, number, rects, handle))
+            # Per caster, the regions its limbs' shadows can fall on (a limb's region is
+            # much smaller than the whole body's).
+            for posed, spheres in bounds:
+                centres = np.array([c for c, _ in spheres])
+                reach = np.array([r for _, r in spheres])[:, None]
+                rects = shadow_regions(centres - reach, centres + reach, light, box, camera)
+                rects = [r for r in rects if r is not None]
+                if rects:
+                    number = passes.setdefault((index, "capsules"), len(passes))
+                    jobs.append((index, number, rects, posed))
+        mapped: list[np.ndarray | None] = [None] * len(lights)
+        hidden: list[np.ndarray | None] = [None] * len(lights)
+        for (index, kind), number in passes.items():
+            mine = [job for job in jobs if job[1] == number]
+            window = _window([r for _, _, rects, _ in mine for r in rects])
+            covered = prims.mask[window] > 0
+            areas = [covered & region_mask(rects, camera, window) for _, _, rects, _ in mine]
 
-            def evaluate(pixels: np.ndarray, maps=maps, areas=areas, window=window):
+            def evaluate(pixels: np.ndarray, mine=mine, areas=areas, window=window) -> np.ndarray:
                 frame = _in_frame(pixels, window, camera)
                 points, normals = self._prim_points(prims, camera, frame)
                 v = np.ones(pixels.size, np.float32)
-                for area, (_, handle) in zip(areas, maps, strict=True):
-                    mine = np.flatnonzero(area.reshape(-1)[pixels])
-                    v[mine] *= self.shadows.lookup(handle, points[:, mine], normals[:, mine])
+                for area, (index, _, _, what) in zip(areas, mine, strict=True):
+                    inside = np.flatnonzero(area.reshape(-1)[pixels])
+                    if isinstance(what, PosedCapsules):
+                        seen = self.shadows.capsule_visibility(
+                            points[:, inside], what, lights[index]
+                        )
+                    else:
+                        seen = self.shadows.lookup(what, points[:, inside], normals[:, inside])
+                    v[inside] *= seen
                 return v
 
             full = np.ones((camera.height, camera.width), np.float32)
             candidates = np.logical_or.reduce(areas)
             full[window] = sparse_visibility(candidates, evaluate, prims.depth[window])
-            out.append(full)
-        return out
+            (mapped if kind == "map" else hidden)[index] = full
+        return mapped, hidden
 
     @staticmethod
     def _prim_points(prims: Maps, camera: Camera, pixels: np.ndarray):
@@ -368,44 +395,21 @@ class Engine:
             camera, (0, 0),
         )  # fmt: skip
 
-    def _capsule_shadows_on_prims(
-        self, beauty, prims: Maps, camera: Camera, lights, casters, meshes
+    @staticmethod
+    def _shade_prims(prims: Maps, camera: Camera, lights, visibility) -> np.ndarray:
+        """The prims' G-buffer lit, with per-light shadow factors `visibility`."""
+        if not lights:
+            return prims.albedo.copy()
+        return shade(
+            prims.albedo, prims.normal, prims.depth, prims.mask, camera, lights,
+            visibility=visibility,
+        )  # fmt: skip
+
+    def _capsule_reshade(
+        self, beauty, prims: Maps, camera: Camera, lights, hidden, shadowed
     ) -> None:
-        """Re-shade, in `beauty`, the prim pixels the characters' capsules shadow."""
-        box = self._scene_box(meshes)
-        covered = prims.mask > 0
-        # Per light and caster, the regions its limbs' shadows can fall on (a limb's region
-        # is much smaller than the whole body's).
-        bounds = [(posed, [part.bounds() for part in posed.parts()]) for _, posed in casters]
-        hidden: list[np.ndarray | None] = []
-        for light in lights:
-            found = []
-            if light.kind in (DISTANT, POINT):
-                for posed, spheres in bounds:
-                    centres = np.array([c for c, _ in spheres])
-                    reach = np.array([r for _, r in spheres])[:, None]
-                    rects = shadow_regions(centres - reach, centres + reach, light, box, camera)
-                    rects = [r for r in rects if r is not None]
-                    if rects:
-                        found.append((rects, posed))
-            if not found:
-                hidden.append(None)
-                continue
-            window = _window([r for rects, _ in found for r in rects])
-            mine = [(covered[window] & region_mask(rects, camera, window), p) for rects, p in found]
-
-            def evaluate(pixels: np.ndarray, mine=mine, light=light, window=window):
-                points, _ = self._prim_points(prims, camera, _in_frame(pixels, window, camera))
-                v = np.ones(pixels.size, np.float32)
-                for mask, posed in mine:
-                    inside = np.flatnonzero(mask.reshape(-1)[pixels])
-                    v[inside] *= self.shadows.capsule_visibility(points[:, inside], posed, light)
-                return v
-
-            full = np.ones((camera.height, camera.width), np.float32)
-            candidates = np.logical_or.reduce([m for m, _ in mine])
-            full[window] = sparse_visibility(candidates, evaluate, prims.depth[window])
-            hidden.append(full)
+        """Re-shade, in `beauty` (the prims lit with the maps' shadows `shadowed`), the prim
+        pixels the characters' capsules shadow (`hidden`, per light)."""
         dark = [v < 1.0 for v in hidden if v is not None]
         if not dark:
             return
@@ -413,7 +417,6 @@ class Engine:
         if flat.size == 0:
             return
         # Only the pixels a capsule shadows are shaded again, with every light's shadows.
-        shadowed = self._lit_prims[2] if self._lit_prims is not None else None
         visibility: list[np.ndarray | None] = []
         for index, v in enumerate(hidden):
             seen = None if v is None else v.reshape(-1)[flat]
@@ -617,31 +620,41 @@ class Engine:
         t = clock.perf_counter()
         lit_key = light_key + self.shadows.key
         lit_reused = reused and self._lit_prims is not None and self._lit_prims[0] == lit_key
-        if not lit_reused or self._lit_prims is None:
-            visibility = self._prim_visibility(prims, camera, lights, scene_meshes)
+        if lit_reused and self._lit_prims is not None:
+            # The prims and lights are still: only the capsules' shadows are found again.
+            _, hidden = self._prim_shadows(prims, camera, lights, scene_meshes, casters, False)
             timings["shadows"] += clock.perf_counter() - t
             t = clock.perf_counter()
-            lit = (
-                shade(
-                    prims.albedo,
-                    prims.normal,
-                    prims.depth,
-                    prims.mask,
-                    camera,
-                    lights,
-                    visibility=visibility,
+            _, lit, visibility = self._lit_prims
+            if lit is None:  # last shaded with the capsules' shadows in: once without them
+                lit = self._shade_prims(prims, camera, lights, visibility)
+                self._lit_prims = (lit_key, lit, visibility)
+            beauty = lit.copy()  # the characters are composited over this copy
+            timings["lighting"] += clock.perf_counter() - t
+            t = clock.perf_counter()
+            self._capsule_reshade(beauty, prims, camera, lights, hidden, visibility)
+            timings["shadows"] += clock.perf_counter() - t
+        else:
+            # One pass finds the maps' and the capsules' shadows; one shading applies both.
+            visibility, hidden = None, []
+            if self._shadowing(lights):
+                visibility, hidden = self._prim_shadows(
+                    prims, camera, lights, scene_meshes, casters, True
                 )
-                if lights
-                else prims.albedo
-            )
+            timings["shadows"] += clock.perf_counter() - t
+            t = clock.perf_counter()
+            both = visibility
+            if any(v is not None for v in hidden) and visibility is not None:
+                both = [
+                    m if c is None else c if m is None else m * c
+                    for m, c in zip(visibility, hidden, strict=True)
+                ]
+            beauty = self._shade_prims(prims, camera, lights, both)
+            # Kept for a still next frame; without the capsules' shadows it is made then.
+            lit = beauty.copy() if both is visibility else None
             self._lit_prims = (lit_key, lit, visibility)
-        beauty = self._lit_prims[1].copy()  # the characters are composited over this copy
+            timings["lighting"] += clock.perf_counter() - t
         report["scene_prims"]["lit_reused"] = lit_reused
-        timings["lighting"] += clock.perf_counter() - t
-        t = clock.perf_counter()
-        if casters:
-            self._capsule_shadows_on_prims(beauty, prims, camera, lights, casters, meshes)
-        timings["shadows"] += clock.perf_counter() - t
         albedo, normal = prims.albedo.copy(), prims.normal.copy()
         depth, mask = prims.depth.copy(), prims.mask.copy()
         for c in candidates:

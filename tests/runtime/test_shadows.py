@@ -214,6 +214,38 @@ def test_a_moving_light_redraws_the_maps_and_the_frame(tmp_path):
     assert not np.array_equal(first.beauty, second.beauty)
 
 
+def test_a_still_camera_reuses_the_lit_prims_and_shadows_them_as_a_fresh_engine_does(tmp_path):
+    """A frame shades the prims once with the maps' and the capsules' shadows together; the
+    next frame, camera and prims still, shades them without the capsules once and shadows
+    only the capsules' pixels again: the same image as a fresh engine's."""
+    pelvis = _pelvis()
+
+    def build(stage):
+        _ground(stage)
+        _sun(stage, 45.0)
+        crate = UsdGeom.Cube.Define(stage, "/World/Test/Crate")
+        crate.CreateSizeAttr(50.0)
+        crate.AddTranslateOp().Set(Gf.Vec3d(*(pelvis * (1, 0, 1) + np.array((-90.0, 25.0, 0.0)))))
+        _camera(stage, pelvis + np.array((0, 150, 700)), -12.0)
+
+    scene = _stage(tmp_path, "still", build)
+
+    def frames(*times):
+        engine = Engine(scene, camera="/World/Test/Cam", width=SIZE[0], height=SIZE[1])
+        try:
+            return [engine.render(t) for t in times]
+        finally:
+            engine.close()
+
+    first, second, third = frames(0.0, 12.0, 24.0)
+    fresh_second, fresh_third = frames(12.0), frames(24.0)
+    assert not first.report["scene_prims"]["lit_reused"]
+    assert second.report["scene_prims"]["lit_reused"] and third.report["scene_prims"]["lit_reused"]
+    assert not np.array_equal(first.beauty, second.beauty)  # the character walked
+    for reused, fresh in ((second, fresh_second[0]), (third, fresh_third[0])):
+        assert np.abs(reused.beauty - fresh.beauty).max() < 1e-5
+
+
 # -- the analytic occlusion against ray casting --------------------------------------------
 
 
@@ -456,6 +488,37 @@ def test_blending_without_depth_misses_only_what_falls_between_the_samples():
     pole[80:110, 157:160] = True
     assert np.abs(blended - full)[~pole].max() <= BLEND_TOLERANCE
     assert np.abs(blended - full)[pole].max() > 0.5  # why the engine passes the depth
+
+
+def test_blending_leaves_out_what_lies_far_from_the_candidates_with_the_same_result(
+    monkeypatch,
+):
+    """The synthetic shadows in a corner of a frame four times their size, its sky no
+    candidate: the same factors as blending over the whole frame, and nothing evaluated
+    far from the candidates."""
+    small, depth, factor = _synthetic()
+    h, w = small.shape
+    candidates = np.zeros((3 * h, 2 * w), bool)
+    candidates[h + 5 : 2 * h + 5, 9 : w + 9] = small  # off the sample grid's origin
+    big_depth = np.full(candidates.shape, 1e4, np.float32)
+    big_depth[h + 5 : 2 * h + 5, 9 : w + 9] = depth
+    big_factor = np.ones(candidates.shape, np.float32)
+    big_factor[h + 5 : 2 * h + 5, 9 : w + 9] = factor
+    asked = []
+
+    def evaluate(pixels):
+        asked.append(pixels)
+        return big_factor.reshape(-1)[pixels]
+
+    rows, cols = shadows._crop(candidates, shadows.SPARSE_STEP)
+    assert (rows.stop - rows.start) * (cols.stop - cols.start) < 0.5 * candidates.size
+    assert rows.start % shadows.SPARSE_STEP == 0 and cols.start == 0
+    cropped = shadows.sparse_visibility(candidates, evaluate, big_depth)
+    assert candidates.reshape(-1)[np.concatenate(asked)].all()
+    monkeypatch.setattr(shadows, "_crop", lambda candidates, step: None)
+    whole = shadows.sparse_visibility(candidates, lambda p: big_factor.reshape(-1)[p], big_depth)
+    assert np.array_equal(cropped, whole)
+    assert np.abs(whole - big_factor).max() > 0  # something was blended
 
 
 def test_the_previs_frame_blended_matches_every_pixel_evaluated(monkeypatch):
