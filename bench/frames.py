@@ -83,16 +83,17 @@ def measure(
 
 
 def table(rows: list[dict[str, Any]]) -> str:
+    head = " | ".join(STAGES)
     lines = [
-        "| chars | size | precision | total ms (min-max) | scene | rig | network | lighting | composite | repeat ms (fraction) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        f"| chars | size | precision | total ms (min-max) | {head} | repeat ms (fraction) |",
+        "|---|---|---|---|" + "---|" * len(STAGES) + "---|",
     ]
     for r in rows:
         ms = r["ms"]
+        stages = " | ".join(f"{ms.get(stage, 0.0):.1f}" for stage in STAGES)
         lines.append(
             f"| {r['characters']} | {r['size']} | {r['precision']} | {ms['total']:.1f} "
-            f"({r['min_ms']:.1f}-{r['max_ms']:.1f}) | {ms['scene']:.1f} | {ms['rig']:.1f} | "
-            f"{ms['network']:.1f} | {ms['lighting']:.1f} | {ms['composite']:.1f} | "
+            f"({r['min_ms']:.1f}-{r['max_ms']:.1f}) | {stages} | "
             f"{r['repeat_ms']:.2f} ({r['repeat_fraction']:.3f}) |"
         )
     return "\n".join(lines)
