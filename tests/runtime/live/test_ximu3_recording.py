@@ -6,9 +6,9 @@ from __future__ import annotations
 import os
 import threading
 import tty
+from pathlib import Path
 
 import numpy as np
-import pytest
 from pxr import Usd, UsdSkel, Vt
 
 from rigspace.runtime.live.buffer import LiveBuffer
@@ -16,10 +16,9 @@ from rigspace.runtime.live.frames import quat_angle, quat_conjugate
 from rigspace.runtime.live.retarget import Retargeter, source_basis, target_skeleton
 from rigspace.runtime.live.sources import open_source
 from rigspace.sdk.rotations import quat_from_matrix, quat_multiply
-from tests.conftest import SHARED_ASSETS
 from tests.runtime.live.conftest import SAMPLE_CHARACTER, wait_for
 
-RECORDING = SHARED_ASSETS / "device_streams" / "ximu3_lower_body"
+RECORDING = Path(__file__).resolve().parents[3] / "samples" / "device_streams" / "ximu3_lower_body"
 SENSORS = {
     "pelvis": "pelvis",
     "Left_Upper_Leg": "thigh_l",
@@ -30,10 +29,6 @@ SENSORS = {
     "Right_Foot": "foot_r",
 }
 ROWS = 120  # about 2.4 s of the recording per sensor
-
-pytestmark = pytest.mark.skipif(
-    not RECORDING.is_dir(), reason="the shared x-IMU3 recording is not next to this checkout"
-)
 
 
 def sensor_rows(prefix: str) -> np.ndarray:
