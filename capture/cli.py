@@ -53,6 +53,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--resume", action="store_true", help="continue a capture in --out")
     parser.add_argument("--workers", type=int, help="processes (default: one per core)")
+    parser.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        metavar="ADDRESS",
+        help="run the work items as Ray tasks: auto (the running cluster), a cluster address, "
+        "or a local cluster when no ADDRESS is given; --out must be a folder every node sees "
+        "(docs/scale.md)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -82,15 +91,29 @@ def run(args: argparse.Namespace) -> int:
         samples_per_axis=args.samples,
         frames_per_item=args.frames_per_item,
     )
-    result = capture(
-        args.scene,
-        character,
-        args.out,
-        overrides,
-        shard=parse_shard(args.shard),
-        resume=args.resume,
-        workers=args.workers,
-    )
+    if args.ray is not None:
+        from rigspace.capture.ray_capture import capture_on_ray
+
+        result = capture_on_ray(
+            args.scene,
+            character,
+            args.out,
+            overrides,
+            address=args.ray,
+            shard=parse_shard(args.shard),
+            resume=args.resume,
+            workers=args.workers,
+        )
+    else:
+        result = capture(
+            args.scene,
+            character,
+            args.out,
+            overrides,
+            shard=parse_shard(args.shard),
+            resume=args.resume,
+            workers=args.workers,
+        )
     print(result.summary(), file=sys.stdout)
     return 0
 

@@ -1,0 +1,229 @@
+"""Capture on a Ray cluster: the work items of capture/pipeline.py as Ray tasks with retries.
+
+    capture_on_ray(scene, character, out, overrides, address="auto")
+
+The driver resolves the settings, checks the output folder and lists the work items exactly
+as `rigspace capture` does; each unfinished item becomes one Ray task that renders it with
+the pipeline's ItemWorker (one per worker process, reused across its tasks) and commits it
+with its atomic record. A task whose worker process dies is re-run by Ray (max_retries), and
+so is one that fails with a transient I/O error (retry_exceptions): an item is rendered from
+scratch and written whole, so a re-run gives the same bytes. The driver writes the manifest,
+params.npz, contact sheet and capsules once, at the end. Every node must see `out` at the
+same path (a shared folder: NFS, an S3 fuse mount); docs/scale.md says how to run it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from rigspace.capture import dataset as ds
+from rigspace.capture.contact import write_contact_sheet
+from rigspace.capture.pipeline import (
+    EARLY_SAMPLES,
+    STAGES,
+    CaptureResult,
+    ItemDone,
+    ItemWorker,
+    _empty_views_warning,
+    nothing_in_view,
+    prepare_folder,
+    repair,
+)
+from rigspace.capture.settings import (
+    CaptureError,
+    CaptureOverrides,
+    CaptureSettings,
+    Warn,
+    animation_time_samples,
+    print_warning,
+    resolve_settings,
+)
+from rigspace.sdk.capsules import FILE_NAME as CAPSULES_FILE
+from rigspace.sdk.capsules import fit_capsules, write_capsules
+from rigspace.sdk.render import choose_renderer
+
+LOCAL = "local"
+"""`--ray` without an address: start a local Ray cluster for this capture (ray.init's name)."""
+MAX_RETRIES = 3
+"""Re-runs of an item whose worker died or that hit a transient I/O error."""
+TRANSIENT = [OSError]
+"""Errors a task retries: a shared folder's hiccup (NFS stale handle, fuse timeout)."""
+DIE_ONCE = "RIGSPACE_TEST_RAY_DIE_ONCE"
+"""Tests only: a file path; the first task that finds the file there renames it away, leaves
+its item half-written (samples on disk, one truncated, no record) and kills its own worker
+process, as a node lost mid-item would."""
+
+_workers: dict[tuple[str, str], ItemWorker] = {}
+"""Per Ray worker process: the ItemWorker of each (settings, folder), reused across tasks."""
+
+
+def _die_mid_item(folder: Path, item: ds.WorkItem) -> None:
+    armed = os.environ.get(DIE_ONCE)
+    if not armed:
+        return
+    try:
+        os.rename(armed, armed + ".fired")  # atomic: exactly one task of the run dies
+    except FileNotFoundError:
+        return
+    ds.record_path(folder, item).unlink()
+    first = folder / ds.sample_path(item.clip, item.times[0], item.views[0])
+    first.write_bytes(first.read_bytes()[:100])
+    os._exit(1)
+
+
+def render_item(settings_json: dict[str, Any], folder: str, item: ds.WorkItem) -> ItemDone:
+    """One work item, rendered and committed in a Ray worker process (the Ray task body)."""
+    key = (repr(sorted(settings_json.items())), folder)
+    if key not in _workers:
+        _workers[key] = ItemWorker(CaptureSettings.from_json(settings_json), Path(folder))
+    done = _workers[key].run(item)
+    _die_mid_item(Path(folder), item)
+    return done
+
+
+def connect(address: str, workers: int | None) -> bool:
+    """Join (or, for LOCAL, start) the Ray cluster; True when this call started Ray."""
+    import ray
+
+    if ray.is_initialized():
+        return False
+    options: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
+    if address == LOCAL:
+        options["num_cpus"] = workers or os.cpu_count() or 1
+    try:
+        ray.init(address=address, **options)
+    except (ConnectionError, RuntimeError, ValueError) as exc:
+        raise CaptureError(
+            f"--ray {address}: cannot reach a Ray cluster ({str(exc).splitlines()[0]}).",
+            "start one with `ray start --head` (then pass --ray auto or its address), or pass "
+            "--ray with no address for a local cluster.",
+        ) from exc
+    return True
+
+
+def capture_on_ray(
+    scene: str | Path,
+    character: str,
+    out: str | Path,
+    overrides: CaptureOverrides | None = None,
+    *,
+    address: str = LOCAL,
+    shard: tuple[int, int] = (0, 1),
+    resume: bool = False,
+    workers: int | None = None,
+    progress: bool = True,
+    warn: Warn = print_warning,
+) -> CaptureResult:
+    """pipeline.capture, with the work items as Ray tasks (see the module doc).
+
+    `workers` caps the tasks in flight (default: as many as the cluster schedules); with a
+    local cluster it is also the cluster's CPU count.
+    """
+    import ray
+
+    warnings: list[str] = []
+
+    def note(text: str) -> None:
+        warnings.append(text)
+        warn(text)
+
+    settings, rig = resolve_settings(scene, character, overrides, warn=note)
+    settings = replace(settings, renderer=choose_renderer(settings.renderer).name)
+    folder = Path(out).absolute()
+    created = prepare_folder(folder, settings, resume, sharded=shard[1] > 1)
+    (folder / "items").mkdir(exist_ok=True)
+    ds.clean_temporaries(folder)
+    items = ds.work_items(settings, animation_time_samples(rig))
+    ours = ds.shard_items(items, shard)
+    repaired = [] if created else repair(folder, ours)
+    mine = [i for i in ours if not ds.record_path(folder, i).is_file()]
+    total = sum(i.samples for i in mine)
+    timings = dict.fromkeys(STAGES, 0.0)
+    coverage: list[np.ndarray] = []
+    views: list[np.ndarray] = []
+    done, seen_something = 0, False
+    started = connect(address, workers)
+    task = ray.remote(num_cpus=1, max_retries=MAX_RETRIES, retry_exceptions=TRANSIENT)(render_item)
+    settings_ref = ray.put(settings.to_json())
+    start = time.perf_counter()
+    bar = tqdm(
+        total=total, unit="sample", disable=not progress, file=sys.stderr, dynamic_ncols=True
+    )
+    queue = list(reversed(mine))
+    pending: list[Any] = []
+    limit = workers or len(mine)
+    try:
+        with contextlib.ExitStack() as stack:
+            stack.callback(bar.close)
+            if started:
+                stack.callback(ray.shutdown)
+            stack.callback(lambda: [ray.cancel(r, force=True) for r in pending])
+            while queue or pending:
+                while queue and len(pending) < limit:
+                    pending.append(task.remote(settings_ref, str(folder), queue.pop()))
+                ready, pending = ray.wait(pending, num_returns=1)
+                try:
+                    finished: ItemDone = ray.get(ready[0])
+                except ray.exceptions.RayTaskError as exc:
+                    cause = exc.as_instanceof_cause()
+                    if isinstance(cause, CaptureError):
+                        raise cause from None
+                    raise CaptureError(
+                        f"A capture task failed on the Ray cluster after {MAX_RETRIES} "
+                        f"retries: {str(exc).strip().splitlines()[-1]}.",
+                        f"fix the cause, then resume with `{ds.resume_command(folder)} --ray "
+                        f"{address}` (finished items are kept).",
+                    ) from exc
+                except ray.exceptions.WorkerCrashedError as exc:
+                    raise CaptureError(
+                        f"A capture task's worker process died {MAX_RETRIES + 1} times: {exc}.",
+                        "check the nodes' memory and logs (`ray logs`), then resume the "
+                        f"capture: `{ds.resume_command(folder)} --ray {address}`.",
+                    ) from exc
+                done += finished.samples
+                bar.update(finished.samples)
+                for k, v in finished.timings.items():
+                    timings[k] = timings.get(k, 0.0) + v
+                coverage.append(finished.coverage)
+                views.append(finished.views)
+                seen_something = seen_something or bool(np.any(coverage[-1] >= ds.EMPTY_PIXELS))
+                if not seen_something and done >= min(EARLY_SAMPLES, total):
+                    best = float(np.concatenate(coverage).max())
+                    raise nothing_in_view(settings, rig, done, best)
+    except CaptureError as exc:
+        if created and shard[1] == 1:
+            shutil.rmtree(folder, ignore_errors=True)
+            exc.what += f" Nothing was kept: {folder} was removed."
+        else:
+            exc.what += f" {folder} is kept as it was."
+        exc.args = (f"{exc.what} Fix: {exc.fix}",)
+        raise
+    seconds = time.perf_counter() - start
+    complete = all(ds.record_path(folder, i).is_file() for i in items)
+    manifest = None
+    if complete:  # once, by the driver, after every task has committed its item
+        manifest = ds.finalize(folder, settings, items)
+        write_contact_sheet(folder)
+        write_capsules(fit_capsules(rig), folder / CAPSULES_FILE)
+        empty = {int(v): n for v, n in manifest["coverage"]["empty_by_view"].items()}
+        total_samples = manifest["counts"]["samples"]
+    else:
+        empty = ds.empty_by_view(
+            np.concatenate(coverage or [np.zeros(0)]), np.concatenate(views or [np.zeros(0)])
+        )
+        total_samples = done
+    if empty:
+        note(_empty_views_warning(settings, empty, total_samples))
+    return CaptureResult(
+        folder, settings, total, done, seconds, complete, manifest, timings, repaired, warnings
+    )
