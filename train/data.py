@@ -82,19 +82,21 @@ def targets_at(
     )
 
 
-class SampleSet:
-    """One split of a dataset at a training resolution."""
+ITEM_COLUMNS = ["rig", "joint_camera"]
+"""The params.npz columns a training item is made from (a shard sample's .npz holds them all)."""
 
-    def __init__(self, folder: str | Path, split: str, resolution: int | None = None) -> None:
-        self.folder = Path(folder)
+
+class SplitInfo:
+    """What turning one sample's files into a training item needs of its dataset split.
+
+    SampleSet (a dataset folder) and train.stream (tar shards) both make their items with
+    `make_item`, so the two readers yield exactly the same keys and values.
+    """
+
+    def __init__(self, manifest: dict[str, Any], split: str, resolution: int | None) -> None:
         if split not in SPLITS:
             raise DatasetError(f"Unknown split {split!r}.", f"use one of {', '.join(SPLITS)}.")
-        self.manifest = read_manifest(self.folder)
-        with np.load(self.folder / "params.npz", allow_pickle=False) as table:
-            self.rows = np.flatnonzero(table["split"] == SPLITS.index(split))
-            self.rig = table["rig"].reshape(len(table["rig"]), -1).astype(np.float32)
-            self.paths = table["path"]
-            self.joint_depth = -table["joint_camera"][:, 2].astype(np.float32)
+        self.manifest = manifest
         self.split = split
         self.dataset_resolution = int(self.manifest["resolution"])
         self.resolution = resolution or self.dataset_resolution
@@ -107,16 +109,13 @@ class SampleSet:
         self.depth_scale = depth_scale(self.manifest)
         self.joints = list(self.manifest["joints"])
 
-    def __len__(self) -> int:
-        return len(self.rows)
-
-    def item(self, k: int) -> dict[str, np.ndarray]:
-        """Sample k of the split: rig (J*6,), albedo (3,R,R), mask (1,R,R), normal (3,R,R), depth (1,R,R)."""
-        row = int(self.rows[k])
-        maps = read_sample(self.folder, self.manifest, str(self.paths[row]))
+    def make_item(self, maps: Maps, row: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """A sample's item from its maps and its params row (ITEM_COLUMNS): rig (J*6,),
+        albedo (3,R,R), mask (1,R,R), normal (3,R,R), depth (1,R,R)."""
+        joint_depth = -np.float32(row["joint_camera"][2])
         mask = maps.mask[None]
         hit = mask > 0
-        depth = np.where(hit, (maps.depth[None] - self.joint_depth[row]) / self.depth_scale, 0.0)
+        depth = np.where(hit, (maps.depth[None] - joint_depth) / self.depth_scale, 0.0)
         albedo, mask, normal, depth = targets_at(
             np.moveaxis(maps.albedo, -1, 0),
             mask,
@@ -125,16 +124,44 @@ class SampleSet:
             self.dataset_resolution // self.resolution,
         )
         return {
-            "rig": self.rig[row],
+            "rig": np.asarray(row["rig"]).reshape(-1).astype(np.float32),
             "albedo": albedo.astype(np.float32),
             "mask": mask.astype(np.float32),
             "normal": normal.astype(np.float32),
             "depth": depth.astype(np.float32),
         }
 
-    def batch(self, ks: np.ndarray) -> dict[str, np.ndarray]:
-        items = [self.item(int(k)) for k in ks]
+    def batch_of(self, items: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
         return {key: np.stack([it[key] for it in items]) for key in items[0]}
+
+
+class SampleSet(SplitInfo):
+    """One split of a dataset folder at a training resolution."""
+
+    def __init__(self, folder: str | Path, split: str, resolution: int | None = None) -> None:
+        self.folder = Path(folder)
+        if split not in SPLITS:
+            raise DatasetError(f"Unknown split {split!r}.", f"use one of {', '.join(SPLITS)}.")
+        manifest = read_manifest(self.folder)
+        with np.load(self.folder / "params.npz", allow_pickle=False) as table:
+            self.rows = np.flatnonzero(table["split"] == SPLITS.index(split))
+            self.rig = table["rig"].reshape(len(table["rig"]), -1).astype(np.float32)
+            self.paths = table["path"]
+            self.joint_depth = -table["joint_camera"][:, 2].astype(np.float32)
+            self.columns = {c: table[c] for c in ITEM_COLUMNS}
+        super().__init__(manifest, split, resolution)
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def item(self, k: int) -> dict[str, np.ndarray]:
+        """Sample k of the split (SplitInfo.make_item)."""
+        row = int(self.rows[k])
+        maps = read_sample(self.folder, self.manifest, str(self.paths[row]))
+        return self.make_item(maps, {c: v[row] for c, v in self.columns.items()})
+
+    def batch(self, ks: np.ndarray) -> dict[str, np.ndarray]:
+        return self.batch_of([self.item(int(k)) for k in ks])
 
 
 def batch_indices(n: int, batch: int, step: int, seed: int) -> np.ndarray:
@@ -157,14 +184,20 @@ def batch_indices(n: int, batch: int, step: int, seed: int) -> np.ndarray:
 class Prefetcher:
     """Reads the batch of step s + 1 on a background thread while step s trains."""
 
-    def __init__(self, samples: SampleSet, batch: int, seed: int) -> None:
+    def __init__(
+        self, samples: SampleSet, batch: int, seed: int, rank: int = 0, world: int = 1
+    ) -> None:
         self.samples, self.batch, self.seed = samples, batch, seed
+        # Under torch.distributed `batch` is the global batch and each rank reads its slice:
+        # the global batch of a step is the same whatever the world size (exact resume).
+        self.rank, self.world = rank, world
         self._pool = ThreadPoolExecutor(max_workers=1)
         self._pending: dict[int, Future] = {}
 
     def _submit(self, step: int) -> None:
         if step not in self._pending:
             ks = batch_indices(len(self.samples), self.batch, step, self.seed)
+            ks = np.array_split(ks, self.world)[self.rank]
             self._pending[step] = self._pool.submit(self.samples.batch, ks)
 
     def get(self, step: int) -> dict[str, np.ndarray]:
