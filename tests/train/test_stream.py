@@ -144,7 +144,7 @@ def test_a_truncated_shard_is_named_with_the_fix(shards, tmp_path):
     victim = copy / index["shards"][0]["file"]
     victim.write_bytes(victim.read_bytes()[:4096])
     stream = ShardStream(ShardSet(copy, "train"), seed=0)
-    with pytest.raises(ds.DatasetError, match="not the size index.json records") as info:
+    with pytest.raises(ds.DatasetError, match=r"not the size index\.json records") as info:
         list(stream.epoch(0))
     assert str(victim) in str(info.value) and "rigspace dataset pack" in info.value.fix
 
