@@ -25,7 +25,7 @@ export class Viewport {
     const error = document.getElementById("viewport-error");
     if (header.error) {  // the last good frame stays; the reason shows over it
       error.hidden = false;
-      error.textContent = `No new frame: ${header.error}`;
+      error.textContent = `${this.last ? "No new frame (the last good one stays)" : "No frames"}: ${header.error}`;
       return false;
     }
     error.hidden = true;

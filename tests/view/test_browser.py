@@ -1,0 +1,179 @@
+"""The page in a real headless Chromium (Debian's, driven by playwright) on real stages.
+
+RIGSPACE_VIEW_SCREENSHOTS=DIR also writes a screenshot of each panel there (docs/images).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from rigspace.runtime.live.decoders.bvh import read_bvh
+from rigspace.runtime.live.send import humanoid_clip, send_vmc
+from tests.conftest import REPO
+from tests.view.conftest import BROKEN, LIVE, free_udp_port, served
+
+SHOTS = os.environ.get("RIGSPACE_VIEW_SCREENSHOTS")
+WINDOW = {"width": 1600, "height": 950}
+PIXELS = """() => {
+  const c = document.getElementById('viewport');
+  const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+  const out = [];
+  for (let i = 0; i < d.length; i += 4 * 97) out.push(d[i], d[i + 1], d[i + 2]);
+  return out;
+}"""
+
+
+def shot(page, selector: str, name: str) -> None:
+    if SHOTS:
+        Path(SHOTS).mkdir(parents=True, exist_ok=True)
+        target = page if selector == "page" else page.locator(selector)
+        target.screenshot(path=str(Path(SHOTS) / f"view_{name}.png"))
+
+
+def open_page(browser, url: str):
+    page = browser.new_page(viewport=WINDOW)
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.goto(url)
+    page.wait_for_function("window.rigspaceView && window.rigspaceView.summary", timeout=30_000)
+    return page, errors
+
+
+def wait_frame(page, condition: str, timeout: float = 60_000) -> None:
+    page.wait_for_function(
+        f"(() => {{ const h = window.rigspaceView.viewport.last; return h && ({condition}); }})()",
+        timeout=timeout,
+    )
+
+
+def difference(a: list[int], b: list[int]) -> float:
+    return sum(abs(x - y) for x, y in zip(a, b, strict=True)) / len(a)
+
+
+def test_previs_select_scrub_and_switch_maps(browser, previs_served):
+    _, url = previs_served
+    page, errors = open_page(browser, url)
+    wait_frame(page, "h.time === 0 && h.quality === 'full'")
+    # Select the character in the tree and read its properties at the current time.
+    page.click('.node[data-path="/World/Hero"]')
+    row = page.locator('#props tr[data-prop="rigspace:model"]')
+    row.wait_for()
+    assert "authored" in row.inner_text() and "sample" in row.inner_text()
+    assert page.locator("#props-path").inner_text() == "/World/Hero"
+    assert page.locator("#bundle-metrics tr").count() >= 2  # the bundle's evaluation rows
+    assert "previs.usda" in page.locator("#arcs").inner_text()
+    before = page.evaluate(PIXELS)
+    # Scrub: the viewport's pixels change, a paint is measured for the new time.
+    page.evaluate(
+        "t => { const s = document.getElementById('scrub'); s.value = t;"
+        " s.dispatchEvent(new Event('input')); }",
+        300,
+    )
+    wait_frame(page, "h.time === 300 && h.quality === 'full'")
+    after = page.evaluate(PIXELS)
+    assert difference(before, after) > 2.0
+    paints = page.evaluate("window.rigspaceView.paints.filter(p => p.time === 300)")
+    assert paints and paints[0]["ms"] > 0
+    decision = page.locator('#decisions tr[data-character="/World/Hero"]').inner_text()
+    assert "evaluated" in decision or "reused" in decision
+    shot(page, "page", "overview")
+    for panel in ("tree", "props", "comp", "viewport", "timeline", "decisions", "graph"):
+        shot(page, f"#{panel}-panel", panel)
+    # Switch the map: normals look nothing like the beauty.
+    page.click('#maps button[data-map="normal"]')
+    wait_frame(page, "h.map === 'normal' && h.time === 300")
+    normal = page.evaluate(PIXELS)
+    assert difference(after, normal) > 10.0
+    shot(page, "#viewport-panel", "viewport_normal")
+    page.click('#maps button[data-map="depth"]')
+    wait_frame(page, "h.map === 'depth'")
+    assert difference(normal, page.evaluate(PIXELS)) > 10.0
+    assert not errors, errors
+    page.close()
+
+
+def test_broken_fixture_links_its_validation_error_to_its_prim(browser):
+    with served(BROKEN) as (viewer, url):
+        assert viewer.frames.error  # the Engine refuses the scene: no frames, panels work
+        page, errors = open_page(browser, url)
+        finding = page.locator('.finding[data-code="NotASkeleton"]')
+        finding.wait_for()
+        assert finding.get_attribute("data-prim") == "/World/Hero"
+        assert "rigspace:skeleton targets /World/Camera" in finding.inner_text()
+        finding.locator("a.prim").click()
+        page.locator('.node.sel[data-path="/World/Hero"]').wait_for()
+        page.locator('#props tr[data-prop="rigspace:skeleton"]').wait_for()
+        assert page.locator("#props-path").inner_text() == "/World/Hero"
+        assert page.locator('.node[data-path="/World/Hero"] .dot-error').count() == 1
+        assert page.locator("#viewport-error").is_visible()
+        assert "No frames" in page.locator("#viewport-error").inner_text()
+        assert "stop render" in page.locator("#viewport-error").inner_text()
+        shot(page, "#findings-panel", "findings")
+        assert not errors, errors
+        page.close()
+
+
+def test_an_edit_on_disk_reloads_and_a_syntax_error_becomes_a_finding(browser, tmp_path):
+    scene = tmp_path / "scene.usda"
+    shutil.copy(BROKEN, scene)
+    with served(scene) as (_, url):
+        page, errors = open_page(browser, url)
+        page.locator('.node[data-path="/World/Camera"]').wait_for()
+        text = scene.read_text()
+        scene.write_text(text.replace('def Camera "Camera"', 'def Camera "Witness"'))
+        os.utime(scene, ns=(1, 1))
+        page.locator('.node[data-path="/World/Witness"]').wait_for(timeout=20_000)
+        scene.write_text(text + '\ndef Xform "Oops" {{{\n')
+        os.utime(scene, ns=(2, 2))
+        page.locator('.finding[data-code="LayerParseError"]').wait_for(timeout=20_000)
+        assert page.locator('.node[data-path="/World/Witness"]').count() == 1  # kept
+        assert not errors, errors
+        page.close()
+
+
+def test_live_binding_counters_rise_while_a_sender_streams(browser):
+    skeleton, motion, frame_time = read_bvh(REPO / "samples" / "motion" / "cmu_131_01.bvh")
+    rotations, roots = skeleton.pose(motion)
+    clip = humanoid_clip(skeleton, rotations[:120], roots[:120], frame_time)
+    source = f"vmc://127.0.0.1:{free_udp_port()}"
+    stop = threading.Event()
+    with served(LIVE, sources={"suit": source}) as (viewer, url):
+        assert viewer.frames.live and viewer.frames.live_error is None
+        sender = threading.Thread(target=send_vmc, args=(source, clip, 1.0, True, stop))
+        sender.start()
+        try:
+            page, errors = open_page(browser, url)
+            cell = page.locator('#live-table tr[data-binding="suit"] td[data-counter="packets"]')
+            page.wait_for_function(
+                "() => { const c = document.querySelector("
+                '\'#live-table tr[data-binding="suit"] td[data-counter="samples"]\');'
+                " return c && Number(c.textContent) > 0; }",
+                timeout=30_000,
+            )
+            first = int(cell.inner_text())
+            time.sleep(1.5)
+            page.wait_for_function(
+                f"() => Number(document.querySelector("
+                f'\'#live-table tr[data-binding="suit"] td[data-counter="packets"]\')'
+                f".textContent) > {first}",
+                timeout=15_000,
+            )
+            status = page.locator('#live-table tr[data-binding="suit"] .st').inner_text()
+            assert status == "connected"
+            shot(page, "#live-panel", "live")
+            assert not errors, errors
+            page.close()
+        finally:
+            stop.set()
+            sender.join()
+
+
+@pytest.fixture(autouse=True)
+def _needs_browser(browser):
+    """Every test here drives the session's Chromium (skipped where it is missing)."""
