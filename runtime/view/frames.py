@@ -46,7 +46,7 @@ def map_image(frame: Frame, name: str) -> np.ndarray:
     if name == "albedo":
         return to_srgb8(maps.albedo)
     if name == "normal":
-        covered = (maps.mask > 0)[..., None]
+        covered = np.any(maps.normal != 0, axis=-1, keepdims=True)  # zero where empty
         return ((maps.normal * 0.5 + 0.5) * covered * 255 + 0.5).clip(0, 255).astype(np.uint8)
     if name == "depth":
         depth = maps.depth

@@ -67,8 +67,8 @@ class SceneModel:
     def _files(self) -> list[Sdf.Layer]:
         return [layer for layer in self.stage.GetUsedLayers() if layer.realPath]
 
-    def _read_mtimes(self) -> dict[str, float]:
-        times = {}
+    def _read_mtimes(self) -> dict[str, int]:
+        times: dict[str, int] = {}
         for layer in self._files():
             try:
                 times[layer.realPath] = os.stat(layer.realPath).st_mtime_ns
@@ -101,10 +101,14 @@ class SceneModel:
 
     # -- panels ----------------------------------------------------------------------------
 
+    def cameras(self) -> list[str]:
+        with self.lock:
+            return [str(p.GetPath()) for p in self.stage.Traverse() if p.IsA(UsdGeom.Camera)]
+
     def summary(self) -> dict[str, Any]:
         with self.lock:
             stage = self.stage
-            cameras = [str(p.GetPath()) for p in stage.Traverse() if p.IsA(UsdGeom.Camera)]
+            cameras = self.cameras()
             return {
                 "scene": self.path.name,
                 "version": self.version,
@@ -125,7 +129,7 @@ class SceneModel:
             }
 
     def layers(self) -> list[dict[str, Any]]:
-        """The root layer stack, strongest first, with each layer's offset."""
+        """The root layer stack (sublayers), strongest first."""
         stack = self.stage.GetLayerStack(includeSessionLayers=False)
         return [
             {"layer": _layer_name(layer), "name": Path(_layer_name(layer)).name,

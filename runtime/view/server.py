@@ -267,7 +267,6 @@ async def _socket(viewer: Viewer, ws: WebSocket) -> None:
     viewer.sockets.add(ws)
     latest: dict[str, Any] = {}
     wake = asyncio.Event()
-    cameras = viewer.scene.summary()["cameras"]
 
     async def render() -> None:
         while True:
@@ -312,7 +311,7 @@ async def _socket(viewer: Viewer, ws: WebSocket) -> None:
                 await ws.close(4413, f"messages are at most {MAX_MESSAGE} bytes")
                 break
             try:
-                latest["request"] = parse_request(text, cameras)
+                latest["request"] = parse_request(text, viewer.scene.cameras())
             except ValueError as exc:  # json's errors are ValueErrors too
                 await ws.close(4400, f"malformed message: {exc}"[:120])
                 break

@@ -106,6 +106,7 @@ def test_broken_fixture_links_its_validation_error_to_its_prim(browser):
         finding.wait_for()
         assert finding.get_attribute("data-prim") == "/World/Hero"
         assert "rigspace:skeleton targets /World/Camera" in finding.inner_text()
+        shot(page, "#findings-panel", "findings")
         finding.locator("a.prim").click()
         page.locator('.node.sel[data-path="/World/Hero"]').wait_for()
         page.locator('#props tr[data-prop="rigspace:skeleton"]').wait_for()
@@ -114,7 +115,7 @@ def test_broken_fixture_links_its_validation_error_to_its_prim(browser):
         assert page.locator("#viewport-error").is_visible()
         assert "No frames" in page.locator("#viewport-error").inner_text()
         assert "stop render" in page.locator("#viewport-error").inner_text()
-        shot(page, "#findings-panel", "findings")
+        shot(page, "page", "broken")
         assert not errors, errors
         page.close()
 
@@ -149,10 +150,10 @@ def test_live_binding_counters_rise_while_a_sender_streams(browser):
         sender.start()
         try:
             page, errors = open_page(browser, url)
-            cell = page.locator('#live-table tr[data-binding="suit"] td[data-counter="packets"]')
+            cell = page.locator('#live-table tr[data-binding="suit"] [data-counter="packets"]')
             page.wait_for_function(
                 "() => { const c = document.querySelector("
-                '\'#live-table tr[data-binding="suit"] td[data-counter="samples"]\');'
+                '\'#live-table tr[data-binding="suit"] [data-counter="samples"]\');'
                 " return c && Number(c.textContent) > 0; }",
                 timeout=30_000,
             )
@@ -160,7 +161,7 @@ def test_live_binding_counters_rise_while_a_sender_streams(browser):
             time.sleep(1.5)
             page.wait_for_function(
                 f"() => Number(document.querySelector("
-                f'\'#live-table tr[data-binding="suit"] td[data-counter="packets"]\')'
+                f'\'#live-table tr[data-binding="suit"] [data-counter="packets"]\')'
                 f".textContent) > {first}",
                 timeout=15_000,
             )

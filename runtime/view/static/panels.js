@@ -177,7 +177,7 @@ export class FindingsPanel {
   }
 }
 
-const COUNTERS = ["packets", "samples", "malformed", "dropped"];
+const COUNTERS = ["packets", "samples", "malformed", "dropped", "reconnects"];
 
 export class LivePanel {
   constructor(app) { this.app = app; this.box = document.getElementById("live"); }
@@ -185,16 +185,18 @@ export class LivePanel {
   show(data) {
     const rows = data.bindings || [];
     if (!rows.length) { this.box.replaceChildren(el("div", { class: "empty" }, data.error || "No live bindings on this stage.")); return; }
+    const ms = (v) => (v == null ? "—" : `${v.toFixed(1)} ms`);
     this.box.replaceChildren(
       data.error ? el("div", { class: "empty", style: "color:var(--err)" }, data.error) : "",
-      el("table", { id: "live-table" },
-        el("tr", {}, el("th", {}, "binding"), el("th", {}, "status"), ...COUNTERS.map((c) => el("th", { class: "num" }, c)),
-          el("th", { class: "num" }, "age s"), el("th", { class: "num" }, "lat ms")),
-        ...rows.map((r) => el("tr", { "data-binding": r.binding },
-          el("td", { title: `${r.character}\n${r.url}` }, r.binding, el("div", { class: "muted mono" }, r.url)),
-          el("td", {}, el("span", { class: `st ${r.status}` }, r.enabled ? r.status : "disabled")),
-          ...COUNTERS.map((c) => el("td", { class: "num", "data-counter": c }, r[c] ?? "—")),
-          el("td", { class: "num" }, r.last_seen == null ? "—" : r.last_seen.toFixed(2)),
-          el("td", { class: "num" }, r.latency_p50_ms == null ? "—" : r.latency_p50_ms.toFixed(1))))));
+      el("table", { id: "live-table" }, ...rows.map((r) => el("tr", { "data-binding": r.binding },
+        el("td", {},
+          el("div", {}, el("b", {}, r.binding), " ", el("span", { class: `st ${r.status}` }, r.enabled ? r.status : "disabled"),
+            el("span", { class: "muted" }, `  ${r.character}`)),
+          el("div", { class: "muted mono" }, r.url),
+          el("div", { class: "counters" },
+            ...COUNTERS.map((c) => el("span", {}, `${c} `, el("b", { "data-counter": c }, r[c] ?? "—"))),
+            el("span", {}, "last ", el("b", {}, r.last_seen == null ? "—" : `${r.last_seen.toFixed(2)} s ago`)),
+            el("span", {}, "latency p50 ", el("b", {}, ms(r.latency_p50_ms))),
+            el("span", {}, "jitter p50 ", el("b", {}, ms(r.jitter_p50_ms)))))))));
   }
 }
