@@ -186,6 +186,11 @@ def create_app(viewer: Viewer, host: str = "127.0.0.1") -> ASGIApp:
 
         return data(endpoint)
 
+    def live_error() -> str | None:
+        if viewer.frames.error:
+            return "Live sources are not opened: the Engine refuses this scene (see the viewport)."
+        return viewer.frames.live_error
+
     def summary() -> dict[str, Any]:
         frames = viewer.frames
         return {
@@ -209,7 +214,7 @@ def create_app(viewer: Viewer, host: str = "127.0.0.1") -> ASGIApp:
             "/api/live",
             data(
                 lambda r: JSONResponse(
-                    {"bindings": viewer.frames.live_status(), "error": viewer.frames.live_error}
+                    {"bindings": viewer.frames.live_status(), "error": live_error()}
                 )
             ),
         ),

@@ -45,3 +45,25 @@ def test_each_map_is_its_own_image(previs_served):
     mask = images["mask"]
     assert mask.max() > 200 and mask.min() < 30  # covered and empty pixels
     assert np.abs(mask[..., 0] - mask[..., 2]).max() < 8  # grey
+
+
+def test_reference_views_side_by_side_and_error():
+    from rigspace.runtime.view.cli import build
+    from tests.view.conftest import PREVIS
+
+    viewer = build(str(PREVIS), resolution=(160, 90), reference=True)
+    try:
+        images = {
+            view: decode(render(viewer, 200.0, "beauty", view, "auto")[1]).astype(np.int16)
+            for view in ("neural", "reference", "compare", "error")
+        }
+    finally:
+        viewer.close()
+    assert images["neural"].shape == images["reference"].shape == (90, 160, 3)
+    assert images["compare"].shape == (90, 320, 3)
+    # Side by side: the network's frame on the left, the skinned mesh's on the right.
+    assert np.abs(images["compare"][:, :160] - images["neural"]).mean() < 3
+    assert np.abs(images["compare"][:, 160:] - images["reference"]).mean() < 3
+    # The two differ where the character is, and the error view shows 4x that.
+    assert np.abs(images["neural"] - images["reference"]).max() > 20
+    assert images["error"].max() > 60 and np.median(images["error"]) < 10
