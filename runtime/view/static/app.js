@@ -10,6 +10,7 @@ class App {
     this.paints = [];      // scrub-to-paint measurements, read by the bench and the tests
     this.pending = new Map();  // time -> performance.now() of the input that asked for it
     this.frames = 0;
+    this.received = 0;
     this.nextId = 1;
     this.tree = new TreePanel(this);
     this.props = new PropertiesPanel(this);
@@ -91,7 +92,8 @@ class App {
   async frame(buffer) {
     const length = new DataView(buffer).getUint32(0);
     const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 4, length)));
-    const painted = await this.viewport.paint(header, new Uint8Array(buffer, 4 + length));
+    const seq = ++this.received;
+    const painted = await this.viewport.paint(header, new Uint8Array(buffer, 4 + length), seq);
     if (!painted) return;
     await new Promise(requestAnimationFrame);  // measured when the frame is on screen
     const asked = this.pending.get(header.time);

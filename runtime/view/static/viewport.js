@@ -17,11 +17,12 @@ export class Viewport {
     this.gctx = this.graph.getContext("2d");
     this.history = [];
     this.last = null;
+    this.paintedSeq = 0;
     document.getElementById("graph-legend").replaceChildren(
       ...STAGES.map((s) => [el("i", { style: `background:${COLORS[s]}` }), s]).flat());
   }
 
-  async paint(header, jpeg) {
+  async paint(header, jpeg, seq) {
     const error = document.getElementById("viewport-error");
     if (header.error) {  // the last good frame stays; the reason shows over it
       error.hidden = false;
@@ -30,6 +31,9 @@ export class Viewport {
     }
     error.hidden = true;
     const bitmap = await createImageBitmap(new Blob([jpeg], { type: "image/jpeg" }));
+    // Decoding is asynchronous: a frame that arrived earlier never paints over a later one.
+    if (seq < this.paintedSeq) { bitmap.close(); return false; }
+    this.paintedSeq = seq;
     const w = header.view === "compare" ? this.app.size[0] * 2 : this.app.size[0];
     if (this.canvas.width !== w) {
       this.canvas.width = this.overlay.width = w;
