@@ -94,6 +94,12 @@ def test_previs_select_scrub_and_switch_maps(browser, previs_served):
     page.click('#maps button[data-map="depth"]')
     wait_frame(page, "h.map === 'depth'")
     assert difference(normal, page.evaluate(PIXELS)) > 10.0
+    # Play advances in real time at the stage's rate; pause refines the frame on screen.
+    page.click("#play")
+    page.wait_for_function("window.rigspaceView.state.time > 305", timeout=30_000)
+    page.click("#play")
+    stopped = page.evaluate("window.rigspaceView.state.time")
+    wait_frame(page, f"h.time === {stopped} && h.quality === 'full'")
     assert not errors, errors
     page.close()
 
