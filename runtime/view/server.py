@@ -18,6 +18,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 from starlette.applications import Starlette
 from starlette.requests import Request
@@ -102,7 +103,8 @@ def _time(request: Request) -> float:
 
 
 class Guard:
-    """Refuses, before any route: bodies (400/413), long URLs (414) and foreign hosts (400)."""
+    """Refuses, before any route: long URLs (414), foreign hosts (400), methods other than
+    GET (405), bodies (413), and websockets from foreign origins (403)."""
 
     def __init__(self, app: ASGIApp, hosts: set[str]) -> None:
         self.app, self.hosts = app, hosts
@@ -112,11 +114,8 @@ class Guard:
             return await self.app(scope, receive, send)
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
         url = len(scope.get("raw_path") or b"") + len(scope.get("query_string") or b"")
-        host = (
-            headers.get("host", "").rsplit(":", 1)[0]
-            if "]" not in headers.get("host", "")
-            else headers["host"].rsplit("]", 1)[0] + "]"
-        )
+        host = _hostname("//" + headers.get("host", ""))
+        length = headers.get("content-length", "0") or "0"
         status = None
         if url > MAX_URL:
             status, why = 414, f"the URL is longer than {MAX_URL} bytes"
@@ -124,11 +123,12 @@ class Guard:
             status, why = 400, f"host {host!r} is not this viewer's"
         elif scope["type"] == "http" and scope["method"] not in ("GET", "HEAD"):
             status, why = 405, "the viewer only answers GET"
-        elif int(headers.get("content-length", "0") or 0) > 0 or "transfer-encoding" in headers:
+        elif not length.isdigit():
+            status, why = 400, "Content-Length is not a number"
+        elif int(length) > 0 or "transfer-encoding" in headers:
             status, why = 413, "requests carry no body"
         elif scope["type"] == "websocket" and "origin" in headers:
-            origin = headers["origin"].split("://", 1)[-1].rsplit(":", 1)[0]
-            if origin not in self.hosts:
+            if _hostname(headers["origin"]) not in self.hosts:
                 status, why = 403, f"websocket from origin {headers['origin']!r}"
         if status is None:
             return await self.app(scope, receive, send)
@@ -143,6 +143,14 @@ class Guard:
                 await send({"type": "websocket.close", "code": 4000 + status})
             return
         await _error(status, why)(scope, receive, send)
+
+
+def _hostname(url: str) -> str:
+    """The host name of a URL or of "//host:port" ("" when it has none or does not parse)."""
+    try:
+        return urlsplit(url).hostname or ""
+    except ValueError:
+        return ""
 
 
 def create_app(viewer: Viewer, host: str = "127.0.0.1") -> ASGIApp:
@@ -232,7 +240,7 @@ def create_app(viewer: Viewer, host: str = "127.0.0.1") -> ASGIApp:
             watcher.cancel()
 
     app = Starlette(routes=routes, lifespan=lifespan)
-    hosts = {*LOOPBACK, host, f"[{host}]"}
+    hosts = {*LOOPBACK, host.strip("[]")}
     return Guard(app, hosts)
 
 

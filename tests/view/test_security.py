@@ -75,6 +75,10 @@ def test_bodies_methods_long_urls_and_foreign_hosts_are_refused(previs_client):
     evil = previs_client.get("/api/tree", headers={"host": "evil.example:8765"})
     assert evil.status_code == 400
     assert previs_client.get("/api/tree", headers={"host": "localhost:8765"}).status_code == 200
+    assert previs_client.get("/api/tree", headers={"host": "[::1]:8765"}).status_code == 200
+    assert previs_client.get("/api/tree", headers={"host": "127.0.0.1.evil:80"}).status_code == 400
+    odd = previs_client.get("/api/tree", headers={"content-length": "many"})
+    assert odd.status_code == 400
 
 
 def test_websocket_from_another_origin_is_refused(previs_client):
