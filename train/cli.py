@@ -37,7 +37,11 @@ def _add_config_flags(parser: argparse.ArgumentParser) -> None:
 
 
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("dataset", help="a dataset folder written by `rigspace capture`")
+    parser.add_argument(
+        "dataset",
+        help="a dataset folder written by `rigspace capture`, or its tar shards (`rigspace "
+        "dataset pack`), read as a stream",
+    )
     parser.add_argument(
         "--out", required=True, help="model bundle folder (training state in its training/)"
     )
@@ -62,13 +66,20 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         help="replace a model bundle (and its training run) already in --out; other files "
         "there are kept",
     )
+    parser.add_argument(
+        "--nproc",
+        type=int,
+        default=1,
+        help="train on N processes of this machine under torchrun (DDP; --batch stays the "
+        "global batch); for several nodes run torchrun yourself (docs/scale.md)",
+    )
     _add_config_flags(parser)
 
 
 def run_train(args: argparse.Namespace) -> int:
     from rigspace.capture.dataset import read_manifest
+    from rigspace.train import distributed
     from rigspace.train.config import TrainConfig, preset
-    from rigspace.train.loop import train
 
     names = [f.name for f in dataclasses.fields(TrainConfig) if f.name != "preset"]
     try:
@@ -82,13 +93,19 @@ def run_train(args: argparse.Namespace) -> int:
             "drop --force to continue the run in --out, or drop --resume/--upgrade to replace it.",
         )
     check_out(out, resume=args.resume or args.upgrade, force=args.force)
+    if args.nproc > 1 and not distributed.under_torchrun():
+        return distributed.launch(args, args.nproc)
+    from rigspace.train.loop import train  # torch: after the launch, which needs none
+
+    ctx = distributed.context()  # under torchrun: joins the process group
     if args.upgrade:
         return _upgrade(args, out)
     read_manifest(Path(args.dataset))  # a bad dataset fails before --force removes anything
-    if args.force:
+    if args.force and ctx.is_main:
         removed = clear_bundle(out)
         if removed:
             print(f"--force: removed {len(removed)} files of the bundle in {out}", file=sys.stderr)
+    ctx.barrier()
     result = train(
         args.dataset,
         out / TRAINING,
@@ -97,6 +114,10 @@ def run_train(args: argparse.Namespace) -> int:
         minutes=args.minutes,
         resume=args.resume,
     )
+    if not ctx.is_main:  # rank 0 reports and exports; the others wait for it
+        if result.stopped != "interrupted":
+            ctx.barrier()
+        return 130 if result.stopped == "interrupted" else 0
     print(
         f"trained {result.step} steps in {result.seconds:.0f} s ({result.images_per_second:.1f} images/s), "
         f"stopped: {result.stopped}, last loss {result.last_loss:.4f}"
@@ -107,7 +128,9 @@ def run_train(args: argparse.Namespace) -> int:
             "(no bundle exported from an interrupted run)"
         )
         return 130
-    return _export(args, out)
+    code = _export(args, out)
+    ctx.barrier()
+    return code
 
 
 def _export(args: argparse.Namespace, out: Path, metrics: dict | None = None) -> int:

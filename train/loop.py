@@ -34,11 +34,13 @@ from tqdm import tqdm
 
 from rigspace.capture.dataset import DatasetError, read_manifest
 from rigspace.sdk.errors import RigspaceError
+from rigspace.train import distributed
 from rigspace.train.budget import Pace, apply_plan, plan_schedule
 from rigspace.train.config import TrainConfig
-from rigspace.train.data import Prefetcher, SampleSet
+from rigspace.train.data import SampleSet
 from rigspace.train.loss import targets_for, total_loss
 from rigspace.train.network import Rig2Image, Shape, albedo_maps, geometry_maps
+from rigspace.train.stream import open_split, prefetcher
 
 CHECKPOINT = "checkpoint.pt"
 RUN_FILE = "run.json"
@@ -242,7 +244,7 @@ def measure_step_seconds(
     probe = copy.deepcopy(model)
     optimizer = make_optimizer(probe, config)
     rng = torch.get_rng_state()
-    prefetch = Prefetcher(samples, config.batch, config.seed)
+    prefetch = prefetcher(samples, config.batch, config.seed)
     seconds: dict[int, float] = {}
     step = 0
     try:
@@ -284,12 +286,13 @@ def train(
     """Train Rig2Image on a capture dataset (see the module doc)."""
     dataset, out = Path(dataset), Path(out)
     began = time.monotonic()  # the budget counts from here: the step-rate probe is part of it
-    manifest, config, existing = prepare_run(dataset, out, config, resume)
+    ctx = distributed.context()  # one process unless under torchrun (train.distributed)
+    manifest, config, existing = ctx.share(lambda: prepare_run(dataset, out, config, resume))
     if config.threads:
         torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
-    samples = SampleSet(dataset, "train", config.resolution)
-    held_out = SampleSet(dataset, "heldout-views", config.resolution)
+    samples = open_split(dataset, "train", config.resolution)  # a dataset or shards folder
+    held_out = open_split(dataset, "heldout-views", config.resolution)
     if len(samples) == 0:
         raise TrainingError(
             f"{dataset} has no training samples.", "capture with some non-held-out views."
@@ -298,10 +301,11 @@ def train(
     if config.channels_last:
         model = model.to(memory_format=torch.channels_last)
     plan = None
-    if existing is None:
+    if existing is None and ctx.is_main:
         if minutes:
             previews = held_out if len(held_out) else samples
-            rates = measure_step_seconds(model, samples, previews, config)
+            probe = replace(config, batch=config.batch // ctx.world)  # one rank's share
+            rates = measure_step_seconds(model, samples, previews, probe)
             plan = plan_schedule(config, rates, 60 * minutes - (time.monotonic() - began))
             config = apply_plan(config, plan)
             print(f"rigspace train: {plan.summary()}", file=sys.stderr)
@@ -310,6 +314,8 @@ def train(
             run["plan"] = plan.to_json()
         out.mkdir(parents=True, exist_ok=True)
         (out / RUN_FILE).write_text(json.dumps(run, indent=2) + "\n")
+    config, plan = ctx.share(lambda: (config, plan))  # rank 0 planned and wrote run.json
+    model = model.to(ctx.device)
     start, optimizer = 0, make_optimizer(model, config)
     checkpoint_path = out / CHECKPOINT
     if resume and checkpoint_path.exists():
@@ -320,13 +326,14 @@ def train(
         start = int(state["step"])
     total = config.total_steps() if steps is None else min(steps, config.total_steps())
     deadline = began + 60 * minutes if minutes else math.inf
-    prefetch = Prefetcher(samples, config.batch, config.seed)
-    log = (out / "log.jsonl").open("a")
+    net = ctx.wrap(model)  # DDP under torchrun: gradients averaged over the ranks
+    prefetch = prefetcher(samples, config.batch, config.seed, ctx.rank, ctx.world)
+    log = (out / "log.jsonl").open("a") if ctx.is_main else open(os.devnull, "w")
     bar = tqdm(
         initial=start,
         total=total,
         unit="step",
-        disable=not progress,
+        disable=not progress or not ctx.is_main,
         file=sys.stderr,
         dynamic_ncols=True,
     )
@@ -342,10 +349,10 @@ def train(
     try:
         while step < total:
             now = time.monotonic()
-            if now > deadline:
+            if ctx.agree(now > deadline):  # rank 0's clock decides for every rank
                 stopped = "time budget"
                 break
-            ahead = pace.next_step(step, now) if pace is not None else step
+            ahead = ctx.agree(pace.next_step(step, now) if pace is not None else step)
             if pace is not None and pace.out_of_reach and not reported_reach:
                 reported_reach = True
                 tqdm.write(
@@ -369,19 +376,20 @@ def train(
             if where.first_step_of_level and step > start:
                 # A new block joins: fresh optimizer state (the paper resets per level).
                 optimizer = make_optimizer(model, config)
-            batch = to_torch(prefetch.get(step), config.channels_last)
-            loss, terms = forward_loss(model, batch, where.resolution, where.alpha, config)
-            if not torch.isfinite(loss):
+            batch = ctx.to_device(to_torch(prefetch.get(step), config.channels_last))
+            loss, terms = forward_loss(net, batch, where.resolution, where.alpha, config)
+            shown, terms = ctx.mean(loss, terms)  # every rank sees the same value
+            if not math.isfinite(shown):
                 raise TrainingError(
-                    f"The loss became {float(loss.detach())} at step {step} (level {where.resolution}x"
+                    f"The loss became {shown} at step {step} (level {where.resolution}x"
                     f"{where.resolution}, alpha {where.alpha:.2f}); training stopped. Last good "
                     f"checkpoint: {last_good or 'none yet'}.",
                     "lower --lr, or resume from the last good checkpoint with --resume.",
                 )
-            optimise(model, optimizer, loss, config)
+            optimise(net, optimizer, loss, config)
             step += 1
             trained += 1
-            last_loss = float(loss.detach())
+            last_loss = shown
             elapsed = time.monotonic() - t0
             rate = trained * config.batch / max(elapsed, 1e-9)
             bar.set_postfix(loss=f"{last_loss:.4f}", res=where.resolution, img_s=f"{rate:.1f}")
@@ -393,20 +401,20 @@ def train(
                 "alpha": where.alpha,
                 "resolution": where.resolution,
             }
-            if step % config.eval_every == 0 or step == total:
+            if ctx.is_main and (step % config.eval_every == 0 or step == total):
                 record["heldout"] = _preview(
-                    model,
+                    ctx.on_cpu(model),
                     held_out if len(held_out) else samples,
                     where.resolution,
                     out / "previews" / f"level_{where.resolution}.png",
                 )
             log.write(json.dumps(record) + "\n")
-            if step % config.checkpoint_every == 0 or step == total:
+            if ctx.is_main and (step % config.checkpoint_every == 0 or step == total):
                 last_good = save_checkpoint(out, model, optimizer, step, where.level)
     except KeyboardInterrupt:
         stopped = "interrupted"
     except DatasetError as exc:  # a damaged sample: keep the progress, then say how to go on
-        if step > start:
+        if step > start and ctx.is_main:
             save_checkpoint(out, model, optimizer, step, schedule(config, step - 1).level)
         raise TrainingError(
             f"{exc.what} Training stopped at step {step}"
@@ -420,8 +428,10 @@ def train(
     if stopped != "done" or steps is not None:
         if stopped == "done":
             stopped = "step budget"
-        if step > start and torch.isfinite(torch.tensor(last_loss)):
+        if step > start and torch.isfinite(torch.tensor(last_loss)) and ctx.is_main:
             save_checkpoint(out, model, optimizer, step, schedule(config, max(step - 1, 0)).level)
+    if stopped != "interrupted":
+        ctx.barrier()  # the other ranks return once rank 0's checkpoint is written
     seconds = time.monotonic() - t0
     return TrainResult(
         out, step, seconds, stopped, last_loss, trained * config.batch / max(seconds, 1e-9)

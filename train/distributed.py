@@ -1,0 +1,215 @@
+"""Training on several processes with torch.distributed: torchrun, DDP, rank 0 writes.
+
+    torchrun --standalone --nproc-per-node 2 -m rigspace.train DATASET --out MODEL ...
+    rigspace train DATASET --out MODEL --nproc 2 ...        (the same, torchrun spawned)
+
+Under torchrun (WORLD_SIZE > 1 in the environment) `context()` joins the process group:
+gloo on CPU, nccl with one GPU per rank on CUDA. The model is wrapped in
+DistributedDataParallel; --batch stays the global batch and each rank reads batch / world of
+it (train.stream.prefetcher), so a step trains on the same samples whatever the world size
+and `--resume` continues a run on another world size. Rank 0 alone writes run.json, the log,
+previews, checkpoints and the bundle; decisions that depend on the clock (--minutes) are
+rank 0's, shared, so every rank takes the same steps. Without torchrun the context is one
+process and training behaves exactly as it always has.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, TypeVar
+
+from rigspace.sdk.errors import RigspaceError
+
+if TYPE_CHECKING:
+    import torch
+
+T = TypeVar("T")
+N = TypeVar("N", bool, int)
+
+
+def under_torchrun() -> bool:
+    return int(os.environ.get("WORLD_SIZE", "1")) > 1
+
+
+@dataclass
+class Context:
+    """This process's place in the run: rank, world size, device."""
+
+    rank: int = 0
+    world: int = 1
+    device: torch.device = field(default_factory=lambda: _torch().device("cpu"))
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+    def wrap(self, model: torch.nn.Module) -> torch.nn.Module:
+        """The module the training step calls: DDP over `model` (moved to the device)."""
+        if self.world == 1:
+            return model
+        from torch.nn.parallel import DistributedDataParallel
+
+        # Progressive training leaves the blocks above the current level without gradients.
+        ids = [self.device.index] if self.device.type == "cuda" else None
+        return DistributedDataParallel(model, device_ids=ids, find_unused_parameters=True)
+
+    def to_device(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        if self.device.type == "cpu":
+            return batch
+        return {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
+
+    def on_cpu(self, model: torch.nn.Module) -> torch.nn.Module:
+        """`model`, or a CPU copy of it (previews read numpy batches on the CPU)."""
+        return model if self.device.type == "cpu" else copy.deepcopy(model).cpu()
+
+    def share(self, make: Callable[[], T]) -> T:
+        """Rank 0's `make()` on every rank; a RigspaceError it raises is raised on every rank."""
+        if self.world == 1:
+            return make()
+        import torch.distributed as dist
+
+        if self.is_main:
+            try:
+                value = make()
+            except RigspaceError as exc:
+                dist.broadcast_object_list([("error", type(exc), exc.what, exc.fix)], src=0)
+                raise
+            dist.broadcast_object_list([("ok", value)], src=0)
+            return value
+        box: list[Any] = [None]
+        dist.broadcast_object_list(box, src=0)
+        if box[0][0] == "error":
+            _, kind, what, fix = box[0]
+            raise kind(what, fix)
+        return box[0][1]
+
+    def agree(self, value: N) -> N:
+        """Rank 0's value (a bool or an int) on every rank: decisions taken on the clock."""
+        if self.world == 1:
+            return value
+        import torch
+        import torch.distributed as dist
+
+        tensor = torch.tensor([int(value)], dtype=torch.int64, device=self._comm_device)
+        dist.broadcast(tensor, src=0)
+        return type(value)(int(tensor.item()))
+
+    def mean(self, loss: torch.Tensor, terms: dict[str, float]) -> tuple[float, dict[str, float]]:
+        """The step's loss and terms averaged over the ranks (what a log line shows)."""
+        if self.world == 1:
+            return float(loss.detach()), terms
+        import torch
+        import torch.distributed as dist
+
+        values = torch.tensor(
+            [float(loss.detach()), *terms.values()], dtype=torch.float64, device=self._comm_device
+        )
+        dist.all_reduce(values)
+        values = (values / self.world).cpu()
+        return float(values[0]), dict(zip(terms, values[1:].tolist(), strict=True))
+
+    def barrier(self) -> None:
+        if self.world > 1:
+            import torch.distributed as dist
+
+            dist.barrier()
+
+    @property
+    def _comm_device(self) -> torch.device:
+        import torch.distributed as dist
+
+        return self.device if dist.get_backend() == "nccl" else _torch().device("cpu")
+
+
+def _torch() -> Any:
+    import torch  # here, not at the top: `rigspace train --nproc` launches without it
+
+    return torch
+
+
+_context: Context | None = None
+
+
+def context() -> Context:
+    """This process's Context; under torchrun the first call joins the process group."""
+    global _context
+    if _context is not None:
+        return _context
+    if not under_torchrun():
+        _context = Context()
+        return _context
+    import torch
+    import torch.distributed as dist
+
+    rank, world = int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"])
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    local_world = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))
+    if torch.cuda.is_available():
+        device = torch.device("cuda", local_rank)
+        torch.cuda.set_device(device)
+        backend = "nccl"
+    else:
+        device, backend = torch.device("cpu"), "gloo"
+        # The ranks of a node share its cores: one process's default would oversubscribe.
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // local_world))
+    if not dist.is_initialized():
+        dist.init_process_group(backend)
+    _context = Context(rank, world, device)
+    return _context
+
+
+def close() -> None:
+    """Leave the process group (the end of a torchrun process's training)."""
+    global _context
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        dist.destroy_process_group()
+    _context = None
+
+
+def torchrun_argv(args: argparse.Namespace, nproc: int) -> list[str]:
+    """The torchrun command that runs `rigspace train` with `args` on `nproc` local ranks."""
+    from rigspace.train.config import TrainConfig
+
+    argv = [str(args.dataset), "--out", str(args.out), "--preset", args.preset]
+    if args.steps is not None:
+        argv += ["--steps", str(args.steps)]
+    if args.minutes is not None:
+        argv += ["--minutes", repr(args.minutes)]
+    argv += [f"--{f.replace('_', '-')}" for f in ("resume", "no_int8", "force") if getattr(args, f)]
+    for f in TrainConfig.__dataclass_fields__.values():
+        value = getattr(args, f.name, None)
+        if f.name == "preset" or value is None:
+            continue
+        flag = "--" + f.name.replace("_", "-")
+        if isinstance(value, bool):
+            argv.append(flag if value else "--no-" + f.name.replace("_", "-"))
+        else:
+            argv += [flag, str(value)]
+    return [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        f"--nproc-per-node={nproc}",
+        "-m",
+        "rigspace.train",
+        *argv,
+    ]
+
+
+def launch(args: argparse.Namespace, nproc: int) -> int:
+    """`rigspace train --nproc N`: run the same training under torchrun; its exit code."""
+    if args.upgrade:
+        raise RigspaceError(
+            "--upgrade trains a few heads on one process and cannot run with --nproc.",
+            "drop --nproc for --upgrade.",
+        )
+    return subprocess.run(torchrun_argv(args, nproc), check=False).returncode
