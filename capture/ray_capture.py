@@ -153,7 +153,9 @@ def capture_on_ray(
     views: list[np.ndarray] = []
     done, seen_something = 0, False
     started = connect(address, workers)
-    task = ray.remote(num_cpus=1, max_retries=MAX_RETRIES, retry_exceptions=TRANSIENT)(render_item)
+    # retry_exceptions takes a list of exception types (Ray's stubs say bool only).
+    options: dict[str, Any] = {"max_retries": MAX_RETRIES, "retry_exceptions": TRANSIENT}
+    task = ray.remote(num_cpus=1, **options)(render_item)
     settings_ref = ray.put(settings.to_json())
     start = time.perf_counter()
     bar = tqdm(

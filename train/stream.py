@@ -128,7 +128,7 @@ class ShardSet(SplitInfo):
             with tarfile.open(path, "r:") as tar:
                 key, parts = None, []
                 while (info := tar.next()) is not None:
-                    tar.members.clear()  # headers are not kept: bounded memory per shard
+                    tar.members.clear()  # type: ignore[attr-defined]  # keep no headers: bounded
                     name, ext = info.name.split(".", 1)
                     if key is not None and name != key:
                         yield Member(shard, key, tuple(parts))
