@@ -200,7 +200,7 @@ class SceneModel:
                 "time": time,
                 "active": prim.IsActive(),
                 "applied": list(prim.GetAppliedSchemas()),
-                "metadata": {k: value_json(v) for k, v in prim.GetAllAuthoredMetadata().items()},
+                "metadata": {k: _metadata(v) for k, v in prim.GetAllAuthoredMetadata().items()},
                 "properties": rows,
                 "bundle": _bundle(prim),
             }
@@ -257,6 +257,15 @@ class SceneModel:
                 found = validation.validate(self.stage)
                 self._findings = [{**f.as_dict(), "prim": _prim_of(f.prim)} for f in found]
             return [*self.load_errors, *self._findings]
+
+
+def _metadata(value: Any) -> Any:
+    """A metadata value as usdview shows it: list ops as their items, enums by name."""
+    if hasattr(value, "GetAddedOrExplicitItems"):  # SdfTokenListOp, SdfPathListOp, ...
+        return [str(item) for item in value.GetAddedOrExplicitItems()]
+    if isinstance(value, Sdf.Specifier):
+        return str(value).removeprefix("Sdf.Specifier").lower()
+    return value_json(value)
 
 
 def _prim_of(site: str) -> str:

@@ -83,8 +83,18 @@ def test_previs_select_scrub_and_switch_maps(browser, previs_served):
     decision = page.locator('#decisions tr[data-character="/World/Hero"]').inner_text()
     assert "evaluated" in decision or "reused" in decision
     shot(page, "page", "overview")
-    for panel in ("tree", "props", "comp", "viewport", "timeline", "decisions", "graph"):
+    for panel in ("tree", "props", "viewport", "timeline", "decisions", "graph"):
         shot(page, f"#{panel}-panel", panel)
+    page.locator("#bundle-metrics").scroll_into_view_if_needed()
+    shot(page, "#props-panel", "bundle")
+    # The skinned asset is referenced in: the composition panel names both layers.
+    page.click('.node[data-path="/World/Hero/Asset"]')
+    page.wait_for_function(
+        "() => document.querySelector('#arcs') && "
+        "document.querySelector('#arcs').textContent.includes('Reference')"
+    )
+    assert "sample_character.usda" in page.locator("#arcs").inner_text()
+    shot(page, "#comp-panel", "comp")
     # Switch the map: normals look nothing like the beauty.
     page.click('#maps button[data-map="normal"]')
     wait_frame(page, "h.map === 'normal' && h.time === 300")

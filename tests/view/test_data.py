@@ -43,6 +43,8 @@ def test_properties_at_a_time_authored_fallback_samples_and_targets(previs_clien
     assert props["purpose"]["source"] == "fallback"
     assert props["rigspace:skeleton"]["kind"] == "relationship"
     assert props["rigspace:skeleton"]["targets"] == ["/World/Hero/Asset/Skel"]
+    assert hero["metadata"]["specifier"] == "def"
+    assert "RigspaceCaptureRingAPI" in hero["metadata"]["apiSchemas"]
     bundle = hero["bundle"]
     assert bundle["manifest"].endswith("manifest.json") and bundle["levels"][-1] == 128
     model_rows = [r for r in bundle["metrics"] if r["predictor"] == "model"]
