@@ -265,12 +265,25 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    from rigspace.train.evaluate import DatasetTable, compare, format_table
+    from rigspace.train.evaluate import (
+        DatasetTable,
+        Downsampled,
+        compare,
+        format_table,
+        targets_note,
+        to_json,
+    )
     from rigspace.train.predictor import BundlePredictor
 
     if args.errors:
         check_folder(Path(args.errors), "--errors")  # before the evaluation, not after it
     table = DatasetTable(Path(args.dataset))
+    top = model_top_level(Path(args.model))
+    if top is not None and table.resolution > top and table.resolution % top == 0:
+        # A model designed below the capture's resolution: evaluate it at its top level
+        # against box-downsampled targets, the ones it was trained on.
+        table = DatasetTable(Path(args.dataset), top)
+        print(f"note: targets {targets_note(table)}", file=sys.stderr)
     predictors = [BundlePredictor(Path(args.model), table, int8=args.int8)]
     if args.split == "heldout-clips" and not args.no_baselines:
         # Held-out clips were never captured from training views: nothing to interpolate.
@@ -283,7 +296,8 @@ def run_eval(args: argparse.Namespace) -> int:
         from rigspace.train.baselines import BaselinePredictor
 
         predictors += [
-            BaselinePredictor(Path(args.dataset), kind) for kind in ("nearest", "linear")
+            Downsampled(BaselinePredictor(Path(args.dataset), kind), table.factor)
+            for kind in ("nearest", "linear")
         ]
     result = compare(predictors, table, args.split, limit=args.limit or None, out_dir=args.errors)
     if args.record:
@@ -292,11 +306,23 @@ def run_eval(args: argparse.Namespace) -> int:
             Path(args.model), args.split, "int8" if args.int8 else "fp32", result, fallbacks
         )
     if args.json:
-        json.dump(result, sys.stdout, indent=2, default=float)
-        sys.stdout.write("\n")
+        sys.stdout.write(to_json(result))  # strict JSON: null for nan and inf, never NaN
     else:
         print(format_table(result))
     return 0
+
+
+def model_top_level(model: Path) -> int | None:
+    """The highest level a bundle's network has (planned, trained or not); None when its
+    manifest does not say (BundlePredictor then reports the bundle's own problem)."""
+    try:
+        raw = json.loads((model / "manifest.json").read_text())
+        planned = raw.get("training", {}).get("planned_levels") or [
+            level["resolution"] for level in raw["levels"]
+        ]
+        return int(max(planned))
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
 
 
 def record_metrics(

@@ -16,7 +16,7 @@ import numpy as np
 from rigspace.capture.dataset import PARAMS_FILE, DatasetError, read_manifest
 from rigspace.capture.ring import SPLITS, TRAIN
 from rigspace.sdk.render import Maps
-from rigspace.train.data import read_sample
+from rigspace.train.data import read_sample, targets_at
 from rigspace.train.metrics import MASK_THRESHOLD, METRICS, map_metrics
 
 HEIGHT_SAMPLES = 16
@@ -56,14 +56,27 @@ class DatasetTable:
     """A captured dataset's manifest and parameter table, and its maps read on demand.
 
     Columns of params.npz load on first use (`column`) and stay cached; maps are read from
-    their EXRs each time (datasets are far larger than memory at the paper's scale).
+    their EXRs each time (datasets are far larger than memory at the paper's scale). With
+    `resolution` below the captured one, `maps` returns the captured maps box-downsampled
+    to it (downsample_maps: the targets training makes, train.data.targets_at), so a model
+    whose top level is below the capture's resolution is evaluated the way it was trained.
     """
 
-    def __init__(self, folder: str | Path) -> None:
+    def __init__(self, folder: str | Path, resolution: int | None = None) -> None:
         self.folder = Path(folder)
         self.manifest: dict[str, Any] = read_manifest(self.folder)
         self._params = np.load(self.folder / PARAMS_FILE, allow_pickle=False)
         self._columns: dict[str, np.ndarray] = {}
+        captured = self.captured_resolution
+        self.factor = 1 if resolution is None else captured // max(int(resolution), 1)
+        if resolution is not None and (
+            resolution > captured or self.factor * resolution != captured
+        ):
+            raise DatasetError(
+                f"{self.folder} is captured at {captured}x{captured}; {resolution}x{resolution} "
+                "targets cannot be made from it by box downsampling.",
+                f"evaluate at {captured} or a resolution that divides it.",
+            )
 
     def column(self, name: str) -> np.ndarray:
         """One params.npz column (docs/capture.md lists them), one row per sample."""
@@ -81,8 +94,13 @@ class DatasetTable:
         return len(self.column("path"))
 
     @property
-    def resolution(self) -> int:
+    def captured_resolution(self) -> int:
         return int(self.manifest["resolution"])
+
+    @property
+    def resolution(self) -> int:
+        """The resolution of `maps` (the captured one unless the table downsamples)."""
+        return self.captured_resolution // self.factor
 
     def indices(self, split: str) -> np.ndarray:
         """Row indices of a split ("train", "heldout-views", "heldout-clips"), ascending."""
@@ -101,9 +119,13 @@ class DatasetTable:
     def path(self, index: int) -> Path:
         return self.folder / str(self.column("path")[index])
 
-    def maps(self, index: int) -> Maps:
-        """The captured maps of row `index`."""
+    def captured_maps(self, index: int) -> Maps:
+        """The captured maps of row `index`, at the captured resolution."""
         return read_sample(self.folder, self.manifest, str(self.column("path")[index]))
+
+    def maps(self, index: int) -> Maps:
+        """The maps of row `index` at `resolution` (box-downsampled when below the capture's)."""
+        return downsample_maps(self.captured_maps(index), self.factor)
 
     @cached_property
     def character_height(self) -> float:
@@ -120,7 +142,7 @@ class DatasetTable:
         intrinsics = self.column("intrinsics")
         height = 0.0
         for index in rows:
-            maps = self.maps(int(index))
+            maps = self.captured_maps(int(index))  # the intrinsics are the capture's
             inside = (maps.mask >= MASK_THRESHOLD) & np.isfinite(maps.depth)
             if not inside.any():
                 continue
@@ -134,6 +156,44 @@ class DatasetTable:
                 "check the capture ring's radius and look-at joint (see contact_sheet.png).",
             )
         return height
+
+
+def downsample_maps(maps: Maps, factor: int) -> Maps:
+    """Maps box-downsampled by `factor` exactly as training makes its targets
+    (train.data.targets_at): albedo (premultiplied) and coverage averaged over each box,
+    depth and normals averaged over its covered part; empty boxes keep +inf depth and zero
+    normals (the dataset's conventions)."""
+    if factor == 1:
+        return maps
+    mask = maps.mask[None].astype(np.float32)
+    depth = np.where((mask > 0) & np.isfinite(maps.depth[None]), maps.depth[None], 0.0)
+    albedo, coverage, normal, depth = targets_at(
+        np.moveaxis(maps.albedo, -1, 0),
+        mask,
+        np.moveaxis(maps.normal, -1, 0),
+        depth.astype(np.float32),
+        factor,
+    )
+    covered = coverage[0] > 0
+    return Maps(
+        albedo=np.moveaxis(albedo, 0, -1).astype(np.float32),
+        normal=np.where(covered[..., None], np.moveaxis(normal, 0, -1), 0.0).astype(np.float32),
+        depth=np.where(covered, depth[0], np.inf).astype(np.float32),
+        mask=coverage[0].astype(np.float32),
+    )
+
+
+class Downsampled:
+    """A predictor whose maps come at the captured resolution (the captured-view baselines),
+    box-downsampled to an evaluation's lower one like the targets (downsample_maps)."""
+
+    def __init__(self, predictor: Predictor, factor: int) -> None:
+        self.predictor, self.factor = predictor, factor
+        self.name = predictor.name
+        self.footprint_bytes = getattr(predictor, "footprint_bytes", None)
+
+    def predict(self, indices: np.ndarray) -> list[Maps]:
+        return [downsample_maps(m, self.factor) for m in self.predictor.predict(indices)]
 
 
 def evenly_spaced(indices: np.ndarray, limit: int | None) -> np.ndarray:
@@ -301,10 +361,22 @@ def compare(
         "dataset": str(table.folder),
         "split": split,
         "samples": len(rows),
+        "resolution": table.resolution,
+        "targets": targets_note(table),
         "indices": [int(i) for i in rows],
         "rows": table_rows,
         "reports": reports,
     }
+
+
+def targets_note(table: DatasetTable) -> str:
+    """How the evaluation's targets were made: as captured, or box-downsampled."""
+    if table.factor == 1:
+        return f"as captured, {table.resolution}x{table.resolution}"
+    return (
+        f"box-downsampled {table.factor}x from the captured {table.captured_resolution}x"
+        f"{table.captured_resolution} to {table.resolution}x{table.resolution}, as training does"
+    )
 
 
 COLUMNS = (
@@ -337,7 +409,8 @@ def _cell(value: Any, fmt: str) -> str:
 def format_table(result: dict[str, Any]) -> str:
     """A compare() result as a Markdown table (means over the samples; normal median: median)."""
     lines = [
-        f"{result['split']}: {result['samples']} samples of {result['dataset']}",
+        f"{result['split']}: {result['samples']} samples of {result['dataset']}"
+        + (f" (targets {result['targets']})" if result.get("targets") else ""),
         "",
         "| " + " | ".join(header for _, header, _ in COLUMNS) + " |",
         "|" + "|".join("---" for _ in COLUMNS) + "|",
@@ -348,6 +421,10 @@ def format_table(result: dict[str, Any]) -> str:
 
 
 def _strict(value: Any) -> Any:
+    if isinstance(value, np.generic):  # numpy scalars (float32, int64) -> Python numbers
+        value = value.item()
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
     if isinstance(value, float) and not math.isfinite(value):
         return None
     if isinstance(value, dict):
@@ -358,7 +435,8 @@ def _strict(value: Any) -> Any:
 
 
 def to_json(report: dict[str, Any]) -> str:
-    """A report as strict JSON: non-finite numbers (+inf PSNR, nan) become null."""
+    """A report as strict JSON: non-finite numbers (+inf PSNR, nan) become null (never the
+    NaN/Infinity tokens json.dumps writes by default, which strict parsers reject)."""
     return json.dumps(_strict(report), indent=2, allow_nan=False) + "\n"
 
 

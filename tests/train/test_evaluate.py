@@ -146,3 +146,100 @@ def test_evaluation_imports_no_torch():
         "sys.exit('torch' in sys.modules)"
     )
     assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
+
+
+def _reject(constant: str):
+    raise ValueError(f"not strict JSON: {constant}")
+
+
+def test_reports_are_strict_json_with_null_for_nan_and_inf(table):
+    report = ev.evaluate(Truth(table), table, "heldout-views", limit=2)
+    assert math.isinf(report["metrics"]["albedo_psnr"]["mean"])  # an exact match
+    report["numpy"] = [np.float32("nan"), np.int64(3), np.array([1.5, np.inf])]
+    parsed = json.loads(ev.to_json(report), parse_constant=_reject)
+    assert parsed["metrics"]["albedo_psnr"]["mean"] is None
+    assert parsed["numpy"] == [None, 3, [1.5, None]]
+    assert parsed["metrics"]["mask_iou"]["mean"] == 1.0
+
+
+def test_downsampled_targets_are_the_training_targets(table):
+    """A table below the capture's resolution box-downsamples exactly as training does."""
+    from rigspace.train.data import SampleSet
+
+    half = ev.DatasetTable(table.folder, 16)
+    assert (half.resolution, half.captured_resolution, half.factor) == (16, 32, 2)
+    row = int(half.indices("train")[5])
+    maps = half.maps(row)
+    assert maps.mask.shape == (16, 16)
+    samples = SampleSet(table.folder, "train", resolution=16)
+    item = samples.item(int(np.flatnonzero(samples.rows == row)[0]))
+    np.testing.assert_allclose(np.moveaxis(maps.albedo, -1, 0), item["albedo"], atol=1e-6)
+    np.testing.assert_allclose(maps.mask, item["mask"][0], atol=1e-6)
+    covered = maps.mask > 0
+    assert np.all(np.isinf(maps.depth[~covered])) and np.all(np.isfinite(maps.depth[covered]))
+    joint_depth = -table.column("joint_camera")[row][2]
+    relative = (maps.depth[covered] - joint_depth) / samples.depth_scale
+    np.testing.assert_allclose(relative, item["depth"][0][covered], atol=1e-4)
+    assert half.character_height == table.character_height  # measured at the capture's size
+    with pytest.raises(ev.DatasetError, match=r"captured at 32x32; 24x24 targets cannot"):
+        ev.DatasetTable(table.folder, 24)
+
+
+@pytest.fixture(scope="module")
+def fp32_model(tiny_run, tmp_path_factory):
+    from rigspace.train.export import export_bundle
+
+    out = tmp_path_factory.mktemp("eval32") / "bundle"
+    export_bundle(tiny_run, out, int8=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def bundle_at_16(fp32_model, tmp_path_factory):
+    """The tiny model as a network whose top level is 16 (its level 32 left out)."""
+    out = tmp_path_factory.mktemp("eval16") / "bundle"
+    shutil.copytree(fp32_model, out)
+    path = out / "manifest.json"
+    manifest = json.loads(path.read_text())
+    manifest["levels"] = [lv for lv in manifest["levels"] if lv["resolution"] <= 16]
+    manifest["training"]["planned_levels"] = manifest["training"]["trained_levels"] = [8, 16]
+    path.write_text(json.dumps(manifest))
+    return out
+
+
+def test_eval_above_the_top_level_uses_downsampled_targets_and_strict_json(
+    bundle_at_16, tiny_dataset, capsys
+):
+    from rigspace.sdk.cli import main
+    from rigspace.train.predictor import BundlePredictor
+
+    args = ["eval", str(bundle_at_16), str(tiny_dataset), "--limit", "6", "--json"]
+    assert main(args) == 0
+    out = capsys.readouterr()
+    assert "box-downsampled 2x from the captured 32x32 to 16x16" in out.err
+    result = json.loads(out.out, parse_constant=_reject)  # strict: no NaN/Infinity tokens
+    assert result["resolution"] == 16 and "box-downsampled" in result["targets"]
+    rows = {row["predictor"]: row for row in result["rows"]}
+    assert set(rows) == {"model", "nearest", "linear"}  # baselines downsampled alike
+    # The model's numbers are those of its level 16 against the downsampled targets.
+    half = ev.DatasetTable(tiny_dataset, 16)
+    direct = ev.evaluate(
+        BundlePredictor(bundle_at_16, half), half, "heldout-views", indices=result["indices"]
+    )
+    assert rows["model"]["albedo_psnr"] == pytest.approx(direct["metrics"]["albedo_psnr"]["mean"])
+    assert rows["model"]["mask_iou"] == pytest.approx(direct["metrics"]["mask_iou"]["mean"])
+    assert main([*args[:-1]]) == 0  # the table says so as well
+    assert "(targets box-downsampled 2x" in capsys.readouterr().out
+
+
+def test_eval_json_writes_null_where_a_metric_is_not_finite(fp32_model, tiny_dataset, capsys):
+    """On training rows the nearest captured view is the sample itself: PSNR +inf."""
+    from rigspace.sdk.cli import main
+
+    args = ["eval", str(fp32_model), str(tiny_dataset), "--split", "train", "--limit", "2"]
+    assert main([*args, "--json"]) == 0
+    result = json.loads(capsys.readouterr().out, parse_constant=_reject)
+    nearest = next(row for row in result["rows"] if row["predictor"] == "nearest")
+    assert nearest["albedo_psnr"] is None and nearest["mask_iou"] == 1.0
+    samples = result["reports"]["nearest"]["per_sample"]
+    assert all(sample["albedo_psnr"] is None for sample in samples)
