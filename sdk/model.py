@@ -50,6 +50,11 @@ class BundleModel:
         self.levels: dict[int, dict[str, str]] = {}
         self.int8_fallbacks: dict[str, str] = {}
         """int8 graphs the export's check failed (manifest int8_check) -> fp32 graph run instead."""
+        offered = raw.get("int8_check", {}).get("offered_levels")
+        self.int8_offered: list[int] | None = None if offered is None else sorted(offered)
+        """Levels where int8 met the accuracy aim and was MIN_SPEEDUP faster at export
+        (rigspace.train.int8check): the only ones to run int8 at for speed. None: a check
+        older than that judgement (every level whose graphs passed is then offered)."""
         for level in raw["levels"]:
             graphs = level["int8"] if precision == "int8" else level["graphs"]
             if precision == "int8" and not graphs:
