@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from pxr import Tf, Usd, UsdGeom
 
+from rigspace.runtime import shadow_pass
 from rigspace.runtime.billboard import Billboard
 from rigspace.runtime.character import Layer, NeuralCharacter
 from rigspace.runtime.lights import (
@@ -335,8 +336,11 @@ class Engine:
         from the characters' capsules (None: none can fall), each found coarse to fine
         (sparse_visibility) in the window of its own screen regions. (One pass for both, on
         the union of their windows, measured slower: the capsules' small window grew to the
-        maps' and more pixels were evaluated.)"""
+        maps' and more pixels were evaluated.) The same passes run compiled in shadow_pass.py
+        unless the capsules go to the fragment shader or SHADOW_KERNEL is "numpy"."""
         box = self._scene_box(meshes)
+        if shadow_pass.wanted() and self.shadows.capsule_backend == "numpy":
+            return shadow_pass.prim_shadows(self.shadows, prims, camera, lights, box, casters, maps)
         bounds = [(posed, [part.bounds() for part in posed.parts()]) for _, posed in casters]
         jobs: list[tuple[int, int, list, Any]] = []  # (light, pass, regions, map or capsules)
         passes: dict[tuple[int, str], int] = {}  # a pass per light and kind

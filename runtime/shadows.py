@@ -75,6 +75,10 @@ GL_CAPSULES = "hardware"
 too), "never". On llvmpipe, 2 shared cores, the shader measured no faster than numpy per
 frame (each draw hands its pixels to llvmpipe's threads and waits for them), so numpy
 stays there; the numpy pairs are also the reference and the fallback (embree, no EGL)."""
+SHADOW_KERNEL = "numba"
+"""What computes the shadows where the fragment shader does not: "numba", the compiled
+kernels of shadow_kernels.py (one call per pass, shadow_pass.py), or "numpy", the engine's
+passes over this module's functions (the reference the kernels are tested against)."""
 SOFTWARE_GL = ("llvmpipe", "softpipe", "swrast", "software")
 """GL_RENDERER strings (lower case) of a rasteriser on the CPU."""
 SURFACE_TOLERANCE = 0.01
@@ -94,6 +98,11 @@ class ShadowMap:
         # A border of +inf: a lookup clamped into it finds no caster (lit), with no test.
         self._padded = np.pad(self.depth, 1, constant_values=np.inf).astype(np.float32)
         self._m = self.camera.world_to_camera.astype(np.float32)
+
+    @property
+    def padded(self) -> np.ndarray:
+        """(S + 2, S + 2) float32 depth with a border of +inf."""
+        return self._padded
 
     def visibility(self, points: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
         """(N,) in [0, 1]: how much of the light reaches world `points` (planar (3, N)
@@ -274,8 +283,14 @@ class PrimShadows:
     def capsule_visibility(
         self, points: np.ndarray, capsules: PosedCapsules, light: Light
     ) -> np.ndarray:
-        """capsule_visibility, in the fragment shader where GL_CAPSULES says so."""
-        return capsule_visibility(points, capsules, light, self._capsule_shader())
+        """capsule_visibility, in the fragment shader where GL_CAPSULES says so, else compiled
+        (SHADOW_KERNEL)."""
+        shader = self._capsule_shader()
+        if shader is None and SHADOW_KERNEL == "numba":
+            from rigspace.runtime import shadow_pass  # it imports this module
+
+            return shadow_pass.points_visibility(points, None, light, capsules)
+        return capsule_visibility(points, capsules, light, shader)
 
     @property
     def capsule_backend(self) -> str:
@@ -327,7 +342,15 @@ class PrimShadows:
         shadow_map = self._map(*handle)
         if shadow_map is None:
             return np.ones(points.shape[1], np.float32)
+        if SHADOW_KERNEL == "numba":
+            from rigspace.runtime import shadow_pass  # it imports this module
+
+            return shadow_pass.points_visibility(points, normals, shadow_map=shadow_map)
         return shadow_map.visibility(points, normals)
+
+    def shadow_map(self, handle: tuple) -> ShadowMap | None:
+        """The map of a handle from `regions`, drawn if needed (None: the light needs none)."""
+        return self._map(*handle)
 
 
 # -- capsules ---------------------------------------------------------------------------------

@@ -533,6 +533,7 @@ def test_the_previs_frame_blended_matches_every_pixel_evaluated(monkeypatch):
         finally:
             engine.close()
 
+    monkeypatch.setattr(shadows, "SHADOW_KERNEL", "numpy")  # the engine's numpy passes
     blended = frame()
     monkeypatch.setattr(engine_module, "sparse_visibility", _full_visibility)
     full = frame()
@@ -690,3 +691,149 @@ def test_the_shader_runs_only_with_the_gl_renderer_on_a_gpu(name, monkeypatch):
     monkeypatch.setattr(shadows, "GL_CAPSULES", "always")
     assert prim_shadows.capsule_backend == "gl"  # decided again after close
     prim_shadows.close()
+
+
+# -- the compiled kernels (shadow_kernels.py, shadow_pass.py) ---------------------------------
+
+KERNEL_TOLERANCE = 2e-3
+"""Largest visibility gap between the compiled passes and the numpy ones (3e-5 measured in
+the beauty, 4e-4 in a factor: float64 against float32 arithmetic; one texel compare or one
+blend decision flipping would show as 0.01 or more)."""
+KERNEL_MEAN_TOLERANCE = 1e-5
+"""Mean visibility gap over the frame's pixels."""
+
+
+_PRIM_SHADOWS = Engine._prim_shadows
+"""The engine's own (the tests below record what it returns)."""
+
+
+def _shadow_terms(monkeypatch, kernel: str, times, size=(320, 180)):
+    """Per time: the beauty and the prims' per-light shadow factors (maps', capsules') that
+    the engine shaded with, through the numba kernels or the numpy passes."""
+    from rigspace.runtime import engine as engine_module
+
+    monkeypatch.setattr(shadows, "SHADOW_KERNEL", kernel)
+    terms = []
+
+    def recording(self, *args):
+        out = _PRIM_SHADOWS(self, *args)
+        terms.append(out)
+        return out
+
+    monkeypatch.setattr(engine_module.Engine, "_prim_shadows", recording)
+    engine = Engine(PREVIS, width=size[0], height=size[1], precision="int8", prim_samples=1)
+    try:
+        frames = [np.array(engine.render(float(t)).beauty) for t in times]
+    finally:
+        engine.close()
+    return frames, terms
+
+
+def test_the_compiled_shadow_passes_match_numpy_on_previs_frames(monkeypatch):
+    """The previs shot at three times (camera, crate and ball moving; sun and lamp): the
+    factors from the compiled passes against the numpy passes', light by light."""
+    times = (250.0, 600.0, 1100.0)
+    fast, fast_terms = _shadow_terms(monkeypatch, "numba", times)
+    slow, slow_terms = _shadow_terms(monkeypatch, "numpy", times)
+    assert len(fast_terms) == len(slow_terms) == len(times)
+    compared = 0
+    for (mapped, hidden), (mapped_ref, hidden_ref) in zip(fast_terms, slow_terms, strict=True):
+        for mine, theirs in zip([*mapped, *hidden], [*mapped_ref, *hidden_ref], strict=True):
+            assert (mine is None) == (theirs is None)
+            if mine is None:
+                continue
+            gap = np.abs(mine - theirs)
+            assert gap.max() < KERNEL_TOLERANCE
+            assert gap.mean() < KERNEL_MEAN_TOLERANCE
+            compared += int((theirs < 0.99).sum())
+    assert compared > 2000  # real shadows, the maps' and the capsules', were compared
+    for mine, theirs in zip(fast, slow, strict=True):
+        assert np.abs(mine - theirs).max() < KERNEL_TOLERANCE
+
+
+def test_the_compiled_blend_matches_every_pixel_evaluated(monkeypatch):
+    """The kernels' coarse-to-fine blend against every candidate evaluated by them."""
+    from rigspace.runtime import shadow_pass
+
+    blended, _ = _shadow_terms(monkeypatch, "numba", (600.0,))
+    monkeypatch.setattr(shadows, "SPARSE_STEP", 1)
+    full, _ = _shadow_terms(monkeypatch, "numba", (600.0,))
+    assert shadow_pass.wanted()
+    gap = np.abs(blended[0] - full[0]).max(axis=-1)
+    # As the numpy blend (test_the_previs_frame_blended_matches_every_pixel_evaluated).
+    assert (gap > 2 / 255).sum() <= 20
+    assert gap.max() < 0.1
+    assert gap.mean() < 5e-5
+
+
+@pytest.mark.parametrize(
+    ("kind", "where"), [(DISTANT, "beside"), (POINT, "beside"), (POINT, "among")]
+)
+def test_the_compiled_capsule_occlusion_matches_numpy(kind, where):
+    """Receivers around the sample character under a sun and a lamp, the lamp also among
+    the capsules (every pair: no 2-D view); and the same through a shadow map."""
+    from rigspace.runtime import shadow_pass
+
+    capsules = read_capsules(SAMPLE_MODEL / "capsules.json")
+    rig = _rig()
+    world = rig.world_transforms(100.0)
+    index = [rig.joints.index(j) for j in capsules.joints]
+    posed = shadows.pose_capsules(
+        capsules.a, capsules.b, capsules.radius, world[index], shadows.chains(capsules.joints)
+    )
+    centre = world[index[0]][:3, 3]
+    if kind == DISTANT:
+        direction = np.array([0.5, -0.8, 0.3]) / np.linalg.norm([0.5, -0.8, 0.3])
+        light = Light(DISTANT, np.ones(3), direction=direction)
+    else:
+        among = centre + np.array([0.0, 20.0, 0.0])
+        position = among if where == "among" else np.array([100.0, 300.0, 300.0])
+        light = Light(POINT, np.ones(3), position=position, radius=15.0)
+    rng = np.random.default_rng(2)
+    points = centre + rng.uniform(-400, 400, (20000, 3)) * (1, 0, 1) - (0, centre[1], 0)
+    points = points.T.astype(np.float32)
+    fast = shadow_pass.points_visibility(points, None, light, posed)
+    slow = capsule_visibility(points, posed, light)
+    assert (slow < 0.5).sum() > 100  # a real shadow to compare
+    assert np.abs(fast - slow).max() < KERNEL_TOLERANCE
+
+
+def test_the_compiled_map_lookup_matches_numpy():
+    from rigspace.runtime import shadow_pass
+
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(90.0, 110.0, (64, 64)).astype(np.float32)
+    depth[rng.random((64, 64)) < 0.3] = np.inf
+    camera = Camera(np.eye(4), 64, 64, 50.0, 20.0, 20.0, near=1.0, far=1000.0)
+    shadow_map = shadows.ShadowMap(camera, depth)
+    z = rng.uniform(-130.0, -60.0, 5000)  # in front of the map's depth, behind it, between
+    spread = rng.uniform(-0.18, 0.18, (2, 5000)) * -z  # within the map's view
+    points = np.stack([spread[0], spread[1], z]).astype(np.float32)
+    normals = np.repeat(np.array([[0.0], [0.0], [1.0]], np.float32), 5000, axis=1)
+    fast = shadow_pass.points_visibility(points, normals, shadow_map=shadow_map)
+    slow = shadow_map.visibility(points, normals)
+    assert 0.1 < slow.mean() < 0.9  # lit, shadowed and in between
+    assert np.abs(fast - slow).max() < KERNEL_TOLERANCE
+
+
+def test_the_kernels_compile_once_and_later_processes_load_them():
+    """numba's cache=True: a second process finds every kernel compiled on disk."""
+    import subprocess
+    import sys
+
+    script = (
+        "import numpy as np\n"
+        "from rigspace.runtime import shadow_kernels as k\n"
+        "from rigspace.runtime.engine import Engine\n"
+        f"e = Engine({str(PREVIS)!r}, width=64, height=36, prim_samples=1)\n"
+        "e.render(600.0); e.close()\n"
+        "used = [f for f in (k.sparse_pass, k.points_visibility) if f.signatures]\n"
+        "print(sum(sum(f.stats.cache_misses.values()) for f in used), len(used))\n"
+    )
+    runs = [
+        subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+        for _ in range(2)
+    ]
+    misses, used = map(int, runs[1].stdout.split()[-2:])
+    assert used == 2
+    assert misses == 0, runs[1].stdout

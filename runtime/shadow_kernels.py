@@ -1,0 +1,391 @@
+"""Compiled (numba) shadow kernels: shadow-map lookups, capsule occlusion and coarse-to-fine passes.
+
+The maths is runtime/shadows.py's numpy, pixel by pixel: a shadow map's normal offset and
+2x2 bilinear taps (ShadowMap.visibility), a capsule's 2-D cull in the light's view
+(_light_plane, _candidate_pairs) and its cone occlusion (capsule_visibility), and the
+coarse-to-fine blend of sparse_visibility. Fused into one loop per pass they skip numpy's
+per-call cost and temporaries: one call evaluates a light's whole pass over a frame window,
+deciding blends and evaluating the pixels that need it as it goes. Compiled on first use
+and cached on disk (numba's cache=True), so a process pays the compile once and later
+processes load it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+MAP_FIELDS = 21
+"""Per shadow map in a pass (float64): world-to-camera rows 0-2 (12), fx, fy, cx, cy, near,
+the padded map's width and height, its first texel in its flat buffer and which buffer (0:
+the pass's largest map, handed over without a copy; 1: the others, concatenated)."""
+SET_FIELDS = 24
+"""Per capsule set (one character under one light): mode (0 distant, 1 point, 2 every
+pair), the light's 2-D frame rows (9), the light's position (3), front or nearest, the
+softness (tangent or radius), the point light's off-axis base angle, the 2-D bounds of all
+capsules (4), their largest 2-D radius, first and end capsule, and the light's angle."""
+MODE_DISTANT, MODE_POINT, MODE_EVERY = 0, 1, 2
+KIND_MAP, KIND_CAPSULES = 0, 1
+FAR_OFF_AXIS = math.radians(80.0)
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _map_lookup(par, flat0, flat1, px, py, pz, nx, ny, nz, has_normal, offset_texels, bias_texels):
+    """ShadowMap.visibility at one point."""
+    fx, fy, cx, cy, near = par[12], par[13], par[14], par[15], par[16]
+    if has_normal:
+        depth0 = -(par[8] * px + par[9] * py + par[10] * pz + par[11])
+        off = max(depth0, 0.0) * (offset_texels / fx)
+        px, py, pz = px + nx * off, py + ny * off, pz + nz * off
+    d = -(par[8] * px + par[9] * py + par[10] * pz + par[11])
+    if d <= near:  # behind the map's camera: nothing it drew can shadow
+        return 1.0
+    inv = 1.0 / d
+    x = (par[0] * px + par[1] * py + par[2] * pz + par[3]) * (fx * inv) + cx + 0.5
+    y = (par[4] * px + par[5] * py + par[6] * pz + par[7]) * (-fy * inv) + cy + 0.5
+    width, height, start = int(par[17]), int(par[18]), int(par[19])
+    flat = flat0 if par[20] == 0 else flat1
+    x = min(max(x, 0.0), width - 2.0)
+    y = min(max(y, 0.0), height - 2.0)
+    x0, y0 = math.floor(x), math.floor(y)
+    fxx, fyy = x - x0, y - y0
+    index = start + int(y0) * width + int(x0)
+    limit = d - (bias_texels / fx) * d
+    t00 = 1.0 if flat[index] >= limit else 0.0
+    t01 = 1.0 if flat[index + 1] >= limit else 0.0
+    t10 = 1.0 if flat[index + width] >= limit else 0.0
+    t11 = 1.0 if flat[index + width + 1] >= limit else 0.0
+    top = t00 * (1 - fxx) + t01 * fxx
+    bottom = t10 * (1 - fxx) + t11 * fxx
+    return top * (1 - fyy) + bottom * fyy
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _cone_occlusion(r1, r2, d):
+    """shadows.cone_occlusion for one pair."""
+    if d >= r1 + r2:
+        return 0.0
+    if d <= abs(r1 - r2):
+        area = math.pi * min(r1, r2) ** 2
+    else:
+        d_safe = max(d, 1e-9)
+        c1 = min(max((d * d + r1 * r1 - r2 * r2) / (2 * d_safe * r1), -1.0), 1.0)
+        c2 = min(max((d * d + r2 * r2 - r1 * r1) / (2 * d_safe * max(r2, 1e-9)), -1.0), 1.0)
+        kite = (-d + r1 + r2) * (d + r1 - r2) * (d - r1 + r2) * (d + r1 + r2)
+        kite = math.sqrt(max(kite, 0.0))
+        area = r1 * r1 * math.acos(c1) + r2 * r2 * math.acos(c2) - 0.5 * kite
+    return min(max(area / (math.pi * r1 * r1), 0.0), 1.0)
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _pair(a, b, radius, k, px, py, pz, dx, dy, dz, light_angle):
+    """One capsule's occlusion of the light's cone seen from a point (capsule_visibility)."""
+    ax, ay, az = a[k, 0], a[k, 1], a[k, 2]
+    ux, uy, uz = b[k, 0] - ax, b[k, 1] - ay, b[k, 2] - az
+    wx, wy, wz = ax - px, ay - py, az - pz
+    uu = ux * ux + uy * uy + uz * uz
+    ud = ux * dx + uy * dy + uz * dz
+    uw = ux * wx + uy * wy + uz * wz
+    dw = dx * wx + dy * wy + dz * wz
+    denominator = uu - ud * ud
+    s = (ud * dw - uw) / denominator if denominator > 1e-9 else 0.0
+    s = min(max(s, 0.0), 1.0)
+    cx, cy, cz = wx + s * ux, wy + s * uy, wz + s * uz
+    distance = max(math.sqrt(cx * cx + cy * cy + cz * cz), 1e-6)
+    r = radius[k]
+    if distance <= r:  # a receiver inside a capsule: not its caster
+        return 0.0
+    sphere_angle = math.asin(min(r / distance, 1.0))
+    cosine = min(max((cx * dx + cy * dy + cz * dz) / distance, -1.0), 1.0)
+    return _cone_occlusion(light_angle, sphere_angle, math.acos(cosine))
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _capsules_at(sp, a, b, radius, a2, b2, r2, px, py, pz, min_visibility):
+    """The visibility of a light past one capsule set at one point: the 2-D cull of
+    _light_plane / _candidate_pairs, then the pairs it keeps."""
+    mode = int(sp[0])
+    first, end = int(sp[21]), int(sp[22])
+    every = mode == MODE_EVERY
+    u = v = margin = 0.0
+    factor = 1.0
+    if mode == MODE_DISTANT:
+        u = sp[1] * px + sp[2] * py + sp[3] * pz
+        v = sp[4] * px + sp[5] * py + sp[6] * pz
+        depth = sp[7] * px + sp[8] * py + sp[9] * pz
+        margin = max(depth - sp[13], 0.0) * sp[14]
+    elif mode == MODE_POINT:
+        qx, qy, qz = px - sp[10], py - sp[11], pz - sp[12]
+        z = sp[7] * qx + sp[8] * qy + sp[9] * qz
+        if z <= 0:  # behind the light's view of the capsules: out of their shadow
+            return 1.0
+        x = sp[1] * qx + sp[2] * qy + sp[3] * qz
+        y = sp[4] * qx + sp[5] * qy + sp[6] * qz
+        u, v = x / z, y / z
+        far = math.sqrt(x * x + y * y + z * z)
+        nearest = sp[13]
+        margin = sp[14] * max(far - nearest, 0.0) / (max(far, nearest) * nearest)
+        off_axis = sp[15] + margin
+        if off_axis < FAR_OFF_AXIS:
+            factor = 1.0 / math.cos(off_axis) ** 2
+        else:
+            every = True  # too far off the light's axis to bound: every pair
+    if not every:
+        reach = (sp[20] + margin) * factor
+        if u < sp[16] - reach or u > sp[18] + reach or v < sp[17] - reach or v > sp[19] + reach:
+            return 1.0
+    visibility = 1.0
+    dx = dy = dz = light_angle = 0.0
+    towards = False  # the light's direction and angular radius, found with the first pair
+    for k in range(first, end):
+        if not every:
+            limit = (r2[k] + margin) * factor
+            au, av, bu, bv = a2[k, 0], a2[k, 1], b2[k, 0], b2[k, 1]
+            if u < min(au, bu) - limit or u > max(au, bu) + limit:
+                continue
+            if v < min(av, bv) - limit or v > max(av, bv) + limit:
+                continue
+            su, sv = bu - au, bv - av
+            length2 = max(su * su + sv * sv, 1e-18)
+            t = min(max(((u - au) * su + (v - av) * sv) / length2, 0.0), 1.0)
+            du, dv = u - au - t * su, v - av - t * sv
+            if du * du + dv * dv > limit * limit:
+                continue
+        if not towards:  # _towards_light
+            towards = True
+            if mode == MODE_DISTANT:
+                dx, dy, dz = -sp[7], -sp[8], -sp[9]  # the frame's w row: the light's direction
+                light_angle = sp[23]
+            else:
+                ox, oy, oz = sp[10] - px, sp[11] - py, sp[12] - pz
+                dist = max(math.sqrt(ox * ox + oy * oy + oz * oz), 1e-6)
+                dx, dy, dz = ox / dist, oy / dist, oz / dist
+                light_angle = math.asin(min(max(sp[14] / dist, 0.0), 1.0))
+        occlusion = _pair(a, b, radius, k, px, py, pz, dx, dy, dz, light_angle)
+        visibility *= max(1.0 - occlusion, min_visibility)
+    return visibility
+
+
+@nb.njit(cache=True, error_model="numpy")
+def points_visibility(
+    points, normals, kind, maps_par, flat0, flat1, sets_par, a, b, radius, a2, b2, r2, constants
+):  # fmt: skip
+    """(N,) visibility of planar (3, N) world points past every map (kind KIND_MAP) or every
+    capsule set (KIND_CAPSULES) given; `normals` (3, N) or (3, 0)."""
+    n = points.shape[1]
+    out = np.ones(n, np.float32)
+    has_normal = normals.shape[1] == n
+    if kind == KIND_MAP:  # one loop per kind: the branch inside measured slower
+        for i in range(n):
+            px, py, pz = float(points[0, i]), float(points[1, i]), float(points[2, i])
+            nx = ny = nz = 0.0
+            if has_normal:
+                nx, ny, nz = float(normals[0, i]), float(normals[1, i]), float(normals[2, i])
+            value = 1.0
+            for j in range(maps_par.shape[0]):
+                value *= _map_lookup(maps_par[j], flat0, flat1, px, py, pz, nx, ny, nz,
+                                     has_normal, constants[0], constants[1])  # fmt: skip
+            out[i] = value
+        return out
+    for i in range(n):
+        px, py, pz = float(points[0, i]), float(points[1, i]), float(points[2, i])
+        value = 1.0
+        for j in range(sets_par.shape[0]):
+            value *= _capsules_at(sets_par[j], a, b, radius, a2, b2, r2, px, py, pz, constants[2])
+        out[i] = value
+    return out
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _fill(grid, ys, xs, count, frame, depth, normal, member, kind, maps_par, flat0, flat1,
+          sets_par, a, b, radius, a2, b2, r2, constants):  # fmt: skip
+    """Evaluate window pixels (ys, xs)[:count] into `grid`: the visibility past the jobs
+    whose rectangles hold each (`member` (h, w, jobs), job j the j-th map or capsule set)."""
+    jobs = member.shape[2]
+    r0, c0 = int(frame[16]), int(frame[17])
+    if kind == KIND_MAP:  # one loop per kind: a branch per pixel measured twice as slow
+        for q in range(count):
+            i, j = ys[q], xs[q]
+            px, py, pz = _point(frame, depth, i, j)
+            row, col = r0 + i, c0 + j
+            n0, n1, n2 = normal[row, col, 0], normal[row, col, 1], normal[row, col, 2]
+            nx = frame[0] * n0 + frame[1] * n1 + frame[2] * n2
+            ny = frame[4] * n0 + frame[5] * n1 + frame[6] * n2
+            nz = frame[8] * n0 + frame[9] * n1 + frame[10] * n2
+            value = 1.0
+            for job in range(jobs):
+                if member[i, j, job]:
+                    value *= _map_lookup(maps_par[job], flat0, flat1, px, py, pz, nx, ny, nz,
+                                         True, constants[0], constants[1])  # fmt: skip
+            grid[i, j] = value
+        return
+    for q in range(count):
+        i, j = ys[q], xs[q]
+        px, py, pz = _point(frame, depth, i, j)
+        value = 1.0
+        for job in range(jobs):
+            if member[i, j, job]:
+                value *= _capsules_at(sets_par[job], a, b, radius, a2, b2, r2, px, py, pz,
+                                      constants[2])  # fmt: skip
+        grid[i, j] = value
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _point(frame, depth, i, j):
+    """World position of window pixel (i, j) (the engine's _world_points)."""
+    row, col = frame[16] + i, frame[17] + j
+    d = float(depth[int(row), int(col)])
+    if not math.isfinite(d):
+        d = 0.0
+    x = (col + 0.5 - frame[14]) * (d / frame[12])
+    y = (frame[15] - row - 0.5) * (d / frame[13])
+    z = -d
+    return (
+        frame[0] * x + frame[1] * y + frame[2] * z + frame[3],
+        frame[4] * x + frame[5] * y + frame[6] * z + frame[7],
+        frame[8] * x + frame[9] * y + frame[10] * z + frame[11],
+    )
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _bend_at(c, i, j, ny, nx):
+    """_bend of a coarse grid at sample (i, j): the largest second difference along either
+    axis around it (at the border, its neighbour's)."""
+    out = 0.0
+    if ny >= 3:
+        k = min(max(i, 1), ny - 2)
+        out = abs(c[k - 1, j] - 2 * c[k, j] + c[k + 1, j])
+    if nx >= 3:
+        k = min(max(j, 1), nx - 2)
+        out = max(out, abs(c[i, k - 1] - 2 * c[i, k] + c[i, k + 1]))
+    return out
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _members(mask, frame, h, w, rects, rect_job, jobs):
+    """(h, w, jobs): which jobs' rectangles hold each pixel of the (h, w) window at (frame[16],
+    frame[17]) that a prim covers (`mask`, the frame's)."""
+    r0, c0 = int(frame[16]), int(frame[17])
+    out = np.zeros((h, w, jobs), np.bool_)
+    for q in range(rects.shape[0]):
+        job = rect_job[q]
+        for row in range(max(rects[q, 1], r0), min(rects[q, 3], r0 + h)):
+            for col in range(max(rects[q, 0], c0), min(rects[q, 2], c0 + w)):
+                if mask[row, col] > 0:
+                    out[row - r0, col - c0, job] = True
+    return out
+
+
+@nb.njit(cache=True, error_model="numpy")
+def sparse_pass(
+    mask, depth, normal, frame, h, w, rects, rect_job, kind, maps_par, flat0, flat1,
+    sets_par, a, b, radius, a2, b2, r2, constants, step,
+):  # fmt: skip
+    """shadows.sparse_visibility over the (h, w) window at (frame[16], frame[17]) (rows,
+    columns) of the frame's G-buffer (mask, depth, normal), its candidates the pixels a
+    prim covers inside any of `rects` (of job
+    `rect_job`: the maps, or the capsule sets, in order); the `step` grid evaluated exactly,
+    then each finer grid blended from the one above where smooth (constants[3]:
+    BEND_TOLERANCE) and on its samples' surface (constants[4]: SURFACE_TOLERANCE), evaluated
+    elsewhere (_fill, level by level). step 1: every candidate evaluated."""
+    jobs = maps_par.shape[0] if kind == KIND_MAP else sets_par.shape[0]
+    member = _members(mask, frame, h, w, rects, rect_job, jobs)
+    r0, c0 = int(frame[16]), int(frame[17])
+    if h < 2 or w < 2:
+        step = 1
+    size_y = -(-(h - 1) // step) * step + 1
+    size_x = -(-(w - 1) // step) * step + 1
+    grid = np.ones((size_y, size_x), np.float32)
+    inverse = np.zeros((size_y, size_x), np.float32)
+    want = np.zeros((size_y, size_x), np.bool_)
+    for i in range(h):
+        for j in range(w):
+            for job in range(jobs):
+                want[i, j] |= member[i, j, job]
+            inverse[i, j] = np.float32(1.0) / max(depth[r0 + i, c0 + j], np.float32(1e-30))
+    ys = np.empty(h * w, np.int64)
+    xs = np.empty(h * w, np.int64)
+    count = 0
+    for i in range(0, size_y, step):
+        for j in range(0, size_x, step):
+            if want[i, j]:
+                ys[count], xs[count] = i, j
+                count += 1
+    _fill(grid, ys, xs, count, frame, depth, normal, member, kind, maps_par, flat0, flat1,
+          sets_par, a, b, radius, a2, b2, r2, constants)  # fmt: skip
+    bend_tolerance, surface = constants[3], np.float32(constants[4])
+    spacing = step
+    while spacing > 1:
+        half = spacing // 2
+        ny, nx = (size_y - 1) // spacing + 1, (size_x - 1) // spacing + 1
+        c = np.empty((ny, nx), np.float32)
+        for i in range(ny):
+            for j in range(nx):
+                c[i, j] = grid[i * spacing, j * spacing]
+        # A cell is rough where a corner bends; smooth where neither it nor a neighbour is.
+        bend = np.empty((ny, nx), np.bool_)
+        for i in range(ny):
+            for j in range(nx):
+                bend[i, j] = _bend_at(c, i, j, ny, nx) > bend_tolerance
+        rough = np.zeros((ny + 1, nx + 1), np.bool_)  # padded by one cell on each side
+        for i in range(ny - 1):
+            for j in range(nx - 1):
+                rough[i + 1, j + 1] = (
+                    bend[i, j] | bend[i, j + 1] | bend[i + 1, j] | bend[i + 1, j + 1]
+                )
+        smooth = np.empty((ny - 1, nx - 1), np.bool_)
+        for i in range(ny - 1):
+            for j in range(nx - 1):
+                smooth[i, j] = not (
+                    rough[i, j] | rough[i, j + 1] | rough[i, j + 2]
+                    | rough[i + 1, j] | rough[i + 1, j + 1] | rough[i + 1, j + 2]
+                    | rough[i + 2, j] | rough[i + 2, j + 1] | rough[i + 2, j + 2]
+                )  # fmt: skip
+        count = 0
+        for i in range(ny):
+            for j in range(nx):
+                for part in range(3):
+                    if part == 0:  # the middle of a horizontal edge
+                        if j >= nx - 1:
+                            continue
+                        y, x = i * spacing, j * spacing + half
+                        ok = smooth[min(i, ny - 2), j]
+                        blended = (c[i, j] + c[i, j + 1]) * np.float32(0.5)
+                        expected = (inverse[y, x - half] + inverse[y, x + half]) * np.float32(0.5)
+                    elif part == 1:  # the middle of a vertical edge
+                        if i >= ny - 1:
+                            continue
+                        y, x = i * spacing + half, j * spacing
+                        ok = smooth[i, min(j, nx - 2)]
+                        blended = (c[i, j] + c[i + 1, j]) * np.float32(0.5)
+                        expected = (inverse[y - half, x] + inverse[y + half, x]) * np.float32(0.5)
+                    else:  # the middle of a cell
+                        if i >= ny - 1 or j >= nx - 1:
+                            continue
+                        y, x = i * spacing + half, j * spacing + half
+                        ok = smooth[i, j]
+                        blended = (
+                            c[i, j] + c[i, j + 1] + c[i + 1, j] + c[i + 1, j + 1]
+                        ) * np.float32(0.25)
+                        expected = (
+                            inverse[y - half, x - half] + inverse[y - half, x + half]
+                            + inverse[y + half, x - half] + inverse[y + half, x + half]
+                        ) * np.float32(0.25)  # fmt: skip
+                    if not want[y, x]:
+                        continue
+                    mine = inverse[y, x]
+                    if ok and abs(expected - mine) <= surface * mine:
+                        grid[y, x] = blended
+                    else:
+                        ys[count], xs[count] = y, x
+                        count += 1
+        _fill(grid, ys, xs, count, frame, depth, normal, member, kind, maps_par, flat0, flat1,
+              sets_par, a, b, radius, a2, b2, r2, constants)  # fmt: skip
+        spacing = half
+    out = np.empty((h, w), np.float32)
+    for i in range(h):
+        for j in range(w):
+            out[i, j] = grid[i, j]
+    return out

@@ -1,0 +1,238 @@
+"""The prims' shadow passes through the compiled kernels (shadow_kernels.py): one call per light and kind.
+
+The engine's numpy passes (Engine._prim_shadows) call back into Python for every grid of
+every pass; here each (light, maps or capsules) pass is one kernel call over its window,
+with the maps' depth and the capsules' 2-D view handed over as arrays. The result is the
+numpy passes' within float rounding (tests/runtime/test_shadows.py holds the tolerance);
+`python -m rigspace.runtime.shadow_bench` measures both.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from rigspace.runtime import shadow_kernels as kernels
+from rigspace.runtime import shadows as sh
+from rigspace.runtime.lights import DISTANT, POINT, Light
+from rigspace.sdk.camera import Camera
+
+CONSTANTS = np.array(
+    [sh.NORMAL_OFFSET_TEXELS, sh.DEPTH_BIAS_TEXELS, sh.MIN_VISIBILITY, sh.BEND_TOLERANCE,
+     sh.SURFACE_TOLERANCE],
+    dtype=np.float64,
+)  # fmt: skip
+_NO_MAPS = (np.zeros((0, kernels.MAP_FIELDS)), np.zeros(1, np.float32), np.zeros(1, np.float32))
+_NO_SETS = (
+    np.zeros((0, kernels.SET_FIELDS)),
+    *(np.zeros((0, 3)),) * 2, np.zeros(0), *(np.zeros((0, 2)),) * 2, np.zeros(0),
+)  # fmt: skip
+
+
+def wanted() -> bool:
+    """Whether the kernels compute the shadows (shadows.SHADOW_KERNEL)."""
+    return sh.SHADOW_KERNEL == "numba"
+
+
+def map_row(shadow_map: sh.ShadowMap, start: int, buffer: int) -> np.ndarray:
+    """A map's MAP_FIELDS row, its padded depth starting at `start` in flat buffer `buffer`."""
+    cam = shadow_map.camera
+    row = np.empty(kernels.MAP_FIELDS)
+    row[:12] = cam.world_to_camera[:3].ravel()
+    height, width = shadow_map.depth.shape
+    row[12:] = (cam.fx, cam.fy, cam.cx, cam.cy, cam.near, width + 2, height + 2, start, buffer)
+    return row
+
+
+def maps_data(found: Sequence[sh.ShadowMap]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The maps' rows and two flat buffers of their padded depth: the largest map's own
+    (no copy: the still prims' 512x512 map is most of the bytes), the others concatenated."""
+    if not found:
+        return _NO_MAPS
+    largest = max(range(len(found)), key=lambda i: found[i].depth.size)
+    rows, flats, start = [], [], 0
+    for i, shadow_map in enumerate(found):
+        if i == largest:
+            rows.append(map_row(shadow_map, 0, 0))
+            continue
+        flat = shadow_map.padded.reshape(-1)
+        rows.append(map_row(shadow_map, start, 1))
+        flats.append(flat)
+        start += flat.size
+    rest = np.concatenate(flats) if flats else _NO_MAPS[2]
+    return np.stack(rows), found[largest].padded.reshape(-1), rest
+
+
+def capsule_set(light: Light, capsules: sh.PosedCapsules, first: int) -> np.ndarray:
+    """A capsule set's SET_FIELDS row under `light` (shadows._light_plane's constants), its
+    capsules at `first` onwards in the kernel's arrays."""
+    row = np.zeros(kernels.SET_FIELDS)
+    count = len(capsules.radius)
+    row[21], row[22] = first, first + count
+    centre, reach = capsules.bounds()
+    if light.kind == DISTANT:
+        w = light.direction
+        e1, e2 = sh._frame_axes(w)
+        row[0] = kernels.MODE_DISTANT
+        row[1:10] = np.stack([e1, e2, w]).ravel()
+        row[13] = float(centre @ w - reach)
+        row[14] = math.tan(max(light.angle, sh.MIN_SOFTNESS))
+        row[23] = max(light.angle, sh.MIN_SOFTNESS)
+        return row
+    soft = sh._soft_radius(light, capsules)
+    row[10:13] = light.position
+    row[14] = soft
+    offset = centre - light.position
+    distance = float(np.linalg.norm(offset))
+    if distance <= reach * 1.05:  # the light among the capsules: every pair
+        row[0] = kernels.MODE_EVERY
+        return row
+    w = offset / distance
+    e1, e2 = sh._frame_axes(w)
+    row[0] = kernels.MODE_POINT
+    row[1:10] = np.stack([e1, e2, w]).ravel()
+    closest = np.minimum(
+        np.linalg.norm(capsules.a - light.position, axis=1),
+        np.linalg.norm(capsules.b - light.position, axis=1),
+    )
+    row[13] = max(float(closest.min()), 1e-9)
+    return row
+
+
+def sets_data(light: Light, sets: Sequence[sh.PosedCapsules]):
+    """The capsule sets' rows and their capsules (world ends and radii, 2-D ends and radii)."""
+    if not sets:
+        return _NO_SETS
+    rows, a2s, b2s, r2s, first = [], [], [], [], 0
+    for capsules in sets:
+        row = capsule_set(light, capsules, first)
+        first += len(capsules.radius)
+        a2, b2, r2 = _flat(light, capsules, row)
+        lo, hi = np.minimum(a2, b2), np.maximum(a2, b2)
+        if len(r2):
+            row[16:18], row[18:20], row[20] = lo.min(axis=0), hi.max(axis=0), r2.max()
+        rows.append(row)
+        a2s.append(a2)
+        b2s.append(b2)
+        r2s.append(r2)
+    a = np.concatenate([c.a for c in sets]).astype(np.float64)
+    b = np.concatenate([c.b for c in sets]).astype(np.float64)
+    radius = np.concatenate([c.radius for c in sets]).astype(np.float64)
+    return (
+        np.stack(rows),
+        a,
+        b,
+        radius,
+        np.concatenate(a2s),
+        np.concatenate(b2s),
+        np.concatenate(r2s),
+    )
+
+
+def _flat(light: Light, capsules: sh.PosedCapsules, row: np.ndarray):
+    """The capsules' ends (K, 2) twice and radii (K,) in the light's 2-D view (_light_plane),
+    and for a point light the off-axis base angle into `row`."""
+    k = len(capsules.radius)
+    if row[0] == kernels.MODE_EVERY:
+        return np.zeros((k, 2)), np.zeros((k, 2)), np.zeros(k)
+    m = row[1:10].reshape(3, 3)
+    if row[0] == kernels.MODE_DISTANT:
+        return capsules.a @ m[:2].T, capsules.b @ m[:2].T, capsules.radius.astype(np.float64)
+    ends = []
+    for e in (capsules.a, capsules.b):
+        local = (e - light.position) @ m.T
+        ends.append(local[:, :2] / local[:, 2:3])
+    closest = np.minimum(
+        np.linalg.norm(capsules.a - light.position, axis=1),
+        np.linalg.norm(capsules.b - light.position, axis=1),
+    )
+    angular = np.arcsin(np.clip(capsules.radius / np.maximum(closest, 1e-9), 0.0, 1.0))
+    row[15] = float(np.arctan(np.linalg.norm(np.concatenate(ends), axis=1).max()))
+    row[15] += float(angular.max())
+    return ends[0], ends[1], np.tan(angular)
+
+
+def points_visibility(
+    points: np.ndarray, normals: np.ndarray | None, light: Light | None = None,
+    capsules: sh.PosedCapsules | None = None, shadow_map: sh.ShadowMap | None = None,
+) -> np.ndarray:  # fmt: skip
+    """(N,) visibility of planar (3, N) points past one map or one capsule set, compiled."""
+    p = np.ascontiguousarray(points, dtype=np.float32)
+    n = (
+        np.zeros((3, 0), np.float32)
+        if normals is None
+        else np.ascontiguousarray(normals, np.float32)
+    )
+    if shadow_map is not None:
+        return kernels.points_visibility(
+            p, n, kernels.KIND_MAP, *maps_data([shadow_map]), *_NO_SETS, CONSTANTS
+        )
+    assert light is not None and capsules is not None
+    return kernels.points_visibility(
+        p, n, kernels.KIND_CAPSULES, *_NO_MAPS, *sets_data(light, [capsules]), CONSTANTS
+    )
+
+
+def prim_shadows(
+    shadows: sh.PrimShadows, prims, camera: Camera, lights: list[Light], box: np.ndarray,
+    casters, maps: bool, step: int | None = None,
+) -> tuple[list[np.ndarray | None], list[np.ndarray | None]]:  # fmt: skip
+    """Engine._prim_shadows through the kernels: per light, the prims' (H, W) shadow factor
+    from the maps (with `maps`) and from the characters' capsules (None: none falls), each
+    pass one kernel call over the window of its screen regions. `step` 1: every candidate
+    pixel evaluated (the reference for the blend); None: SPARSE_STEP."""
+    step = sh.SPARSE_STEP if step is None else step
+    mapped: list[np.ndarray | None] = [None] * len(lights)
+    hidden: list[np.ndarray | None] = [None] * len(lights)
+    frame = np.empty(18)
+    frame[:12] = camera.camera_to_world[:3].ravel()
+    frame[12:16] = (camera.fx, camera.fy, camera.cx, camera.cy)
+    # C-contiguous float32 always: one compiled signature (a new layout would compile anew).
+    gbuffer = tuple(
+        np.ascontiguousarray(m, dtype=np.float32) for m in (prims.mask, prims.depth, prims.normal)
+    )
+    limbs = [(posed, [part.bounds() for part in posed.parts()]) for _, posed in casters]
+    for index, light in enumerate(lights):
+        if light.kind not in (DISTANT, POINT):
+            continue
+        if maps:
+            jobs = []
+            for rects, handle in shadows.regions(index, box, camera):
+                shadow_map = shadows.shadow_map(handle)
+                if shadow_map is not None:
+                    jobs.append((rects, shadow_map))
+            if jobs:
+                data = (kernels.KIND_MAP, *maps_data([m for _, m in jobs]), *_NO_SETS)
+                mapped[index] = _pass(jobs, data, gbuffer, frame, camera, step)
+        jobs = []
+        for posed, spheres in limbs:
+            # Per caster, the regions its limbs' shadows can fall on (a limb's region is
+            # much smaller than the whole body's).
+            centres = np.array([c for c, _ in spheres])
+            reach = np.array([r for _, r in spheres])[:, None]
+            found = sh.shadow_regions(centres - reach, centres + reach, light, box, camera)
+            rects = [r for r in found if r is not None]
+            if rects:
+                jobs.append((rects, posed))
+        if jobs:
+            data = (kernels.KIND_CAPSULES, *_NO_MAPS, *sets_data(light, [c for _, c in jobs]))
+            hidden[index] = _pass(jobs, data, gbuffer, frame, camera, step)
+    return mapped, hidden
+
+
+def _pass(jobs, data, gbuffer, frame, camera: Camera, step: int) -> np.ndarray:
+    """One kernel pass over the window of the jobs' regions; (H, W) factors."""
+    rects = np.array([r for rs, _ in jobs for r in rs], dtype=np.int64)
+    rect_job = np.array([j for j, (rs, _) in enumerate(jobs) for _ in rs], dtype=np.int64)
+    x0, y0 = int(rects[:, 0].min()), int(rects[:, 1].min())
+    x1, y1 = int(rects[:, 2].max()), int(rects[:, 3].max())
+    window = (slice(y0, y1), slice(x0, x1))
+    frame = frame.copy()  # its window's origin: each pass its own
+    frame[16], frame[17] = y0, x0
+    full = np.ones((camera.height, camera.width), np.float32)
+    full[window] = kernels.sparse_pass(
+        *gbuffer, frame, y1 - y0, x1 - x0, rects, rect_job, *data, CONSTANTS, step
+    )
+    return full
