@@ -177,9 +177,8 @@ def capture_on_ray(
                 try:
                     finished: ItemDone = ray.get(ready[0])
                 except ray.exceptions.RayTaskError as exc:
-                    cause = exc.as_instanceof_cause()
-                    if isinstance(cause, CaptureError):
-                        raise cause from None
+                    if isinstance(exc.cause, CaptureError):  # the task's own, unwrapped
+                        raise exc.cause from None
                     raise CaptureError(
                         f"A capture task failed on the Ray cluster after {MAX_RETRIES} "
                         f"retries: {str(exc).strip().splitlines()[-1]}.",
