@@ -139,17 +139,24 @@ def _export(
     )
 
 
-def quantize_int8(fp32: Path, int8: Path, input_name: str, calibration: np.ndarray) -> None:
+def quantize_int8(
+    fp32: Path, int8: Path, input_name: str, calibration: np.ndarray | dict[str, np.ndarray]
+) -> None:
     """Static QDQ int8 of one exported graph, calibrated on `calibration` (the graph's input
     for the training rows): train.quantize. Activation ranges come from the pixels the
     character covers (MinMax, Percentile and Entropy calibration lose 7-10 dB at level 128
     on the sample model: its background activations are 20x its character's); a branch
     keeps its output heads, and the convolutions a per-node sweep finds it must, in float
     (a mixed graph). The trunk is quantised whole: its check (train.int8check) judges it.
+    A graph with more inputs (a pose-conditioned one's joints2d) gets `calibration` as a
+    dict of every input's rows.
     """
     from rigspace.train.quantize import mixed_int8, quantize
 
-    feeds = {input_name: np.ascontiguousarray(calibration, dtype=np.float32)}
+    if isinstance(calibration, dict):
+        feeds = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in calibration.items()}
+    else:
+        feeds = {input_name: np.ascontiguousarray(calibration, dtype=np.float32)}
     if input_name == INPUTS["trunk"]:
         quantize(fp32, int8, feeds)
     else:

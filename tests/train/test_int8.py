@@ -117,3 +117,28 @@ def test_the_runtime_runs_int8_only_where_the_check_passed(bundle, tmp_path):
     assert np.isfinite(
         old.predict(np.zeros((1, 6 * len(old.joints)), np.float32), 16)["albedo"]
     ).all()
+
+
+def test_recheck_records_truth_per_level_and_the_runtime_reads_the_offered_levels(
+    bundle, tiny_dataset, tmp_path
+):
+    from rigspace.train.quantize import AIM_TRUTH, format_level_table, recheck_bundle
+
+    copy = tmp_path / "bundle"
+    shutil.copytree(bundle, copy)
+    fp32_bytes = {p.name: p.read_bytes() for p in copy.glob("*.onnx") if ".int8." not in p.name}
+    assert len(fp32_bytes) == 7
+    check = recheck_bundle(copy, tiny_dataset, limit=6)
+    manifest = json.loads((copy / "manifest.json").read_text(), parse_constant=float)
+    assert manifest["int8_check"]["offered_levels"] == check["offered_levels"]
+    assert sorted(int(r) for r in check["levels"]) == [8, 16, 32]
+    for resolution, entry in check["levels"].items():
+        assert entry["samples"] == 6 and entry["ms"]["speedup"] > 0
+        losses = {k: entry["fp32"][k] - entry["int8"][k] for k in AIM_TRUTH}
+        within = all(losses[k] <= most for k, most in AIM_TRUTH.items())
+        assert entry["offered"] == (within and entry["ms"]["speedup"] >= 1.5), entry
+        assert (int(resolution) in check["offered_levels"]) == entry["offered"]
+    assert BundleModel(copy, "int8").int8_offered == sorted(check["offered_levels"])
+    assert all((copy / name).read_bytes() == data for name, data in fp32_bytes.items())
+    table = format_level_table({int(r): e for r, e in check["levels"].items()})
+    assert table.count("\n") == 5 and "| 32 |" in table
