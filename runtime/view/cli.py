@@ -132,6 +132,10 @@ def run(args: argparse.Namespace) -> int:
     viewer = build(args.scene, camera=args.camera, resolution=args.resolution,
                    reference=args.reference, sources=dict(args.source),
                    renderer=args.renderer)  # fmt: skip
+    if viewer.frames.error and args.source:
+        # --source asks for a live pose: without frames there is nothing to drive.
+        viewer.close()
+        raise RigspaceError(viewer.frames.error)
     if viewer.frames.error:
         print(f"rigspace view: warning: no frames: {viewer.frames.error}", file=sys.stderr)
     if viewer.frames.live_error:

@@ -23,3 +23,10 @@ def test_a_port_out_of_range_and_a_missing_scene_are_refused(capsys, tmp_path):
     assert "--port 70000 is not a port" in capsys.readouterr().err
     assert main(["view", str(tmp_path / "nothing.usda"), "--port", "0"]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_a_source_for_a_binding_the_stage_lacks_is_refused(capsys):
+    from tests.view.conftest import LIVE
+
+    assert main(["view", str(LIVE), "--port", "0", "--source", "nope=vmc://127.0.0.1:9"]) == 2
+    assert "no live binding of that name" in capsys.readouterr().err
