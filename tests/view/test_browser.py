@@ -162,6 +162,16 @@ def test_live_binding_counters_rise_while_a_sender_streams(browser):
     stop = threading.Event()
     with served(LIVE, sources={"suit": source}) as (viewer, url):
         assert viewer.frames.live and viewer.frames.live_error is None
+        # Before the sender starts the binding waits: the pose holds, the camera is still,
+        # so the Engine hands back its last image and the server its last JPEG.
+        first, data = viewer.worker.submit(
+            viewer.frames.frame, 10.0, "beauty", "neural", "full"
+        ).result()
+        again, same = viewer.worker.submit(
+            viewer.frames.frame, 10.0, "beauty", "neural", "full"
+        ).result()
+        assert not first.get("reused") and again.get("reused") and same == data
+        assert again["report"]["composite_reused"]
         sender = threading.Thread(target=send_vmc, args=(source, clip, 1.0, True, stop))
         sender.start()
         try:
