@@ -316,14 +316,17 @@ def _bundle(prim: Usd.Prim) -> dict[str, Any] | None:
     except (OSError, ValueError) as exc:
         return {"manifest": str(manifest), "error": f"manifest.json cannot be read: {exc}"}
     levels = [level.get("resolution") for level in data.get("levels", [])]
+    training = data.get("training", {})
     return {
         "manifest": str(manifest),
         "format": f"{data.get('format')} v{data.get('format_version')}",
         "joints": len(data.get("joints", [])),
         "levels": levels,
         "maps": data.get("maps"),
-        "training": {k: data.get("training", {}).get(k) for k in ("steps",)}
-        | {"preset": data.get("training", {}).get("config", {}).get("preset")},
+        "training": {
+            "steps": training.get("steps"),
+            "preset": training.get("config", {}).get("preset"),
+        },
         "metrics": _metric_rows(data.get("metrics", {})),
     }
 
