@@ -107,12 +107,13 @@ export class Viewport {
     if (this.history.length > HISTORY) this.history.shift();
     const ctx = this.gctx, W = this.graph.width, H = this.graph.height;
     ctx.clearRect(0, 0, W, H);
-    const top = Math.max(200, ...this.history.map((h) => h.seconds.total * 1e3));
+    const top = 1.1 * Math.max(180, ...this.history.map((h) => h.seconds.total * 1e3));
     const y = (ms) => H - 14 - (ms / top) * (H - 22);
     ctx.strokeStyle = "#2e333d"; ctx.fillStyle = "#8a93a3"; ctx.font = "10px system-ui, sans-serif";
-    for (const ms of [33, 100, 150]) {
+    let labelled = H;
+    for (const ms of [33, 100, 150, 250, 500, 1000, 2000].filter((v) => v < top)) {
       ctx.beginPath(); ctx.moveTo(0, y(ms)); ctx.lineTo(W, y(ms)); ctx.stroke();
-      ctx.fillText(`${ms} ms`, W - 40, y(ms) - 2);
+      if (labelled - y(ms) >= 12) { ctx.fillText(`${ms} ms`, W - 44, y(ms) - 2); labelled = y(ms); }
     }
     const bar = W / HISTORY;
     this.history.forEach((h, i) => {
