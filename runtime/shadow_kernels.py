@@ -80,8 +80,9 @@ def _cone_occlusion(r1, r2, d):
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def _pair(a, b, radius, k, px, py, pz, dx, dy, dz, light_angle):
-    """One capsule's occlusion of the light's cone seen from a point (capsule_visibility)."""
+def _pair(a, b, radius, k, px, py, pz, dx, dy, dz, light_angle, cos_light, sin_light):
+    """One capsule's occlusion of the light's cone seen from a point (capsule_visibility);
+    `cos_light`, `sin_light` of `light_angle`."""
     ax, ay, az = a[k, 0], a[k, 1], a[k, 2]
     ux, uy, uz = b[k, 0] - ax, b[k, 1] - ay, b[k, 2] - az
     wx, wy, wz = ax - px, ay - py, az - pz
@@ -97,9 +98,15 @@ def _pair(a, b, radius, k, px, py, pz, dx, dy, dz, light_angle):
     r = radius[k]
     if distance <= r:  # a receiver inside a capsule: not its caster
         return 0.0
-    sphere_angle = math.asin(min(r / distance, 1.0))
+    sin_sphere = min(r / distance, 1.0)
     cosine = min(max((cx * dx + cy * dy + cz * dz) / distance, -1.0), 1.0)
-    return _cone_occlusion(light_angle, sphere_angle, math.acos(cosine))
+    # Cones apart (their axes at least the sum of their angles apart) hide nothing: told
+    # by cosines (cos(a + b)), without the inverse sines and cosines. The pairs that the
+    # 2-D cull keeps are mostly such (its bounds are boxes around each capsule's shadow).
+    cos_sphere = math.sqrt(1.0 - sin_sphere * sin_sphere)
+    if cosine < cos_light * cos_sphere - sin_light * sin_sphere - 1e-12:
+        return 0.0
+    return _cone_occlusion(light_angle, math.asin(sin_sphere), math.acos(cosine))
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -137,7 +144,7 @@ def _capsules_at(sp, a, b, radius, a2, b2, r2, px, py, pz, min_visibility):
         if u < sp[16] - reach or u > sp[18] + reach or v < sp[17] - reach or v > sp[19] + reach:
             return 1.0
     visibility = 1.0
-    dx = dy = dz = light_angle = 0.0
+    dx = dy = dz = light_angle = cos_light = sin_light = 0.0
     towards = False  # the light's direction and angular radius, found with the first pair
     for k in range(first, end):
         if not every:
@@ -163,7 +170,9 @@ def _capsules_at(sp, a, b, radius, a2, b2, r2, px, py, pz, min_visibility):
                 dist = max(math.sqrt(ox * ox + oy * oy + oz * oz), 1e-6)
                 dx, dy, dz = ox / dist, oy / dist, oz / dist
                 light_angle = math.asin(min(max(sp[14] / dist, 0.0), 1.0))
-        occlusion = _pair(a, b, radius, k, px, py, pz, dx, dy, dz, light_angle)
+            cos_light, sin_light = math.cos(light_angle), math.sin(light_angle)
+        occlusion = _pair(a, b, radius, k, px, py, pz, dx, dy, dz, light_angle, cos_light,
+                          sin_light)  # fmt: skip
         visibility *= max(1.0 - occlusion, min_visibility)
     return visibility
 
@@ -199,11 +208,11 @@ def points_visibility(
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _fill(grid, ys, xs, count, frame, depth, normal, member, kind, maps_par, flat0, flat1,
+def _fill(grid, ys, xs, count, frame, depth, normal, rects, rect_job, kind, maps_par, flat0, flat1,
           sets_par, a, b, radius, a2, b2, r2, constants):  # fmt: skip
     """Evaluate window pixels (ys, xs)[:count] into `grid`: the visibility past the jobs
-    whose rectangles hold each (`member` (h, w, jobs), job j the j-th map or capsule set)."""
-    jobs = member.shape[2]
+    whose rectangles hold each (`rects` of job `rect_job`, in job order; job j the j-th map
+    or capsule set)."""
     r0, c0 = int(frame[16]), int(frame[17])
     if kind == KIND_MAP:  # one loop per kind: a branch per pixel measured twice as slow
         for q in range(count):
@@ -215,20 +224,29 @@ def _fill(grid, ys, xs, count, frame, depth, normal, member, kind, maps_par, fla
             ny = frame[4] * n0 + frame[5] * n1 + frame[6] * n2
             nz = frame[8] * n0 + frame[9] * n1 + frame[10] * n2
             value = 1.0
-            for job in range(jobs):
-                if member[i, j, job]:
-                    value *= _map_lookup(maps_par[job], flat0, flat1, px, py, pz, nx, ny, nz,
-                                         True, constants[0], constants[1])  # fmt: skip
+            last = -1
+            for e in range(rects.shape[0]):
+                job = rect_job[e]
+                if job == last or not _inside(rects, e, row, col):
+                    continue
+                last = job  # counted once, whichever of its rectangles holds the pixel
+                value *= _map_lookup(maps_par[job], flat0, flat1, px, py, pz, nx, ny, nz, True,
+                                     constants[0], constants[1])  # fmt: skip
             grid[i, j] = value
         return
     for q in range(count):
         i, j = ys[q], xs[q]
         px, py, pz = _point(frame, depth, i, j)
+        row, col = r0 + i, c0 + j
         value = 1.0
-        for job in range(jobs):
-            if member[i, j, job]:
-                value *= _capsules_at(sets_par[job], a, b, radius, a2, b2, r2, px, py, pz,
-                                      constants[2])  # fmt: skip
+        last = -1
+        for e in range(rects.shape[0]):
+            job = rect_job[e]
+            if job == last or not _inside(rects, e, row, col):
+                continue
+            last = job  # counted once, whichever of its rectangles holds the pixel
+            value *= _capsules_at(sets_par[job], a, b, radius, a2, b2, r2, px, py, pz,
+                                  constants[2])  # fmt: skip
         grid[i, j] = value
 
 
@@ -249,7 +267,7 @@ def _point(frame, depth, i, j):
     )
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _bend_at(c, i, j, ny, nx):
     """_bend of a coarse grid at sample (i, j): the largest second difference along either
     axis around it (at the border, its neighbour's)."""
@@ -263,18 +281,38 @@ def _bend_at(c, i, j, ny, nx):
     return out
 
 
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _inside(rects, q, row, col):
+    """Whether rectangle q (x0, y0, x1, y1) holds frame pixel (row, col)."""
+    return rects[q, 0] <= col < rects[q, 2] and rects[q, 1] <= row < rects[q, 3]
+
+
 @nb.njit(cache=True, error_model="numpy")
-def _members(mask, frame, h, w, rects, rect_job, jobs):
-    """(h, w, jobs): which jobs' rectangles hold each pixel of the (h, w) window at (frame[16],
-    frame[17]) that a prim covers (`mask`, the frame's)."""
+def _wanted(mask, frame, size_y, size_x, h, w, rects):
+    """(size_y, size_x) the pixels of the (h, w) window at (frame[16], frame[17]) that a prim
+    covers (`mask`, the frame's) inside any of `rects`; row by row, each rectangle's span
+    marked (overlapping rectangles cost their overlap, not a pass each over the window)."""
     r0, c0 = int(frame[16]), int(frame[17])
-    out = np.zeros((h, w, jobs), np.bool_)
-    for q in range(rects.shape[0]):
-        job = rect_job[q]
-        for row in range(max(rects[q, 1], r0), min(rects[q, 3], r0 + h)):
-            for col in range(max(rects[q, 0], c0), min(rects[q, 2], c0 + w)):
-                if mask[row, col] > 0:
-                    out[row - r0, col - c0, job] = True
+    out = np.zeros((size_y, size_x), np.bool_)
+    spans = np.zeros(w + 1, np.int64)
+    for i in range(h):
+        row = r0 + i
+        spans[:] = 0
+        any_span = False
+        for q in range(rects.shape[0]):
+            if rects[q, 1] <= row < rects[q, 3]:
+                left, right = max(rects[q, 0] - c0, 0), min(rects[q, 2] - c0, w)
+                if right > left:
+                    spans[left] += 1
+                    spans[right] -= 1
+                    any_span = True
+        if not any_span:
+            continue
+        depth = 0
+        for j in range(w):
+            depth += spans[j]
+            if depth > 0 and mask[row, c0 + j] > 0:
+                out[i, j] = True
     return out
 
 
@@ -290,8 +328,6 @@ def sparse_pass(
     then each finer grid blended from the one above where smooth (constants[3]:
     BEND_TOLERANCE) and on its samples' surface (constants[4]: SURFACE_TOLERANCE), evaluated
     elsewhere (_fill, level by level). step 1: every candidate evaluated."""
-    jobs = maps_par.shape[0] if kind == KIND_MAP else sets_par.shape[0]
-    member = _members(mask, frame, h, w, rects, rect_job, jobs)
     r0, c0 = int(frame[16]), int(frame[17])
     if h < 2 or w < 2:
         step = 1
@@ -299,11 +335,9 @@ def sparse_pass(
     size_x = -(-(w - 1) // step) * step + 1
     grid = np.ones((size_y, size_x), np.float32)
     inverse = np.zeros((size_y, size_x), np.float32)
-    want = np.zeros((size_y, size_x), np.bool_)
+    want = _wanted(mask, frame, size_y, size_x, h, w, rects)
     for i in range(h):
         for j in range(w):
-            for job in range(jobs):
-                want[i, j] |= member[i, j, job]
             inverse[i, j] = np.float32(1.0) / max(depth[r0 + i, c0 + j], np.float32(1e-30))
     ys = np.empty(h * w, np.int64)
     xs = np.empty(h * w, np.int64)
@@ -313,7 +347,7 @@ def sparse_pass(
             if want[i, j]:
                 ys[count], xs[count] = i, j
                 count += 1
-    _fill(grid, ys, xs, count, frame, depth, normal, member, kind, maps_par, flat0, flat1,
+    _fill(grid, ys, xs, count, frame, depth, normal, rects, rect_job, kind, maps_par, flat0, flat1,
           sets_par, a, b, radius, a2, b2, r2, constants)  # fmt: skip
     bend_tolerance, surface = constants[3], np.float32(constants[4])
     spacing = step
@@ -344,48 +378,147 @@ def sparse_pass(
                     | rough[i + 2, j] | rough[i + 2, j + 1] | rough[i + 2, j + 2]
                 )  # fmt: skip
         count = 0
+        half32, quarter = np.float32(0.5), np.float32(0.25)
+        # The middles of horizontal edges, of vertical edges, and of cells; an edge is
+        # smooth where a cell beside it is (the dilation has looked at the other). Each is
+        # blended where smooth and on its samples' surface, else queued for _fill.
         for i in range(ny):
-            for j in range(nx):
-                for part in range(3):
-                    if part == 0:  # the middle of a horizontal edge
-                        if j >= nx - 1:
-                            continue
-                        y, x = i * spacing, j * spacing + half
-                        ok = smooth[min(i, ny - 2), j]
-                        blended = (c[i, j] + c[i, j + 1]) * np.float32(0.5)
-                        expected = (inverse[y, x - half] + inverse[y, x + half]) * np.float32(0.5)
-                    elif part == 1:  # the middle of a vertical edge
-                        if i >= ny - 1:
-                            continue
-                        y, x = i * spacing + half, j * spacing
-                        ok = smooth[i, min(j, nx - 2)]
-                        blended = (c[i, j] + c[i + 1, j]) * np.float32(0.5)
-                        expected = (inverse[y - half, x] + inverse[y + half, x]) * np.float32(0.5)
-                    else:  # the middle of a cell
-                        if i >= ny - 1 or j >= nx - 1:
-                            continue
-                        y, x = i * spacing + half, j * spacing + half
-                        ok = smooth[i, j]
-                        blended = (
-                            c[i, j] + c[i, j + 1] + c[i + 1, j] + c[i + 1, j + 1]
-                        ) * np.float32(0.25)
-                        expected = (
-                            inverse[y - half, x - half] + inverse[y - half, x + half]
-                            + inverse[y + half, x - half] + inverse[y + half, x + half]
-                        ) * np.float32(0.25)  # fmt: skip
-                    if not want[y, x]:
-                        continue
+            y = i * spacing
+            for j in range(nx - 1):
+                x = j * spacing + half
+                if want[y, x]:
                     mine = inverse[y, x]
-                    if ok and abs(expected - mine) <= surface * mine:
-                        grid[y, x] = blended
+                    expected = (inverse[y, x - half] + inverse[y, x + half]) * half32
+                    if smooth[min(i, ny - 2), j] and abs(expected - mine) <= surface * mine:
+                        grid[y, x] = (c[i, j] + c[i, j + 1]) * half32
                     else:
                         ys[count], xs[count] = y, x
                         count += 1
-        _fill(grid, ys, xs, count, frame, depth, normal, member, kind, maps_par, flat0, flat1,
+        for i in range(ny - 1):
+            y = i * spacing + half
+            for j in range(nx):
+                x = j * spacing
+                if want[y, x]:
+                    mine = inverse[y, x]
+                    expected = (inverse[y - half, x] + inverse[y + half, x]) * half32
+                    if smooth[i, min(j, nx - 2)] and abs(expected - mine) <= surface * mine:
+                        grid[y, x] = (c[i, j] + c[i + 1, j]) * half32
+                    else:
+                        ys[count], xs[count] = y, x
+                        count += 1
+            for j in range(nx - 1):
+                x = j * spacing + half
+                if want[y, x]:
+                    mine = inverse[y, x]
+                    expected = (
+                        inverse[y - half, x - half] + inverse[y - half, x + half]
+                        + inverse[y + half, x - half] + inverse[y + half, x + half]
+                    ) * quarter  # fmt: skip
+                    if smooth[i, j] and abs(expected - mine) <= surface * mine:
+                        corners = c[i, j] + c[i, j + 1] + c[i + 1, j] + c[i + 1, j + 1]
+                        grid[y, x] = corners * quarter
+                    else:
+                        ys[count], xs[count] = y, x
+                        count += 1
+        _fill(grid, ys, xs, count, frame, depth, normal, rects, rect_job, kind, maps_par, flat0, flat1,
               sets_par, a, b, radius, a2, b2, r2, constants)  # fmt: skip
         spacing = half
     out = np.empty((h, w), np.float32)
     for i in range(h):
         for j in range(w):
             out[i, j] = grid[i, j]
+    return out
+
+
+@nb.njit(cache=True, error_model="numpy")
+def shadow_regions(lo, hi, light, box, view, width, height):
+    """shadows.shadow_regions: per caster with bounds lo, hi (M, 3), (M, 5) int64 rows of
+    what its shadow can fall on: 0 nothing in view, 1 the rectangle x0, y0, x1, y1, 2 the
+    whole frame. `light`: kind (0 distant, 1 point), direction (3), position (3), angular
+    radius (at least MIN_SOFTNESS) of a DistantLight, radius of a point light, MIN_SOFTNESS;
+    `view`: world-to-camera rows 0-2 (12), fx, fy, cx, cy, near."""
+    m = lo.shape[0]
+    out = np.zeros((m, 5), np.int64)
+    corners = np.empty((16, 3))
+    directions = np.empty((8, 3))
+    lengths = np.empty(8)
+    for i in range(m):
+        around = False
+        if light[0] == 0:
+            angle = light[7]
+            for c in range(8):
+                for k in range(3):
+                    directions[c, k] = light[1 + k]
+        else:
+            distance = 0.0
+            for k in range(3):
+                offset = (lo[i, k] + hi[i, k]) / 2 - light[4 + k]
+                distance += offset * offset
+            distance = math.sqrt(distance)
+            angle = max(math.asin(min(max(light[8] / max(distance, 1e-9), 0.0), 1.0)), light[9])
+            around = True
+            for k in range(3):
+                around &= lo[i, k] <= light[4 + k] <= hi[i, k]
+        size = 0.0
+        thinnest = np.inf
+        for k in range(3):
+            size += (hi[i, k] - lo[i, k]) ** 2
+            thinnest = min(thinnest, hi[i, k] - lo[i, k])
+        size = max(math.sqrt(size), 1e-9)
+        longest = 0.0
+        for c in range(8):
+            for k in range(3):
+                corners[c, k] = hi[i, k] if (c >> (2 - k)) & 1 else lo[i, k]
+            if light[0] != 0:
+                norm = 0.0
+                for k in range(3):
+                    directions[c, k] = corners[c, k] - light[4 + k]
+                    norm += directions[c, k] ** 2
+                norm = max(math.sqrt(norm), 1e-12)
+                for k in range(3):
+                    directions[c, k] /= norm
+            t = np.inf
+            for k in range(3):
+                d = directions[c, k]
+                if d > 0:
+                    t = min(t, (max(box[1, k], hi[i, k]) - corners[c, k]) / d)
+                elif d < 0:
+                    t = min(t, (min(box[0, k], lo[i, k]) - corners[c, k]) / d)
+            lengths[c] = max(t, 0.0)
+            longest = max(longest, lengths[c])
+        if longest <= 1e-6 * size and thinnest <= 1e-6 * size:
+            continue  # flat on the scene's boundary (the ground): onto nothing
+        grow = longest * math.tan(angle)
+        low = np.full(3, np.inf)
+        high = np.full(3, -np.inf)
+        for c in range(8):
+            for k in range(3):
+                end = corners[c, k] + directions[c, k] * lengths[c]
+                low[k] = min(low[k], end)
+                high[k] = max(high[k], end)
+        for c in range(8):
+            for k in range(3):
+                corners[8 + c, k] = high[k] + grow if (c >> (2 - k)) & 1 else low[k] - grow
+        behind = False
+        xmin = ymin = np.inf
+        xmax = ymax = -np.inf
+        for c in range(16):
+            px, py, pz = corners[c, 0], corners[c, 1], corners[c, 2]
+            x = view[0] * px + view[1] * py + view[2] * pz + view[3]
+            y = view[4] * px + view[5] * py + view[6] * pz + view[7]
+            depth = -(view[8] * px + view[9] * py + view[10] * pz + view[11])
+            if depth <= view[16]:
+                behind = True
+                break
+            sx = view[14] + view[12] * x / depth
+            sy = view[15] - view[13] * y / depth
+            xmin, xmax = min(xmin, sx), max(xmax, sx)
+            ymin, ymax = min(ymin, sy), max(ymax, sy)
+        if around or behind:  # the light among it, or reaching behind the camera
+            out[i, 0], out[i, 3], out[i, 4] = 2, width, height
+            continue
+        x0, y0 = max(math.floor(xmin) - 1, 0), max(math.floor(ymin) - 1, 0)
+        x1, y1 = min(math.ceil(xmax) + 1, width), min(math.ceil(ymax) + 1, height)
+        if x1 > x0 and y1 > y0:
+            out[i, 0], out[i, 1], out[i, 2], out[i, 3], out[i, 4] = 1, x0, y0, x1, y1
     return out

@@ -154,6 +154,28 @@ def _flat(light: Light, capsules: sh.PosedCapsules, row: np.ndarray):
     return ends[0], ends[1], np.tan(angular)
 
 
+def shadow_regions(
+    lo: np.ndarray, hi: np.ndarray, light: Light, box: np.ndarray, camera: Camera
+) -> list[sh.Region | None]:
+    """shadows.shadow_regions through its kernel."""
+    if light.kind == DISTANT:
+        packed = (0.0, *light.direction, 0.0, 0.0, 0.0, max(light.angle, sh.MIN_SOFTNESS), 0.0)
+    else:
+        packed = (1.0, 0.0, 0.0, 0.0, *light.position, 0.0, light.radius)
+    w2c = camera.world_to_camera
+    view = (*w2c[:3].ravel(), camera.fx, camera.fy, camera.cx, camera.cy, camera.near)
+    found = kernels.shadow_regions(
+        np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64),
+        np.array([*packed, sh.MIN_SOFTNESS]), np.ascontiguousarray(box, np.float64),
+        np.array(view, np.float64), camera.width, camera.height,
+    )  # fmt: skip
+    full: sh.Region = (0, 0, camera.width, camera.height)
+    return [
+        None if row[0] == 0 else full if row[0] == 2 else (row[1], row[2], row[3], row[4])
+        for row in found.tolist()
+    ]
+
+
 def points_visibility(
     points: np.ndarray, normals: np.ndarray | None, light: Light | None = None,
     capsules: sh.PosedCapsules | None = None, shadow_map: sh.ShadowMap | None = None,

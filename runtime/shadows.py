@@ -375,7 +375,14 @@ class PosedCapsules:
         return np.concatenate([self.a.ravel(), self.b.ravel(), self.radius]).round(3).tobytes()
 
     def bounds(self) -> tuple[np.ndarray, float]:
-        """A sphere (centre, radius) holding every capsule."""
+        """A sphere (centre, radius) holding every capsule (found once: asked per light and
+        pass)."""
+        found = self.__dict__.get("_bounds")
+        if found is None:
+            found = self.__dict__["_bounds"] = self._sphere()
+        return found
+
+    def _sphere(self) -> tuple[np.ndarray, float]:
         ends = np.concatenate([self.a, self.b])
         lo, hi = ends.min(axis=0), ends.max(axis=0)
         centre = (lo + hi) / 2
@@ -383,10 +390,14 @@ class PosedCapsules:
         return centre, float(reach.max())
 
     def parts(self) -> list[PosedCapsules]:
-        """The capsules chain by chain (all of them as one part without chains)."""
-        if not self.chains:
-            return [self]
-        return [PosedCapsules(self.a[c], self.b[c], self.radius[c]) for c in self.chains]
+        """The capsules chain by chain (all of them as one part without chains), found once."""
+        found = self.__dict__.get("_parts")
+        if found is None:
+            found = [self]
+            if self.chains:
+                found = [PosedCapsules(self.a[c], self.b[c], self.radius[c]) for c in self.chains]
+            self.__dict__["_parts"] = found
+        return found
 
 
 def chains(joints: Sequence[str]) -> tuple[np.ndarray, ...]:
@@ -654,7 +665,12 @@ def shadow_regions(
     """Per caster with bounds lo, hi (M, 3): the frame pixels its shadow can fall on, or
     None. Its box is swept away from `light` until it leaves the scene's bounds `box`,
     widened along the way by the shadow's softness (light_softness). None: it casts onto
-    nothing in view (a flat caster on the scene's boundary, the ground, onto nothing)."""
+    nothing in view (a flat caster on the scene's boundary, the ground, onto nothing).
+    Compiled (shadow_kernels.shadow_regions) where SHADOW_KERNEL says so."""
+    if SHADOW_KERNEL == "numba":
+        from rigspace.runtime import shadow_pass  # it imports this module
+
+        return shadow_pass.shadow_regions(lo, hi, light, box, camera)
     m = len(lo)
     bounds = np.stack([lo, hi], axis=1)  # (M, 2, 3)
     corners = bounds[:, _CORNER_PICK, np.arange(3)]  # (M, 8, 3)

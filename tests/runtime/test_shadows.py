@@ -837,3 +837,27 @@ def test_the_kernels_compile_once_and_later_processes_load_them():
     misses, used = map(int, runs[1].stdout.split()[-2:])
     assert used == 2
     assert misses == 0, runs[1].stdout
+
+
+@pytest.mark.parametrize("kind", [DISTANT, POINT])
+def test_the_compiled_screen_regions_match_numpy(kind, monkeypatch):
+    """Boxes in and around a scene, some flat on its floor, the light among some, the
+    camera inside: every region (none, a rectangle, the whole frame) as numpy finds it."""
+    rng = np.random.default_rng(4)
+    lo = rng.uniform(-500, 400, (300, 3))
+    hi = lo + rng.uniform(0, 200, (300, 3))
+    lo[:40, 1] = hi[:40, 1] = -500.0  # flat on the scene's floor
+    box = np.array([[-500.0, -500.0, -500.0], [600.0, 600.0, 600.0]])
+    if kind == DISTANT:
+        light = Light(DISTANT, np.ones(3), direction=np.array([0.3, -0.9, 0.3]) / 1.0392)
+    else:
+        light = Light(POINT, np.ones(3), position=np.array([0.0, 300.0, 0.0]), radius=20.0)
+    world = np.eye(4)
+    world[:3, 3] = (0.0, 100.0, 900.0)
+    camera = Camera(world, 320, 180, 35.0, 36.0, 20.25, near=1.0, far=1e5)
+    fast = shadows.shadow_regions(lo, hi, light, box, camera)
+    monkeypatch.setattr(shadows, "SHADOW_KERNEL", "numpy")
+    slow = shadows.shadow_regions(lo, hi, light, box, camera)
+    assert fast == slow
+    kinds = {None if r is None else r == (0, 0, 320, 180) for r in slow}
+    assert kinds == {None, True, False}  # nothing, the whole frame and rectangles compared
