@@ -6,12 +6,18 @@ samples/scenes/previs.usda with the sample character, one frame each in turn in 
 process (so that load on a shared machine falls on both alike); printed per engine: the
 median frame and stage milliseconds from the engine's own report, the shadow stage's
 fraction of the frame, its split into sub-steps (each one's own time, callees excluded),
-and the first frame's time (for numba, loading or compiling the kernels).
+and the first frame's time (for numba, loading or compiling the kernels); then the same
+fraction in CPU time (the process's, all threads: the shadow stage's engine methods
+against the whole render), which a loaded machine distorts less than the wall clock;
+then the prims' shadow passes of one frame (Engine._prim_shadows, its maps drawn) run
+again and again on the same inputs, both ways: the best and the median CPU milliseconds,
+the least noisy comparison on a shared machine.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import statistics
 import time as clock
 from collections.abc import Callable, Sequence
@@ -28,6 +34,9 @@ TIMES = np.linspace(100.0, 1400.0, 64)
 """The frames rendered (the first a warm-up): bench/frames.py's."""
 
 # Sub-step: the functions whose own time it is (module or class, attribute).
+SHADOW_STAGE = ("_update_shadow_maps", "_prim_shadows", "_layer_visibility", "_capsule_reshade")
+"""The Engine methods whose time the engine counts as its shadows stage."""
+
 SUBSTEPS: dict[str, list[tuple[object, str]]] = {
     "draw maps": [(shadows.PrimShadows, "_render")],
     "screen regions": [
@@ -77,6 +86,24 @@ class _Timers:
         return timed
 
 
+def _cpu_wrap(engine: Engine) -> list[float]:
+    """Wrap the engine's shadow-stage methods (on the instance) to add their process CPU
+    seconds to the list's one entry."""
+    spent = [0.0]
+    for name in SHADOW_STAGE:
+        method = getattr(engine, name)
+
+        def timed(*args, method=method, **kwargs):
+            start = clock.process_time()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                spent[0] += clock.process_time() - start
+
+        setattr(engine, name, timed)
+    return spent
+
+
 def measure(sizes: Sequence[tuple[int, int]], frames: int) -> list[str]:
     """The lines printed: per size and kernel, the frame, the shadow stage and its split."""
     lines = []
@@ -94,10 +121,17 @@ def measure(sizes: Sequence[tuple[int, int]], frames: int) -> list[str]:
                 for kernel, (engine, reports, _, timers) in runs.items():
                     shadows.SHADOW_KERNEL = kernel
                     timers.wrap()
+                    cpu = _cpu_wrap(engine)
+                    start = clock.process_time()
                     try:
-                        reports.append(engine.render(float(t)).report["seconds"])
+                        seconds = engine.render(float(t)).report["seconds"]
                     finally:
                         timers.unwrap()
+                        for name in SHADOW_STAGE:
+                            delattr(engine, name)
+                    seconds["cpu"] = clock.process_time() - start
+                    seconds["cpu shadows"] = cpu[0]
+                    reports.append(seconds)
         finally:
             shadows.SHADOW_KERNEL = "numba"
             for engine, _, _, _ in runs.values():
@@ -113,11 +147,58 @@ def measure(sizes: Sequence[tuple[int, int]], frames: int) -> list[str]:
             total = 1e3 * sum(r["shadows"] for r in reports) / len(reports)
             split = {k: 1e3 * v / len(reports) for k, v in timers.seconds.items() if v > 0}
             split["rest (glue, blending in numpy)"] = total - sum(split.values())
+            cpu = statistics.median(r["cpu shadows"] / r["cpu"] for r in reports)
+            cpu_ms = 1e3 * statistics.median(r["cpu shadows"] for r in reports)
+            frame_cpu = 1e3 * statistics.median(r["cpu"] for r in reports)
+            lines.append(
+                f"    CPU time: frame {frame_cpu:.1f} ms, shadows {cpu_ms:.1f} ms = {cpu:.2f} of "
+                "the frame (median of per-frame fractions)"
+            )
             lines.append(
                 "    shadows per frame (mean): "
                 + ", ".join(f"{k} {v:.2f}" for k, v in split.items())
                 + f" ms (of {total:.2f})"
             )
+    return lines
+
+
+def _recording(engine: Engine, recorded: list, *args):
+    recorded.append(args)
+    return Engine._prim_shadows(engine, *args)
+
+
+def passes(sizes: Sequence[tuple[int, int]], repeats: int = 15) -> list[str]:
+    """Lines: per size, the prims' passes of the frame at time 600 again and again, numba
+    against numpy (best and median process CPU milliseconds)."""
+    lines = []
+    prim_shadows = Engine._prim_shadows
+    for width, height in sizes:
+        engine = Engine(SCENE, width=width, height=height, prim_samples=1)
+        recorded: list[tuple] = []
+        engine._prim_shadows = functools.partial(_recording, engine, recorded)
+        try:
+            engine.render(500.0)
+            recorded.clear()
+            engine.render(600.0)
+            args = recorded[-1]
+            found = {}
+            for kernel in ("numba", "numpy"):
+                shadows.SHADOW_KERNEL = kernel
+                spent = []
+                for _ in range(repeats):
+                    start = clock.process_time()
+                    prim_shadows(engine, *args)
+                    spent.append(clock.process_time() - start)
+                found[kernel] = (1e3 * min(spent), 1e3 * statistics.median(spent))
+        finally:
+            shadows.SHADOW_KERNEL = "numba"
+            engine.close()
+        (fast, fast_median), (slow, slow_median) = found["numba"], found["numpy"]
+        lines.append(
+            f"{width}x{height} prims' passes, CPU ms best (median) of {repeats}: numba "
+            f"{fast:.2f} ({fast_median:.2f}), numpy {slow:.2f} ({slow_median:.2f}): "
+            f"{slow / fast:.1f}x"
+        )
     return lines
 
 
@@ -127,7 +208,7 @@ def main() -> None:
     parser.add_argument("--sizes", nargs="+", default=["256x256", "640x360"])
     args = parser.parse_args()
     sizes = [(int(w), int(h)) for w, h in (s.split("x") for s in args.sizes)]
-    for line in measure(sizes, args.frames):
+    for line in [*measure(sizes, args.frames), *passes(sizes)]:
         print(line, flush=True)
 
 

@@ -21,11 +21,13 @@ MAP_FIELDS = 21
 """Per shadow map in a pass (float64): world-to-camera rows 0-2 (12), fx, fy, cx, cy, near,
 the padded map's width and height, its first texel in its flat buffer and which buffer (0:
 the pass's largest map, handed over without a copy; 1: the others, concatenated)."""
-SET_FIELDS = 24
+SET_FIELDS = 26
 """Per capsule set (one character under one light): mode (0 distant, 1 point, 2 every
 pair), the light's 2-D frame rows (9), the light's position (3), front or nearest, the
 softness (tangent or radius), the point light's off-axis base angle, the 2-D bounds of all
-capsules (4), their largest 2-D radius, first and end capsule, and the light's angle."""
+capsules (4), their largest 2-D radius, first and end capsule, the light's angle, and
+first and end limb (rows of `chains`: first and end capsule, 2-D bounds (4), largest 2-D
+radius)."""
 MODE_DISTANT, MODE_POINT, MODE_EVERY = 0, 1, 2
 KIND_MAP, KIND_CAPSULES = 0, 1
 FAR_OFF_AXIS = math.radians(80.0)
@@ -110,11 +112,10 @@ def _pair(a, b, radius, k, px, py, pz, dx, dy, dz, light_angle, cos_light, sin_l
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def _capsules_at(sp, a, b, radius, a2, b2, r2, px, py, pz, min_visibility):
+def _capsules_at(sp, a, b, radius, a2, b2, r2, chains, px, py, pz, min_visibility):
     """The visibility of a light past one capsule set at one point: the 2-D cull of
     _light_plane / _candidate_pairs, then the pairs it keeps."""
     mode = int(sp[0])
-    first, end = int(sp[21]), int(sp[22])
     every = mode == MODE_EVERY
     u = v = margin = 0.0
     factor = 1.0
@@ -143,6 +144,25 @@ def _capsules_at(sp, a, b, radius, a2, b2, r2, px, py, pz, min_visibility):
         reach = (sp[20] + margin) * factor
         if u < sp[16] - reach or u > sp[18] + reach or v < sp[17] - reach or v > sp[19] + reach:
             return 1.0
+    visibility = 1.0
+    for chain in range(int(sp[24]), int(sp[25])):
+        start, stop = int(chains[chain, 0]), int(chains[chain, 1])
+        if not every:  # a limb's 2-D bounds first: most receivers miss all but one limb
+            reach = (chains[chain, 6] + margin) * factor
+            if u < chains[chain, 2] - reach or u > chains[chain, 4] + reach:
+                continue
+            if v < chains[chain, 3] - reach or v > chains[chain, 5] + reach:
+                continue
+        visibility *= _limb(sp, a, b, radius, a2, b2, r2, start, stop, every, u, v, margin,
+                            factor, px, py, pz, min_visibility)  # fmt: skip
+    return visibility
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _limb(sp, a, b, radius, a2, b2, r2, first, end, every, u, v, margin, factor, px, py, pz,
+          min_visibility):  # fmt: skip
+    """The visibility past capsules first..end (one limb) at a point seen at u, v."""
+    mode = int(sp[0])
     visibility = 1.0
     dx = dy = dz = light_angle = cos_light = sin_light = 0.0
     towards = False  # the light's direction and angular radius, found with the first pair
@@ -179,7 +199,7 @@ def _capsules_at(sp, a, b, radius, a2, b2, r2, px, py, pz, min_visibility):
 
 @nb.njit(cache=True, error_model="numpy")
 def points_visibility(
-    points, normals, kind, maps_par, flat0, flat1, sets_par, a, b, radius, a2, b2, r2, constants
+    points, normals, kind, maps_par, flat0, flat1, sets_par, a, b, radius, a2, b2, r2, chains, constants
 ):  # fmt: skip
     """(N,) visibility of planar (3, N) world points past every map (kind KIND_MAP) or every
     capsule set (KIND_CAPSULES) given; `normals` (3, N) or (3, 0)."""
@@ -202,14 +222,16 @@ def points_visibility(
         px, py, pz = float(points[0, i]), float(points[1, i]), float(points[2, i])
         value = 1.0
         for j in range(sets_par.shape[0]):
-            value *= _capsules_at(sets_par[j], a, b, radius, a2, b2, r2, px, py, pz, constants[2])
+            value *= _capsules_at(
+                sets_par[j], a, b, radius, a2, b2, r2, chains, px, py, pz, constants[2]
+            )
         out[i] = value
     return out
 
 
 @nb.njit(cache=True, error_model="numpy")
 def _fill(grid, ys, xs, count, frame, depth, normal, rects, rect_job, kind, maps_par, flat0, flat1,
-          sets_par, a, b, radius, a2, b2, r2, constants):  # fmt: skip
+          sets_par, a, b, radius, a2, b2, r2, chains, constants):  # fmt: skip
     """Evaluate window pixels (ys, xs)[:count] into `grid`: the visibility past the jobs
     whose rectangles hold each (`rects` of job `rect_job`, in job order; job j the j-th map
     or capsule set)."""
@@ -245,7 +267,7 @@ def _fill(grid, ys, xs, count, frame, depth, normal, rects, rect_job, kind, maps
             if job == last or not _inside(rects, e, row, col):
                 continue
             last = job  # counted once, whichever of its rectangles holds the pixel
-            value *= _capsules_at(sets_par[job], a, b, radius, a2, b2, r2, px, py, pz,
+            value *= _capsules_at(sets_par[job], a, b, radius, a2, b2, r2, chains, px, py, pz,
                                   constants[2])  # fmt: skip
         grid[i, j] = value
 
@@ -319,7 +341,7 @@ def _wanted(mask, frame, size_y, size_x, h, w, rects):
 @nb.njit(cache=True, error_model="numpy")
 def sparse_pass(
     mask, depth, normal, frame, h, w, rects, rect_job, kind, maps_par, flat0, flat1,
-    sets_par, a, b, radius, a2, b2, r2, constants, step,
+    sets_par, a, b, radius, a2, b2, r2, chains, constants, step,
 ):  # fmt: skip
     """shadows.sparse_visibility over the (h, w) window at (frame[16], frame[17]) (rows,
     columns) of the frame's G-buffer (mask, depth, normal), its candidates the pixels a
@@ -348,7 +370,7 @@ def sparse_pass(
                 ys[count], xs[count] = i, j
                 count += 1
     _fill(grid, ys, xs, count, frame, depth, normal, rects, rect_job, kind, maps_par, flat0, flat1,
-          sets_par, a, b, radius, a2, b2, r2, constants)  # fmt: skip
+          sets_par, a, b, radius, a2, b2, r2, chains, constants)  # fmt: skip
     bend_tolerance, surface = constants[3], np.float32(constants[4])
     spacing = step
     while spacing > 1:
@@ -421,7 +443,7 @@ def sparse_pass(
                         ys[count], xs[count] = y, x
                         count += 1
         _fill(grid, ys, xs, count, frame, depth, normal, rects, rect_job, kind, maps_par, flat0, flat1,
-              sets_par, a, b, radius, a2, b2, r2, constants)  # fmt: skip
+              sets_par, a, b, radius, a2, b2, r2, chains, constants)  # fmt: skip
         spacing = half
     out = np.empty((h, w), np.float32)
     for i in range(h):

@@ -26,8 +26,8 @@ CONSTANTS = np.array(
 )  # fmt: skip
 _NO_MAPS = (np.zeros((0, kernels.MAP_FIELDS)), np.zeros(1, np.float32), np.zeros(1, np.float32))
 _NO_SETS = (
-    np.zeros((0, kernels.SET_FIELDS)),
-    *(np.zeros((0, 3)),) * 2, np.zeros(0), *(np.zeros((0, 2)),) * 2, np.zeros(0),
+    np.zeros((0, kernels.SET_FIELDS)), *(np.zeros((0, 3)),) * 2, np.zeros(0),
+    *(np.zeros((0, 2)),) * 2, np.zeros(0), np.zeros((0, 7)),
 )  # fmt: skip
 
 
@@ -102,17 +102,27 @@ def capsule_set(light: Light, capsules: sh.PosedCapsules, first: int) -> np.ndar
 
 
 def sets_data(light: Light, sets: Sequence[sh.PosedCapsules]):
-    """The capsule sets' rows and their capsules (world ends and radii, 2-D ends and radii)."""
+    """The capsule sets' rows and their capsules (world ends and radii, 2-D ends and radii)
+    and limbs (the sets' chains where they are runs of capsules, else one per set)."""
     if not sets:
         return _NO_SETS
     rows, a2s, b2s, r2s, first = [], [], [], [], 0
+    limbs: list[np.ndarray] = []
     for capsules in sets:
         row = capsule_set(light, capsules, first)
-        first += len(capsules.radius)
         a2, b2, r2 = _flat(light, capsules, row)
         lo, hi = np.minimum(a2, b2), np.maximum(a2, b2)
         if len(r2):
             row[16:18], row[18:20], row[20] = lo.min(axis=0), hi.max(axis=0), r2.max()
+        row[24] = len(limbs)
+        for start, stop in _runs(capsules):
+            limb = np.empty(7)
+            limb[:2] = first + start, first + stop
+            limb[2:4], limb[4:6] = lo[start:stop].min(axis=0), hi[start:stop].max(axis=0)
+            limb[6] = r2[start:stop].max()
+            limbs.append(limb)
+        row[25] = len(limbs)
+        first += len(capsules.radius)
         rows.append(row)
         a2s.append(a2)
         b2s.append(b2)
@@ -121,14 +131,24 @@ def sets_data(light: Light, sets: Sequence[sh.PosedCapsules]):
     b = np.concatenate([c.b for c in sets]).astype(np.float64)
     radius = np.concatenate([c.radius for c in sets]).astype(np.float64)
     return (
-        np.stack(rows),
-        a,
-        b,
-        radius,
-        np.concatenate(a2s),
-        np.concatenate(b2s),
-        np.concatenate(r2s),
-    )
+        np.stack(rows), a, b, radius, np.concatenate(a2s), np.concatenate(b2s),
+        np.concatenate(r2s), np.stack(limbs) if limbs else _NO_SETS[-1],
+    )  # fmt: skip
+
+
+def _runs(capsules: sh.PosedCapsules) -> list[tuple[int, int]]:
+    """The capsules' chains as (start, stop) runs when they are consecutive runs covering
+    every capsule once (as shadows.chains makes them), else one run of all."""
+    count = len(capsules.radius)
+    runs, at = [], 0
+    for chain in capsules.chains:
+        if len(chain) == 0 or chain[0] != at or np.any(np.diff(chain) != 1):
+            return [(0, count)] if count else []
+        runs.append((at, at + len(chain)))
+        at += len(chain)
+    if at != count:
+        return [(0, count)] if count else []
+    return runs
 
 
 def _flat(light: Light, capsules: sh.PosedCapsules, row: np.ndarray):
