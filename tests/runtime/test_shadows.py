@@ -861,3 +861,22 @@ def test_the_compiled_screen_regions_match_numpy(kind, monkeypatch):
     assert fast == slow
     kinds = {None if r is None else r == (0, 0, 320, 180) for r in slow}
     assert kinds == {None, True, False}  # nothing, the whole frame and rectangles compared
+
+
+def test_the_compiled_passes_match_numpy_with_several_characters(tmp_path, monkeypatch):
+    """Three characters: several capsule sets in one pass, and each character's layer
+    shadowed by the others' capsules."""
+    from rigspace.bench.scenes import crowd_scene
+
+    scene = crowd_scene(tmp_path, 3)
+    frames = {}
+    for kernel in ("numba", "numpy"):
+        monkeypatch.setattr(shadows, "SHADOW_KERNEL", kernel)
+        engine = Engine(scene, width=240, height=135, precision="int8", prim_samples=1)
+        try:
+            frame = engine.render(700.0)
+        finally:
+            engine.close()
+        assert frame.report["shadows"]["casters"] == 3
+        frames[kernel] = np.array(frame.beauty)
+    assert np.abs(frames["numba"] - frames["numpy"]).max() < KERNEL_TOLERANCE
