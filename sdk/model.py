@@ -4,7 +4,9 @@ Shared by `rigspace eval` and the runtime; imports no torch. Sessions are create
 per graph, so a frame that needs only albedo at 32x32 never loads the other graphs.
 CUDA is used when onnxruntime offers it, the CPU otherwise. Outputs are named by the
 graphs themselves: albedo graphs give `albedo` and (bundle format 2) `alpha`, geometry
-graphs `depth`, `normal` and `mask`.
+graphs `depth`, `normal` and `mask`. A pose-conditioned bundle (manifest `conditioning`)
+also reads `joints2d` in every graph; it is computed here from the rig parameters with
+rigspace.sdk.conditioning (the function training used), so callers pass the rig alone.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from rigspace.sdk.bundle import BundleError, ModelManifest, read_manifest
+from rigspace.sdk.conditioning import Skeleton2D, joints2d
 
 
 def default_providers() -> list[str]:
@@ -81,6 +84,9 @@ class BundleModel:
         self.albedo_has_alpha = self.manifest.format_version >= 2
         """Whether the albedo branch alone gives coverage (lets unlit frames skip geometry)."""
         self.joints = list(self.manifest.joints)
+        conditioning = raw.get("conditioning")
+        self.skeleton = Skeleton2D.from_json(conditioning["skeleton"]) if conditioning else None
+        """The skeleton a pose-conditioned bundle projects (None: the rig is the only input)."""
 
     def _checked(self, int8: str, fp32: str) -> str:
         check = self.manifest.raw.get("int8_check", {}).get("graphs", {}).get(int8, {})
@@ -147,28 +153,56 @@ class BundleModel:
             )
         return rig
 
-    def features(self, rig: np.ndarray) -> np.ndarray:
-        """The trunk's 8x8 features for rig parameters (N, joints * 6)."""
-        return self._session(self._trunk_file).run(None, {"rig": self.check_rig(rig)})[0]
+    def joints2d(self, rig: np.ndarray) -> np.ndarray | None:
+        """The conditioning input (N, joints * 2) for rig parameters; None when unconditioned."""
+        return None if self.skeleton is None else self._joints2d(rig)
 
-    def branch(self, features: np.ndarray, branch: str, resolution: int) -> dict[str, np.ndarray]:
+    def _joints2d(self, rig: np.ndarray) -> np.ndarray:
+        assert self.skeleton is not None
+        return joints2d(self.check_rig(rig), self.skeleton)
+
+    def features(self, rig: np.ndarray, joints2d: np.ndarray | None = None) -> np.ndarray:
+        """The trunk's 8x8 features for rig parameters (N, joints * 6)."""
+        feeds = {"rig": self.check_rig(rig)}
+        if self.skeleton is not None:
+            feeds["joints2d"] = joints2d if joints2d is not None else self._joints2d(rig)
+        return self._session(self._trunk_file).run(None, feeds)[0]
+
+    def branch(
+        self,
+        features: np.ndarray,
+        branch: str,
+        resolution: int,
+        joints2d: np.ndarray | None = None,
+    ) -> dict[str, np.ndarray]:
         if resolution not in self.levels:
             raise BundleError(
                 f"The model has no level {resolution}; it has {self.resolutions}.",
                 "ask for one of those resolutions.",
             )
         session = self._session(self.levels[resolution][branch])
-        outputs = session.run(None, {"features": features})
+        feeds = {"features": features}
+        # The 8x8 level's graphs have no block, so no conditioning input (the export drops it).
+        if self.skeleton is not None and len(session.get_inputs()) > 1:
+            if joints2d is None:
+                raise BundleError(
+                    f"Model bundle {self.manifest.folder} is pose-conditioned: its branch graphs "
+                    "read joints2d.",
+                    "pass joints2d (BundleModel.joints2d(rig)), or call predict(rig, ...).",
+                )
+            feeds["joints2d"] = joints2d
+        outputs = session.run(None, feeds)
         return dict(zip((o.name for o in session.get_outputs()), outputs, strict=True))
 
     def predict(
         self, rig: np.ndarray, resolution: int, branches: tuple[str, ...] = ("albedo", "geometry")
     ) -> dict[str, np.ndarray]:
         """Maps at `resolution` for (N, joints * 6) rig parameters, only of `branches`."""
-        features = self.features(rig)
+        joints2d = self.joints2d(rig)
+        features = self.features(rig, joints2d)
         out: dict[str, np.ndarray] = {}
         for branch in branches:
-            out.update(self.branch(features, branch, resolution))
+            out.update(self.branch(features, branch, resolution, joints2d))
         return out
 
     def preload(self) -> None:

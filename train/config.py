@@ -5,6 +5,12 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
+from rigspace.sdk.errors import RigspaceError
+
+
+class ConfigError(RigspaceError, ValueError):
+    """A training option with a value it cannot take."""
+
 
 @dataclass(frozen=True)
 class TrainConfig:
@@ -51,6 +57,28 @@ class TrainConfig:
     depth_weight: float = field(default=1.0, metadata={"help": "weight of the depth loss"})
     normal_weight: float = field(default=1.0, metadata={"help": "weight of the normal loss"})
     mask_weight: float = field(default=1.0, metadata={"help": "weight of the mask loss"})
+    mask_loss: str = field(
+        default="mixed",
+        metadata={
+            "help": "mask and alpha loss: mixed (the paper's L2/L1), bce (cross-entropy on the "
+            "logits), soft-iou (mixed plus 1 - soft IoU per sample)"
+        },
+    )
+    edge_weight: float = field(
+        default=0.0,
+        metadata={"help": "extra mask/alpha loss weight on silhouette-edge pixels (0: off)"},
+    )
+    conditioning: str = field(
+        default="none",
+        metadata={
+            "help": "pose-guided conditioning maps fed to every block: none (the paper's "
+            "rotations only), joints2d (a Gaussian per projected joint), bones2d (per bone)"
+        },
+    )
+    conditioning_sigma: float = field(
+        default=0.05,
+        metadata={"help": "width of the conditioning Gaussians, image half-widths (>= 1 pixel)"},
+    )
     seed: int = field(default=0, metadata={"help": "seed for weights, sampling and shuffling"})
     bf16: bool = field(
         default=False,
@@ -84,7 +112,25 @@ class TrainConfig:
         unknown = sorted(set(data) - names)
         if unknown:
             raise ValueError(f"unknown training options {unknown}")
-        return cls(**data)
+        config = cls(**data)
+        config.check()
+        return config
+
+    def check(self) -> None:
+        """A ConfigError naming an option whose value is not one of its choices."""
+        choices = {
+            "mask_loss": MASK_LOSSES,
+            "conditioning": ("none", "joints2d", "bones2d"),
+        }
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ConfigError(
+                    f"Training option --{name.replace('_', '-')} is {getattr(self, name)!r}.",
+                    f"choose one of {', '.join(allowed)}.",
+                )
+
+
+MASK_LOSSES = ("mixed", "bce", "soft-iou")
 
 
 PRESETS: dict[str, TrainConfig] = {
@@ -127,4 +173,6 @@ PRESETS: dict[str, TrainConfig] = {
 def preset(name: str, **overrides: Any) -> TrainConfig:
     if name not in PRESETS:
         raise KeyError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
-    return replace(PRESETS[name], **{k: v for k, v in overrides.items() if v is not None})
+    config = replace(PRESETS[name], **{k: v for k, v in overrides.items() if v is not None})
+    config.check()
+    return config

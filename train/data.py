@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from rigspace.capture.dataset import DatasetError, read_manifest
+from rigspace.sdk.conditioning import Skeleton2D, joints2d
 from rigspace.sdk.exr import read_exr
 from rigspace.sdk.render import Maps
 
@@ -108,6 +109,8 @@ class SplitInfo:
             )
         self.depth_scale = depth_scale(self.manifest)
         self.joints = list(self.manifest["joints"])
+        self.skeleton: Skeleton2D | None = None
+        """Set (train.conditioning.dataset_skeleton) to add each item's `joints2d`."""
 
     def make_item(self, maps: Maps, row: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """A sample's item from its maps and its params row (ITEM_COLUMNS): rig (J*6,),
@@ -123,13 +126,16 @@ class SplitInfo:
             depth.astype(np.float32),
             self.dataset_resolution // self.resolution,
         )
-        return {
+        item = {
             "rig": np.asarray(row["rig"]).reshape(-1).astype(np.float32),
             "albedo": albedo.astype(np.float32),
             "mask": mask.astype(np.float32),
             "normal": normal.astype(np.float32),
             "depth": depth.astype(np.float32),
         }
+        if self.skeleton is not None:  # pose conditioning: the runtime's function, same input
+            item["joints2d"] = joints2d(item["rig"][None], self.skeleton)[0]
+        return item
 
     def batch_of(self, items: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
         return {key: np.stack([it[key] for it in items]) for key in items[0]}

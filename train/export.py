@@ -47,6 +47,7 @@ from rigspace.sdk.bundle import FORMAT, FORMAT_VERSION
 from rigspace.sdk.capsules import FILE_NAME as CAPSULES
 from rigspace.sdk.capsules import read_capsules
 from rigspace.train.budget import trained_levels
+from rigspace.train.conditioning import dataset_skeleton
 from rigspace.train.config import TrainConfig
 from rigspace.train.data import SampleSet, depth_scale
 from rigspace.train.int8check import TOLERANCES, check_int8
@@ -65,8 +66,8 @@ class Trunk(nn.Module):
         super().__init__()
         self.model = model
 
-    def forward(self, rig: torch.Tensor) -> torch.Tensor:
-        return self.model.features(rig)
+    def forward(self, rig: torch.Tensor, joints2d: torch.Tensor | None = None) -> torch.Tensor:
+        return self.model.features(rig, joints2d)
 
 
 HEAD_GROUPS = {"albedo": ((0, 3), (3, 4)), "geometry": ((0, 1), (1, 4), (4, 5))}
@@ -86,12 +87,13 @@ class BranchAtLevel(nn.Module):
 
     def __init__(self, model: Rig2Image, branch: str, resolution: int) -> None:
         super().__init__()
-        self.branch = getattr(model, branch)
+        self.model, self.branch = model, getattr(model, branch)
         self.name, self.resolution = branch, resolution
         self.head = self.branch.heads[self.branch.resolutions.index(resolution)]
 
-    def forward(self, features: torch.Tensor):
-        x = self.branch.features_at(features, self.resolution)
+    def forward(self, features: torch.Tensor, joints2d: torch.Tensor | None = None):
+        maps = self.model.condition_maps(joints2d, self.resolution)  # in the graph (conditioned)
+        x = self.branch.features_at(features, self.resolution, maps)
         w, b = self.head.weight, self.head.bias
         parts = [F.conv2d(x, w[i:j], b[i:j]) for i, j in HEAD_GROUPS[self.name]]
         if self.name == "albedo":
@@ -109,31 +111,40 @@ INPUTS = {"trunk": "rig", "albedo": "features", "geometry": "features"}
 
 def export_graph(model: Rig2Image, branch: str, resolution: int, path: Path) -> None:
     """Export the trunk (branch "trunk") or one branch at one resolution."""
+    # A conditioned network's graphs also read joints2d (rigspace.sdk.conditioning).
+    joints2d = torch.zeros(1, 2 * model.shape.joints) if model.conditioned else None
     if branch == "trunk":
         wrapper: nn.Module = Trunk(model).eval()
-        example = torch.zeros(1, model.shape.inputs)
+        example: tuple[torch.Tensor, ...] = (torch.zeros(1, model.shape.inputs),)
     else:
         wrapper = BranchAtLevel(model, branch, resolution).eval()
-        example = model.features(torch.zeros(1, model.shape.inputs))
+        example = (model.features(torch.zeros(1, model.shape.inputs), joints2d),)
+    inputs = [INPUTS[branch]]
+    if joints2d is not None:
+        example, inputs = (*example, joints2d), [*inputs, "joints2d"]
     names = OUTPUTS[branch]
     with warnings.catch_warnings():
         # The TorchScript exporter is deprecated in favour of torch.export; it is the one that
         # needs no onnxscript and gives plain, stable graphs for this small static network.
         warnings.filterwarnings("ignore", category=DeprecationWarning, module=r"torch\.onnx")
         warnings.filterwarnings("ignore", message=".*legacy TorchScript-based ONNX export.*")
-        _export(wrapper, example, path, branch, names)
+        _export(wrapper, example, path, inputs, names)
 
 
 def _export(
-    wrapper: nn.Module, example: torch.Tensor, path: Path, branch: str, names: list[str]
+    wrapper: nn.Module,
+    example: tuple[torch.Tensor, ...],
+    path: Path,
+    inputs: list[str],
+    names: list[str],
 ) -> None:
     torch.onnx.export(
         wrapper,
-        (example,),
+        example,
         str(path),
-        input_names=[INPUTS[branch]],
+        input_names=inputs,
         output_names=names,
-        dynamic_axes={INPUTS[branch]: {0: "n"}, **{name: {0: "n"} for name in names}},
+        dynamic_axes={name: {0: "n"} for name in [*inputs, *names]},
         opset_version=OPSET,
         dynamo=False,  # the TorchScript exporter: no onnxscript needed, stable graphs
     )
@@ -221,6 +232,15 @@ def export_bundle(
     capsules = source if source.is_file() else out / CAPSULES
     if capsules.is_file():
         read_capsules(capsules)  # before any graph is written: a CapsuleError naming the file
+    skeleton = dataset_skeleton(dataset, data_manifest) if model.conditioned else None
+    if skeleton is not None and int8:
+        # int8 calibration feeds one input per graph; the conditioned graphs read two.
+        warnings.warn(
+            f"The run in {run_folder} is pose-conditioned ({config.conditioning}): its bundle "
+            "gets fp32 graphs only (no int8 variants).",
+            stacklevel=2,
+        )
+        int8 = False
     out.mkdir(parents=True, exist_ok=True)
     rig_calibration = features_calibration = None
     if int8:
@@ -304,6 +324,19 @@ def export_bundle(
         },
         "metrics": metrics or {},
     }
+    if skeleton is not None:
+        manifest["conditioning"] = {
+            "kind": config.conditioning,
+            "sigma": config.conditioning_sigma,
+            "input": "joints2d",
+            "skeleton": skeleton.to_json(),
+        }
+        manifest["inputs"]["joints2d"] = (
+            "float32 (N, joints*2): per joint (u, v), the joint by forward kinematics from the "
+            "rig and conditioning.skeleton, projected by a camera at the training distance "
+            "from the look-at joint; [-1, 1] across the image, v down "
+            "(rigspace.sdk.conditioning.joints2d); input of the trunk and every branch graph"
+        )
     if int8:
         rows, split = check_rows(dataset)
         manifest["int8_check"] = {

@@ -36,6 +36,7 @@ from rigspace.capture.dataset import DatasetError, read_manifest
 from rigspace.sdk.errors import RigspaceError
 from rigspace.train import distributed
 from rigspace.train.budget import Pace, apply_plan, plan_schedule
+from rigspace.train.conditioning import dataset_skeleton, parents_of
 from rigspace.train.config import TrainConfig
 from rigspace.train.data import SampleSet
 from rigspace.train.loss import targets_for, total_loss
@@ -108,7 +109,7 @@ def forward_loss(
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """One step's forward pass and loss at `resolution` with fade-in weight `alpha`."""
     with torch.autocast("cpu", dtype=torch.bfloat16, enabled=config.bf16):
-        heads = model(batch["rig"], resolution)
+        heads = model(batch["rig"], resolution, joints2d=batch.get("joints2d"))
         return total_loss(heads, batch, alpha, config)
 
 
@@ -154,7 +155,8 @@ def _preview(model, samples: SampleSet, resolution: int, path: Path) -> dict[str
     ks = np.linspace(0, len(samples) - 1, min(4, len(samples))).astype(int)
     batch = samples.batch(ks)
     with torch.no_grad():
-        heads = model(torch.from_numpy(batch["rig"]), resolution)
+        joints2d = torch.from_numpy(batch["joints2d"]) if "joints2d" in batch else None
+        heads = model(torch.from_numpy(batch["rig"]), resolution, joints2d=joints2d)
         albedo = albedo_maps(heads["albedo"][-1]).numpy()
         mask = geometry_maps(heads["geometry"][-1])[2].numpy()
         target = targets_for({k: torch.from_numpy(v) for k, v in batch.items()}, resolution)
@@ -209,6 +211,8 @@ def prepare_run(
     if existing.get("plan"):
         config = replace(config, steps_per_level=int(existing["plan"]["steps_per_level"]))
     wanted = json.loads(json.dumps(run_record(dataset, manifest, config)))  # tuples -> lists
+    if isinstance(existing.get("config"), dict):  # options added since: their defaults
+        existing["config"] = TrainConfig.from_json(existing["config"]).to_json()
     differs = sorted(k for k in wanted if existing.get(k) != wanted[k])
     if differs:
         raise TrainingError(
@@ -297,7 +301,9 @@ def train(
         raise TrainingError(
             f"{dataset} has no training samples.", "capture with some non-held-out views."
         )
-    model = Rig2Image(Shape(len(samples.joints)), config)
+    model = Rig2Image(Shape(len(samples.joints), parents=parents_of(samples.joints)), config)
+    if model.conditioned:  # every item gets joints2d (train.conditioning)
+        samples.skeleton = held_out.skeleton = dataset_skeleton(dataset, manifest)
     if config.channels_last:
         model = model.to(memory_format=torch.channels_last)
     plan = None
@@ -442,7 +448,8 @@ def build_model(run_folder: Path) -> tuple[Rig2Image, dict[str, Any], int]:
     """The trained model of a run folder, its run.json, and the step it reached."""
     run = json.loads((run_folder / RUN_FILE).read_text())
     config = TrainConfig.from_json(run["config"])
-    model = Rig2Image(Shape(len(run["joints"])), replace(config, channels_last=False))
+    shape = Shape(len(run["joints"]), parents=parents_of(run["joints"]))
+    model = Rig2Image(shape, replace(config, channels_last=False))
     state = load_checkpoint(run_folder / CHECKPOINT)
     try:
         model.load_state_dict(state["model"])

@@ -1,4 +1,9 @@
-"""The paper's loss, L = (1 - a) L2 + a L1 with a = 0.1, per map and per level of detail."""
+"""The paper's loss, L = (1 - a) L2 + a L1 with a = 0.1, per map and per level of detail.
+
+Coverage (the geometry mask and the albedo alpha) can instead use cross-entropy or add a
+soft IoU term (config.mask_loss), and weigh silhouette-edge pixels more (config.edge_weight):
+the ablation's mask-loss variants (docs/training.md).
+"""
 
 from __future__ import annotations
 
@@ -6,7 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from rigspace.train.config import TrainConfig
-from rigspace.train.network import albedo_alpha, albedo_maps, fade, geometry_maps
+from rigspace.train.network import albedo_maps, fade, geometry_maps
 
 
 def mixed(pred: torch.Tensor, target: torch.Tensor, a: float, weight: torch.Tensor | None = None):
@@ -17,6 +22,33 @@ def mixed(pred: torch.Tensor, target: torch.Tensor, a: float, weight: torch.Tens
         return per.mean()
     weight = weight.expand_as(per)
     return (per * weight).sum() / weight.sum().clamp_min(1.0)
+
+
+def edge_weights(mask: torch.Tensor, extra: float) -> torch.Tensor | None:
+    """1 + extra * (max - min of the target mask over each 3x3 neighbourhood): pixels on or
+    beside the silhouette weigh up to 1 + extra; None when extra is 0 (plain mean)."""
+    if extra <= 0:
+        return None
+    spread = F.max_pool2d(mask, 3, 1, 1) + F.max_pool2d(-mask, 3, 1, 1)
+    return 1.0 + extra * spread
+
+
+def coverage_loss(
+    logits: torch.Tensor, target: torch.Tensor, config: TrainConfig, weight: torch.Tensor | None
+) -> torch.Tensor:
+    """The loss of one coverage map (pre-sigmoid `logits`) against its target in [0, 1]."""
+    if config.mask_loss == "bce":
+        per = F.binary_cross_entropy_with_logits(logits.float(), target.float(), reduction="none")
+        if weight is None:
+            return per.mean()
+        return (per * weight).sum() / weight.sum()
+    pred = torch.sigmoid(logits)
+    loss = mixed(pred, target, config.l1_weight, weight)
+    if config.mask_loss == "soft-iou":
+        inter = (pred * target).flatten(1).sum(1)
+        union = (pred + target - pred * target).flatten(1).sum(1)
+        loss = loss + (1.0 - (inter + 1.0) / (union + 1.0)).mean()
+    return loss
 
 
 def downsample(x: torch.Tensor, size: int) -> torch.Tensor:
@@ -44,12 +76,15 @@ def level_loss(
 ) -> dict[str, torch.Tensor]:
     """The loss terms of one level's head outputs against targets of the same size."""
     a = config.l1_weight
-    depth, normal, mask = geometry_maps(geometry_head)
+    depth, normal, _ = geometry_maps(geometry_head)
     inside = (target["mask"] > 0.5).float()  # depth and normals where the target has surface
+    edges = edge_weights(target["mask"], config.edge_weight)
     return {
         "albedo": mixed(albedo_maps(albedo_head), target["albedo"], a),
-        "mask": config.mask_weight * mixed(mask, target["mask"], a),
-        "alpha": config.mask_weight * mixed(albedo_alpha(albedo_head), target["mask"], a),
+        "mask": config.mask_weight
+        * coverage_loss(geometry_head[:, 4:5], target["mask"], config, edges),
+        "alpha": config.mask_weight
+        * coverage_loss(albedo_head[:, 3:4], target["mask"], config, edges),
         "depth": config.depth_weight * mixed(depth, target["depth"], a, inside),
         "normal": config.normal_weight * mixed(normal, target["normal"], a, inside),
     }

@@ -8,16 +8,24 @@ convolutions). Both branches keep 1x1 output heads at every resolution from 8x8 
 runtime's level of detail, and the progressive schedule's fade-in. The albedo branch
 predicts coverage too (its alpha), so a frame that needs no lighting and no depth test
 runs the albedo branch alone (the runtime's unlit mode).
+
+Pose-guided conditioning (config.conditioning, not in the paper): every block (the trunk's
+and each branch's) also reads Gaussian maps of the rig's projected joints or bones at its
+output resolution, concatenated after the upsampling (train.conditioning). The maps are
+computed from a small `joints2d` input (rigspace.sdk.conditioning), so with "none" the
+network, its parameters and its checkpoints are the paper's.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from rigspace.train.conditioning import ConditionMaps, channels
 from rigspace.train.config import TrainConfig
 
 GRID = 4
@@ -31,6 +39,8 @@ LEAK = 0.2
 class Shape:
     joints: int
     encoding: int = 6
+    parents: tuple[int, ...] = ()
+    """Each joint's parent index (-1 for a root); needed by bones2d conditioning only."""
 
     @property
     def inputs(self) -> int:
@@ -44,15 +54,17 @@ def width(config: TrainConfig, resolution: int) -> int:
 
 
 class UpBlock(nn.Module):
-    """Upsample x2, then (3x3 conv, leaky ReLU) twice."""
+    """Upsample x2, (concatenate `extra` conditioning maps), then (3x3 conv, leaky ReLU) twice."""
 
-    def __init__(self, c_in: int, c_out: int) -> None:
+    def __init__(self, c_in: int, c_out: int, extra: int = 0) -> None:
         super().__init__()
-        self.conv1 = nn.Conv2d(c_in, c_out, 3, padding=1)
+        self.conv1 = nn.Conv2d(c_in + extra, c_out, 3, padding=1)
         self.conv2 = nn.Conv2d(c_out, c_out, 3, padding=1)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, maps: torch.Tensor | None = None) -> torch.Tensor:
         x = F.interpolate(x, scale_factor=2.0, mode="nearest")
+        if maps is not None:
+            x = torch.cat([x, maps.to(x.dtype)], dim=1)
         x = F.leaky_relu(self.conv1(x), LEAK)
         return F.leaky_relu(self.conv2(x), LEAK)
 
@@ -60,33 +72,37 @@ class UpBlock(nn.Module):
 class Branch(nn.Module):
     """Blocks from 8x8 to the final resolution, with a 1x1 head at every resolution."""
 
-    def __init__(self, config: TrainConfig, head_channels: int) -> None:
+    def __init__(self, config: TrainConfig, head_channels: int, extra: int = 0) -> None:
         super().__init__()
         self.resolutions = [TRUNK]
         while self.resolutions[-1] < config.resolution:
             self.resolutions.append(self.resolutions[-1] * 2)
         self.blocks = nn.ModuleList(
-            UpBlock(width(config, r // 2), width(config, r)) for r in self.resolutions[1:]
+            UpBlock(width(config, r // 2), width(config, r), extra) for r in self.resolutions[1:]
         )
         self.heads = nn.ModuleList(
             nn.Conv2d(width(config, r), head_channels, 1) for r in self.resolutions
         )
 
-    def features_at(self, x: torch.Tensor, resolution: int) -> torch.Tensor:
+    def features_at(
+        self, x: torch.Tensor, resolution: int, maps: dict[int, torch.Tensor] | None = None
+    ) -> torch.Tensor:
         """The blocks' features at `resolution` (the input of that level's head)."""
         for r, block in zip(self.resolutions[1:], self.blocks, strict=True):
             if r > resolution:
                 break
-            x = block(x)
+            x = block(x, None if maps is None else maps[r])
         return x
 
-    def forward(self, x: torch.Tensor, resolution: int) -> list[torch.Tensor]:
+    def forward(
+        self, x: torch.Tensor, resolution: int, maps: dict[int, torch.Tensor] | None = None
+    ) -> list[torch.Tensor]:
         """Head outputs (pre-activation) at every resolution from 8x8 up to `resolution`."""
         outs = [self.heads[0](x)]
         for r, block, head in zip(self.resolutions[1:], self.blocks, self.heads[1:], strict=True):
             if r > resolution:
                 break
-            x = block(x)
+            x = block(x, None if maps is None else maps[r])
             outs.append(head(x))
         return outs
 
@@ -109,22 +125,59 @@ class Rig2Image(nn.Module):
             c = config.latent
         self.mapping = nn.Sequential(*layers)
         self.to_grid = nn.Linear(config.latent, width(config, GRID) * GRID * GRID)
-        self.trunk = UpBlock(width(config, GRID), width(config, TRUNK))
-        self.albedo = Branch(config, ALBEDO_CHANNELS)
-        self.geometry = Branch(config, GEOMETRY_CHANNELS)
+        extra = channels(config.conditioning, shape.joints)
+        self.condition = (
+            ConditionMaps(config.conditioning, np.asarray(shape.parents), config.conditioning_sigma)
+            if extra
+            else None
+        )
+        if extra and config.conditioning == "bones2d" and len(shape.parents) != shape.joints:
+            raise ValueError("bones2d conditioning needs the joints' parents (Shape.parents)")
+        self.trunk = UpBlock(width(config, GRID), width(config, TRUNK), extra)
+        self.albedo = Branch(config, ALBEDO_CHANNELS, extra)
+        self.geometry = Branch(config, GEOMETRY_CHANNELS, extra)
 
-    def features(self, rig: torch.Tensor) -> torch.Tensor:
-        """q~ (N, joints * 6) -> the shared 8x8 trunk features."""
+    @property
+    def conditioned(self) -> bool:
+        """Whether the network reads joints2d (config.conditioning is not "none")."""
+        return self.condition is not None
+
+    def condition_maps(
+        self, joints2d: torch.Tensor | None, resolution: int
+    ) -> dict[int, torch.Tensor] | None:
+        """The conditioning maps at 8x8 and every level up to `resolution` (None: unconditioned)."""
+        if self.condition is None:
+            return None
+        if joints2d is None:
+            raise ValueError(
+                f"this network is conditioned ({self.config.conditioning}): pass joints2d"
+            )
+        out, r = {}, TRUNK
+        while r <= max(resolution, TRUNK):
+            out[r] = self.condition(joints2d, r)
+            r *= 2
+        return out
+
+    def features(self, rig: torch.Tensor, joints2d: torch.Tensor | None = None) -> torch.Tensor:
+        """q~ (N, joints * 6) (and joints2d (N, joints * 2) when conditioned) -> the 8x8 features."""
+        return self._trunk(rig, self.condition_maps(joints2d, TRUNK))
+
+    def _trunk(self, rig: torch.Tensor, maps: dict[int, torch.Tensor] | None) -> torch.Tensor:
         x = self.to_grid(self.mapping(rig))
         x = F.leaky_relu(x, LEAK).view(-1, width(self.config, GRID), GRID, GRID)
-        return self.trunk(x)
+        return self.trunk(x, None if maps is None else maps[TRUNK])
 
     def forward(
-        self, rig: torch.Tensor, resolution: int, branches: tuple[str, ...] = ("albedo", "geometry")
+        self,
+        rig: torch.Tensor,
+        resolution: int,
+        branches: tuple[str, ...] = ("albedo", "geometry"),
+        joints2d: torch.Tensor | None = None,
     ) -> dict[str, list[torch.Tensor]]:
         """Pre-activation head outputs per branch, one per level from 8x8 to `resolution`."""
-        x = self.features(rig)
-        return {name: getattr(self, name)(x, resolution) for name in branches}
+        maps = self.condition_maps(joints2d, resolution)
+        x = self._trunk(rig, maps)
+        return {name: getattr(self, name)(x, resolution, maps) for name in branches}
 
 
 def fade(levels: list[torch.Tensor], alpha: float) -> torch.Tensor:

@@ -1,0 +1,356 @@
+"""Ablation: network variants trained with the same steps, measured on the same held-out samples.
+
+    python -m rigspace.train.ablation DATASET --out DIR [--steps-per-level N] [--resolution R]
+
+Each variant is the small preset with a few options changed (VARIANTS). It trains to
+`resolution` with `steps-per-level` steps at every level (the same steps for all: on a shared
+CPU, minutes are not a fair budget), is exported (fp32 graphs) and evaluated through
+rigspace.train.evaluate on the same evenly spaced held-out views and held-out-clip samples,
+against targets box-downsampled to the model's resolution, as training sees them. Results go
+to DIR/<variant>/result.json as each variant finishes; a re-run skips finished variants and
+resumes an interrupted one. DIR/ablation.md (the table) and DIR/ablation_curve.png (held-out
+quality against steps) are rewritten after every variant.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.model import BundleModel
+from rigspace.sdk.render import Maps
+from rigspace.train.config import preset
+from rigspace.train.data import targets_at
+from rigspace.train.evaluate import DatasetTable, evaluate
+from rigspace.train.export import export_bundle
+from rigspace.train.loop import RUN_FILE, build_model, train
+from rigspace.train.network import Rig2Image
+from rigspace.train.predictor import BundlePredictor
+
+VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
+    "paper": ("the paper's input (rotations only), small widths, L2/L1 mask loss", {}),
+    "joints2d": ("+ per-joint 2D Gaussian maps at every block", {"conditioning": "joints2d"}),
+    "bones2d": ("+ per-bone 2D segment maps at every block", {"conditioning": "bones2d"}),
+    "width32": ("32 channels at 32x32 and 64x64 (16 in paper)", {"min_width": 32}),
+    "latent512": ("fully connected latent 512 (256 in paper)", {"latent": 512}),
+    "mask-bce": ("mask and alpha by cross-entropy", {"mask_loss": "bce"}),
+    "mask-iou-edge": (
+        "mask L2/L1 + soft IoU, silhouette edges weighted x5",
+        {"mask_loss": "soft-iou", "edge_weight": 4.0},
+    ),
+    "bones2d+iou-edge": (
+        "bones2d with the soft-IoU, edge-weighted mask loss",
+        {"conditioning": "bones2d", "mask_loss": "soft-iou", "edge_weight": 4.0},
+    ),
+}
+SPLITS = ("heldout-views", "heldout-clips")
+TIMING_REPEATS = 30
+
+
+class DownsampledTable(DatasetTable):
+    """A dataset seen at a lower resolution: maps box-downsampled as training does (train.data)."""
+
+    def __init__(self, folder: str | Path, resolution: int) -> None:
+        super().__init__(folder)
+        full = int(self.manifest["resolution"])
+        if full % resolution:
+            raise RigspaceError(
+                f"Resolution {resolution} does not divide the dataset's {full}.",
+                "choose a power of two at or below the dataset's resolution.",
+            )
+        self._factor, self._resolution = full // resolution, resolution
+        self._full = DatasetTable(folder)
+
+    @property
+    def resolution(self) -> int:
+        return self._resolution
+
+    @cached_property
+    def character_height(self) -> float:
+        return self._full.character_height  # from the full-resolution maps and intrinsics
+
+    def maps(self, index: int) -> Maps:
+        full = super().maps(index)
+        mask = full.mask[None]
+        depth = np.where(mask > 0, full.depth[None], 0.0).astype(np.float32)
+        albedo, mask, normal, depth = targets_at(
+            np.moveaxis(full.albedo, -1, 0),
+            mask,
+            np.moveaxis(full.normal, -1, 0),
+            depth,
+            self._factor,
+        )
+        return Maps(
+            albedo=np.moveaxis(albedo, 0, -1).astype(np.float32),
+            normal=np.moveaxis(normal, 0, -1).astype(np.float32),
+            depth=np.where(mask[0] > 0, depth[0], np.inf).astype(np.float32),
+            mask=mask[0].astype(np.float32),
+        )
+
+
+def mflop(model: Rig2Image, resolution: int) -> float:
+    """Floating-point operations of one evaluation (both branches at `resolution`), in millions:
+    2 x multiply-adds of every convolution and linear layer, plus about 10 operations per
+    conditioning-map element."""
+    total = 0.0
+
+    def count(module: nn.Module, inputs: tuple, output: torch.Tensor) -> None:
+        nonlocal total
+        if isinstance(module, nn.Conv2d):
+            k = module.kernel_size[0] * module.kernel_size[1]
+            total += 2.0 * output.numel() * module.in_channels * k
+        elif isinstance(module, nn.Linear):
+            total += 2.0 * module.in_features * module.out_features * output.shape[0]
+
+    hooks = [m.register_forward_hook(count) for m in model.modules()]
+    joints2d = torch.zeros(1, 2 * model.shape.joints) if model.conditioned else None
+    with torch.no_grad():
+        model(torch.zeros(1, model.shape.inputs), resolution, joints2d=joints2d)
+        maps = model.condition_maps(joints2d, resolution)
+        total += 10.0 * sum(m.numel() for m in (maps or {}).values())
+    for hook in hooks:
+        hook.remove()
+    return total / 1e6
+
+
+def milliseconds(bundle: Path, rig: np.ndarray, resolution: int) -> float:
+    """Best wall time of TIMING_REPEATS evaluations (trunk and both branches, one sample, fp32
+    ONNX): the minimum, because the CPU is shared and slower runs measure the others' load."""
+    model = BundleModel(bundle, "fp32")
+    model.predict(rig, resolution)
+    times = []
+    for _ in range(TIMING_REPEATS):
+        begin = time.perf_counter()
+        model.predict(rig, resolution)
+        times.append(time.perf_counter() - begin)
+    return 1e3 * min(times)
+
+
+def run_variant(
+    dataset: Path, out: Path, name: str, steps_per_level: int, resolution: int, limit: int
+) -> dict[str, Any]:
+    """Train, export and evaluate one variant (resuming what an earlier call left)."""
+    description, overrides = VARIANTS[name]
+    folder = out / name
+    config = preset(
+        "small",
+        resolution=resolution,
+        steps_per_level=steps_per_level,
+        eval_every=max(1, steps_per_level // 3),
+        checkpoint_every=max(1, steps_per_level // 3),
+        **overrides,
+    )
+    began = time.monotonic()
+    result = train(
+        dataset, folder / "run", config, resume=(folder / "run" / RUN_FILE).exists(), progress=False
+    )
+    if result.stopped != "done":
+        raise RigspaceError(f"Variant {name} stopped: {result.stopped}.", "re-run to resume it.")
+    train_seconds = time.monotonic() - began
+    bundle = folder / "bundle"
+    export_bundle(folder / "run", bundle, int8=False)
+    model, _, _ = build_model(folder / "run")
+    table = DownsampledTable(dataset, resolution)
+    predictor = BundlePredictor(bundle, table)
+    metrics = {}
+    for split in SPLITS:
+        report = evaluate(predictor, table, split, limit=limit)
+        metrics[split] = {k: v["mean"] for k, v in report["metrics"].items()}
+        metrics[split]["samples"] = report["samples"]
+    rig = table.column("rig")[table.indices("heldout-views")[:1]].reshape(1, -1)
+    record = {
+        "variant": name,
+        "description": description,
+        "overrides": overrides,
+        "config": config.to_json(),
+        "steps": result.step,
+        "train_seconds_this_call": train_seconds,
+        "parameters": int(sum(p.numel() for p in model.parameters())),
+        "mflop": mflop(model, resolution),
+        "ms_fp32": milliseconds(bundle, rig, resolution),
+        "resolution": resolution,
+        "metrics": metrics,
+        "curve": curve(folder / "run" / "log.jsonl"),
+    }
+    (folder / "result.json").write_text(json.dumps(_finite(record), indent=2) + "\n")
+    return record
+
+
+def _finite(value: Any) -> Any:
+    """NaN/Inf (a metric with nothing to measure) as null, so the JSON is strict."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    return value
+
+
+def curve(log: Path) -> list[dict[str, float]]:
+    """(step, level, held-out preview PSNR and IoU) from a run's log, one point per evaluation."""
+    points = []
+    for line in log.read_text().splitlines():
+        entry = json.loads(line)
+        if "heldout" in entry:
+            points.append(
+                {
+                    "step": entry["step"],
+                    "resolution": entry["resolution"],
+                    "albedo_psnr": entry["heldout"]["albedo_psnr"],
+                    "mask_iou": entry["heldout"]["mask_iou"],
+                }
+            )
+    return points
+
+
+COLUMNS = (
+    ("albedo_psnr", "albedo dB", "{:.2f}"),
+    ("albedo_ssim", "SSIM", "{:.3f}"),
+    ("mask_iou", "IoU", "{:.3f}"),
+    ("depth_mae_pct", "depth %h", "{:.2f}"),
+    ("normal_median_deg", "normal med deg", "{:.1f}"),
+)
+
+CLIP_COLUMNS = ("albedo_psnr", "mask_iou", "depth_mae_pct")
+"""Metrics shown for the held-out clip (the table stays readable)."""
+
+
+def table_markdown(records: list[dict[str, Any]]) -> str:
+    """One markdown table: variant, cost, and per-split metrics."""
+    head = ["variant", "params", "MFLOP", "ms fp32"]
+    head += [f"views {label}" for _, label, _ in COLUMNS]
+    head += [f"clip {label}" for key, label, _ in COLUMNS if key in CLIP_COLUMNS]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in records:
+        cells = [
+            f"`{r['variant']}`",
+            f"{r['parameters'] / 1e6:.2f} M",
+            f"{r['mflop']:.0f}",
+            f"{r['ms_fp32']:.2f}",
+        ]
+        for split in SPLITS:
+            m = r["metrics"][split]
+            for key, _, fmt in COLUMNS:
+                if split == "heldout-views" or key in CLIP_COLUMNS:
+                    value = m.get(key)
+                    cells.append(
+                        "-" if value is None or not math.isfinite(value) else fmt.format(value)
+                    )
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_curves(records: list[dict[str, Any]], path: Path) -> None:
+    """Held-out preview albedo PSNR and mask IoU against steps, one line per variant."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for r in records:
+        steps = [p["step"] for p in r["curve"]]
+        axes[0].plot(steps, [p["albedo_psnr"] for p in r["curve"]], marker="o", label=r["variant"])
+        axes[1].plot(steps, [p["mask_iou"] for p in r["curve"]], marker="o", label=r["variant"])
+    config = records[0]["config"]
+    levels = preset("small", **{k: v for k, v in config.items() if k != "preset"}).levels()
+    for ax in axes:
+        for k in range(1, len(levels)):  # where each new level starts fading in
+            ax.axvline(k * config["steps_per_level"], color="0.8", linewidth=0.8)
+        ax.set_xlabel(f"step (levels {', '.join(map(str, levels))}; grey lines: a new level)")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("held-out preview albedo PSNR (dB)")
+    axes[1].set_ylabel("held-out preview mask IoU")
+    axes[1].legend(fontsize=7)
+    size = config["resolution"]
+    fig.suptitle(
+        f"Ablation at {size}x{size}, same steps per variant (4 held-out views per point, "
+        "at the level being trained)"
+    )
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def report(out: Path) -> list[dict[str, Any]]:
+    """Rewrite DIR/ablation.md and DIR/ablation_curve.png from the finished variants."""
+    records = [
+        json.loads((out / name / "result.json").read_text())
+        for name in VARIANTS
+        if (out / name / "result.json").is_file()
+    ]
+    (out / "ablation.md").write_text(table_markdown(records))
+    if records:
+        plot_curves(records, out / "ablation_curve.png")
+    return records
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m rigspace.train.ablation", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument(
+        "dataset", type=Path, help="a dataset folder written by `rigspace capture` (read only)"
+    )
+    parser.add_argument(
+        "--out", type=Path, required=True, help="folder for the variants' runs and results"
+    )
+    parser.add_argument(
+        "--steps-per-level", type=int, default=150, help="steps at every level, every variant"
+    )
+    parser.add_argument("--resolution", type=int, default=64, help="final training resolution")
+    parser.add_argument(
+        "--limit", type=int, default=200, help="held-out samples per split (evenly spaced)"
+    )
+    parser.add_argument(
+        "--variants", nargs="*", default=list(VARIANTS), help=f"of {', '.join(VARIANTS)}"
+    )
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    args = parser.parse_args(argv)
+    unknown = sorted(set(args.variants) - set(VARIANTS))
+    try:
+        if unknown:
+            raise RigspaceError(
+                f"Unknown variants {unknown}.", f"choose from {', '.join(VARIANTS)}."
+            )
+        if args.threads:
+            torch.set_num_threads(args.threads)
+        args.out.mkdir(parents=True, exist_ok=True)
+        for name in args.variants:
+            if (args.out / name / "result.json").is_file():
+                print(f"ablation: {name} already measured", file=sys.stderr)
+                continue
+            began = time.monotonic()
+            record = run_variant(
+                args.dataset, args.out, name, args.steps_per_level, args.resolution, args.limit
+            )
+            views = record["metrics"]["heldout-views"]
+            print(
+                f"ablation: {name}: {time.monotonic() - began:.0f} s, held-out views "
+                f"{views['albedo_psnr']:.2f} dB, IoU {views['mask_iou']:.3f}",
+                file=sys.stderr,
+                flush=True,
+            )
+            report(args.out)
+        report(args.out)
+    except RigspaceError as exc:
+        print(f"ablation: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
