@@ -447,6 +447,9 @@ class Engine:
         other characters' capsules (its own capsules would shadow its own surface)."""
         if not self._shadowing(lights) or layer.depth is None or layer.normal is None:
             return None
+        if shadow_pass.wanted() and self.shadows.capsule_backend == "numpy":
+            box = self._scene_box(meshes)
+            return shadow_pass.layer_visibility(self.shadows, layer, camera, lights, box, others)
         h, w = layer.mask.shape
         covered = np.flatnonzero(layer.mask > 0)
         rows, cols = np.divmod(covered, w)

@@ -236,12 +236,14 @@ def _fill(grid, ys, xs, count, frame, depth, normal, rects, rect_job, kind, maps
     whose rectangles hold each (`rects` of job `rect_job`, in job order; job j the j-th map
     or capsule set)."""
     r0, c0 = int(frame[16]), int(frame[17])
+    o_r, o_c = int(frame[18]), int(frame[19])  # the G-buffer's first pixel in the frame
     if kind == KIND_MAP:  # one loop per kind: a branch per pixel measured twice as slow
         for q in range(count):
             i, j = ys[q], xs[q]
             px, py, pz = _point(frame, depth, i, j)
             row, col = r0 + i, c0 + j
-            n0, n1, n2 = normal[row, col, 0], normal[row, col, 1], normal[row, col, 2]
+            gy, gx = row - o_r, col - o_c
+            n0, n1, n2 = normal[gy, gx, 0], normal[gy, gx, 1], normal[gy, gx, 2]
             nx = frame[0] * n0 + frame[1] * n1 + frame[2] * n2
             ny = frame[4] * n0 + frame[5] * n1 + frame[6] * n2
             nz = frame[8] * n0 + frame[9] * n1 + frame[10] * n2
@@ -276,7 +278,7 @@ def _fill(grid, ys, xs, count, frame, depth, normal, rects, rect_job, kind, maps
 def _point(frame, depth, i, j):
     """World position of window pixel (i, j) (the engine's _world_points)."""
     row, col = frame[16] + i, frame[17] + j
-    d = float(depth[int(row), int(col)])
+    d = float(depth[int(row - frame[18]), int(col - frame[19])])
     if not math.isfinite(d):
         d = 0.0
     x = (col + 0.5 - frame[14]) * (d / frame[12])
@@ -315,6 +317,7 @@ def _wanted(mask, frame, size_y, size_x, h, w, rects):
     covers (`mask`, the frame's) inside any of `rects`; row by row, each rectangle's span
     marked (overlapping rectangles cost their overlap, not a pass each over the window)."""
     r0, c0 = int(frame[16]), int(frame[17])
+    o_r, o_c = int(frame[18]), int(frame[19])
     out = np.zeros((size_y, size_x), np.bool_)
     spans = np.zeros(w + 1, np.int64)
     for i in range(h):
@@ -333,7 +336,7 @@ def _wanted(mask, frame, size_y, size_x, h, w, rects):
         depth = 0
         for j in range(w):
             depth += spans[j]
-            if depth > 0 and mask[row, c0 + j] > 0:
+            if depth > 0 and mask[row - o_r, c0 + j - o_c] > 0:
                 out[i, j] = True
     return out
 
@@ -344,13 +347,15 @@ def sparse_pass(
     sets_par, a, b, radius, a2, b2, r2, chains, constants, step,
 ):  # fmt: skip
     """shadows.sparse_visibility over the (h, w) window at (frame[16], frame[17]) (rows,
-    columns) of the frame's G-buffer (mask, depth, normal), its candidates the pixels a
+    columns) of a G-buffer (mask, depth, normal: the frame's prims', or a character's layer
+    whose first pixel is at (frame[18], frame[19]) in the frame), its candidates the pixels a
     prim covers inside any of `rects` (of job
     `rect_job`: the maps, or the capsule sets, in order); the `step` grid evaluated exactly,
     then each finer grid blended from the one above where smooth (constants[3]:
     BEND_TOLERANCE) and on its samples' surface (constants[4]: SURFACE_TOLERANCE), evaluated
     elsewhere (_fill, level by level). step 1: every candidate evaluated."""
     r0, c0 = int(frame[16]), int(frame[17])
+    o_r, o_c = int(frame[18]), int(frame[19])
     if h < 2 or w < 2:
         step = 1
     size_y = -(-(h - 1) // step) * step + 1
@@ -360,7 +365,8 @@ def sparse_pass(
     want = _wanted(mask, frame, size_y, size_x, h, w, rects)
     for i in range(h):
         for j in range(w):
-            inverse[i, j] = np.float32(1.0) / max(depth[r0 + i, c0 + j], np.float32(1e-30))
+            d = depth[r0 + i - o_r, c0 + j - o_c]
+            inverse[i, j] = np.float32(1.0) / max(d, np.float32(1e-30))
     ys = np.empty(h * w, np.int64)
     xs = np.empty(h * w, np.int64)
     count = 0

@@ -217,6 +217,37 @@ def points_visibility(
     )
 
 
+def _frame(camera: Camera) -> np.ndarray:
+    """The kernels' frame row: camera-to-world rows 0-2, fx, fy, cx, cy, then the window's
+    and the G-buffer's first pixel (row, column) in the frame, set per pass."""
+    frame = np.zeros(20)
+    frame[:12] = camera.camera_to_world[:3].ravel()
+    frame[12:16] = (camera.fx, camera.fy, camera.cx, camera.cy)
+    return frame
+
+
+def _gbuffer(maps) -> tuple[np.ndarray, ...]:
+    """Mask, depth and normal as C-contiguous float32 always: one compiled signature (a new
+    layout would compile anew)."""
+    return tuple(
+        np.ascontiguousarray(m, dtype=np.float32) for m in (maps.mask, maps.depth, maps.normal)
+    )
+
+
+def _capsule_jobs(light: Light, limbs, box: np.ndarray, camera: Camera) -> list[tuple]:
+    """Per caster, the regions its limbs' shadows can fall on (a limb's region is much
+    smaller than the whole body's), with its capsules."""
+    jobs = []
+    for posed, spheres in limbs:
+        centres = np.array([c for c, _ in spheres])
+        reach = np.array([r for _, r in spheres])[:, None]
+        found = sh.shadow_regions(centres - reach, centres + reach, light, box, camera)
+        rects = [r for r in found if r is not None]
+        if rects:
+            jobs.append((rects, posed))
+    return jobs
+
+
 def prim_shadows(
     shadows: sh.PrimShadows, prims, camera: Camera, lights: list[Light], box: np.ndarray,
     casters, maps: bool, step: int | None = None,
@@ -228,13 +259,8 @@ def prim_shadows(
     step = sh.SPARSE_STEP if step is None else step
     mapped: list[np.ndarray | None] = [None] * len(lights)
     hidden: list[np.ndarray | None] = [None] * len(lights)
-    frame = np.empty(18)
-    frame[:12] = camera.camera_to_world[:3].ravel()
-    frame[12:16] = (camera.fx, camera.fy, camera.cx, camera.cy)
-    # C-contiguous float32 always: one compiled signature (a new layout would compile anew).
-    gbuffer = tuple(
-        np.ascontiguousarray(m, dtype=np.float32) for m in (prims.mask, prims.depth, prims.normal)
-    )
+    frame, gbuffer = _frame(camera), _gbuffer(prims)
+    area = (0, 0, camera.width, camera.height)
     limbs = [(posed, [part.bounds() for part in posed.parts()]) for _, posed in casters]
     for index, light in enumerate(lights):
         if light.kind not in (DISTANT, POINT):
@@ -247,33 +273,72 @@ def prim_shadows(
                     jobs.append((rects, shadow_map))
             if jobs:
                 data = (kernels.KIND_MAP, *maps_data([m for _, m in jobs]), *_NO_SETS)
-                mapped[index] = _pass(jobs, data, gbuffer, frame, camera, step)
-        jobs = []
-        for posed, spheres in limbs:
-            # Per caster, the regions its limbs' shadows can fall on (a limb's region is
-            # much smaller than the whole body's).
-            centres = np.array([c for c, _ in spheres])
-            reach = np.array([r for _, r in spheres])[:, None]
-            found = sh.shadow_regions(centres - reach, centres + reach, light, box, camera)
-            rects = [r for r in found if r is not None]
-            if rects:
-                jobs.append((rects, posed))
+                mapped[index] = _pass(jobs, data, gbuffer, frame, area, step)
+        jobs = _capsule_jobs(light, limbs, box, camera)
         if jobs:
             data = (kernels.KIND_CAPSULES, *_NO_MAPS, *sets_data(light, [c for _, c in jobs]))
-            hidden[index] = _pass(jobs, data, gbuffer, frame, camera, step)
+            hidden[index] = _pass(jobs, data, gbuffer, frame, area, step)
     return mapped, hidden
 
 
-def _pass(jobs, data, gbuffer, frame, camera: Camera, step: int) -> np.ndarray:
-    """One kernel pass over the window of the jobs' regions; (H, W) factors."""
-    rects = np.array([r for rs, _ in jobs for r in rs], dtype=np.int64)
-    rect_job = np.array([j for j, (rs, _) in enumerate(jobs) for _ in rs], dtype=np.int64)
+def layer_visibility(
+    shadows: sh.PrimShadows, layer, camera: Camera, lights: list[Light], box: np.ndarray,
+    others, step: int | None = None,
+) -> list[np.ndarray | None]:  # fmt: skip
+    """Engine._layer_visibility through the kernels: per light, a character layer's (h, w)
+    shadow factor from the maps whose regions reach it and from the other characters'
+    capsules, coarse to fine over its pixels as the prims' (its depth tells its silhouette
+    and creases; None: nothing can shadow it)."""
+    step = sh.SPARSE_STEP if step is None else step
+    h, w = layer.mask.shape
+    area = (layer.x0, layer.y0, w, h)
+    frame, gbuffer = _frame(camera), _gbuffer(layer)
+    limbs = [(posed, [part.bounds() for part in posed.parts()]) for _, posed in others]
+    out: list[np.ndarray | None] = []
+    for index, light in enumerate(lights):
+        factor = None
+        jobs = []
+        for rects, handle in shadows.regions(index, box, camera):
+            mine = [r for r in rects if _clip(r, area) is not None]
+            shadow_map = shadows.shadow_map(handle) if mine else None
+            if shadow_map is not None:
+                jobs.append((mine, shadow_map))
+        if jobs:
+            data = (kernels.KIND_MAP, *maps_data([m for _, m in jobs]), *_NO_SETS)
+            factor = _pass(jobs, data, gbuffer, frame, area, step)
+        if light.kind in (DISTANT, POINT):
+            jobs = [
+                (mine, posed)
+                for rects, posed in _capsule_jobs(light, limbs, box, camera)
+                if (mine := [r for r in rects if _clip(r, area) is not None])
+            ]
+            if jobs:
+                data = (kernels.KIND_CAPSULES, *_NO_MAPS, *sets_data(light, [c for _, c in jobs]))
+                seen = _pass(jobs, data, gbuffer, frame, area, step)
+                factor = seen if factor is None else factor * seen
+        out.append(factor)
+    return out
+
+
+def _clip(rect, area) -> tuple[int, int, int, int] | None:
+    """A region (x0, y0, x1, y1) within an area (x, y, w, h) of the frame, or None."""
+    x0, y0 = max(rect[0], area[0]), max(rect[1], area[1])
+    x1, y1 = min(rect[2], area[0] + area[2]), min(rect[3], area[1] + area[3])
+    return (x0, y0, x1, y1) if x1 > x0 and y1 > y0 else None
+
+
+def _pass(jobs, data, gbuffer, frame, area, step: int) -> np.ndarray:
+    """One kernel pass over the window of the jobs' regions within `area` (x, y, w, h of
+    the G-buffer in the frame): the area's (h, w) factors."""
+    clipped = [[c for r in rs if (c := _clip(r, area)) is not None] for rs, _ in jobs]
+    rects = np.array([r for rs in clipped for r in rs], dtype=np.int64)
+    rect_job = np.array([j for j, rs in enumerate(clipped) for _ in rs], dtype=np.int64)
     x0, y0 = int(rects[:, 0].min()), int(rects[:, 1].min())
     x1, y1 = int(rects[:, 2].max()), int(rects[:, 3].max())
-    window = (slice(y0, y1), slice(x0, x1))
-    frame = frame.copy()  # its window's origin: each pass its own
-    frame[16], frame[17] = y0, x0
-    full = np.ones((camera.height, camera.width), np.float32)
+    frame = frame.copy()  # its window's origin and its G-buffer's: each pass its own
+    frame[16:20] = (y0, x0, area[1], area[0])
+    full = np.ones((area[3], area[2]), np.float32)
+    window = (slice(y0 - area[1], y1 - area[1]), slice(x0 - area[0], x1 - area[0]))
     full[window] = kernels.sparse_pass(
         *gbuffer, frame, y1 - y0, x1 - x0, rects, rect_job, *data, CONSTANTS, step
     )
