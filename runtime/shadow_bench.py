@@ -9,9 +9,9 @@ fraction of the frame, its split into sub-steps (each one's own time, callees ex
 and the first frame's time (for numba, loading or compiling the kernels); then the same
 fraction in CPU time (the process's, all threads: the shadow stage's engine methods
 against the whole render), which a loaded machine distorts less than the wall clock;
-then the prims' shadow passes of one frame (Engine._prim_shadows, its maps drawn) run
-again and again on the same inputs, both ways: the best and the median CPU milliseconds,
-the least noisy comparison on a shared machine.
+then the prims' shadow passes and the character layer's of one frame run again and
+again on the same inputs, both ways: the best and the median CPU milliseconds of the
+thread they run in, the least noisy comparison on a shared machine.
 """
 
 from __future__ import annotations
@@ -162,43 +162,49 @@ def measure(sizes: Sequence[tuple[int, int]], frames: int) -> list[str]:
     return lines
 
 
-def _recording(engine: Engine, recorded: list, *args):
-    recorded.append(args)
-    return Engine._prim_shadows(engine, *args)
+def _recording(engine: Engine, recorded: dict, name: str, *args):
+    recorded[name] = args
+    return getattr(Engine, name)(engine, *args)
 
 
 def passes(sizes: Sequence[tuple[int, int]], repeats: int = 15) -> list[str]:
-    """Lines: per size, the prims' passes of the frame at time 600 again and again, numba
-    against numpy (best and median process CPU milliseconds)."""
+    """Lines: per size, the prims' passes (Engine._prim_shadows, its maps drawn) and the
+    character layer's (Engine._layer_visibility) of the frame at time 600 again and again
+    on the same inputs, numba against numpy (best and median CPU milliseconds of this
+    thread, where both run: the process's would count onnxruntime's threads spinning
+    after the frame's inference)."""
     lines = []
-    prim_shadows = Engine._prim_shadows
     for width, height in sizes:
         engine = Engine(SCENE, width=width, height=height, prim_samples=1)
-        recorded: list[tuple] = []
-        engine._prim_shadows = functools.partial(_recording, engine, recorded)
+        recorded: dict[str, tuple] = {}
+        for name in ("_prim_shadows", "_layer_visibility"):
+            setattr(engine, name, functools.partial(_recording, engine, recorded, name))
+        found: dict[tuple[str, str], tuple[float, float]] = {}
         try:
             engine.render(500.0)
             recorded.clear()
             engine.render(600.0)
-            args = recorded[-1]
-            found = {}
-            for kernel in ("numba", "numpy"):
-                shadows.SHADOW_KERNEL = kernel
-                spent = []
-                for _ in range(repeats):
-                    start = clock.process_time()
-                    prim_shadows(engine, *args)
-                    spent.append(clock.process_time() - start)
-                found[kernel] = (1e3 * min(spent), 1e3 * statistics.median(spent))
+            for name, args in recorded.items():
+                for kernel in ("numba", "numpy"):
+                    shadows.SHADOW_KERNEL = kernel
+                    spent = []
+                    for _ in range(repeats):
+                        start = clock.thread_time()
+                        getattr(Engine, name)(engine, *args)
+                        spent.append(clock.thread_time() - start)
+                    found[name, kernel] = (1e3 * min(spent), 1e3 * statistics.median(spent))
         finally:
             shadows.SHADOW_KERNEL = "numba"
             engine.close()
-        (fast, fast_median), (slow, slow_median) = found["numba"], found["numpy"]
-        lines.append(
-            f"{width}x{height} prims' passes, CPU ms best (median) of {repeats}: numba "
-            f"{fast:.2f} ({fast_median:.2f}), numpy {slow:.2f} ({slow_median:.2f}): "
-            f"{slow / fast:.1f}x"
-        )
+        for name, what in (("_prim_shadows", "prims' passes"), ("_layer_visibility", "layer")):
+            if (name, "numba") not in found:
+                continue
+            (fast, fast_median), (slow, slow_median) = found[name, "numba"], found[name, "numpy"]
+            lines.append(
+                f"{width}x{height} {what}, thread CPU ms best (median) of {repeats}: numba "
+                f"{fast:.2f} ({fast_median:.2f}), numpy {slow:.2f} ({slow_median:.2f}): "
+                f"{slow / fast:.1f}x"
+            )
     return lines
 
 

@@ -115,12 +115,15 @@ def sets_data(light: Light, sets: Sequence[sh.PosedCapsules]):
         if len(r2):
             row[16:18], row[18:20], row[20] = lo.min(axis=0), hi.max(axis=0), r2.max()
         row[24] = len(limbs)
-        for start, stop in _runs(capsules):
-            limb = np.empty(7)
-            limb[:2] = first + start, first + stop
-            limb[2:4], limb[4:6] = lo[start:stop].min(axis=0), hi[start:stop].max(axis=0)
-            limb[6] = r2[start:stop].max()
-            limbs.append(limb)
+        runs = _runs(capsules)
+        if len(runs):  # each limb's 2-D bounds: one reduction per column over the runs
+            starts = runs[:, 0]
+            limb = np.empty((len(runs), 7))
+            limb[:, :2] = runs + first
+            limb[:, 2:4] = np.minimum.reduceat(lo, starts, axis=0)
+            limb[:, 4:6] = np.maximum.reduceat(hi, starts, axis=0)
+            limb[:, 6] = np.maximum.reduceat(r2, starts)
+            limbs.extend(limb)
         row[25] = len(limbs)
         first += len(capsules.radius)
         rows.append(row)
@@ -136,19 +139,32 @@ def sets_data(light: Light, sets: Sequence[sh.PosedCapsules]):
     )  # fmt: skip
 
 
-def _runs(capsules: sh.PosedCapsules) -> list[tuple[int, int]]:
-    """The capsules' chains as (start, stop) runs when they are consecutive runs covering
-    every capsule once (as shadows.chains makes them), else one run of all."""
+_RUNS: dict[int, tuple[object, np.ndarray]] = {}
+"""_runs per chains tuple (a character's, the same object every frame), kept with it."""
+
+
+def _runs(capsules: sh.PosedCapsules) -> np.ndarray:
+    """(R, 2) the capsules' chains as (start, stop) runs when they are consecutive runs
+    covering every capsule once (as shadows.chains makes them), else one run of all."""
     count = len(capsules.radius)
-    runs, at = [], 0
+    cached = _RUNS.get(id(capsules.chains))
+    if cached is not None and cached[0] is capsules.chains and cached[1][-1:, 1].sum() == count:
+        return cached[1]
+    runs: list[tuple[int, int]] = []
+    at = 0
     for chain in capsules.chains:
         if len(chain) == 0 or chain[0] != at or np.any(np.diff(chain) != 1):
-            return [(0, count)] if count else []
+            runs, at = [], -1
+            break
         runs.append((at, at + len(chain)))
         at += len(chain)
     if at != count:
-        return [(0, count)] if count else []
-    return runs
+        runs = [(0, count)] if count else []
+    found = np.array(runs, dtype=np.int64).reshape(-1, 2)
+    if len(_RUNS) > 64:  # characters come and go: keep it small
+        _RUNS.clear()
+    _RUNS[id(capsules.chains)] = (capsules.chains, found)
+    return found
 
 
 def _flat(light: Light, capsules: sh.PosedCapsules, row: np.ndarray):
