@@ -33,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from rigspace.capture.pack import pack
 
-    index = pack(args.dataset, args.out, args.samples_per_shard)
+    index = pack(args.dataset, args.out, args.samples_per_shard, progress=True)
     counts = ", ".join(f"{split} {n}" for split, n in index["counts"].items())
     print(
         f"packed {sum(index['counts'].values())} samples ({counts}) into "

@@ -23,11 +23,13 @@ import io
 import json
 import os
 import shutil
+import sys
 import tarfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from rigspace.capture import dataset as ds
 from rigspace.capture.ring import SPLITS
@@ -64,7 +66,11 @@ def _member(name: str, data: bytes) -> tuple[tarfile.TarInfo, io.BytesIO]:
 
 
 def write_shard(
-    path: Path, folder: Path, table: dict[str, np.ndarray], rows: np.ndarray
+    path: Path,
+    folder: Path,
+    table: dict[str, np.ndarray],
+    rows: np.ndarray,
+    bar: tqdm | None = None,
 ) -> dict[str, Any]:
     """One shard of `rows` (atomically), each sample's EXR checked against its recorded sha256."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
@@ -89,6 +95,8 @@ def write_shard(
             tar.addfile(*_member(f"{key}.exr", exr))
             columns = {name: column[row] for name, column in table.items()}
             tar.addfile(*_member(f"{key}.npz", ds.npz_bytes(columns)))
+            if bar is not None:
+                bar.update(1)
     digest = hashlib.sha256()
     with tmp.open("rb") as stream:
         while chunk := stream.read(1 << 20):
@@ -129,9 +137,13 @@ def _check_out(out: Path, manifest: dict[str, Any], samples_per_shard: int) -> d
 
 
 def pack(
-    dataset: str | Path, out: str | Path, samples_per_shard: int = SAMPLES_PER_SHARD
+    dataset: str | Path,
+    out: str | Path,
+    samples_per_shard: int = SAMPLES_PER_SHARD,
+    progress: bool = False,
 ) -> dict[str, Any]:
-    """Pack a finished dataset folder into shards in `out` (see the module doc); the index."""
+    """Pack a finished dataset folder into shards in `out` (see the module doc); the index.
+    `progress` shows a bar on stderr (samples, rate, ETA)."""
     folder, out = Path(dataset), Path(out)
     if samples_per_shard < 1:
         raise ds.DatasetError(
@@ -146,16 +158,24 @@ def pack(
     shutil.rmtree(out / SHARDS_FOLDER, ignore_errors=True)  # an unfinished pack's shards
     (out / SHARDS_FOLDER).mkdir(parents=True, exist_ok=True)
     shards = []
-    for split_index, split in enumerate(SPLITS):
-        rows = np.flatnonzero(table["split"] == split_index)
-        for n, start in enumerate(range(0, len(rows), samples_per_shard)):
-            chunk = rows[start : start + samples_per_shard]
-            name = f"{SHARDS_FOLDER}/{split}-{n:05d}.tar"
-            written = write_shard(out / name, folder, table, chunk)
-            shards.append(
-                {"file": name, "split": split, "count": len(chunk), "samples": ranges(chunk)}
-                | written
-            )
+    bar = tqdm(
+        total=len(table["split"]),
+        unit="sample",
+        disable=not progress,
+        file=sys.stderr,
+        dynamic_ncols=True,
+    )
+    with bar:
+        for split_index, split in enumerate(SPLITS):
+            rows = np.flatnonzero(table["split"] == split_index)
+            for n, start in enumerate(range(0, len(rows), samples_per_shard)):
+                chunk = rows[start : start + samples_per_shard]
+                name = f"{SHARDS_FOLDER}/{split}-{n:05d}.tar"
+                written = write_shard(out / name, folder, table, chunk, bar)
+                shards.append(
+                    {"file": name, "split": split, "count": len(chunk), "samples": ranges(chunk)}
+                    | written
+                )
     for name in COPIED:
         if (folder / name).is_file():
             shutil.copyfile(folder / name, out / name)
