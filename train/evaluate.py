@@ -18,6 +18,7 @@ from rigspace.capture.ring import SPLITS, TRAIN
 from rigspace.sdk.render import Maps
 from rigspace.train.data import read_sample, targets_at
 from rigspace.train.metrics import MASK_THRESHOLD, METRICS, map_metrics
+from rigspace.train.stream import ShardSet, is_shards
 
 HEIGHT_SAMPLES = 16
 """Training samples (evenly spaced) whose masks estimate the character's height."""
@@ -67,6 +68,8 @@ class DatasetTable:
         self.manifest: dict[str, Any] = read_manifest(self.folder)
         self._params = np.load(self.folder / PARAMS_FILE, allow_pickle=False)
         self._columns: dict[str, np.ndarray] = {}
+        self._shard_sets: dict[int, ShardSet] = {}
+        self._rows_of: dict[int, np.ndarray] = {}
         captured = self.captured_resolution
         self.factor = 1 if resolution is None else captured // max(int(resolution), 1)
         if resolution is not None and (
@@ -120,8 +123,22 @@ class DatasetTable:
         return self.folder / str(self.column("path")[index])
 
     def captured_maps(self, index: int) -> Maps:
-        """The captured maps of row `index`, at the captured resolution."""
+        """The captured maps of row `index`, at the captured resolution: from its EXR, or in a
+        shards folder (rigspace dataset pack) from its shard."""
+        if is_shards(self.folder):
+            split = int(self.column("split")[index])
+            rows = self._split_rows(split)
+            k = int(np.searchsorted(rows, index))
+            if self._shard_sets.get(split) is None:
+                self._shard_sets[split] = ShardSet(self.folder, SPLITS[split])
+            return self._shard_sets[split].maps(k)
         return read_sample(self.folder, self.manifest, str(self.column("path")[index]))
+
+    def _split_rows(self, split: int) -> np.ndarray:
+        """The rows of a split in params order: a pack keeps that order within a split."""
+        if split not in self._rows_of:
+            self._rows_of[split] = np.flatnonzero(self.column("split") == split)
+        return self._rows_of[split]
 
     def maps(self, index: int) -> Maps:
         """The maps of row `index` at `resolution` (box-downsampled when below the capture's)."""

@@ -34,7 +34,7 @@ import numpy as np
 
 from rigspace.capture.dataset import DatasetError
 from rigspace.capture.pack import FORMAT, FORMAT_VERSION, INDEX_FILE
-from rigspace.sdk.exr import read_exr
+from rigspace.sdk.exr import Maps, read_exr
 from rigspace.train.data import Prefetcher, SampleSet, SplitInfo
 
 BUFFER = 1000
@@ -151,6 +151,11 @@ class ShardSet(SplitInfo):
 
     def read(self, member: Member) -> dict[str, np.ndarray]:
         """A sample's item: its bytes read at their offsets and decoded (SplitInfo.make_item)."""
+        maps, row = self.decode(member)
+        return self.make_item(maps, row)
+
+    def decode(self, member: Member) -> tuple[Maps, dict[str, np.ndarray]]:
+        """A sample's captured maps and its params row, read at their offsets."""
         data = {}
         with self._lock:
             handle = self._file(member.shard)
@@ -164,14 +169,22 @@ class ShardSet(SplitInfo):
         scratch.write_bytes(data["exr"])
         maps = read_exr(scratch)
         with np.load(io.BytesIO(data["npz"]), allow_pickle=False) as row:
-            return self.make_item(maps, {name: row[name] for name in row.files})
+            return maps, {name: row[name] for name in row.files}
 
-    def item(self, k: int) -> dict[str, np.ndarray]:
-        """Sample k of the split (random access: for previews, not for the training stream)."""
+    def member(self, k: int) -> Member:
+        """Where sample k of the split lies (its shard's headers are scanned once in a row)."""
         shard = int(np.searchsorted(self.starts, k, side="right") - 1)
         if self._listed is None or self._listed[0] != shard:
             self._listed = (shard, list(self.scan(shard)))
-        return self.read(self._listed[1][k - int(self.starts[shard])])
+        return self._listed[1][k - int(self.starts[shard])]
+
+    def item(self, k: int) -> dict[str, np.ndarray]:
+        """Sample k of the split (random access: for previews, not for the training stream)."""
+        return self.read(self.member(k))
+
+    def maps(self, k: int) -> Maps:
+        """Sample k's captured maps (random access: `rigspace eval` on a shards folder)."""
+        return self.decode(self.member(k))[0]
 
     def batch(self, ks: np.ndarray) -> dict[str, np.ndarray]:
         return self.batch_of([self.item(int(k)) for k in ks])

@@ -21,6 +21,7 @@ from rigspace.capture.pack import INDEX_FILE, pack
 from rigspace.sdk.exr import write_exr
 from rigspace.sdk.render import Maps
 from rigspace.train.data import SampleSet
+from rigspace.train.evaluate import DatasetTable
 from rigspace.train.stream import ShardSet, ShardStream, open_split, prefetcher
 
 MEMORY_CAP = 16 * 2**20
@@ -91,6 +92,17 @@ def test_shard_items_equal_the_dataset_folders(tiny_dataset, shards):
             a, b = folder.item(k), stream.item(k)
             assert a.keys() == b.keys()
             assert all(np.array_equal(a[key], b[key]) for key in a), (split, k)
+
+
+def test_eval_reads_a_shards_folder_as_it_reads_the_dataset(tiny_dataset, shards):
+    """`rigspace eval MODEL SHARDS` sees the same captured maps, row for row (they were read
+    from the EXR paths in the shards folder, which holds none, before)."""
+    folder, packed = DatasetTable(tiny_dataset), DatasetTable(shards)
+    rows = np.concatenate([folder.indices("heldout-views")[::5], folder.indices("train")[::7]])
+    for row in rows:
+        a, b = folder.captured_maps(int(row)), packed.captured_maps(int(row))
+        for name in ("albedo", "mask", "normal", "depth"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), (row, name)
 
 
 def keys(stream: ShardStream, epoch: int) -> list[str]:
