@@ -16,8 +16,13 @@ from rigspace.sdk.errors import RigspaceError
 
 FORMAT = "rigspace.bundle"
 FORMAT_VERSION = 2
-"""Written by this rigspace. Version 2 added the albedo graphs' `alpha` (coverage) output."""
-READABLE_VERSIONS = (1, 2)
+"""Written by this rigspace for the paper's rotations-only input. Version 2 added the albedo
+graphs' `alpha` (coverage) output."""
+CONDITIONED_VERSION = 3
+"""Written for a pose-conditioned model (manifest `conditioning`): its graphs also read
+`joints2d`, so a rigspace that reads only versions 1-2 refuses it by name instead of failing
+inside onnxruntime on a missing input."""
+READABLE_VERSIONS = (1, 2, 3)
 ENCODINGS = ("rot6d", "quaternion")
 
 
@@ -27,7 +32,7 @@ class BundleError(RigspaceError):
 
 @dataclass(frozen=True)
 class ModelManifest:
-    """What a model bundle's manifest.json declares (format versions 1 and 2)."""
+    """What a model bundle's manifest.json declares (format versions 1 to 3)."""
 
     path: Path
     """The manifest file."""

@@ -43,7 +43,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from rigspace.capture.dataset import read_manifest
-from rigspace.sdk.bundle import FORMAT, FORMAT_VERSION
+from rigspace.sdk.bundle import CONDITIONED_VERSION, FORMAT, FORMAT_VERSION
 from rigspace.sdk.capsules import FILE_NAME as CAPSULES
 from rigspace.sdk.capsules import read_capsules
 from rigspace.train.budget import trained_levels
@@ -325,6 +325,7 @@ def export_bundle(
         "metrics": metrics or {},
     }
     if skeleton is not None:
+        manifest["format_version"] = CONDITIONED_VERSION
         manifest["conditioning"] = {
             "kind": config.conditioning,
             "sigma": config.conditioning_sigma,

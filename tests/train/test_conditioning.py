@@ -66,6 +66,8 @@ def test_conditioned_bundle_records_its_input_and_matches_torch(conditioned, tin
     bundle = conditioned / "bundle"
     manifest = json.loads((bundle / "manifest.json").read_text())
     assert manifest["conditioning"]["kind"] == "bones2d"
+    # Format 3: a rigspace that cannot feed joints2d refuses the bundle by its version.
+    assert manifest["format_version"] == 3
     assert "joints2d" in manifest["inputs"]
     assert all(not level["int8"] for level in manifest["levels"])
     model, _, _ = build_model(conditioned / "training")
@@ -148,6 +150,7 @@ def test_unconditioned_bundles_keep_their_single_input(tiny_run, tmp_path):
     export_bundle(tiny_run, tmp_path / "bundle", int8=False)
     model = BundleModel(tmp_path / "bundle")
     assert "conditioning" not in model.manifest.raw and model.skeleton is None
+    assert model.manifest.format_version == 2
     trunk = ort.InferenceSession(
         str(tmp_path / "bundle" / "trunk.onnx"), providers=["CPUExecutionProvider"]
     )
