@@ -21,13 +21,13 @@ MAP_FIELDS = 21
 """Per shadow map in a pass (float64): world-to-camera rows 0-2 (12), fx, fy, cx, cy, near,
 the padded map's width and height, its first texel in its flat buffer and which buffer (0:
 the pass's largest map, handed over without a copy; 1: the others, concatenated)."""
-SET_FIELDS = 26
+SET_FIELDS = 28
 """Per capsule set (one character under one light): mode (0 distant, 1 point, 2 every
 pair), the light's 2-D frame rows (9), the light's position (3), front or nearest, the
 softness (tangent or radius), the point light's off-axis base angle, the 2-D bounds of all
-capsules (4), their largest 2-D radius, first and end capsule, the light's angle, and
-first and end limb (rows of `chains`: first and end capsule, 2-D bounds (4), largest 2-D
-radius)."""
+capsules (4), their largest 2-D radius, first and end capsule, the light's angle, first and end limb (rows of `chains`:
+first and end capsule, 2-D bounds (4), largest 2-D radius), and the cosine and sine of a
+DistantLight's angle."""
 MODE_DISTANT, MODE_POINT, MODE_EVERY = 0, 1, 2
 KIND_MAP, KIND_CAPSULES = 0, 1
 FAR_OFF_AXIS = math.radians(80.0)
@@ -184,13 +184,17 @@ def _limb(sp, a, b, radius, a2, b2, r2, first, end, every, u, v, margin, factor,
             towards = True
             if mode == MODE_DISTANT:
                 dx, dy, dz = -sp[7], -sp[8], -sp[9]  # the frame's w row: the light's direction
-                light_angle = sp[23]
+                light_angle, cos_light, sin_light = sp[23], sp[26], sp[27]
             else:
                 ox, oy, oz = sp[10] - px, sp[11] - py, sp[12] - pz
                 dist = max(math.sqrt(ox * ox + oy * oy + oz * oz), 1e-6)
-                dx, dy, dz = ox / dist, oy / dist, oz / dist
-                light_angle = math.asin(min(max(sp[14] / dist, 0.0), 1.0))
-            cos_light, sin_light = math.cos(light_angle), math.sin(light_angle)
+                inverse = 1.0 / dist
+                dx, dy, dz = ox * inverse, oy * inverse, oz * inverse
+                # The cone's sine is the ratio itself, its cosine from it: one inverse sine
+                # per pixel and no cosine or sine of it.
+                sin_light = min(max(sp[14] * inverse, 0.0), 1.0)
+                cos_light = math.sqrt(1.0 - sin_light * sin_light)
+                light_angle = math.asin(sin_light)
         occlusion = _pair(a, b, radius, k, px, py, pz, dx, dy, dz, light_angle, cos_light,
                           sin_light)  # fmt: skip
         visibility *= max(1.0 - occlusion, min_visibility)
@@ -257,6 +261,13 @@ def _fill(grid, ys, xs, count, frame, depth, normal, rects, rect_job, kind, maps
                 value *= _map_lookup(maps_par[job], flat0, flat1, px, py, pz, nx, ny, nz, True,
                                      constants[0], constants[1])  # fmt: skip
             grid[i, j] = value
+        return
+    if sets_par.shape[0] == 1:  # one set: every wanted pixel lies in one of its rectangles
+        for q in range(count):
+            i, j = ys[q], xs[q]
+            px, py, pz = _point(frame, depth, i, j)
+            grid[i, j] = _capsules_at(sets_par[0], a, b, radius, a2, b2, r2, chains, px, py, pz,
+                                      constants[2])  # fmt: skip
         return
     for q in range(count):
         i, j = ys[q], xs[q]
@@ -343,7 +354,7 @@ def _wanted(mask, frame, size_y, size_x, h, w, rects):
 
 @nb.njit(cache=True, error_model="numpy")
 def sparse_pass(
-    mask, depth, normal, frame, h, w, rects, rect_job, kind, maps_par, flat0, flat1,
+    out, mask, depth, normal, frame, h, w, rects, rect_job, kind, maps_par, flat0, flat1,
     sets_par, a, b, radius, a2, b2, r2, chains, constants, step,
 ):  # fmt: skip
     """shadows.sparse_visibility over the (h, w) window at (frame[16], frame[17]) (rows,
@@ -353,7 +364,8 @@ def sparse_pass(
     `rect_job`: the maps, or the capsule sets, in order); the `step` grid evaluated exactly,
     then each finer grid blended from the one above where smooth (constants[3]:
     BEND_TOLERANCE) and on its samples' surface (constants[4]: SURFACE_TOLERANCE), evaluated
-    elsewhere (_fill, level by level). step 1: every candidate evaluated."""
+    elsewhere (_fill, level by level). step 1: every candidate evaluated. The window's
+    factors go into `out`, shaped as the G-buffer (its other pixels left as they are)."""
     r0, c0 = int(frame[16]), int(frame[17])
     o_r, o_c = int(frame[18]), int(frame[19])
     if h < 2 or w < 2:
@@ -451,11 +463,9 @@ def sparse_pass(
         _fill(grid, ys, xs, count, frame, depth, normal, rects, rect_job, kind, maps_par, flat0, flat1,
               sets_par, a, b, radius, a2, b2, r2, chains, constants)  # fmt: skip
         spacing = half
-    out = np.empty((h, w), np.float32)
     for i in range(h):
         for j in range(w):
-            out[i, j] = grid[i, j]
-    return out
+            out[r0 - o_r + i, c0 - o_c + j] = grid[i, j]
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -550,3 +560,67 @@ def shadow_regions(lo, hi, light, box, view, width, height):
         if x1 > x0 and y1 > y0:
             out[i, 0], out[i, 1], out[i, 2], out[i, 3], out[i, 4] = 1, x0, y0, x1, y1
     return out
+
+
+@nb.njit(cache=True, error_model="numpy")
+def capsule_arrays(row, a, b, radius, position, runs, first, limbs):
+    """shadow_pass.sets_data's per-set part in one call: the capsules' ends (K, 2) twice and
+    radii (K,) in the light's 2-D view (_light_plane: a DistantLight's plane, a point
+    light's projection through it, where they are angular), and into `row` a point light's
+    nearest capsule and off-axis base angle and the set's 2-D bounds; into `limbs` (R, 7)
+    each run's (`runs`, start and stop within the set, `first` its first capsule in the
+    pass) capsules and 2-D bounds."""
+    k = radius.shape[0]
+    a2, b2, r2 = np.zeros((k, 2)), np.zeros((k, 2)), np.zeros(k)
+    mode = row[0]
+    if mode == MODE_DISTANT:
+        for q in range(k):
+            for c in range(2):
+                a2[q, c] = (
+                    row[1 + 3 * c] * a[q, 0] + row[2 + 3 * c] * a[q, 1] + row[3 + 3 * c] * a[q, 2]
+                )
+                b2[q, c] = (
+                    row[1 + 3 * c] * b[q, 0] + row[2 + 3 * c] * b[q, 1] + row[3 + 3 * c] * b[q, 2]
+                )
+            r2[q] = radius[q]
+    elif mode == MODE_POINT:
+        widest = 0.0
+        steepest = 0.0
+        for q in range(k):
+            closest = np.inf
+            for e in range(2):
+                end = a if e == 0 else b
+                x, y, z = end[q, 0] - position[0], end[q, 1] - position[1], end[q, 2] - position[2]
+                closest = min(closest, math.sqrt(x * x + y * y + z * z))
+                lx = row[1] * x + row[2] * y + row[3] * z
+                ly = row[4] * x + row[5] * y + row[6] * z
+                lz = row[7] * x + row[8] * y + row[9] * z
+                flat = a2 if e == 0 else b2
+                flat[q, 0], flat[q, 1] = lx / lz, ly / lz
+                widest = max(widest, math.sqrt(flat[q, 0] ** 2 + flat[q, 1] ** 2))
+            angular = math.asin(min(max(radius[q] / max(closest, 1e-9), 0.0), 1.0))
+            steepest = max(steepest, angular)
+            r2[q] = math.tan(angular)
+            row[13] = min(row[13], closest) if q else closest
+        row[13] = max(row[13], 1e-9)
+        row[15] = math.atan(widest) + steepest
+    if k:
+        row[16], row[17], row[18], row[19], row[20] = np.inf, np.inf, -np.inf, -np.inf, -np.inf
+    for q in range(k):
+        row[16] = min(row[16], a2[q, 0], b2[q, 0])
+        row[17] = min(row[17], a2[q, 1], b2[q, 1])
+        row[18] = max(row[18], a2[q, 0], b2[q, 0])
+        row[19] = max(row[19], a2[q, 1], b2[q, 1])
+        row[20] = max(row[20], r2[q])
+    for n in range(runs.shape[0]):
+        start, stop = runs[n, 0], runs[n, 1]
+        limbs[n, 0], limbs[n, 1] = start + first, stop + first
+        limbs[n, 2], limbs[n, 3], limbs[n, 4], limbs[n, 5] = np.inf, np.inf, -np.inf, -np.inf
+        limbs[n, 6] = -np.inf
+        for q in range(start, stop):
+            limbs[n, 2] = min(limbs[n, 2], a2[q, 0], b2[q, 0])
+            limbs[n, 3] = min(limbs[n, 3], a2[q, 1], b2[q, 1])
+            limbs[n, 4] = max(limbs[n, 4], a2[q, 0], b2[q, 0])
+            limbs[n, 5] = max(limbs[n, 5], a2[q, 1], b2[q, 1])
+            limbs[n, 6] = max(limbs[n, 6], r2[q])
+    return a2, b2, r2

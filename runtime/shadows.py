@@ -96,7 +96,9 @@ class ShadowMap:
 
     def __post_init__(self) -> None:
         # A border of +inf: a lookup clamped into it finds no caster (lit), with no test.
-        self._padded = np.pad(self.depth, 1, constant_values=np.inf).astype(np.float32)
+        height, width = self.depth.shape
+        self._padded = np.full((height + 2, width + 2), np.inf, np.float32)  # np.pad: 4x slower
+        self._padded[1:-1, 1:-1] = self.depth
         self._m = self.camera.world_to_camera.astype(np.float32)
 
     @property
@@ -144,10 +146,12 @@ def _box(meshes: Sequence[DrawMesh]) -> np.ndarray:
     return np.array([lo, hi], dtype=np.float64)
 
 
+_CORNER_ROWS = (np.arange(8)[:, None] >> np.array([2, 1, 0])) & 1
+
+
 def _corners(box: np.ndarray) -> np.ndarray:
-    return np.array(
-        [[box[i][0], box[j][1], box[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
-    )
+    """(8, 3) the corners of a (2, 3) box, x slowest."""
+    return np.asarray(box)[_CORNER_ROWS, np.arange(3)]
 
 
 def _frame_axes(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

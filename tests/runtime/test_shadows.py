@@ -827,7 +827,7 @@ def test_the_kernels_compile_once_and_later_processes_load_them():
         "from rigspace.runtime.engine import Engine\n"
         f"e = Engine({str(PREVIS)!r}, width=64, height=36, prim_samples=1)\n"
         "e.render(600.0); e.close()\n"
-        "kernels = (k.sparse_pass, k.shadow_regions, k.points_visibility)\n"
+        "kernels = (k.sparse_pass, k.shadow_regions, k.points_visibility, k.capsule_arrays)\n"
         "used = [f for f in kernels if f.signatures]\n"
         "print(sum(sum(f.stats.cache_misses.values()) for f in used), len(used))\n"
     )
