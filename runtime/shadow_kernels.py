@@ -65,6 +65,23 @@ def _map_lookup(par, flat0, flat1, px, py, pz, nx, ny, nz, has_normal, offset_te
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
+def _acos(x):
+    """arccos within 2e-8 (Abramowitz and Stegun 4.4.46): a few times faster than libm's,
+    and the pairs that overlap call it three or four times each."""
+    t = abs(x)
+    p = -0.0012624911
+    p = p * t + 0.0066700901
+    p = p * t - 0.0170881256
+    p = p * t + 0.0308918810
+    p = p * t - 0.0501743046
+    p = p * t + 0.0889789874
+    p = p * t - 0.2145988016
+    p = p * t + 1.5707963050
+    angle = math.sqrt(max(1.0 - t, 0.0)) * p
+    return angle if x >= 0 else math.pi - angle
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _cone_occlusion(r1, r2, d):
     """shadows.cone_occlusion for one pair."""
     if d >= r1 + r2:
@@ -77,7 +94,7 @@ def _cone_occlusion(r1, r2, d):
         c2 = min(max((d * d + r2 * r2 - r1 * r1) / (2 * d_safe * max(r2, 1e-9)), -1.0), 1.0)
         kite = (-d + r1 + r2) * (d + r1 - r2) * (d - r1 + r2) * (d + r1 + r2)
         kite = math.sqrt(max(kite, 0.0))
-        area = r1 * r1 * math.acos(c1) + r2 * r2 * math.acos(c2) - 0.5 * kite
+        area = r1 * r1 * _acos(c1) + r2 * r2 * _acos(c2) - 0.5 * kite
     return min(max(area / (math.pi * r1 * r1), 0.0), 1.0)
 
 
@@ -108,7 +125,7 @@ def _pair(a, b, radius, k, px, py, pz, dx, dy, dz, light_angle, cos_light, sin_l
     cos_sphere = math.sqrt(1.0 - sin_sphere * sin_sphere)
     if cosine < cos_light * cos_sphere - sin_light * sin_sphere - 1e-12:
         return 0.0
-    return _cone_occlusion(light_angle, math.asin(sin_sphere), math.acos(cosine))
+    return _cone_occlusion(light_angle, 0.5 * math.pi - _acos(sin_sphere), _acos(cosine))
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -194,7 +211,7 @@ def _limb(sp, a, b, radius, a2, b2, r2, first, end, every, u, v, margin, factor,
                 # per pixel and no cosine or sine of it.
                 sin_light = min(max(sp[14] * inverse, 0.0), 1.0)
                 cos_light = math.sqrt(1.0 - sin_light * sin_light)
-                light_angle = math.asin(sin_light)
+                light_angle = 0.5 * math.pi - _acos(sin_light)
         occlusion = _pair(a, b, radius, k, px, py, pz, dx, dy, dz, light_angle, cos_light,
                           sin_light)  # fmt: skip
         visibility *= max(1.0 - occlusion, min_visibility)

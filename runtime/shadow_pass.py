@@ -175,18 +175,29 @@ def shadow_regions(
         packed = (0.0, *light.direction, 0.0, 0.0, 0.0, max(light.angle, sh.MIN_SOFTNESS), 0.0)
     else:
         packed = (1.0, 0.0, 0.0, 0.0, *light.position, 0.0, light.radius)
-    w2c = camera.world_to_camera
-    view = (*w2c[:3].ravel(), camera.fx, camera.fy, camera.cx, camera.cy, camera.near)
     found = kernels.shadow_regions(
         np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64),
         np.array([*packed, sh.MIN_SOFTNESS]), np.ascontiguousarray(box, np.float64),
-        np.array(view, np.float64), camera.width, camera.height,
+        _view(camera), camera.width, camera.height,
     )  # fmt: skip
     full: sh.Region = (0, 0, camera.width, camera.height)
     return [
         None if row[0] == 0 else full if row[0] == 2 else (row[1], row[2], row[3], row[4])
         for row in found.tolist()
     ]
+
+
+_VIEW: list = [None, None]
+"""The last camera and its view row (asked a few times per light and frame)."""
+
+
+def _view(camera: Camera) -> np.ndarray:
+    """The kernels' view row of a camera: world-to-camera rows 0-2, fx, fy, cx, cy, near."""
+    if _VIEW[0] is not camera:
+        w2c = camera.world_to_camera
+        view = (*w2c[:3].ravel(), camera.fx, camera.fy, camera.cx, camera.cy, camera.near)
+        _VIEW[:] = camera, np.array(view, np.float64)
+    return _VIEW[1]
 
 
 def points_visibility(

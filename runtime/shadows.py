@@ -146,12 +146,9 @@ def _box(meshes: Sequence[DrawMesh]) -> np.ndarray:
     return np.array([lo, hi], dtype=np.float64)
 
 
-_CORNER_ROWS = (np.arange(8)[:, None] >> np.array([2, 1, 0])) & 1
-
-
 def _corners(box: np.ndarray) -> np.ndarray:
     """(8, 3) the corners of a (2, 3) box, x slowest."""
-    return np.asarray(box)[_CORNER_ROWS, np.arange(3)]
+    return np.asarray(box)[_CORNER_PICK, np.arange(3)]
 
 
 def _frame_axes(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -239,14 +236,15 @@ class PrimShadows:
         self._groups = {}
         self._regions = {}
         keys = []
+        mesh_keys = [np.array([id(m) for m in meshes], np.int64).tobytes() for _, meshes in groups]
         for i, light in enumerate(lights):
             if light.kind not in (DISTANT, POINT):
                 continue
             light_key = light.direction.tobytes() + light.position.tobytes()
             self._groups[i] = []
-            for name, meshes in groups:
+            for (name, meshes), mesh_key in zip(groups, mesh_keys, strict=True):
                 if meshes:
-                    key = light_key + b"".join(np.int64(id(m)).tobytes() for m in meshes)
+                    key = light_key + mesh_key
                     self._groups[i].append((name, key, list(meshes)))
                     keys.append(key)
         live = {(i, name) for i, group in self._groups.items() for name, _, _ in group}
