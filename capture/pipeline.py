@@ -17,7 +17,7 @@ import os
 import shutil
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -311,6 +311,38 @@ def _empty_views_warning(settings: CaptureSettings, empty: dict[int, int], total
     )
 
 
+Runner = Callable[
+    [CaptureSettings, Path, list[ds.WorkItem], int | None, contextlib.ExitStack],
+    Iterator[ItemDone],
+]
+"""Renders `mine` (the unfinished items) and yields each item's ItemDone as it commits. Called
+inside capture's ExitStack: it starts what it needs (processes, a cluster) before returning
+and registers their clean-up on the stack."""
+
+
+def local_items(
+    settings: CaptureSettings,
+    folder: Path,
+    mine: list[ds.WorkItem],
+    workers: int | None,
+    stack: contextlib.ExitStack,
+) -> Iterator[ItemDone]:
+    """The items rendered here: in this process, or a pool of `workers` spawned processes."""
+    workers = max(1, min(workers or os.cpu_count() or 1, len(mine) or 1))
+    if workers == 1:
+        worker = ItemWorker(settings, folder)
+        stack.callback(worker.close)
+        return map(worker.run, mine)
+    pool = stack.enter_context(
+        multiprocessing.get_context("spawn").Pool(
+            workers,
+            initializer=_init_worker,
+            initargs=(settings.to_json(), str(folder)),
+        )
+    )
+    return pool.imap_unordered(_run_item, mine)
+
+
 def capture(
     scene: str | Path,
     character: str,
@@ -322,8 +354,14 @@ def capture(
     workers: int | None = None,
     progress: bool = True,
     warn: Warn = print_warning,
+    runner: Runner | None = None,
 ) -> CaptureResult:
-    """Capture a neural character's dataset (see the module and capture/dataset.py docs)."""
+    """Capture a neural character's dataset (see the module and capture/dataset.py docs).
+
+    `runner` renders the unfinished items and yields each one's ItemDone as it commits:
+    local_items (this machine's processes) by default, capture/ray_capture.py's on Ray.
+    """
+    runner = runner or local_items
     warnings: list[str] = []
 
     def note(text: str) -> None:
@@ -341,10 +379,8 @@ def capture(
     ours = ds.shard_items(items, shard)
     repaired = [] if created else repair(folder, ours)
     mine = [i for i in ours if not ds.record_path(folder, i).is_file()]
-    workers = max(1, min(workers or os.cpu_count() or 1, len(mine) or 1))
     total = sum(i.samples for i in mine)
     timings = dict.fromkeys(STAGES, 0.0)
-    start = time.perf_counter()
     bar = tqdm(
         total=total, unit="sample", disable=not progress, file=sys.stderr, dynamic_ncols=True
     )
@@ -352,22 +388,12 @@ def capture(
     coverage: list[np.ndarray] = []
     views: list[np.ndarray] = []
     seen_something = False
+    start = time.perf_counter()
     try:
         with contextlib.ExitStack() as stack:
             stack.callback(bar.close)
-            if workers == 1:
-                worker = ItemWorker(settings, folder)
-                stack.callback(worker.close)
-                results: Iterator[ItemDone] = map(worker.run, mine)
-            else:
-                pool = stack.enter_context(
-                    multiprocessing.get_context("spawn").Pool(
-                        workers,
-                        initializer=_init_worker,
-                        initargs=(settings.to_json(), str(folder)),
-                    )
-                )
-                results = pool.imap_unordered(_run_item, mine)
+            results = runner(settings, folder, mine, workers, stack)
+            start = time.perf_counter()  # after the runner's start-up (a pool, a cluster)
             for finished in results:
                 done += finished.samples
                 bar.update(finished.samples)

@@ -16,41 +16,20 @@ from __future__ import annotations
 
 import contextlib
 import os
-import shutil
-import sys
-import time
-from dataclasses import replace
+from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-from tqdm import tqdm
-
 from rigspace.capture import dataset as ds
-from rigspace.capture.contact import write_contact_sheet
-from rigspace.capture.pipeline import (
-    EARLY_SAMPLES,
-    STAGES,
-    CaptureResult,
-    ItemDone,
-    ItemWorker,
-    _empty_views_warning,
-    nothing_in_view,
-    prepare_folder,
-    repair,
-)
+from rigspace.capture.pipeline import CaptureResult, ItemDone, ItemWorker, capture
 from rigspace.capture.settings import (
     CaptureError,
     CaptureOverrides,
     CaptureSettings,
     Warn,
-    animation_time_samples,
     print_warning,
-    resolve_settings,
 )
-from rigspace.sdk.capsules import FILE_NAME as CAPSULES_FILE
-from rigspace.sdk.capsules import fit_capsules, write_capsules
-from rigspace.sdk.render import choose_renderer
 
 LOCAL = "local"
 """`--ray` without an address: start a local Ray cluster for this capture (ray.init's name)."""
@@ -111,6 +90,58 @@ def connect(address: str, workers: int | None) -> bool:
     return True
 
 
+def ray_items(
+    address: str,
+    settings: CaptureSettings,
+    folder: Path,
+    mine: list[ds.WorkItem],
+    workers: int | None,
+    stack: contextlib.ExitStack,
+) -> Iterator[ItemDone]:
+    """pipeline.Runner on Ray: joins (or starts) the cluster now, then yields the items as
+    their tasks finish, at most `workers` in flight; a task that failed after its retries
+    is a CaptureError naming the resume command."""
+    import ray
+
+    if connect(address, workers):
+        stack.callback(ray.shutdown)
+    # retry_exceptions takes a list of exception types (Ray's stubs say bool only).
+    options: dict[str, Any] = {"max_retries": MAX_RETRIES, "retry_exceptions": TRANSIENT}
+    task = ray.remote(num_cpus=1, **options)(render_item)
+    settings_ref = ray.put(settings.to_json())
+    shared = str(folder.absolute())  # the tasks run elsewhere: the path every node sees
+    queue = list(reversed(mine))
+    pending: list[Any] = []
+    stack.callback(lambda: [ray.cancel(r, force=True) for r in pending])
+    limit = workers or len(mine)
+    resume = f"{ds.resume_command(folder)} --ray {address}"
+
+    def finished() -> Iterator[ItemDone]:
+        while queue or pending:
+            while queue and len(pending) < limit:
+                pending.append(task.remote(settings_ref, shared, queue.pop()))
+            ready, rest = ray.wait(pending, num_returns=1)
+            pending[:] = rest
+            try:
+                yield ray.get(ready[0])
+            except ray.exceptions.RayTaskError as exc:
+                if isinstance(exc.cause, CaptureError):  # the task's own, unwrapped
+                    raise exc.cause from None
+                raise CaptureError(
+                    f"A capture task failed on the Ray cluster after {MAX_RETRIES} "
+                    f"retries: {str(exc).strip().splitlines()[-1]}.",
+                    f"fix the cause, then resume with `{resume}` (finished items are kept).",
+                ) from exc
+            except ray.exceptions.WorkerCrashedError as exc:
+                raise CaptureError(
+                    f"A capture task's worker process died {MAX_RETRIES + 1} times: {exc}.",
+                    "check the nodes' memory and logs (`ray logs`), then resume the "
+                    f"capture: `{resume}`.",
+                ) from exc
+
+    return finished()
+
+
 def capture_on_ray(
     scene: str | Path,
     character: str,
@@ -129,102 +160,15 @@ def capture_on_ray(
     `workers` caps the tasks in flight (default: as many as the cluster schedules); with a
     local cluster it is also the cluster's CPU count.
     """
-    import ray
-
-    warnings: list[str] = []
-
-    def note(text: str) -> None:
-        warnings.append(text)
-        warn(text)
-
-    settings, rig = resolve_settings(scene, character, overrides, warn=note)
-    settings = replace(settings, renderer=choose_renderer(settings.renderer).name)
-    folder = Path(out).absolute()
-    created = prepare_folder(folder, settings, resume, sharded=shard[1] > 1)
-    (folder / "items").mkdir(exist_ok=True)
-    ds.clean_temporaries(folder)
-    items = ds.work_items(settings, animation_time_samples(rig))
-    ours = ds.shard_items(items, shard)
-    repaired = [] if created else repair(folder, ours)
-    mine = [i for i in ours if not ds.record_path(folder, i).is_file()]
-    total = sum(i.samples for i in mine)
-    timings = dict.fromkeys(STAGES, 0.0)
-    coverage: list[np.ndarray] = []
-    views: list[np.ndarray] = []
-    done, seen_something = 0, False
-    started = connect(address, workers)
-    # retry_exceptions takes a list of exception types (Ray's stubs say bool only).
-    options: dict[str, Any] = {"max_retries": MAX_RETRIES, "retry_exceptions": TRANSIENT}
-    task = ray.remote(num_cpus=1, **options)(render_item)
-    settings_ref = ray.put(settings.to_json())
-    start = time.perf_counter()
-    bar = tqdm(
-        total=total, unit="sample", disable=not progress, file=sys.stderr, dynamic_ncols=True
-    )
-    queue = list(reversed(mine))
-    pending: list[Any] = []
-    limit = workers or len(mine)
-    try:
-        with contextlib.ExitStack() as stack:
-            stack.callback(bar.close)
-            if started:
-                stack.callback(ray.shutdown)
-            stack.callback(lambda: [ray.cancel(r, force=True) for r in pending])
-            while queue or pending:
-                while queue and len(pending) < limit:
-                    pending.append(task.remote(settings_ref, str(folder), queue.pop()))
-                ready, pending = ray.wait(pending, num_returns=1)
-                try:
-                    finished: ItemDone = ray.get(ready[0])
-                except ray.exceptions.RayTaskError as exc:
-                    if isinstance(exc.cause, CaptureError):  # the task's own, unwrapped
-                        raise exc.cause from None
-                    raise CaptureError(
-                        f"A capture task failed on the Ray cluster after {MAX_RETRIES} "
-                        f"retries: {str(exc).strip().splitlines()[-1]}.",
-                        f"fix the cause, then resume with `{ds.resume_command(folder)} --ray "
-                        f"{address}` (finished items are kept).",
-                    ) from exc
-                except ray.exceptions.WorkerCrashedError as exc:
-                    raise CaptureError(
-                        f"A capture task's worker process died {MAX_RETRIES + 1} times: {exc}.",
-                        "check the nodes' memory and logs (`ray logs`), then resume the "
-                        f"capture: `{ds.resume_command(folder)} --ray {address}`.",
-                    ) from exc
-                done += finished.samples
-                bar.update(finished.samples)
-                for k, v in finished.timings.items():
-                    timings[k] = timings.get(k, 0.0) + v
-                coverage.append(finished.coverage)
-                views.append(finished.views)
-                seen_something = seen_something or bool(np.any(coverage[-1] >= ds.EMPTY_PIXELS))
-                if not seen_something and done >= min(EARLY_SAMPLES, total):
-                    best = float(np.concatenate(coverage).max())
-                    raise nothing_in_view(settings, rig, done, best)
-    except CaptureError as exc:
-        if created and shard[1] == 1:
-            shutil.rmtree(folder, ignore_errors=True)
-            exc.what += f" Nothing was kept: {folder} was removed."
-        else:
-            exc.what += f" {folder} is kept as it was."
-        exc.args = (f"{exc.what} Fix: {exc.fix}",)
-        raise
-    seconds = time.perf_counter() - start
-    complete = all(ds.record_path(folder, i).is_file() for i in items)
-    manifest = None
-    if complete:  # once, by the driver, after every task has committed its item
-        manifest = ds.finalize(folder, settings, items)
-        write_contact_sheet(folder)
-        write_capsules(fit_capsules(rig), folder / CAPSULES_FILE)
-        empty = {int(v): n for v, n in manifest["coverage"]["empty_by_view"].items()}
-        total_samples = manifest["counts"]["samples"]
-    else:
-        empty = ds.empty_by_view(
-            np.concatenate(coverage or [np.zeros(0)]), np.concatenate(views or [np.zeros(0)])
-        )
-        total_samples = done
-    if empty:
-        note(_empty_views_warning(settings, empty, total_samples))
-    return CaptureResult(
-        folder, settings, total, done, seconds, complete, manifest, timings, repaired, warnings
+    return capture(
+        scene,
+        character,
+        out,
+        overrides,
+        shard=shard,
+        resume=resume,
+        workers=workers,
+        progress=progress,
+        warn=warn,
+        runner=partial(ray_items, address),
     )
