@@ -1,7 +1,8 @@
 """Measure the shadow stage on the previs scene: compiled kernels against numpy, split by sub-step.
 
-`python -m rigspace.runtime.shadow_bench [--frames N] [--sizes 256x256 640x360]`: per size,
-two engines (SHADOW_KERNEL "numba" and "numpy") render the same frames of
+`python -m rigspace.runtime.shadow_bench [--frames N] [--sizes 256x256 640x360] [--kernels
+numba numpy]`: per size, two engines (SHADOW_KERNEL "numba" and "numpy", or those named)
+render the same frames of
 samples/scenes/previs.usda with the sample character, one frame each in turn in one
 process (so that load on a shared machine falls on both alike); printed per engine: the
 median frame and stage milliseconds from the engine's own report, the shadow stage's
@@ -29,6 +30,7 @@ from rigspace.runtime import engine as engine_module
 from rigspace.runtime import shadow_kernels, shadow_pass, shadows
 from rigspace.runtime.engine import STAGES, Engine
 
+KERNELS = ("numba", "numpy")
 SCENE = Path(__file__).resolve().parents[1] / "samples" / "scenes" / "previs.usda"
 TIMES = np.linspace(100.0, 1400.0, 64)
 """The frames rendered (the first a warm-up): bench/frames.py's."""
@@ -104,14 +106,16 @@ def _cpu_wrap(engine: Engine) -> list[float]:
     return spent
 
 
-def measure(sizes: Sequence[tuple[int, int]], frames: int) -> list[str]:
+def measure(
+    sizes: Sequence[tuple[int, int]], frames: int, kernels: Sequence[str] = KERNELS
+) -> list[str]:
     """The lines printed: per size and kernel, the frame, the shadow stage and its split."""
     lines = []
     times = TIMES[: frames + 1]
     for width, height in sizes:
         runs: dict[str, tuple[Engine, list[dict], float, _Timers]] = {}
         try:
-            for kernel in ("numba", "numpy"):
+            for kernel in kernels:
                 shadows.SHADOW_KERNEL = kernel
                 engine = Engine(SCENE, width=width, height=height, prim_samples=1)
                 start = clock.perf_counter()
@@ -167,7 +171,9 @@ def _recording(engine: Engine, recorded: dict, name: str, *args):
     return getattr(Engine, name)(engine, *args)
 
 
-def passes(sizes: Sequence[tuple[int, int]], repeats: int = 15) -> list[str]:
+def passes(
+    sizes: Sequence[tuple[int, int]], repeats: int = 15, kernels: Sequence[str] = KERNELS
+) -> list[str]:
     """Lines: per size, the prims' passes (Engine._prim_shadows, its maps drawn) and the
     character layer's (Engine._layer_visibility) of the frame at time 600 again and again
     on the same inputs, numba against numpy (best and median CPU milliseconds of this
@@ -185,7 +191,7 @@ def passes(sizes: Sequence[tuple[int, int]], repeats: int = 15) -> list[str]:
             recorded.clear()
             engine.render(600.0)
             for name, args in recorded.items():
-                for kernel in ("numba", "numpy"):
+                for kernel in kernels:
                     shadows.SHADOW_KERNEL = kernel
                     spent = []
                     for _ in range(repeats):
@@ -197,14 +203,16 @@ def passes(sizes: Sequence[tuple[int, int]], repeats: int = 15) -> list[str]:
             shadows.SHADOW_KERNEL = "numba"
             engine.close()
         for name, what in (("_prim_shadows", "prims' passes"), ("_layer_visibility", "layer")):
-            if (name, "numba") not in found:
+            mine = {k: found[name, k] for k in kernels if (name, k) in found}
+            if not mine:
                 continue
-            (fast, fast_median), (slow, slow_median) = found[name, "numba"], found[name, "numpy"]
-            lines.append(
-                f"{width}x{height} {what}, thread CPU ms best (median) of {repeats}: numba "
-                f"{fast:.2f} ({fast_median:.2f}), numpy {slow:.2f} ({slow_median:.2f}): "
-                f"{slow / fast:.1f}x"
+            line = (
+                f"{width}x{height} {what}, thread CPU ms best (median) of {repeats}: "
+                + ", ".join(f"{k} {best:.2f} ({median:.2f})" for k, (best, median) in mine.items())
             )
+            if len(mine) == 2:
+                line += f": {mine['numpy'][0] / mine['numba'][0]:.1f}x"
+            lines.append(line)
     return lines
 
 
@@ -212,9 +220,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=12, help="frames after the warm-up")
     parser.add_argument("--sizes", nargs="+", default=["256x256", "640x360"])
+    parser.add_argument(
+        "--kernels", nargs="+", choices=KERNELS, default=list(KERNELS),
+        help="which ways to measure (numba alone: half the time, for before/after runs)",
+    )  # fmt: skip
     args = parser.parse_args()
     sizes = [(int(w), int(h)) for w, h in (s.split("x") for s in args.sizes)]
-    for line in [*measure(sizes, args.frames), *passes(sizes)]:
+    for line in [*measure(sizes, args.frames, args.kernels), *passes(sizes, 15, args.kernels)]:
         print(line, flush=True)
 
 
