@@ -57,6 +57,29 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
         "bones2d with the cross-entropy mask loss",
         {"conditioning": "bones2d", "mask_loss": "bce"},
     ),
+    # Cheaper conditioning: the same maps without widening the 3x3 convolutions.
+    "bones2d-add+bce": (
+        "bones2d+bce, maps 1x1-projected and added to the features (no extra conv channels)",
+        {"conditioning": "bones2d", "mask_loss": "bce", "conditioning_mode": "add"},
+    ),
+    "bones2d-add32+bce": (
+        "bones2d-add+bce, maps computed up to 32x32; 64x64 adds the 32x32 projection upsampled",
+        {
+            "conditioning": "bones2d",
+            "mask_loss": "bce",
+            "conditioning_mode": "add",
+            "conditioning_top": 32,
+        },
+    ),
+    "bones2d-add16+bce": (
+        "bones2d-add+bce, maps computed up to 16x16 only, upsampled above",
+        {
+            "conditioning": "bones2d",
+            "mask_loss": "bce",
+            "conditioning_mode": "add",
+            "conditioning_top": 16,
+        },
+    ),
     # The same variants from another seed: how much of a difference is the seed's.
     "paper-seed1": ("`paper`, seed 1", {"seed": 1}),
     "bones2d-seed1": ("`bones2d`, seed 1", {"conditioning": "bones2d", "seed": 1}),
@@ -125,7 +148,8 @@ def mflop(model: Rig2Image, resolution: int) -> float:
     with torch.no_grad():
         model(torch.zeros(1, model.shape.inputs), resolution, joints2d=joints2d)
         maps = model.condition_maps(joints2d, resolution)
-        total += 10.0 * sum(m.numel() for m in (maps or {}).values())
+        unique = {id(m): m for m in (maps or {}).values()}  # levels above conditioning_top share
+        total += 10.0 * sum(m.numel() for m in unique.values())
     for hook in hooks:
         hook.remove()
     return total / 1e6

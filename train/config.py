@@ -79,6 +79,20 @@ class TrainConfig:
         default=0.05,
         metadata={"help": "width of the conditioning Gaussians, image half-widths (>= 1 pixel)"},
     )
+    conditioning_mode: str = field(
+        default="concat",
+        metadata={
+            "help": "how a block reads the maps: concat (extra input channels of its first 3x3 "
+            "conv), add (a 1x1 conv projects them to the block's width, added to the features)"
+        },
+    )
+    conditioning_top: int = field(
+        default=0,
+        metadata={
+            "help": "highest resolution the maps are computed at (0: every level); blocks above "
+            "it read the top maps upsampled (add: their 1x1 projection, upsampled)"
+        },
+    )
     seed: int = field(default=0, metadata={"help": "seed for weights, sampling and shuffling"})
     bf16: bool = field(
         default=False,
@@ -121,6 +135,7 @@ class TrainConfig:
         choices = {
             "mask_loss": MASK_LOSSES,
             "conditioning": ("none", "joints2d", "bones2d"),
+            "conditioning_mode": CONDITIONING_MODES,
         }
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
@@ -128,9 +143,16 @@ class TrainConfig:
                     f"Training option --{name.replace('_', '-')} is {getattr(self, name)!r}.",
                     f"choose one of {', '.join(allowed)}.",
                 )
+        top = self.conditioning_top
+        if top and (top < 8 or top & (top - 1)):
+            raise ConfigError(
+                f"Training option --conditioning-top is {top}.",
+                "choose 0 (maps at every level) or a power of two from 8 up.",
+            )
 
 
 MASK_LOSSES = ("mixed", "bce", "soft-iou")
+CONDITIONING_MODES = ("concat", "add")
 
 
 PRESETS: dict[str, TrainConfig] = {

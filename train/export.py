@@ -329,6 +329,8 @@ def export_bundle(
         manifest["conditioning"] = {
             "kind": config.conditioning,
             "sigma": config.conditioning_sigma,
+            "mode": config.conditioning_mode,
+            "top": config.conditioning_top,
             "input": "joints2d",
             "skeleton": skeleton.to_json(),
         }

@@ -11,8 +11,12 @@ runs the albedo branch alone (the runtime's unlit mode).
 
 Pose-guided conditioning (config.conditioning, not in the paper): every block (the trunk's
 and each branch's) also reads Gaussian maps of the rig's projected joints or bones at its
-output resolution, concatenated after the upsampling (train.conditioning). The maps are
-computed from a small `joints2d` input (rigspace.sdk.conditioning), so with "none" the
+output resolution, after the upsampling (train.conditioning): concatenated as extra input
+channels of the block's first convolution (config.conditioning_mode "concat"), or projected
+by a 1x1 convolution to the block's width and added to its features ("add", which keeps the
+3x3 convolutions at the paper's channel counts). With config.conditioning_top the maps are
+computed at levels up to that resolution only; blocks above it read them upsampled. The maps
+are computed from a small `joints2d` input (rigspace.sdk.conditioning), so with "none" the
 network, its parameters and its checkpoints are the paper's.
 """
 
@@ -53,18 +57,36 @@ def width(config: TrainConfig, resolution: int) -> int:
     return max(config.min_width, config.base_width >> halvings)
 
 
-class UpBlock(nn.Module):
-    """Upsample x2, (concatenate `extra` conditioning maps), then (3x3 conv, leaky ReLU) twice."""
+def maps_scale(config: TrainConfig, resolution: int) -> int:
+    """How much a level's block upsamples its conditioning maps (1: computed at its level)."""
+    top = config.conditioning_top
+    return resolution // top if top and resolution > top else 1
 
-    def __init__(self, c_in: int, c_out: int, extra: int = 0) -> None:
+
+class UpBlock(nn.Module):
+    """Upsample x2, (read `extra` conditioning maps: concatenated, or 1x1-projected and added),
+    then (3x3 conv, leaky ReLU) twice."""
+
+    def __init__(
+        self, c_in: int, c_out: int, extra: int = 0, mode: str = "concat", maps_scale: int = 1
+    ) -> None:
         super().__init__()
-        self.conv1 = nn.Conv2d(c_in + extra, c_out, 3, padding=1)
+        self.maps_scale = maps_scale
+        """Output resolution / the maps' resolution (> 1 above config.conditioning_top)."""
+        self.add = bool(extra) and mode == "add"
+        self.conv1 = nn.Conv2d(c_in + (0 if self.add else extra), c_out, 3, padding=1)
         self.conv2 = nn.Conv2d(c_out, c_out, 3, padding=1)
+        self.project = nn.Conv2d(extra, c_in, 1) if self.add else None
 
     def forward(self, x: torch.Tensor, maps: torch.Tensor | None = None) -> torch.Tensor:
         x = F.interpolate(x, scale_factor=2.0, mode="nearest")
         if maps is not None:
-            x = torch.cat([x, maps.to(x.dtype)], dim=1)
+            maps = maps.to(x.dtype)
+            if self.project is not None:
+                maps = self.project(maps)  # at the maps' resolution: cheaper below the top
+            if self.maps_scale > 1:  # maps from conditioning_top, below this level
+                maps = F.interpolate(maps, scale_factor=float(self.maps_scale), mode="nearest")
+            x = x + maps if self.project is not None else torch.cat([x, maps], dim=1)
         x = F.leaky_relu(self.conv1(x), LEAK)
         return F.leaky_relu(self.conv2(x), LEAK)
 
@@ -78,7 +100,14 @@ class Branch(nn.Module):
         while self.resolutions[-1] < config.resolution:
             self.resolutions.append(self.resolutions[-1] * 2)
         self.blocks = nn.ModuleList(
-            UpBlock(width(config, r // 2), width(config, r), extra) for r in self.resolutions[1:]
+            UpBlock(
+                width(config, r // 2),
+                width(config, r),
+                extra,
+                config.conditioning_mode,
+                maps_scale(config, r),
+            )
+            for r in self.resolutions[1:]
         )
         self.heads = nn.ModuleList(
             nn.Conv2d(width(config, r), head_channels, 1) for r in self.resolutions
@@ -133,7 +162,9 @@ class Rig2Image(nn.Module):
         )
         if extra and config.conditioning == "bones2d" and len(shape.parents) != shape.joints:
             raise ValueError("bones2d conditioning needs the joints' parents (Shape.parents)")
-        self.trunk = UpBlock(width(config, GRID), width(config, TRUNK), extra)
+        self.trunk = UpBlock(
+            width(config, GRID), width(config, TRUNK), extra, config.conditioning_mode
+        )
         self.albedo = Branch(config, ALBEDO_CHANNELS, extra)
         self.geometry = Branch(config, GEOMETRY_CHANNELS, extra)
 
@@ -145,16 +176,19 @@ class Rig2Image(nn.Module):
     def condition_maps(
         self, joints2d: torch.Tensor | None, resolution: int
     ) -> dict[int, torch.Tensor] | None:
-        """The conditioning maps at 8x8 and every level up to `resolution` (None: unconditioned)."""
+        """The conditioning maps for 8x8 and every level up to `resolution` (None: unconditioned);
+        above config.conditioning_top a level gets the top level's maps (its block upsamples)."""
         if self.condition is None:
             return None
         if joints2d is None:
             raise ValueError(
                 f"this network is conditioned ({self.config.conditioning}): pass joints2d"
             )
-        out, r = {}, TRUNK
+        top = self.config.conditioning_top or max(resolution, TRUNK)
+        out: dict[int, torch.Tensor] = {}
+        r = TRUNK
         while r <= max(resolution, TRUNK):
-            out[r] = self.condition(joints2d, r)
+            out[r] = out[r // 2] if r > top else self.condition(joints2d, r)
             r *= 2
         return out
 

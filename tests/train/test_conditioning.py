@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -24,6 +25,7 @@ from rigspace.train.data import SampleSet  # noqa: E402
 from rigspace.train.export import export_bundle  # noqa: E402
 from rigspace.train.loop import build_model, train  # noqa: E402
 from rigspace.train.loss import coverage_loss, edge_weights  # noqa: E402
+from rigspace.train.network import Rig2Image, UpBlock  # noqa: E402
 from tests.train.conftest import CHARACTER, SCENE  # noqa: E402
 
 TOLERANCE = 1e-5
@@ -62,14 +64,59 @@ def test_joints2d_is_the_posed_skeleton_seen_by_the_capture_camera(tiny_dataset)
         assert np.abs(ours[k] - (pixels / size * 2 - 1)).max() < 1e-5
 
 
+@pytest.fixture(scope="module")
+def added(tmp_path_factory, tiny_dataset):
+    """A tiny bones2d run whose maps are 1x1-projected and added, computed up to 16x16 only."""
+    folder = tmp_path_factory.mktemp("added")
+    config = preset("tiny", conditioning="bones2d", conditioning_mode="add", conditioning_top=16)
+    assert train(tiny_dataset, folder / "training", config, progress=False).stopped == "done"
+    with pytest.warns(UserWarning, match="fp32 graphs only"):
+        export_bundle(folder / "training", folder / "bundle")
+    return folder
+
+
 def test_conditioned_bundle_records_its_input_and_matches_torch(conditioned, tiny_dataset):
-    bundle = conditioned / "bundle"
-    manifest = json.loads((bundle / "manifest.json").read_text())
+    manifest = json.loads((conditioned / "bundle" / "manifest.json").read_text())
     assert manifest["conditioning"]["kind"] == "bones2d"
+    assert manifest["conditioning"]["mode"] == "concat"
     # Format 3: a rigspace that cannot feed joints2d refuses the bundle by its version.
     assert manifest["format_version"] == 3
     assert "joints2d" in manifest["inputs"]
     assert all(not level["int8"] for level in manifest["levels"])
+    _bundle_matches_torch(conditioned, tiny_dataset)
+
+
+def test_added_conditioning_keeps_the_paper_convolutions_and_matches_torch(added, tiny_dataset):
+    """conditioning_mode add: every 3x3 convolution has the paper's channels; one 1x1 projection
+    per block; the 32x32 block adds the 16x16 maps' projection upsampled; the exported graphs,
+    fed joints2d by the runtime, match torch."""
+    manifest = json.loads((added / "bundle" / "manifest.json").read_text())
+    assert manifest["conditioning"]["mode"] == "add" and manifest["conditioning"]["top"] == 16
+    model = _bundle_matches_torch(added, tiny_dataset)
+    paper = Rig2Image(model.shape, replace(model.config, conditioning="none"))
+    theirs = dict(paper.named_modules())
+    blocks = [(name, m) for name, m in model.named_modules() if isinstance(m, UpBlock)]
+    assert len(blocks) == 5  # the trunk's, and 16x16 and 32x32 per branch
+    for name, block in blocks:
+        assert block.conv1.weight.shape == theirs[name].conv1.weight.shape, name
+        assert block.project is not None and block.project.kernel_size == (1, 1), name
+    assert [b.maps_scale for b in model.albedo.blocks] == [1, 2]  # 16x16, 32x32
+    bundle = BundleModel(added / "bundle")
+    level = bundle.levels[32]["albedo"]
+    graph = ort.InferenceSession(str(added / "bundle" / level), providers=["CPUExecutionProvider"])
+    assert [i.name for i in graph.get_inputs()] == ["features", "joints2d"]
+
+
+def test_conditioning_top_must_be_a_level():
+    with pytest.raises(ConfigError, match="--conditioning-top is 24"):
+        preset("tiny", conditioning="bones2d", conditioning_top=24)
+    with pytest.raises(ConfigError, match="--conditioning-mode is 'mul'"):
+        preset("tiny", conditioning="bones2d", conditioning_mode="mul")
+
+
+def _bundle_matches_torch(conditioned, tiny_dataset) -> Rig2Image:
+    """The bundle's graphs (joints2d fed by BundleModel, as the runtime does) against torch."""
+    bundle = conditioned / "bundle"
     model, _, _ = build_model(conditioned / "training")
     samples = SampleSet(tiny_dataset, "heldout-views")
     samples.skeleton = dataset_skeleton(tiny_dataset, samples.manifest)
@@ -92,6 +139,7 @@ def test_conditioned_bundle_records_its_input_and_matches_torch(conditioned, tin
         assert np.abs(out["albedo"] - albedo).max() < TOLERANCE, resolution
         assert np.abs(out["mask"] - mask).max() < TOLERANCE, resolution
         assert np.abs(out["depth"] - depth).max() < TOLERANCE, resolution
+    return model
 
 
 @pytest.fixture(scope="module")
