@@ -83,6 +83,20 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     # The same variants from another seed: how much of a difference is the seed's.
     "paper-seed1": ("`paper`, seed 1", {"seed": 1}),
     "bones2d-seed1": ("`bones2d`, seed 1", {"conditioning": "bones2d", "seed": 1}),
+    "bones2d+bce-seed1": (
+        "`bones2d+bce`, seed 1",
+        {"conditioning": "bones2d", "mask_loss": "bce", "seed": 1},
+    ),
+    "bones2d-add32+bce-seed1": (
+        "`bones2d-add32+bce`, seed 1",
+        {
+            "conditioning": "bones2d",
+            "mask_loss": "bce",
+            "conditioning_mode": "add",
+            "conditioning_top": 32,
+            "seed": 1,
+        },
+    ),
 }
 SPLITS = ("heldout-views", "heldout-clips")
 TIMING_REPEATS = 30
@@ -338,6 +352,48 @@ def retime(out: Path, dataset: Path, rounds: int = 5) -> dict[str, float]:
     return best
 
 
+GRAPH_COLUMNS = ("trunk", "albedo", "geometry", "predict")
+
+
+def breakdown(out: Path, dataset: Path, names: list[str], rounds: int = 12) -> str:
+    """ms per graph (trunk, each branch at the top level) and per predict of finished variants,
+    one onnxruntime thread, best of `rounds` x 20 with the variants interleaved: where a
+    variant's time goes, steadier under load than the default-threads `retime`."""
+    rig = DatasetTable(dataset).column("rig")[:1].reshape(1, -1)
+    found = [n for n in names if (out / n / "bundle").is_dir()]
+    models = {n: BundleModel(out / n / "bundle", "fp32", threads=1) for n in found}
+    best = {n: dict.fromkeys(GRAPH_COLUMNS, math.inf) for n in found}
+
+    def ms(call: Any) -> float:
+        call()
+        times = []
+        for _ in range(20):
+            begin = time.perf_counter()
+            call()
+            times.append(time.perf_counter() - begin)
+        return 1e3 * min(times)
+
+    for _ in range(rounds):
+        for name, model in models.items():
+            top = model.resolutions[-1]
+            j2d = model.joints2d(rig)
+            features = model.features(rig, j2d)
+            calls = {
+                "trunk": lambda m=model, j=j2d: m.features(rig, j),
+                "albedo": lambda m=model, f=features, j=j2d, r=top: m.branch(f, "albedo", r, j),
+                "geometry": lambda m=model, f=features, j=j2d, r=top: m.branch(f, "geometry", r, j),
+                "predict": lambda m=model, r=top: m.predict(rig, r),
+            }
+            for key, call in calls.items():
+                best[name][key] = min(best[name][key], ms(call))
+    lines = ["| variant | " + " | ".join(f"{c} ms" for c in GRAPH_COLUMNS) + " |"]
+    lines.append("|" + "---|" * (len(GRAPH_COLUMNS) + 1))
+    for name in found:
+        cells = " | ".join(f"{best[name][c]:.2f}" for c in GRAPH_COLUMNS)
+        lines.append(f"| `{name}` | {cells} |")
+    return "\n".join(lines) + "\n"
+
+
 def report(out: Path) -> list[dict[str, Any]]:
     """Rewrite DIR/ablation.md and DIR/ablation_curve.png from the finished variants."""
     records = [
@@ -381,6 +437,11 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="only re-measure ms of the finished variants, interleaved, and rewrite the report",
     )
+    parser.add_argument(
+        "--breakdown",
+        action="store_true",
+        help="only print ms per graph of --variants (one onnxruntime thread, interleaved)",
+    )
     args = parser.parse_args(argv)
     unknown = sorted(set(args.variants) - set(VARIANTS))
     try:
@@ -391,6 +452,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.threads:
             torch.set_num_threads(args.threads)
         args.out.mkdir(parents=True, exist_ok=True)
+        if args.breakdown:
+            print(breakdown(args.out, args.dataset, args.variants), end="")
+            return 0
         if args.retime:
             for name, ms in retime(args.out, args.dataset).items():
                 print(f"ablation: {name}: {ms:.2f} ms fp32", file=sys.stderr)
