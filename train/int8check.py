@@ -126,28 +126,35 @@ def verdict(
     return failed
 
 
+def session(path: Path | str):
+    """A one-thread CPU onnxruntime session (timings comparable on a shared machine)."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+def named_outputs(graph, inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """A session's outputs for `inputs`, by output name."""
+    outputs = graph.run(None, inputs)
+    return dict(zip((o.name for o in graph.get_outputs()), outputs, strict=True))
+
+
 class _Graphs:
     """onnxruntime sessions of a bundle folder's graphs, named outputs."""
 
     def __init__(self, folder: Path) -> None:
-        import onnxruntime as ort
-
-        self._ort, self.folder = ort, folder
+        self.folder = folder
         self._sessions: dict[str, Any] = {}
 
     def session(self, name: str):
         if name not in self._sessions:
-            options = self._ort.SessionOptions()
-            options.intra_op_num_threads = 1  # timings comparable on a shared machine
-            self._sessions[name] = self._ort.InferenceSession(
-                str(self.folder / name), options, providers=["CPUExecutionProvider"]
-            )
+            self._sessions[name] = session(self.folder / name)
         return self._sessions[name]
 
     def run(self, name: str, inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        session = self.session(name)
-        outputs = session.run(None, inputs)
-        return dict(zip((o.name for o in session.get_outputs()), outputs, strict=True))
+        return named_outputs(self.session(name), inputs)
 
     def timing(self, fp32: str, int8: str, inputs: dict[str, np.ndarray]) -> dict[str, float]:
         """ms per run of one row (batch 1) of both graphs, interleaved, fastest; speedup."""

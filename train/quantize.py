@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from rigspace.train.int8check import drift
+from rigspace.train.int8check import drift, named_outputs, session
 
 COVERAGE_OUTPUTS = ("alpha", "mask")
 """A branch graph's outputs whose coverage selects the pixels its activations calibrate on."""
@@ -41,19 +41,6 @@ more convolutions in float until it does, at most `max_float`): a little above i
 since held-out rows drift slightly more than the calibration rows."""
 SWEEP_ROWS = 32
 """Calibration rows the sweep measures on (fewer than calibrate on: it quantises often)."""
-
-
-def _session(path: Path | str):
-    import onnxruntime as ort
-
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = 1
-    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
-
-
-def _outputs(session, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    values = session.run(None, feeds)
-    return dict(zip((o.name for o in session.get_outputs()), values, strict=True))
 
 
 def _region(coverage: np.ndarray, size: int) -> np.ndarray:
@@ -90,7 +77,7 @@ def activation_ranges(fp32: Path, feeds: dict[str, np.ndarray]) -> dict[str, tup
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "probe.onnx"
         onnx.save(model, str(path))
-        out = _outputs(_session(path), feeds)
+        out = named_outputs(session(path), feeds)
     coverage = next((out[k][:, 0] for k in COVERAGE_OUTPUTS if k in out), None)
     ranges: dict[str, tuple[float, float]] = {}
     for name in names:
@@ -220,13 +207,13 @@ def mixed_int8(
     n = len(next(iter(feeds.values())))
     picks = np.unique(np.linspace(0, n - 1, min(SWEEP_ROWS, n)).astype(int))
     probe = {k: v[picks] for k, v in feeds.items()}
-    reference = _outputs(_session(fp32), probe)
+    reference = named_outputs(session(fp32), probe)
     ranges = activation_ranges(fp32, feeds)
     exclude = head_nodes(fp32)
 
     def attempt(nodes: list[str], path: Path) -> dict[str, float | None]:
         quantize(fp32, path, feeds, nodes, ranges)
-        return drift(reference, _outputs(_session(path), probe))
+        return drift(reference, named_outputs(session(path), probe))
 
     metrics = attempt(exclude, int8)
     convs = [n.name for n in onnx.load(str(fp32)).graph.node if n.op_type == "Conv"]
@@ -258,7 +245,7 @@ def requantize_bundle(bundle: Path, dataset: Path, rows: int = 128) -> dict[str,
     picks = np.unique(np.linspace(0, len(train) - 1, min(rows, len(train))).astype(int))
     rig = train.rig[train.rows[picks]]
     trunk = manifest["trunk"]["graphs"]["trunk"]
-    features = _outputs(_session(bundle / trunk), {"rig": rig})["features"]
+    features = named_outputs(session(bundle / trunk), {"rig": rig})["features"]
     trunk_int8 = manifest["trunk"]["int8"]["trunk"]
     quantize(bundle / trunk, bundle / trunk_int8, {"rig": rig})
     for level in manifest["levels"]:

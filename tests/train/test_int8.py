@@ -94,14 +94,14 @@ def test_activation_ranges_follow_the_covered_pixels(bundle, tiny_dataset):
     assert ranges and all(lo <= 0.0 <= hi for lo, hi in ranges.values())
     import onnx
 
-    from rigspace.train.quantize import _outputs, _session
+    from rigspace.train.int8check import named_outputs, session
 
     model = onnx.load(str(graph))
     name = next(n.output[0] for n in model.graph.node if n.op_type == "LeakyRelu")
     model.graph.output.append(onnx.helper.make_value_info(name, onnx.TypeProto()))
     probe = bundle.parent / "probe.onnx"
     onnx.save(model, str(probe))
-    value = _outputs(_session(probe), {"features": features})[name]
+    value = named_outputs(session(probe), {"features": features})[name]
     assert ranges[name][1] <= float(value.max()) + 1e-6  # never wider than every pixel's
 
 
