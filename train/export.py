@@ -50,7 +50,7 @@ from rigspace.train.budget import trained_levels
 from rigspace.train.conditioning import dataset_skeleton
 from rigspace.train.config import TrainConfig
 from rigspace.train.data import SampleSet, depth_scale
-from rigspace.train.int8check import TOLERANCES, check_int8
+from rigspace.train.int8check import TOLERANCES, check_int8, rig_feeds
 from rigspace.train.loop import CHECKPOINT, RUN_FILE, TrainingError, build_model
 from rigspace.train.network import Rig2Image
 
@@ -154,13 +154,13 @@ def quantize_int8(
     fp32: Path, int8: Path, input_name: str, calibration: np.ndarray | dict[str, np.ndarray]
 ) -> None:
     """Static QDQ int8 of one exported graph, calibrated on `calibration` (the graph's input
-    for the training rows): train.quantize. Activation ranges come from the pixels the
+    for the training rows, or rows by input name): train.quantize. Activation ranges come from the pixels the
     character covers (MinMax, Percentile and Entropy calibration lose 7-10 dB at level 128
     on the sample model: its background activations are 20x its character's); a branch
     keeps its output heads, and the convolutions a per-node sweep finds it must, in float
     (a mixed graph). The trunk is quantised whole: its check (train.int8check) judges it.
     A graph with more inputs (a pose-conditioned one's joints2d) gets `calibration` as a
-    dict of every input's rows.
+    dict of rows by input name; each graph reads those it has (int8check.graph_feeds).
     """
     from rigspace.train.quantize import mixed_int8, quantize
 
@@ -233,22 +233,18 @@ def export_bundle(
     if capsules.is_file():
         read_capsules(capsules)  # before any graph is written: a CapsuleError naming the file
     skeleton = dataset_skeleton(dataset, data_manifest) if model.conditioned else None
-    if skeleton is not None and int8:
-        # int8 calibration feeds one input per graph; the conditioned graphs read two.
-        warnings.warn(
-            f"The run in {run_folder} is pose-conditioned ({config.conditioning}): its bundle "
-            "gets fp32 graphs only (no int8 variants).",
-            stacklevel=2,
-        )
-        int8 = False
     out.mkdir(parents=True, exist_ok=True)
-    rig_calibration = features_calibration = None
+    calibration: dict[str, np.ndarray] = {}
     if int8:
+        # Rows by input name: rig, features and (conditioned) joints2d, the rows' own by
+        # rigspace.sdk.conditioning; each graph is fed the inputs it reads (train.quantize).
         train = SampleSet(dataset, "train")
         picks = np.linspace(0, len(train) - 1, min(CALIBRATION_SAMPLES, len(train))).astype(int)
-        rig_calibration = train.rig[train.rows[picks]]
+        calibration = rig_feeds(train.rig[train.rows[picks]], skeleton)
         with torch.no_grad():
-            features_calibration = model.features(torch.from_numpy(rig_calibration)).numpy()
+            tensors = {k: torch.from_numpy(v) for k, v in calibration.items()}
+            features = model.features(tensors["rig"], tensors.get("joints2d"))
+        calibration["features"] = features.numpy()
     written: list[str] = []
 
     def write(branch: str, resolution: int, stem: str) -> dict[str, str]:
@@ -256,9 +252,7 @@ def export_bundle(
         export_graph(model, branch, resolution, out / names["fp32"])
         if int8:
             names["int8"] = f"{stem}.int8.onnx"
-            data = rig_calibration if branch == "trunk" else features_calibration
-            assert data is not None
-            quantize_int8(out / names["fp32"], out / names["int8"], INPUTS[branch], data)
+            quantize_int8(out / names["fp32"], out / names["int8"], INPUTS[branch], calibration)
         written.extend(names.values())
         return names
 
@@ -338,7 +332,8 @@ def export_bundle(
             "float32 (N, joints*2): per joint (u, v), the joint by forward kinematics from the "
             "rig and conditioning.skeleton, projected by a camera at the training distance "
             "from the look-at joint; [-1, 1] across the image, v down "
-            "(rigspace.sdk.conditioning.joints2d); input of the trunk and every branch graph"
+            "(rigspace.sdk.conditioning.joints2d); input of the trunk and of every branch "
+            "graph above 8x8 (int8 variants included)"
         )
     if int8:
         rows, split = check_rows(dataset)
@@ -346,7 +341,7 @@ def export_bundle(
             "split": split,
             "samples": len(rows),
             "tolerances": {k: f"{op} {limit:g}" for k, (op, limit) in TOLERANCES.items()},
-            "graphs": check_int8(out, trunk, levels, rows),
+            "graphs": check_int8(out, trunk, levels, rows, skeleton=skeleton),
         }
     if source.is_file():
         shutil.copyfile(source, out / CAPSULES)

@@ -10,6 +10,8 @@ graph, on the same inputs (a branch on the fp32 trunk's features; the trunk thro
 the fp32 branches of the top level), and fails when a map drifts past TOLERANCES or an
 output is not finite. The result goes into the manifest's `int8_check`;
 rigspace.sdk.model.BundleModel runs the fp32 graph instead of a failed one, with a warning.
+A pose-conditioned bundle's graphs also read joints2d, computed from the rows' rig
+(rig_feeds); graph_feeds gives each graph the inputs it reads.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from rigspace.sdk.conditioning import Skeleton2D, joints2d
 
 MASK_VALID = 0.5
 """Coverage from which a pixel counts as covered (the evaluation's threshold)."""
@@ -135,9 +139,37 @@ def session(path: Path | str):
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
+def graph_feeds(graph, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The inputs a session reads, taken by name from `values` (which may hold more).
+
+    The one place that matches rows to a graph's inputs: a pose-conditioned bundle's trunk
+    reads rig and joints2d, its branch graphs features and joints2d, except the 8x8 level's
+    (no block, so the export drops the unused joints2d); an unconditioned graph reads one.
+    """
+    names = [i.name for i in graph.get_inputs()]
+    missing = [name for name in names if name not in values]
+    if missing:
+        raise ValueError(
+            f"the graph reads {', '.join(names)}, but no rows of {', '.join(missing)} were "
+            "given; a pose-conditioned graph needs joints2d: pass the bundle's skeleton "
+            "(rig_feeds)"
+        )
+    return {name: values[name] for name in names}
+
+
+def rig_feeds(rig: np.ndarray, skeleton: Skeleton2D | None = None) -> dict[str, np.ndarray]:
+    """The trunk's inputs for rig rows: rig, and for a pose-conditioned bundle (`skeleton`,
+    the manifest's conditioning.skeleton) joints2d by rigspace.sdk.conditioning, the
+    function training and the runtime use."""
+    rig = np.ascontiguousarray(rig, dtype=np.float32)
+    if skeleton is None:
+        return {"rig": rig}
+    return {"rig": rig, "joints2d": joints2d(rig, skeleton)}
+
+
 def named_outputs(graph, inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """A session's outputs for `inputs`, by output name."""
-    outputs = graph.run(None, inputs)
+    """A session's outputs for `inputs` (graph_feeds picks those it reads), by output name."""
+    outputs = graph.run(None, graph_feeds(graph, inputs))
     return dict(zip((o.name for o in graph.get_outputs()), outputs, strict=True))
 
 
@@ -159,13 +191,14 @@ class _Graphs:
     def timing(self, fp32: str, int8: str, inputs: dict[str, np.ndarray]) -> dict[str, float]:
         """ms per run of one row (batch 1) of both graphs, interleaved, fastest; speedup."""
         one = {k: v[:1] for k, v in inputs.items()}
+        feeds = {name: graph_feeds(self.session(name), one) for name in (fp32, int8)}
         runs: dict[str, list[float]] = {fp32: [], int8: []}
         for name in (fp32, int8):
-            self.session(name).run(None, one)  # warm-up
+            self.session(name).run(None, feeds[name])  # warm-up
         for _ in range(TIMING_REPEATS):
             for name in (fp32, int8):
                 start = time.perf_counter()
-                self.session(name).run(None, one)
+                self.session(name).run(None, feeds[name])
                 runs[name].append(time.perf_counter() - start)
         # The fastest run of each: the cost without the other processes' interference
         # (a shared machine's medians moved 2x between runs; the minima held).
@@ -192,17 +225,23 @@ def check_int8(
     levels: list[dict[str, Any]],
     rig: np.ndarray,
     timing: bool = True,
+    skeleton: Skeleton2D | None = None,
 ) -> dict[str, dict[str, Any]]:
     """Every int8 graph of a bundle being exported, checked on `rig` rows: per file name,
     {"metrics", "ok", "failed", "float_nodes", "ms", "offered", "not_offered"}. `trunk`
-    and `levels` are the manifest's entries.
+    and `levels` are the manifest's entries; a pose-conditioned bundle's `skeleton` gives
+    the rows' joints2d, which every graph that reads it is fed (rig_feeds).
 
     `ok`: the graph is not broken (TOLERANCES); the runtime runs fp32 in place of one that
     is not. `offered`: it also meets AIM and is MIN_SPEEDUP faster than fp32 (`ms`, batch 1,
     one thread; without `timing` speed is not judged), so int8 is worth running there.
     """
     graphs = _Graphs(folder)
-    features = graphs.run(trunk["fp32"], {"rig": rig})["features"]
+    inputs = rig_feeds(rig, skeleton)
+    features = graphs.run(trunk["fp32"], inputs)["features"]
+    # Every graph is fed from these rows by name (graph_feeds): the branches read features
+    # (the fp32 trunk's, or the int8 trunk's below) and, when conditioned, joints2d.
+    fp32_inputs = {**inputs, "features": features}
     results: dict[str, dict[str, Any]] = {}
 
     def record(
@@ -227,19 +266,19 @@ def check_int8(
 
     top = levels[-1]
     if trunk.get("int8"):
-        quantised = graphs.run(trunk["int8"], {"rig": rig})["features"]
+        quantised = graphs.run(trunk["int8"], inputs)["features"]
+        int8_inputs = {**inputs, "features": quantised}
         fp32_out: dict[str, np.ndarray] = {}
         int8_out: dict[str, np.ndarray] = {}
         for name in top["graphs"].values():
-            fp32_out.update(graphs.run(name, {"features": features}))
-            int8_out.update(graphs.run(name, {"features": quantised}))
-        record(trunk["int8"], fp32_out, int8_out, (trunk["fp32"], {"rig": rig}))
+            fp32_out.update(graphs.run(name, fp32_inputs))
+            int8_out.update(graphs.run(name, int8_inputs))
+        record(trunk["int8"], fp32_out, int8_out, (trunk["fp32"], inputs))
     for level in levels:
         for branch, name in level["int8"].items():
             fp32_name = level["graphs"][branch]
-            reference = graphs.run(fp32_name, {"features": features})
-            feeds = {"features": features}
-            record(name, reference, graphs.run(name, feeds), (fp32_name, feeds))
+            reference = graphs.run(fp32_name, fp32_inputs)
+            record(name, reference, graphs.run(name, fp32_inputs), (fp32_name, fp32_inputs))
     return results
 
 

@@ -12,7 +12,8 @@ activations saturate, which the sigmoids do not see. Same graph: 41-42 dB.
 
 The 1x1 output heads stay in float (their logits are what the sigmoids read, and they are
 cheap), and a greedy per-node sweep keeps further convolutions in float until the graph
-meets SWEEP_TARGET on the calibration rows (onnxruntime's nodes_to_exclude).
+meets SWEEP_TARGET on the calibration rows (onnxruntime's nodes_to_exclude). A
+pose-conditioned graph's maps, computed from its joints2d input, stay in float too (pose_nodes).
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from rigspace.train.int8check import drift, named_outputs, session
+from rigspace.sdk.conditioning import Skeleton2D
+from rigspace.train.int8check import drift, graph_feeds, named_outputs, rig_feeds, session
 
 COVERAGE_OUTPUTS = ("alpha", "mask")
 """A branch graph's outputs whose coverage selects the pixels its activations calibrate on."""
@@ -56,6 +58,18 @@ def _region(coverage: np.ndarray, size: int) -> np.ndarray:
     return region
 
 
+def _is_image(value: np.ndarray, coverage: np.ndarray) -> bool:
+    """Whether `value` is (N, C, R, R) for the coverage's rows at a resolution that divides
+    the coverage's: not a broadcast row or column (a conditioning map's pixel grid)."""
+    n, size = len(coverage), coverage.shape[-1]
+    return (
+        value.ndim == 4
+        and value.shape[0] == n
+        and value.shape[-2] == value.shape[-1] <= size
+        and size % value.shape[-1] == 0
+    )
+
+
 def activation_ranges(fp32: Path, feeds: dict[str, np.ndarray]) -> dict[str, tuple[float, float]]:
     """Per intermediate tensor of a graph, the (rmin, rmax) its int8 scale should cover.
 
@@ -82,7 +96,7 @@ def activation_ranges(fp32: Path, feeds: dict[str, np.ndarray]) -> dict[str, tup
     ranges: dict[str, tuple[float, float]] = {}
     for name in names:
         value = out[name]
-        if coverage is not None and value.ndim == 4 and value.shape[-1] <= coverage.shape[-1]:
+        if coverage is not None and _is_image(value, coverage):
             region = _region(coverage, value.shape[-1])
             picked = np.moveaxis(value, 1, -1)[region]
             value = picked if picked.size else value
@@ -132,6 +146,28 @@ def head_nodes(fp32: Path) -> list[str]:
     return sorted(heads) if any(o.name != "features" for o in graph.output) else []
 
 
+def pose_nodes(fp32: Path) -> list[str]:
+    """The nodes of a pose-conditioned graph that read joints2d and constants only: the
+    conditioning maps' computation (rigspace.train.conditioning.ConditionMaps, and in
+    conditioning_mode "add" their 1x1 projection). Kept in float: uint8 steps of the squared
+    distances would move a Gaussian's peak by pixels, and they are cheap next to the
+    convolutions that read them (quantised at their input). Empty without joints2d."""
+    import onnx
+
+    graph = onnx.load(str(fp32)).graph
+    pose = {i.name for i in graph.input if i.name == "joints2d"}
+    constant = {t.name for t in graph.initializer}
+    nodes: list[str] = []
+    for node in graph.node:  # ONNX nodes are in topological order
+        inputs = [name for name in node.input if name]
+        if not inputs:
+            constant.update(node.output)
+        elif any(i in pose for i in inputs) and all(i in pose or i in constant for i in inputs):
+            pose.update(node.output)
+            nodes.append(node.name)
+    return nodes
+
+
 def quantize(
     fp32: Path,
     int8: Path,
@@ -140,10 +176,12 @@ def quantize(
     ranges: dict[str, tuple[float, float]] | None = None,
 ) -> None:
     """One static QDQ int8 graph: per-channel int8 weights, uint8 activations whose ranges
-    are activation_ranges (computed on `feeds` unless given), `exclude` kept in float."""
+    are activation_ranges (computed on `feeds` unless given), `exclude` kept in float.
+    `feeds` holds rows by input name; those the graph does not read are left out."""
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
+    feeds = graph_feeds(session(fp32), feeds)  # the calibration reader feeds every key
     ranges = activation_ranges(fp32, feeds) if ranges is None else ranges
     overrides = {
         name: [{"rmin": np.float32(lo), "rmax": np.float32(hi)}]
@@ -162,7 +200,7 @@ def quantize(
             activation_type=QuantType.QUInt8,
             weight_type=QuantType.QInt8,
             per_channel=True,
-            nodes_to_exclude=list(exclude),
+            nodes_to_exclude=[*exclude, *pose_nodes(fp32)],
             calibrate_method=CalibrationMethod.MinMax,
             extra_options={"TensorQuantOverrides": overrides},
         )
@@ -233,41 +271,82 @@ def mixed_int8(
 def requantize_bundle(bundle: Path, dataset: Path, rows: int = 128) -> dict[str, Any]:
     """Re-quantise a bundle's int8 graphs from its fp32 graphs (no checkpoint needed) and
     re-check them; the fp32 graphs are not touched. Calibration: `rows` training rows,
-    evenly spaced (real poses); check: held-out rows (export.check_rows' choice). Writes
-    the int8 graphs, the manifest's int8_check (with offered_levels) and their file
-    entries; returns the new int8_check."""
-    import json
-
+    evenly spaced (real poses), with their joints2d when the bundle is pose-conditioned
+    (the manifest's conditioning.skeleton); check: held-out rows (export.check_rows'
+    choice). A bundle exported without int8 variants gets them, named as the export names
+    them. Writes the int8 graphs, their manifest entries and file records and the
+    manifest's int8_check (with offered_levels); returns the new int8_check."""
     from rigspace.train.data import SampleSet
 
-    manifest = json.loads((bundle / "manifest.json").read_text())
+    manifest = _read_manifest(bundle)
     train = SampleSet(dataset, "train")
     picks = np.unique(np.linspace(0, len(train) - 1, min(rows, len(train))).astype(int))
-    rig = train.rig[train.rows[picks]]
+    inputs = rig_feeds(train.rig[train.rows[picks]], bundle_skeleton(manifest))
     trunk = manifest["trunk"]["graphs"]["trunk"]
-    features = named_outputs(session(bundle / trunk), {"rig": rig})["features"]
-    trunk_int8 = manifest["trunk"]["int8"]["trunk"]
-    quantize(bundle / trunk, bundle / trunk_int8, {"rig": rig})
+    features = named_outputs(session(bundle / trunk), inputs)["features"]
+    int8 = manifest["trunk"].setdefault("int8", {})
+    int8["trunk"] = int8.get("trunk") or int8_name(trunk)
+    quantize(bundle / trunk, bundle / int8["trunk"], inputs)
+    branch_feeds = {**inputs, "features": features}
     for level in manifest["levels"]:
-        for branch, name in level["int8"].items():
-            mixed_int8(bundle / level["graphs"][branch], bundle / name, {"features": features})
+        for branch, fp32 in level["graphs"].items():
+            name = level.setdefault("int8", {}).get(branch) or int8_name(fp32)
+            mixed_int8(bundle / fp32, bundle / name, branch_feeds)
+            level["int8"][branch] = name
+    _write_manifest(bundle, manifest)
     return recheck_bundle(bundle, dataset)
 
 
-def recheck_bundle(bundle: Path, dataset: Path, limit: int = 200) -> dict[str, Any]:
-    """Check a bundle's int8 graphs against fp32 (int8check.check_int8, per graph) and, per
-    level, against the truth (level_table, `limit` held-out samples); write both into the
-    manifest's int8_check, with `offered_levels`: the levels whose int8 graphs all pass
-    the check and where int8 is within AIM_TRUTH of fp32 and MIN_SPEEDUP faster."""
+def int8_name(fp32: str) -> str:
+    """The int8 variant's file name of an fp32 graph (train.export's naming)."""
+    return f"{fp32.removesuffix('.onnx')}.int8.onnx"
+
+
+def bundle_skeleton(manifest: dict[str, Any]) -> Skeleton2D | None:
+    """A pose-conditioned bundle's skeleton (manifest conditioning.skeleton, what
+    rigspace.sdk.model.BundleModel projects); None for an unconditioned bundle."""
+    conditioning = manifest.get("conditioning")
+    return Skeleton2D.from_json(conditioning["skeleton"]) if conditioning else None
+
+
+def _read_manifest(bundle: Path) -> dict[str, Any]:
+    import json
+
+    return json.loads((bundle / "manifest.json").read_text())
+
+
+def _write_manifest(bundle: Path, manifest: dict[str, Any]) -> None:
+    """Write a bundle's manifest atomically, with the size and sha256 of every int8 graph it
+    lists (the export's `files` records, which the runtime's rules verify)."""
     import hashlib
     import json
     import os
+
+    names = [manifest["trunk"]["int8"].get("trunk")]
+    names += [name for level in manifest["levels"] for name in level["int8"].values()]
+    files = manifest.setdefault("files", {})
+    for name in filter(None, names):
+        data = (bundle / name).read_bytes()
+        files[name] = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+    manifest["files"] = dict(sorted(files.items()))
+    tmp = bundle / f".manifest.json.{os.getpid()}.tmp"
+    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
+    os.replace(tmp, bundle / "manifest.json")
+
+
+def recheck_bundle(bundle: Path, dataset: Path, limit: int = 200) -> dict[str, Any]:
+    """Check a bundle's int8 graphs against fp32 (int8check.check_int8, per graph; a
+    pose-conditioned bundle's graphs fed joints2d from its skeleton) and, per level,
+    against the truth (level_table, `limit` held-out samples); write both into the
+    manifest's int8_check, with `offered_levels`: the levels whose int8 graphs all pass
+    the check and where int8 is within AIM_TRUTH of fp32 and MIN_SPEEDUP faster."""
+    import json
 
     from rigspace.train.data import SampleSet
     from rigspace.train.evaluate import to_json
     from rigspace.train.int8check import TOLERANCES, check_int8
 
-    manifest = json.loads((bundle / "manifest.json").read_text())
+    manifest = _read_manifest(bundle)
     trunk = manifest["trunk"]["graphs"]["trunk"]
     trunk_int8 = manifest["trunk"]["int8"]["trunk"]
     split = "heldout-views" if len(SampleSet(dataset, "heldout-views")) else "train"
@@ -275,7 +354,9 @@ def recheck_bundle(bundle: Path, dataset: Path, limit: int = 200) -> dict[str, A
     picks = np.unique(np.linspace(0, len(held) - 1, min(32, len(held))).astype(int))
     check_rig = held.rig[held.rows[picks]]
     entry = {"fp32": trunk, "int8": trunk_int8}
-    graphs = check_int8(bundle, entry, manifest["levels"], check_rig)
+    graphs = check_int8(
+        bundle, entry, manifest["levels"], check_rig, skeleton=bundle_skeleton(manifest)
+    )
     levels = level_table(bundle, dataset, split, limit)
     ok = all(g["ok"] for g in graphs.values())
     check = {
@@ -288,16 +369,7 @@ def recheck_bundle(bundle: Path, dataset: Path, limit: int = 200) -> dict[str, A
         "offered_levels": [r for r, e in levels.items() if e["offered"] and ok],
     }
     manifest["int8_check"] = json.loads(to_json(check))  # strict JSON: nan -> null
-    for name in manifest.get("files", {}):
-        if name.endswith(".int8.onnx"):
-            data = (bundle / name).read_bytes()
-            manifest["files"][name] = {
-                "bytes": len(data),
-                "sha256": hashlib.sha256(data).hexdigest(),
-            }
-    tmp = bundle / f".manifest.json.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
-    os.replace(tmp, bundle / "manifest.json")
+    _write_manifest(bundle, manifest)
     return check
 
 

@@ -34,13 +34,12 @@ TOLERANCE = 1e-5
 
 @pytest.fixture(scope="module")
 def conditioned(tmp_path_factory, tiny_dataset):
-    """A tiny bones2d run and its bundle (fp32; int8 is not offered for conditioned graphs)."""
+    """A tiny bones2d run and its bundle (fp32 only: int8 is tested in test_int8_conditioned)."""
     folder = tmp_path_factory.mktemp("conditioned")
     config = preset("tiny", conditioning="bones2d")
     result = train(tiny_dataset, folder / "training", config, progress=False)
     assert result.stopped == "done"
-    with pytest.warns(UserWarning, match="fp32 graphs only"):
-        export_bundle(folder / "training", folder / "bundle")
+    export_bundle(folder / "training", folder / "bundle", int8=False)
     return folder
 
 
@@ -70,8 +69,7 @@ def added(tmp_path_factory, tiny_dataset):
     folder = tmp_path_factory.mktemp("added")
     config = preset("tiny", conditioning="bones2d", conditioning_mode="add", conditioning_top=16)
     assert train(tiny_dataset, folder / "training", config, progress=False).stopped == "done"
-    with pytest.warns(UserWarning, match="fp32 graphs only"):
-        export_bundle(folder / "training", folder / "bundle")
+    export_bundle(folder / "training", folder / "bundle", int8=False)
     return folder
 
 
@@ -130,7 +128,13 @@ def _bundle_matches_torch(conditioned, tiny_dataset) -> Rig2Image:
     with torch.no_grad():
         heads = model(torch.from_numpy(rig), 32, joints2d=torch.from_numpy(j2d))
         features = model.features(torch.from_numpy(rig), torch.from_numpy(j2d)).numpy()
-    assert np.abs(trunk.run(None, {"rig": rig, "joints2d": j2d})[0] - features).max() < TOLERANCE
+    # The trunk's features are unbounded (about 3.5 here): within 1e-5 of their magnitude; the
+    # maps below, in [0, 1] or depth units, within 1e-5 absolute. (With one onnxruntime thread
+    # the features differed by 1.3e-5 absolute: float32 rounding, 4e-6 of their magnitude.)
+    scale = max(1.0, float(np.abs(features).max()))
+    assert np.abs(trunk.run(None, {"rig": rig, "joints2d": j2d})[0] - features).max() < (
+        TOLERANCE * scale
+    )
     for k, resolution in enumerate(bundle_model.resolutions):
         out = bundle_model.predict(rig, resolution)
         albedo = torch.sigmoid(heads["albedo"][k][:, 0:3]).numpy()
