@@ -80,6 +80,16 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
             "conditioning_top": 16,
         },
     ),
+    "bones2d-add32+bce+rare": (
+        "bones2d-add32+bce, rare poses (the cartwheel) drawn more often: --oversample 1",
+        {
+            "conditioning": "bones2d",
+            "mask_loss": "bce",
+            "conditioning_mode": "add",
+            "conditioning_top": 32,
+            "oversample": 1.0,
+        },
+    ),
     # The same variants from another seed: how much of a difference is the seed's.
     "paper-seed1": ("`paper`, seed 1", {"seed": 1}),
     "bones2d-seed1": ("`bones2d`, seed 1", {"conditioning": "bones2d", "seed": 1}),
@@ -94,6 +104,17 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
             "mask_loss": "bce",
             "conditioning_mode": "add",
             "conditioning_top": 32,
+            "seed": 1,
+        },
+    ),
+    "bones2d-add32+bce+rare-seed1": (
+        "`bones2d-add32+bce+rare`, seed 1",
+        {
+            "conditioning": "bones2d",
+            "mask_loss": "bce",
+            "conditioning_mode": "add",
+            "conditioning_top": 32,
+            "oversample": 1.0,
             "seed": 1,
         },
     ),

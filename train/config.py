@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
@@ -10,6 +11,16 @@ from rigspace.sdk.errors import RigspaceError
 
 class ConfigError(RigspaceError, ValueError):
     """A training option with a value it cannot take."""
+
+
+def check_oversample(oversample: float) -> None:
+    """A ConfigError naming --oversample unless it is a finite number >= 0 (NaN is not)."""
+    if not (math.isfinite(oversample) and oversample >= 0):
+        raise ConfigError(
+            f"Training option --oversample is {oversample!r}.",
+            "choose a finite number >= 0 (0: uniform sampling, the paper's; 1: rare poses "
+            "about as often as common ones).",
+        )
 
 
 @dataclass(frozen=True)
@@ -32,6 +43,15 @@ class TrainConfig:
         default=16, metadata={"help": "resolution trained first (the paper: 16x16)"}
     )
     batch: int = field(default=16, metadata={"help": "samples per step"})
+    oversample: float = field(
+        default=0.0,
+        metadata={
+            "help": "draw samples with probability proportional to their pose's "
+            "rarity^OVERSAMPLE (rarity: distance to the 8th nearest other frame, camera and "
+            "heading aside, 0.1-10x the median): 0 uniform (the paper's), 1 about even along "
+            "each clip's path through pose space; dataset folders only, not shards"
+        },
+    )
     lr: float = field(default=1e-3, metadata={"help": "Adam learning rate"})
     adam_beta1: float = field(
         default=0.9,
@@ -143,6 +163,7 @@ class TrainConfig:
                     f"Training option --{name.replace('_', '-')} is {getattr(self, name)!r}.",
                     f"choose one of {', '.join(allowed)}.",
                 )
+        check_oversample(self.oversample)
         top = self.conditioning_top
         if top and (top < 8 or top & (top - 1)):
             raise ConfigError(

@@ -3,11 +3,13 @@
 Samples are read from their EXRs when needed (a background thread reads the next batch
 while the current one trains), so a dataset of any size trains in bounded memory.
 Targets: premultiplied albedo, mask, camera-space normals, and depth relative to the
-look-at joint in units of the dataset's `depth_scale` (below), 0 where empty.
+look-at joint in units of the dataset's `depth_scale` (below), 0 where empty. Batches are
+drawn uniformly (the paper) or, with --oversample, rare poses more often (`pose_rarity`).
 """
 
 from __future__ import annotations
 
+import sys
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -15,9 +17,12 @@ from typing import Any
 import numpy as np
 
 from rigspace.capture.dataset import DatasetError, read_manifest
+from rigspace.capture.ring import stage_axes
 from rigspace.sdk.conditioning import Skeleton2D, joints2d
 from rigspace.sdk.exr import read_exr
 from rigspace.sdk.render import Maps
+from rigspace.sdk.rotations import matrix_from_rot6d, rot6d_from_matrix
+from rigspace.train.config import check_oversample
 
 SPLITS = ("train", "heldout-views", "heldout-clips")
 
@@ -85,6 +90,23 @@ def targets_at(
 
 ITEM_COLUMNS = ["rig", "joint_camera"]
 """The params.npz columns a training item is made from (a shard sample's .npz holds them all)."""
+POSE_COLUMNS = ("clip", "time", "camera_to_world")
+"""The params.npz columns pose rarity needs besides the rig: which frame a row shows (its
+views share one pose) and the camera, to take the rig out of the camera's frame."""
+
+RARITY_NEIGHBOURS = 8
+"""k: a pose's rarity is its distance to the k-th nearest other frame. Larger than the few
+frames a slow clip lingers on, small next to a clip (300 frames): local density."""
+RARITY_RANGE = 10.0
+"""Rarity is clipped to [median / 10, median * 10]: a held pose (distance 0, the yoga hold)
+is still drawn, and no glitch frame takes a large share of the batches."""
+RARITY_REFERENCE = 4096
+"""Poses above this many are measured against a seeded subsample of this many (distances
+n x 4096, in blocks): the sample dataset's 1380 frames are measured exactly, in well under
+a second."""
+RARITY_DECIMALS = 4
+"""Rarity is rounded (to 1e-4 of the median) so that its value, and with it the batches of a
+resumed run, do not depend on how BLAS ordered a matrix product's sums."""
 
 
 class SplitInfo:
@@ -156,6 +178,8 @@ class SampleSet(SplitInfo):
             self.joint_depth = -table["joint_camera"][:, 2].astype(np.float32)
             self.columns = {c: table[c] for c in ITEM_COLUMNS}
         super().__init__(manifest, split, resolution)
+        self._rarity: np.ndarray | None = None
+        self._weights: dict[float, np.ndarray] = {}
 
     def __len__(self) -> int:
         return len(self.rows)
@@ -169,9 +193,143 @@ class SampleSet(SplitInfo):
     def batch(self, ks: np.ndarray) -> dict[str, np.ndarray]:
         return self.batch_of([self.item(int(k)) for k in ks])
 
+    def rarity(self) -> np.ndarray:
+        """Each sample's pose rarity (`pose_rarity` of its frame), computed once."""
+        if self._rarity is None:
+            with np.load(self.folder / "params.npz", allow_pickle=False) as table:
+                missing = [c for c in POSE_COLUMNS if c not in table.files]
+                columns = {c: table[c][self.rows] for c in POSE_COLUMNS if c in table.files}
+            if missing:
+                raise DatasetError(
+                    f"{self.folder / 'params.npz'} has no {', '.join(missing)} column, which "
+                    "--oversample needs to tell a sample's frame and camera.",
+                    f"re-capture the dataset with this rigspace (`rigspace capture "
+                    f"{self.manifest.get('scene', 'SCENE')} --out NEW_DIR`), or train with "
+                    "--oversample 0.",
+                )
+            keys = np.stack([columns["clip"].astype(np.float64), columns["time"]], axis=1)
+            _, first, frame_of = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+            up = stage_axes(str(self.manifest.get("up_axis", "Y")))[0]
+            rows = self.rows[first]
+            features = pose_features(self.rig[rows], columns["camera_to_world"][first], up)
+            self._rarity = pose_rarity(features)[frame_of.reshape(-1)]
+        return self._rarity
 
-def batch_indices(n: int, batch: int, step: int, seed: int) -> np.ndarray:
-    """The sample indices of a step: epochs of seeded permutations, a pure function of step.
+    def sampling_weights(self, oversample: float, announce: bool = False) -> np.ndarray:
+        """Probabilities of drawing each sample, proportional to rarity ** oversample.
+
+        `announce` prints, the first time, one line saying how much the rarest tenth of the
+        poses is drawn more often than under uniform sampling (rank 0 of a run).
+        """
+        check_oversample(oversample)
+        if oversample not in self._weights:
+            rarity = self.rarity()
+            weights = rarity**oversample
+            weights = weights / weights.sum()
+            self._weights[oversample] = weights
+            if announce:
+                print(
+                    f"rigspace train: {upweighting(rarity, weights, oversample)}", file=sys.stderr
+                )
+        return self._weights[oversample]
+
+
+def pose_features(rig: np.ndarray, camera_to_world: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """(n, J*6) rig rows -> (n, (J-1)*6 + 3): the pose, independent of camera and heading.
+
+    A rig row holds each joint's world rotation in its camera's frame, so one frame's views
+    differ, and a walk that turns round (the sample's does) would look like new poses at
+    every heading. The feature keeps what the images depend on beyond the ring's azimuth:
+    every joint's rotation relative to the root (joint 0, first in skeleton order), in 6D,
+    and the stage's up axis in the root's frame (its tilt: upside down in a cartwheel). Both
+    are unchanged by any rotation about the up axis, the camera's included.
+    """
+    rotation = matrix_from_rot6d(rig.reshape(len(rig), -1, 6))  # (n, J, 3, 3) camera frame
+    root_t = np.swapaxes(rotation[:, :1], -1, -2)  # (n, 1, 3, 3): camera -> root frame
+    posture = rot6d_from_matrix(root_t @ rotation[:, 1:]).reshape(len(rig), -1)
+    up_camera = np.swapaxes(camera_to_world[:, :3, :3], -1, -2) @ up  # (n, 3)
+    tilt = (root_t[:, 0] @ up_camera[..., None])[..., 0]
+    return np.concatenate([posture, tilt], axis=1)
+
+
+def pose_rarity(
+    features: np.ndarray,
+    neighbours: int = RARITY_NEIGHBOURS,
+    reference: int = RARITY_REFERENCE,
+) -> np.ndarray:
+    """Each pose's distance to its k-th nearest other pose, over the median, clipped.
+
+    The k-nearest-neighbour distance is the simplest density estimate that needs no choice
+    of clusters or bandwidth and is deterministic: a clip is a curve in pose space, so a
+    pose's distance to its k-th neighbour grows as 1 / (frames per unit of pose change).
+    A walk cycle repeated ten times or a held yoga pose is dense; a cartwheel, passed once
+    and fast, is sparse. Rarity ** 1 is then about even sampling along the curves. Over
+    `reference` poses, distances go to a seeded subsample of that many (a coarser scale,
+    the same ranking). Returns values in [1 / RARITY_RANGE, RARITY_RANGE], median 1.
+    """
+    x = np.asarray(features, dtype=np.float64)
+    n = len(x)
+    chosen = np.arange(n)
+    if n > reference:
+        chosen = np.sort(np.random.default_rng(0).choice(n, reference, replace=False))
+    k = min(neighbours, len(chosen) - 1)
+    if k < 1:
+        return np.ones(n)
+    ref = x[chosen]
+    ref_sq = np.einsum("ij,ij->i", ref, ref)
+    position = np.full(n, -1)
+    position[chosen] = np.arange(len(chosen))
+    distance = np.empty(n)
+    for start in range(0, n, 256):  # blocks of 256 x reference distances: bounded memory
+        block = x[start : start + 256]
+        d2 = np.einsum("ij,ij->i", block, block)[:, None] + ref_sq[None] - 2 * block @ ref.T
+        own = position[start : start + 256]
+        mine = np.flatnonzero(own >= 0)
+        d2[mine, own[mine]] = np.inf  # not a neighbour of itself
+        kth = np.partition(d2, k - 1, axis=1)[:, k - 1]
+        distance[start : start + 256] = np.sqrt(np.maximum(kth, 0.0))
+    scale = np.median(distance)
+    if not scale > 0:  # most poses held still: measure against the mean instead
+        scale = distance.mean()
+    if not scale > 0:  # one pose throughout: nothing is rarer than anything else
+        return np.ones(n)
+    rarity = np.clip(distance / scale, 1 / RARITY_RANGE, RARITY_RANGE)
+    return np.round(rarity, RARITY_DECIMALS)
+
+
+def upweighting(rarity: np.ndarray, weights: np.ndarray, oversample: float) -> str:
+    """One line: how much more often the rarest tenth of the samples is drawn than uniformly."""
+    order = np.argsort(rarity, kind="stable")
+    tenth = max(1, len(order) // 10)
+    rare = float(weights[order[-tenth:]].mean() * len(weights))
+    common = float(weights[order[:tenth]].mean() * len(weights))
+    return (
+        f"--oversample {oversample:g}: the rarest tenth of the poses is drawn {rare:.2f}x as "
+        f"often as under uniform sampling, the commonest tenth {common:.2f}x"
+    )
+
+
+def epoch_order(n: int, epoch: int, seed: int, weights: np.ndarray | None = None) -> np.ndarray:
+    """The n sample indices of an epoch, a pure function of (seed, epoch, weights).
+
+    Uniform (no weights): a permutation, every sample once. Weighted: systematic resampling
+    in a shuffled order, so each sample is drawn floor or ceil of n * weight times (its
+    expectation, with the least variance) and no sample's turn depends on its neighbours in
+    dataset order; then shuffled.
+    """
+    rng = np.random.default_rng([seed, epoch])
+    if weights is None:
+        return rng.permutation(n)
+    shuffled = rng.permutation(n)
+    edges = np.cumsum(weights[shuffled]) * (n / weights.sum())
+    picks = np.searchsorted(edges, rng.random() + np.arange(n), side="right")
+    return rng.permutation(shuffled[np.minimum(picks, n - 1)])
+
+
+def batch_indices(
+    n: int, batch: int, step: int, seed: int, weights: np.ndarray | None = None
+) -> np.ndarray:
+    """The sample indices of a step: epochs of `epoch_order`, a pure function of step.
 
     Resuming at step s therefore continues exactly where an uninterrupted run would be.
     """
@@ -180,7 +338,7 @@ def batch_indices(n: int, batch: int, step: int, seed: int) -> np.ndarray:
     filled = 0
     while filled < batch:
         epoch, offset = divmod(start + filled, n)
-        perm = np.random.default_rng([seed, epoch]).permutation(n)
+        perm = epoch_order(n, epoch, seed, weights)
         take = min(batch - filled, n - offset)
         out[filled : filled + take] = perm[offset : offset + take]
         filled += take
@@ -188,21 +346,35 @@ def batch_indices(n: int, batch: int, step: int, seed: int) -> np.ndarray:
 
 
 class Prefetcher:
-    """Reads the batch of step s + 1 on a background thread while step s trains."""
+    """Reads the batch of step s + 1 on a background thread while step s trains.
+
+    `oversample` > 0 draws rare poses more often (SampleSet.sampling_weights); 0 is the
+    paper's uniform sampling.
+    """
 
     def __init__(
-        self, samples: SampleSet, batch: int, seed: int, rank: int = 0, world: int = 1
+        self,
+        samples: SampleSet,
+        batch: int,
+        seed: int,
+        rank: int = 0,
+        world: int = 1,
+        oversample: float = 0.0,
     ) -> None:
         self.samples, self.batch, self.seed = samples, batch, seed
         # Under torch.distributed `batch` is the global batch and each rank reads its slice:
         # the global batch of a step is the same whatever the world size (exact resume).
         self.rank, self.world = rank, world
+        check_oversample(oversample)
+        # oversample 0 keeps the uniform permutations exactly (runs from before resume as
+        # they were); every rank computes the same weights, so the global batch is shared.
+        self.weights = samples.sampling_weights(oversample, rank == 0) if oversample else None
         self._pool = ThreadPoolExecutor(max_workers=1)
         self._pending: dict[int, Future] = {}
 
     def _submit(self, step: int) -> None:
         if step not in self._pending:
-            ks = batch_indices(len(self.samples), self.batch, step, self.seed)
+            ks = batch_indices(len(self.samples), self.batch, step, self.seed, self.weights)
             ks = np.array_split(ks, self.world)[self.rank]
             self._pending[step] = self._pool.submit(self.samples.batch, ks)
 

@@ -248,7 +248,7 @@ def measure_step_seconds(
     probe = copy.deepcopy(model)
     optimizer = make_optimizer(probe, config)
     rng = torch.get_rng_state()
-    prefetch = prefetcher(samples, config.batch, config.seed)
+    prefetch = prefetcher(samples, config.batch, config.seed, oversample=config.oversample)
     seconds: dict[int, float] = {}
     step = 0
     try:
@@ -333,7 +333,9 @@ def train(
     total = config.total_steps() if steps is None else min(steps, config.total_steps())
     deadline = began + 60 * minutes if minutes else math.inf
     net = ctx.wrap(model)  # DDP under torchrun: gradients averaged over the ranks
-    prefetch = prefetcher(samples, config.batch, config.seed, ctx.rank, ctx.world)
+    prefetch = prefetcher(
+        samples, config.batch, config.seed, ctx.rank, ctx.world, config.oversample
+    )
     log = (out / "log.jsonl").open("a") if ctx.is_main else open(os.devnull, "w")
     bar = tqdm(
         initial=start,

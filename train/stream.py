@@ -294,16 +294,29 @@ def open_split(folder: str | Path, split: str, resolution: int | None) -> Sample
 
 
 def prefetcher(
-    samples: SampleSet | ShardSet, batch: int, seed: int, rank: int = 0, world: int = 1
+    samples: SampleSet | ShardSet,
+    batch: int,
+    seed: int,
+    rank: int = 0,
+    world: int = 1,
+    oversample: float = 0.0,
 ) -> Prefetcher | StreamPrefetcher:
     """The batches of a training run: `batch` is the global batch; rank `rank` of `world`
     gets batch // world of them (a slice of the global batch from a dataset folder, its own
-    stream from shards)."""
+    stream from shards). `oversample` > 0 draws rare poses more often (dataset folders only:
+    a stream reads its shards in order and cannot pick samples by weight)."""
     if world > 1 and batch % world:
         raise DatasetError(
             f"--batch {batch} does not split evenly over {world} ranks.",
             f"pass a multiple of {world} (the global batch; each rank takes batch / {world}).",
         )
     if isinstance(samples, ShardSet):
+        if oversample:
+            raise DatasetError(
+                f"--oversample {oversample:g} needs a dataset folder, but {samples.folder} is "
+                "a shards folder, read as a stream in shard order (no sample is picked by "
+                "weight).",
+                "train on the dataset folder the shards were packed from, or pass --oversample 0.",
+            )
         return StreamPrefetcher(ShardStream(samples, seed, rank, world), batch // world)
-    return Prefetcher(samples, batch, seed, rank, world)
+    return Prefetcher(samples, batch, seed, rank, world, oversample)
