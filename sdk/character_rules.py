@@ -356,8 +356,8 @@ def _check_graphs(folder: Path, _stamp: tuple) -> str | None:
         model = BundleModel(folder)
         raw = model.manifest.raw
         sets = [raw["trunk"], *raw["levels"]]
-        graphs = sorted(
-            {g for s in sets for key in ("graphs", "int8") for g in s.get(key, {}).values()}
+        graphs = sorted(  # an fp32-only bundle (--no-int8) records its trunk's int8 as null
+            {g for s in sets for key in ("graphs", "int8") for g in s.get(key, {}).values() if g}
         )
         records = raw.get("files", {})
         load = {raw["trunk"]["graphs"]["trunk"]}

@@ -134,6 +134,27 @@ def test_a_damaged_graph_is_a_bundle_error_naming_the_file(tmp_path):
         validation.require_valid(open_stage(scene), "render")
 
 
+def test_an_fp32_only_bundle_is_valid(tmp_path):
+    """A bundle exported with --no-int8 records its trunk's int8 graph as null: not an error."""
+
+    def fp32_only(stage, folder):
+        bundle = _bundle_copy(stage, folder)
+        manifest = json.loads((bundle / "manifest.json").read_text())
+        manifest["trunk"]["int8"] = {"trunk": None}
+        for level in manifest["levels"]:
+            level["int8"] = {}
+        manifest.pop("int8_check", None)
+        for name in [n for n in manifest["files"] if ".int8." in n]:
+            del manifest["files"][name]
+            (bundle / name).unlink()
+        (bundle / "manifest.json").write_text(json.dumps(manifest, indent=2))
+
+    stage = open_stage(broken_previs(tmp_path, fp32_only))
+    ours = [f for f in validation.validate(stage) if f.validator.startswith("rigspace:")]
+    assert not [f for f in ours if f.severity == "error"], [f.message for f in ours]
+    validation.require_valid(stage, "render")
+
+
 def test_inspect_says_which_commands_each_error_stops(tmp_path, capsys):
     scene = broken_previs(tmp_path, ring_resolution)
     assert main(["inspect", str(scene)]) == 1
