@@ -277,6 +277,22 @@ def measure_step_seconds(
     return seconds
 
 
+def logged_seconds(log: Path, step: int) -> float:
+    """The training seconds a run's log records at `step` (0 for logs from before the field,
+    or without that step): where a resumed run's clock continues."""
+    seconds = 0.0
+    if log.is_file():
+        with log.open() as lines:
+            for line in lines:
+                try:
+                    record = json.loads(line)
+                except json.JSONDecodeError:  # a line cut by a kill: the rest still counts
+                    continue
+                if record.get("step") == step and "seconds" in record:
+                    seconds = float(record["seconds"])
+    return seconds
+
+
 def train(
     dataset: str | Path,
     out: str | Path,
@@ -346,6 +362,9 @@ def train(
         dynamic_ncols=True,
     )
     step, stopped, last_loss, t0 = start, "done", math.nan, time.monotonic()
+    # Wall seconds of training, summed over resumed calls: the x axis of quality against
+    # training time (python -m rigspace.train.curve).
+    seconds_before = logged_seconds(out / "log.jsonl", start) if start else 0.0
     last_good = checkpoint_path if checkpoint_path.exists() else None
     planned = plan.to_json() if plan is not None else (existing or {}).get("plan") or {}
     pace = None
@@ -408,6 +427,7 @@ def train(
                 **terms,
                 "alpha": where.alpha,
                 "resolution": where.resolution,
+                "seconds": round(seconds_before + elapsed, 2),
             }
             if ctx.is_main and (step % config.eval_every == 0 or step == total):
                 record["heldout"] = _preview(
@@ -446,13 +466,16 @@ def train(
     )
 
 
-def build_model(run_folder: Path) -> tuple[Rig2Image, dict[str, Any], int]:
-    """The trained model of a run folder, its run.json, and the step it reached."""
+def build_model(
+    run_folder: Path, checkpoint: Path | None = None
+) -> tuple[Rig2Image, dict[str, Any], int]:
+    """The trained model of a run folder (or of another `checkpoint` of the run, one kept
+    while it trained), its run.json, and the step it reached."""
     run = json.loads((run_folder / RUN_FILE).read_text())
     config = TrainConfig.from_json(run["config"])
     shape = Shape(len(run["joints"]), parents=parents_of(run["joints"]))
     model = Rig2Image(shape, replace(config, channels_last=False))
-    state = load_checkpoint(run_folder / CHECKPOINT)
+    state = load_checkpoint(checkpoint or run_folder / CHECKPOINT)
     try:
         model.load_state_dict(state["model"])
     except RuntimeError as exc:

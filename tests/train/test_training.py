@@ -88,6 +88,13 @@ def test_resume_continues_exactly(tmp_path, tiny_dataset):
     b = torch.load(tmp_path / "b" / loop.CHECKPOINT, weights_only=True)["model"]
     for key in a:
         assert torch.allclose(a[key], b[key], atol=1e-6), key
+    # The log's training clock continues across the resume (quality against training time).
+    records = [
+        json.loads(line) for line in (tmp_path / "b" / "log.jsonl").read_text().split("\n")[:-1]
+    ]
+    seconds = [r["seconds"] for r in records if "loss" in r]
+    assert len(seconds) == straight.step and seconds[25] >= seconds[24] > 0
+    assert seconds == sorted(seconds)
 
 
 def test_a_nan_loss_stops_with_the_step_and_the_checkpoint(tmp_path, tiny_dataset, monkeypatch):
