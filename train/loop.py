@@ -348,6 +348,11 @@ def train(
         start = int(state["step"])
     total = config.total_steps() if steps is None else min(steps, config.total_steps())
     deadline = began + 60 * minutes if minutes else math.inf
+    # A time budget is the user's "train the best model in M minutes": when the planned steps
+    # finish early (the probe ran on a busier machine), the final level trains on until the
+    # budget ends instead of leaving it unused (also after --resume of a finished run).
+    budgeted = bool(minutes) and steps is None
+    said_extended = False
     net = ctx.wrap(model)  # DDP under torchrun: gradients averaged over the ranks
     prefetch = prefetcher(
         samples, config.batch, config.seed, ctx.rank, ctx.world, config.oversample
@@ -374,11 +379,20 @@ def train(
     trained = 0  # optimizer steps in this call (a slow run's pace skips some steps)
     reported_reach = False
     try:
-        while step < total:
+        while step < total or budgeted:
             now = time.monotonic()
             if ctx.agree(now > deadline):  # rank 0's clock decides for every rank
                 stopped = "time budget"
                 break
+            if step >= total and not said_extended:
+                said_extended = True
+                bar.total = None  # steps past the plan: a count and a rate, no ETA
+                tqdm.write(
+                    f"rigspace train: the planned {total} steps are done with "
+                    f"{(deadline - now) / 60:.1f} min of the budget left: the final level "
+                    f"({config.resolution}x{config.resolution}) trains on until it ends",
+                    file=sys.stderr,
+                )
             ahead = ctx.agree(pace.next_step(step, now) if pace is not None else step)
             if pace is not None and pace.out_of_reach and not reported_reach:
                 reported_reach = True

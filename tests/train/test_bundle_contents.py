@@ -126,7 +126,8 @@ def test_a_time_budget_plans_the_schedule_before_training(tmp_path, tiny_dataset
         assert (
             planned * sum(plan["seconds_per_step"].values()) <= PLAN_SHARE * plan["budget_seconds"]
         )
-    assert result.step <= 2 * planned
+    # Past the plan only when it finished early: then the final level used the rest.
+    assert result.step <= 2 * planned or "trains on until it ends" in err
     trained = trained_levels(replace(config, steps_per_level=planned), result.step)
     if not trained:  # a machine so loaded that the probe took the budget
         with pytest.raises(loop.TrainingError, match="trained no level"):
@@ -138,6 +139,25 @@ def test_a_time_budget_plans_the_schedule_before_training(tmp_path, tiny_dataset
         tiny_dataset, model / "training", config, steps=result.step, resume=True, progress=False
     )
     assert again.step == result.step
+
+
+def test_a_budget_left_over_trains_the_final_level_on(tmp_path, tiny_dataset, capsys):
+    """The tiny preset's 40 steps take a second or two; a 9-second budget is not left unused:
+    the final level trains on (alpha 1) until it ends, and so does a resumed finished run."""
+    run = tmp_path / "model" / "training"
+    result = loop.train(tiny_dataset, run, TINY, minutes=0.15, progress=False)
+    assert result.stopped == "time budget" and result.step > TINY.total_steps()
+    assert "the final level (32x32) trains on until it ends" in capsys.readouterr().err
+    assert trained_levels(TINY, result.step) == [16, 32]
+    records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    extra = [r for r in records if r.get("step", 0) > TINY.total_steps() and "loss" in r]
+    assert extra and all(r["resolution"] == 32 and r["alpha"] == 1.0 for r in extra)
+    assert torch.load(run / loop.CHECKPOINT, weights_only=True)["step"] == result.step
+    again = loop.train(tiny_dataset, run, TINY, minutes=0.05, resume=True, progress=False)
+    assert again.stopped == "time budget" and again.step > result.step
+    # A step budget is exact: no extension.
+    fixed = loop.train(tiny_dataset, tmp_path / "fixed", TINY, steps=40, progress=False)
+    assert fixed.step == 40
 
 
 def _train_args(dataset: Path, out: Path, *extra: str) -> list[str]:
