@@ -12,9 +12,9 @@ compute (tests/train/test_conditioning.py: within 1e-5). Only checkpoints whose 
 has faded in count (a level still fading in is not the trained network).
 
 The x axis is training wall time: the `seconds` the run's log records at the checkpoint's
-step (train.loop), or, for a log from before that field, `--clock`, a file of
-`unix_time step` lines sampled while the run trained (its first line the run's start,
-step 0), interpolated. Writes a PNG (albedo PSNR and mask IoU against minutes, the
+step (train.loop), or `--clock`, a file of `unix_time step` lines sampled while the run
+trained (its first line the run's start, step 0), interpolated: for a log from before that
+field, or a run continued by a process that logs it. Writes a PNG (albedo PSNR and mask IoU against minutes, the
 aims as lines) and prints a Markdown table and, from the last points' slope against
 log(minutes), the minutes the held-out albedo PSNR would need to reach `--target-psnr` at
 that rate: an extrapolation, printed as one.
@@ -102,7 +102,9 @@ def sampled_clock(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def minutes_at(step: int, clock: dict[int, float], sampled) -> float:
-    if step in clock:
+    """Training minutes at `step`: from the sampled clock when given (it spans every call
+    of a run), else from the log."""
+    if sampled is None and step in clock:
         return clock[step] / 60
     if sampled is None:
         raise SystemExit(
@@ -132,7 +134,8 @@ def measure(
     scale = depth_scale(manifest)
     splits = [s for s in SPLITS if manifest["counts"].get(s, 0)]  # a capture may lack clips
     steps = {path: int(load_checkpoint(path)["step"]) for path in checkpoints}
-    kept = sorted((s, p) for p, s in steps.items() if s >= first_trained)
+    by_step = {s: p for p, s in sorted(steps.items()) if s >= first_trained}  # copies: once
+    kept = sorted(by_step.items())
     points = []
     for step, path in tqdm(kept, unit="checkpoint", file=sys.stderr):
         model, _, _ = build_model(folder, path)
