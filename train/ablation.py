@@ -8,7 +8,8 @@ CPU, minutes are not a fair budget), is exported (fp32 graphs) and evaluated thr
 rigspace.train.evaluate on the same evenly spaced held-out views and held-out-clip samples,
 against targets box-downsampled to the model's resolution, as training sees them. Results go
 to DIR/<variant>/result.json as each variant finishes; a re-run skips finished variants and
-resumes an interrupted one. DIR/ablation.md (the table) and DIR/ablation_curve.png (held-out
+resumes an interrupted one. DIR/ablation.md (the table), DIR/ablation_cost.png (quality
+against MFLOP) and DIR/ablation_curve.png (held-out
 quality against steps) are rewritten after every variant.
 """
 
@@ -88,6 +89,28 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
             "conditioning_mode": "add",
             "conditioning_top": 32,
             "oversample": 1.0,
+        },
+    ),
+    # Width, on the conditioned form: what more (or fewer) FLOPs buy at the same steps.
+    "bones2d-add32+bce-base64": (
+        "bones2d-add32+bce with half the channels at every level (base width 64)",
+        {
+            "conditioning": "bones2d",
+            "mask_loss": "bce",
+            "conditioning_mode": "add",
+            "conditioning_top": 32,
+            "base_width": 64,
+            "min_width": 8,
+        },
+    ),
+    "bones2d-add32+bce-width32": (
+        "bones2d-add32+bce with 32 channels at 32x32 and 64x64 (min width 32)",
+        {
+            "conditioning": "bones2d",
+            "mask_loss": "bce",
+            "conditioning_mode": "add",
+            "conditioning_top": 32,
+            "min_width": 32,
         },
     ),
     # The same variants from another seed: how much of a difference is the seed's.
@@ -429,7 +452,47 @@ def report(out: Path) -> list[dict[str, Any]]:
     (out / "ablation.md").write_text(table_markdown(records))
     if records:
         plot_curves(records, out / "ablation_curve.png")
+        plot_cost(records, out / "ablation_cost.png")
     return records
+
+
+def plot_cost(records: list[dict[str, Any]], path: Path) -> None:
+    """Held-out-view albedo PSNR and mask IoU against MFLOP per evaluation, one labelled
+    point per variant: what more (or fewer) FLOPs buy at the same steps."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
+    for ax, key, label in (
+        (axes[0], "albedo_psnr", "held-out-view albedo PSNR (dB)"),
+        (axes[1], "mask_iou", "held-out-view mask IoU"),
+    ):
+        for r in records:
+            value = r["metrics"]["heldout-views"].get(key)
+            if value is None or not math.isfinite(value):
+                continue
+            ax.scatter(r["mflop"], value, color="tab:blue" if "bones2d" in r["variant"] else "0.5")
+            ax.annotate(
+                r["variant"],
+                (r["mflop"], value),
+                fontsize=6,
+                xytext=(3, 2),
+                textcoords="offset points",
+            )
+        ax.set_xlabel("MFLOP per evaluation (both branches, final level)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    size = records[0]["config"]["resolution"]
+    fig.suptitle(
+        f"Ablation at {size}x{size}: quality against cost, same steps per variant "
+        "(blue: pose-conditioned)"
+    )
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 def main(argv: list[str] | None = None) -> int:
