@@ -191,12 +191,13 @@ def test_the_sample_models_int8_stays_within_its_tolerance_on_fixed_previs_sampl
     manifest = json.loads((model_dir / "manifest.json").read_text())
     assert all(g["ok"] for g in manifest["int8_check"]["graphs"].values())
     assert int8.int8_offered == manifest["int8_check"]["offered_levels"]
-    features = fp32.features(rig)
+    j2d = fp32.joints2d(rig)  # a pose-conditioned model's second input (None otherwise)
+    features = fp32.features(rig, j2d)
     for resolution in (16, 32, 64, 128):
-        reference = {**fp32.branch(features, "albedo", resolution)}
-        reference.update(fp32.branch(features, "geometry", resolution))
-        quantised = {**int8.branch(features, "albedo", resolution)}
-        quantised.update(int8.branch(features, "geometry", resolution))
+        reference = {**fp32.branch(features, "albedo", resolution, j2d)}
+        reference.update(fp32.branch(features, "geometry", resolution, j2d))
+        quantised = {**int8.branch(features, "albedo", resolution, j2d)}
+        quantised.update(int8.branch(features, "geometry", resolution, j2d))
         metrics = drift(reference, quantised)
         for key, limit in SAMPLE_TOLERANCE.items():
             if metrics[key] is None:  # under 256 covered pixels: not judged (int8check)
