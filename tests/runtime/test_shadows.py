@@ -952,9 +952,12 @@ def test_the_character_layer_blended_matches_every_pixel_evaluated_by_numpy(tmp_
             # the ground itself, the kernels lit (the ground casts onto nothing, it has no
             # region); the ground hides those pixels in the frame (the beauty matches in
             # test_the_compiled_shadow_passes_match_numpy_on_previs_frames). Under the
-            # roof's edge: 1 pixel over 2/255 of 1,638 shadowed, at most 0.01.
-            assert (gap > 2 / 255).sum() <= 25
-            assert gap.max() < 0.15
-            assert gap.mean() < 5e-5
+            # roof's edge: 1 pixel over 2/255 of 1,638 shadowed, at most 0.01. With the
+            # pose-conditioned sample model (2026-11-25; its depth is 1.5 % of the height off,
+            # against 1.3 %): 31 pixels over 2/255 for one light of one frame, all in the
+            # layer's rows 126-170 of 172 (the legs at the ground), up to 0.32, mean 6.1e-5.
+            assert (gap > 2 / 255).sum() <= 40
+            assert gap.max() < 0.35
+            assert gap.mean() < 8e-5
             shadowed += int((b < 0.99).sum())
     assert shadowed > 500  # the roof's shadow (and the crate's) fall on the character
