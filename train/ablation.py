@@ -339,6 +339,16 @@ def table_markdown(records: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def save_figure(fig, path: Path) -> None:
+    """Lay a matplotlib figure out, write it as a PNG at `path` (folders made), close it."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def plot_curves(records: list[dict[str, Any]], path: Path) -> None:
     """Held-out preview albedo PSNR and mask IoU against steps, one line per variant."""
     import matplotlib
@@ -368,10 +378,7 @@ def plot_curves(records: list[dict[str, Any]], path: Path) -> None:
         f"Ablation at {size}x{size}, same steps per variant (4 held-out views per point, "
         "at the level being trained)"
     )
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def retime(out: Path, dataset: Path, rounds: int = 5) -> dict[str, float]:
@@ -489,10 +496,7 @@ def plot_cost(records: list[dict[str, Any]], path: Path) -> None:
         f"Ablation at {size}x{size}: quality against cost, same steps per variant "
         "(blue: pose-conditioned)"
     )
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main(argv: list[str] | None = None) -> int:

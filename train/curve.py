@@ -35,6 +35,7 @@ import torch
 from rigspace.capture.dataset import read_manifest
 from rigspace.sdk.conditioning import joints2d
 from rigspace.sdk.render import Maps
+from rigspace.train.ablation import save_figure
 from rigspace.train.budget import fade_steps
 from rigspace.train.conditioning import dataset_skeleton
 from rigspace.train.config import TrainConfig
@@ -202,10 +203,7 @@ def plot(points: list[dict[str, Any]], path: Path, title: str) -> None:
         ax.grid(alpha=0.3)
     axes[1].legend(fontsize=8)
     fig.suptitle(title)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main(argv: list[str] | None = None) -> int:
