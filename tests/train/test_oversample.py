@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 import math
 from dataclasses import replace
@@ -284,18 +283,8 @@ def test_datasets_without_the_pose_columns_and_shards_are_refused(tmp_path, tiny
         shards.close()
 
 
-def loop_passes_oversample() -> bool:
-    """Whether train/loop.py hands config.oversample to its prefetcher (see the issue 12
-    report: a one-line change to the loop, which this test then covers end to end)."""
-    from rigspace.train import loop
-
-    return "config.oversample" in inspect.getsource(loop.train)
-
-
 def test_a_tiny_oversampled_run_trains_and_exports(tmp_path, tiny_dataset, capfd):
     pytest.importorskip("torch", reason="training needs the train extra (torch)")
-    if not loop_passes_oversample():
-        pytest.skip("train/loop.py does not pass config.oversample to prefetcher() yet")
     from rigspace.sdk.model import BundleModel
     from rigspace.train import loop
     from rigspace.train.export import export_bundle
