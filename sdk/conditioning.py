@@ -89,6 +89,12 @@ class Skeleton2D:
         }
 
     @classmethod
+    def of_bundle(cls, manifest: dict[str, Any]) -> Skeleton2D | None:
+        """A bundle manifest's `conditioning.skeleton`; None for an unconditioned bundle."""
+        conditioning = manifest.get("conditioning")
+        return cls.from_json(conditioning["skeleton"]) if conditioning else None
+
+    @classmethod
     def from_json(cls, data: dict[str, Any]) -> Skeleton2D:
         return cls(
             np.asarray(data["parents"], dtype=np.int64),

@@ -84,8 +84,7 @@ class BundleModel:
         self.albedo_has_alpha = self.manifest.format_version >= 2
         """Whether the albedo branch alone gives coverage (lets unlit frames skip geometry)."""
         self.joints = list(self.manifest.joints)
-        conditioning = raw.get("conditioning")
-        self.skeleton = Skeleton2D.from_json(conditioning["skeleton"]) if conditioning else None
+        self.skeleton = Skeleton2D.of_bundle(raw)
         """The skeleton a pose-conditioned bundle projects (None: the rig is the only input)."""
 
     def _checked(self, int8: str, fp32: str) -> str:

@@ -36,7 +36,7 @@ from rigspace.capture.dataset import read_manifest
 from rigspace.sdk.conditioning import joints2d
 from rigspace.sdk.render import Maps
 from rigspace.train.ablation import save_figure
-from rigspace.train.budget import fade_steps
+from rigspace.train.budget import trained_levels
 from rigspace.train.conditioning import dataset_skeleton
 from rigspace.train.config import TrainConfig
 from rigspace.train.data import depth_scale
@@ -126,7 +126,6 @@ def measure(
     folder = run_folder(model_dir)
     run = json.loads((folder / "run.json").read_text())
     config = TrainConfig.from_json(run["config"])
-    first_trained = (len(config.levels()) - 1) * config.steps_per_level + fade_steps(config)
     clock = logged_clock(folder / "log.jsonl")
     sampled = sampled_clock(clock_file) if clock_file else None
     table = DatasetTable(dataset, config.resolution)
@@ -135,7 +134,9 @@ def measure(
     scale = depth_scale(manifest)
     splits = [s for s in SPLITS if manifest["counts"].get(s, 0)]  # a capture may lack clips
     steps = {path: int(load_checkpoint(path)["step"]) for path in checkpoints}
-    by_step = {s: p for p, s in sorted(steps.items()) if s >= first_trained}  # copies: once
+    by_step = {  # copies of one checkpoint: once; the final level faded in (train.budget)
+        s: p for p, s in sorted(steps.items()) if config.resolution in trained_levels(config, s)
+    }
     kept = sorted(by_step.items())
     points = []
     for step, path in tqdm(kept, unit="checkpoint", file=sys.stderr):

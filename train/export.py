@@ -53,6 +53,7 @@ from rigspace.train.data import SampleSet, depth_scale
 from rigspace.train.int8check import TOLERANCES, check_int8, rig_feeds
 from rigspace.train.loop import CHECKPOINT, RUN_FILE, TrainingError, build_model
 from rigspace.train.network import Rig2Image
+from rigspace.train.quantize import int8_name
 
 OPSET = 17
 CALIBRATION_SAMPLES = 128
@@ -251,7 +252,7 @@ def export_bundle(
         names = {"fp32": f"{stem}.onnx"}
         export_graph(model, branch, resolution, out / names["fp32"])
         if int8:
-            names["int8"] = f"{stem}.int8.onnx"
+            names["int8"] = int8_name(names["fp32"])
             quantize_int8(out / names["fp32"], out / names["int8"], INPUTS[branch], calibration)
         written.extend(names.values())
         return names

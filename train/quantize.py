@@ -281,7 +281,7 @@ def requantize_bundle(bundle: Path, dataset: Path, rows: int = 128) -> dict[str,
     manifest = _read_manifest(bundle)
     train = SampleSet(dataset, "train")
     picks = np.unique(np.linspace(0, len(train) - 1, min(rows, len(train))).astype(int))
-    inputs = rig_feeds(train.rig[train.rows[picks]], bundle_skeleton(manifest))
+    inputs = rig_feeds(train.rig[train.rows[picks]], Skeleton2D.of_bundle(manifest))
     trunk = manifest["trunk"]["graphs"]["trunk"]
     features = named_outputs(session(bundle / trunk), inputs)["features"]
     int8 = manifest["trunk"].setdefault("int8", {})
@@ -300,13 +300,6 @@ def requantize_bundle(bundle: Path, dataset: Path, rows: int = 128) -> dict[str,
 def int8_name(fp32: str) -> str:
     """The int8 variant's file name of an fp32 graph (train.export's naming)."""
     return f"{fp32.removesuffix('.onnx')}.int8.onnx"
-
-
-def bundle_skeleton(manifest: dict[str, Any]) -> Skeleton2D | None:
-    """A pose-conditioned bundle's skeleton (manifest conditioning.skeleton, what
-    rigspace.sdk.model.BundleModel projects); None for an unconditioned bundle."""
-    conditioning = manifest.get("conditioning")
-    return Skeleton2D.from_json(conditioning["skeleton"]) if conditioning else None
 
 
 def _read_manifest(bundle: Path) -> dict[str, Any]:
@@ -355,7 +348,7 @@ def recheck_bundle(bundle: Path, dataset: Path, limit: int = 200) -> dict[str, A
     check_rig = held.rig[held.rows[picks]]
     entry = {"fp32": trunk, "int8": trunk_int8}
     graphs = check_int8(
-        bundle, entry, manifest["levels"], check_rig, skeleton=bundle_skeleton(manifest)
+        bundle, entry, manifest["levels"], check_rig, skeleton=Skeleton2D.of_bundle(manifest)
     )
     levels = level_table(bundle, dataset, split, limit)
     ok = all(g["ok"] for g in graphs.values())
