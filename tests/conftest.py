@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import random
+import socket
 from pathlib import Path
 
 import pytest
@@ -12,6 +14,37 @@ import rigspace.sdk  # noqa: F401  (registers the schemas before any stage is op
 REPO = Path(__file__).resolve().parents[1]
 SHARED_ASSETS = REPO.parent / "shared" / "assets"
 CESIUM_MAN = REPO / "samples" / "assets" / "CesiumMan" / "CesiumMan.usdz"
+
+
+def _ephemeral_low() -> int:
+    try:
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
+def free_port(kind: int = socket.SOCK_DGRAM) -> int:
+    """A port on 127.0.0.1 that nothing holds now (UDP and TCP), chosen below the kernel's
+    ephemeral range.
+
+    A port from bind(0) lies in the ephemeral range, where any process's outgoing socket (a DNS
+    lookup, another test run on the same machine) can take it between this call and the
+    receiver's own bind: CI lost `test_probe_reports_a_vmc_sender` that way. Below the range only
+    deliberate listeners collide, and a random pick makes two runs' picks unlikely to meet.
+    """
+    low = max(_ephemeral_low(), 12000)
+    chooser = random.SystemRandom()
+    for _ in range(200):
+        port = chooser.randrange(10000, low)
+        try:
+            for k in (socket.SOCK_DGRAM, socket.SOCK_STREAM):
+                with socket.socket(socket.AF_INET, k) as s:
+                    s.bind(("127.0.0.1", port))
+        except OSError:
+            continue
+        return port
+    raise RuntimeError(f"no free {kind} port on 127.0.0.1 below {low} after 200 tries")
+
 
 TINY_JOINTS = ["hips", "hips/spine", "hips/spine/head", "hips/leg_l", "hips/leg_r"]
 

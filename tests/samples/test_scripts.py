@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import socket
 import subprocess
 import sys
 
@@ -11,7 +10,7 @@ import numpy as np
 
 from rigspace.sdk import validation
 from rigspace.sdk.stage import open_stage
-from tests.conftest import REPO
+from tests.conftest import REPO, free_port
 
 SCRIPTS = REPO / "samples" / "scripts"
 
@@ -26,9 +25,7 @@ def run(script: str, *args: str) -> list[str]:
 
 
 def test_live_hook_renders_what_the_stream_sends(tmp_path):
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     lines = run(
         "live_hook.py", "--out", str(tmp_path), "--url", f"vmc://127.0.0.1:{port}",
         "--send", "samples/motion/cmu_131_01.bvh", "--frames", "4", "--size", "96x54",

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import socket
 import warnings
 from collections.abc import Iterator
 
@@ -64,12 +63,6 @@ def previs_served() -> Iterator[tuple[Viewer, str]]:
     """One served previs viewer for the session (opening its engines takes seconds)."""
     with served(PREVIS) as pair:
         yield pair
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="session")

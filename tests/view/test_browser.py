@@ -15,8 +15,8 @@ import pytest
 
 from rigspace.runtime.live.decoders.bvh import read_bvh
 from rigspace.runtime.live.send import humanoid_clip, send_vmc
-from tests.conftest import REPO
-from tests.view.conftest import BROKEN, LIVE, free_udp_port, served
+from tests.conftest import REPO, free_port
+from tests.view.conftest import BROKEN, LIVE, served
 
 SHOTS = os.environ.get("RIGSPACE_VIEW_SCREENSHOTS")
 WINDOW = {"width": 1600, "height": 950}
@@ -160,7 +160,7 @@ def test_live_binding_counters_rise_while_a_sender_streams(browser):
     skeleton, motion, frame_time = read_bvh(REPO / "samples" / "motion" / "cmu_131_01.bvh")
     rotations, roots = skeleton.pose(motion)
     clip = humanoid_clip(skeleton, rotations[:120], roots[:120], frame_time)
-    source = f"vmc://127.0.0.1:{free_udp_port()}"
+    source = f"vmc://127.0.0.1:{free_port()}"
     stop = threading.Event()
     with served(LIVE, sources={"suit": source}) as (viewer, url):
         assert viewer.frames.live and viewer.frames.live_error is None

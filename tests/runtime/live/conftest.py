@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import pytest
 
-from tests.conftest import REPO
+from tests.conftest import REPO, free_port
 
 CMU_CLIP = REPO / "samples" / "motion" / "cmu_131_01.bvh"
 SAMPLE_CHARACTER = REPO / "samples" / "character" / "sample_character.usda"
@@ -37,6 +37,4 @@ def udp_port_bound(port: int) -> bool:
 
 @pytest.fixture
 def free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return free_port(socket.SOCK_STREAM)

@@ -20,16 +20,10 @@ from rigspace.sdk import schema
 from rigspace.sdk.cli import main
 from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.rotations import quat_from_matrix
-from tests.conftest import REPO
+from tests.conftest import REPO, free_port
 from tests.runtime.live.conftest import CMU_CLIP, udp_port_bound, wait_for
 
 LIVE_SCENE = REPO / "samples" / "scenes" / "live.usda"
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -101,7 +95,7 @@ def angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def test_live_records_the_clip_sent_over_vmc_and_render_replays_the_take(tmp_path, clip, capsys):
-    port = free_udp_port()
+    port = free_port()
     url = f"vmc://127.0.0.1:{port}"
     out = tmp_path / "out"
     take = tmp_path / "take.usda"
@@ -156,7 +150,7 @@ def test_live_records_the_clip_sent_over_vmc_and_render_replays_the_take(tmp_pat
 
 
 def test_sender_stopping_goes_stale_then_lost_frames_keep_coming_and_it_reconnects(tmp_path, clip):
-    port = free_udp_port()
+    port = free_port()
     url = f"vmc://127.0.0.1:{port}"
     scene = scene_with(tmp_path, **{"uniform float rigspace:live:suit:timeoutSeconds": "0.15"})
     out = tmp_path / "out"
@@ -215,7 +209,7 @@ def test_an_unknown_source_name_is_refused(tmp_path, capsys):
 
 
 def test_send_and_probe_subcommands(tmp_path, capsys):
-    port = free_udp_port()
+    port = free_port()
     url = f"vmc://127.0.0.1:{port}"
     result: list[int] = []
     probe = threading.Thread(
@@ -235,7 +229,7 @@ def test_send_and_probe_subcommands(tmp_path, capsys):
 
 def test_calibrate_stores_the_sources_rest_pose(tmp_path, clip, capsys):
     scene = scene_with(tmp_path)
-    port = free_udp_port()
+    port = free_port()
     url = f"vmc://127.0.0.1:{port}"
     sender = Sender(clip, url)
     try:
@@ -258,6 +252,6 @@ def test_calibrate_stores_the_sources_rest_pose(tmp_path, clip, capsys):
     # Nothing arrives: one clear error, the scene untouched.
     before = scene.read_text()
     code = main(["live", "calibrate", str(scene), "--binding", "suit", "--source",
-                 f"vmc://127.0.0.1:{free_udp_port()}", "--seconds", "0.2"])  # fmt: skip
+                 f"vmc://127.0.0.1:{free_port()}", "--seconds", "0.2"])  # fmt: skip
     assert code == 2 and "received nothing" in capsys.readouterr().err
     assert scene.read_text() == before

@@ -11,18 +11,12 @@ from rigspace.runtime.engine import Engine
 from rigspace.runtime.live.decoders.vmc import encode_frame
 from rigspace.runtime.live.retarget import PRESETS
 from rigspace.runtime.live.transports import LiveSourceError
-from tests.conftest import REPO
+from tests.conftest import REPO, free_port
 from tests.runtime.live.conftest import udp_port_bound, wait_for
 
 LIVE_SCENE = REPO / "samples" / "scenes" / "live.usda"
 PREVIS = REPO / "samples" / "scenes" / "previs.usda"
 SMALL = {"width": 96, "height": 54, "max_level": 32, "prim_samples": 1}
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def send_pose(port: int, bones, rotations, t: float) -> None:
@@ -44,7 +38,7 @@ def held_pose(angle: float) -> np.ndarray:
 
 
 def test_a_still_source_costs_a_reused_frame_and_every_frame_reports_the_binding():
-    port = free_udp_port()
+    port = free_port()
     with Engine(LIVE_SCENE, sources={"suit": f"vmc://127.0.0.1:{port}"}, **SMALL) as engine:
         assert not udp_port_bound(port)  # sources open lazily, at the first frame
         first = engine.render(10.0)

@@ -4,24 +4,18 @@ from __future__ import annotations
 
 import io
 import json
-import socket
 import threading
 import time
 
 from rigspace.runtime.live import probe, send
 from rigspace.runtime.live.buffer import LiveBuffer
 from rigspace.runtime.live.sources import open_source
+from tests.conftest import free_port
 from tests.runtime.live.conftest import CMU_CLIP, udp_port_bound, wait_for
 
 
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_probe_reports_a_vmc_sender():
-    port = free_udp_port()
+    port = free_port()
     out = io.StringIO()
     result: dict = {}
     listener = threading.Thread(
@@ -82,7 +76,7 @@ def test_send_seconds_count_from_the_first_frame(monkeypatch, capsys):
         return prepare(*args, **kwargs)
 
     monkeypatch.setattr(send, "humanoid_clip", slow)
-    url = f"vmc://127.0.0.1:{free_udp_port()}"
+    url = f"vmc://127.0.0.1:{free_port()}"
     assert send.main([url, "--bvh", str(CMU_CLIP), "--seconds", "0.3"]) == 0
     sent = int(capsys.readouterr().out.split()[1])
     assert sent >= 20  # about 36 at 120 Hz
