@@ -403,6 +403,113 @@ def retime(out: Path, dataset: Path, rounds: int = 5) -> dict[str, float]:
     return best
 
 
+ARCHITECTURE = (
+    "conditioning",
+    "conditioning_mode",
+    "conditioning_top",
+    "base_width",
+    "min_width",
+    "latent",
+    "fc_layers",
+)
+"""The options that change the graphs (and so the cost); losses, sampling and seeds do not."""
+
+
+def cost(dataset: Path, names: list[str], resolution: int = 128, rounds: int = 8) -> str:
+    """MFLOP and ms of one evaluation (trunk and both branches, batch 1, one onnxruntime
+    thread) at `resolution`, fp32 and int8, of each distinct architecture among `names`,
+    with no training: cost depends on the graphs' shapes, not their weights (seeded random
+    weights here). int8 is the export's graph without its accuracy sweep: the trunk whole,
+    each branch with its output heads and pose nodes in float (train.quantize), calibrated
+    on 64 training rows. Timed round-robin over all architectures, best of `rounds` x 30.
+    Returns a markdown table (variant, params, MFLOP, ms fp32, ms int8, ratio)."""
+    import tempfile
+
+    from rigspace.capture.dataset import read_manifest
+    from rigspace.train.conditioning import dataset_skeleton, parents_of
+    from rigspace.train.data import SampleSet
+    from rigspace.train.export import export_graph
+    from rigspace.train.int8check import rig_feeds, session
+    from rigspace.train.network import Shape
+    from rigspace.train.quantize import head_nodes, quantize
+
+    manifest = read_manifest(dataset)
+    train_rows = SampleSet(dataset, "train")
+    picks = np.linspace(0, len(train_rows) - 1, 64).astype(int)
+    rig = train_rows.rig[train_rows.rows[picks]].astype(np.float32)
+    shape = Shape(len(train_rows.joints), parents=parents_of(train_rows.joints))
+    skeleton = None
+    groups: dict[tuple, list[str]] = {}
+    configs: dict[tuple, Any] = {}
+    for name in names:
+        config = preset("small", resolution=resolution, channels_last=False, **VARIANTS[name][1])
+        key = tuple(getattr(config, k) for k in ARCHITECTURE)
+        groups.setdefault(key, []).append(name)
+        configs.setdefault(key, config)
+    rows: dict[tuple, dict[str, Any]] = {}
+    graphs: dict[tuple, dict[str, tuple[Any, dict[str, np.ndarray]]]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for key, config in configs.items():
+            torch.manual_seed(0)
+            model = Rig2Image(shape, config).eval()
+            if model.conditioned and skeleton is None:
+                skeleton = dataset_skeleton(dataset, manifest)
+            feeds = rig_feeds(rig, skeleton if model.conditioned else None)
+            with torch.no_grad():
+                tensors = {k: torch.from_numpy(v) for k, v in feeds.items()}
+                feeds["features"] = model.features(tensors["rig"], tensors.get("joints2d")).numpy()
+            folder = Path(tmp) / groups[key][0]
+            folder.mkdir()
+            graphs[key] = {}
+            for branch in ("trunk", "albedo", "geometry"):
+                fp32 = folder / f"{branch}.onnx"
+                int8 = folder / f"{branch}.int8.onnx"
+                with torch.no_grad():
+                    export_graph(model, branch, resolution, fp32)
+                quantize(fp32, int8, feeds, head_nodes(fp32))
+                one = {k: v[:1] for k, v in feeds.items()}
+                for precision, path in (("fp32", fp32), ("int8", int8)):
+                    graph = session(path)
+                    wanted = {i.name for i in graph.get_inputs()}
+                    graphs[key][f"{branch}.{precision}"] = (
+                        graph,
+                        {k: v for k, v in one.items() if k in wanted},
+                    )
+            rows[key] = {
+                "parameters": int(sum(p.numel() for p in model.parameters())),
+                "mflop": mflop(model, resolution),
+                "fp32": math.inf,
+                "int8": math.inf,
+            }
+            print(f"ablation: cost: {', '.join(groups[key])} exported", file=sys.stderr, flush=True)
+        for _ in range(rounds):
+            for key in configs:
+                for precision in ("fp32", "int8"):
+                    evaluation = [
+                        graphs[key][f"{b}.{precision}"] for b in ("trunk", "albedo", "geometry")
+                    ]
+                    for graph, feed in evaluation:
+                        graph.run(None, feed)  # warm
+                    times = []
+                    for _ in range(TIMING_REPEATS):
+                        begin = time.perf_counter()
+                        for graph, feed in evaluation:
+                            graph.run(None, feed)
+                        times.append(time.perf_counter() - begin)
+                    rows[key][precision] = min(rows[key][precision], 1e3 * min(times))
+    lines = [
+        f"| variants (same graphs) | params | MFLOP at {resolution} | ms fp32 | ms int8 | int8 speed-up |",
+        "|---|---|---|---|---|---|",
+    ]
+    for key, row in rows.items():
+        lines.append(
+            f"| {', '.join(f'`{n}`' for n in groups[key])} | {row['parameters'] / 1e6:.2f} M | "
+            f"{row['mflop']:.0f} | {row['fp32']:.2f} | {row['int8']:.2f} | "
+            f"{row['fp32'] / row['int8']:.2f}x |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 GRAPH_COLUMNS = ("trunk", "albedo", "geometry", "predict")
 
 
@@ -530,6 +637,13 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="only print ms per graph of --variants (one onnxruntime thread, interleaved)",
     )
+    parser.add_argument(
+        "--cost",
+        type=int,
+        metavar="R",
+        help="only print MFLOP and ms fp32/int8 at R x R of --variants' architectures "
+        "(untrained: cost does not depend on weights; one onnxruntime thread, interleaved)",
+    )
     args = parser.parse_args(argv)
     unknown = sorted(set(args.variants) - set(VARIANTS))
     try:
@@ -540,6 +654,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.threads:
             torch.set_num_threads(args.threads)
         args.out.mkdir(parents=True, exist_ok=True)
+        if args.cost:
+            print(cost(args.dataset, args.variants, args.cost), end="")
+            return 0
         if args.breakdown:
             print(breakdown(args.out, args.dataset, args.variants), end="")
             return 0
