@@ -4,7 +4,11 @@
 
 The run folder holds run.json (the config and the dataset it trained on), checkpoints
 (loadable with torch.load(weights_only=True): tensors, numbers and strings only),
-log.jsonl, and previews/level_<R>.png (prediction | ground truth | error). Every step's
+log.jsonl (a line per step: the loss and its terms albedo, mask, alpha, depth, normal;
+the level's resolution, its block's fade-in weight `fade` and the training seconds; older
+logs, the sample model's among them, hold the fade weight under `alpha` in place of
+that term), and
+previews/level_<R>.png (prediction | ground truth | error). Every step's
 batch is a pure function of (seed, step) and the RNG state is checkpointed, so a resumed
 run continues exactly where it stopped. Ctrl-C saves a checkpoint and returns; a
 non-finite loss stops with the step and the last good checkpoint named; a damaged sample
@@ -439,7 +443,7 @@ def train(
                 "step": step,
                 "loss": last_loss,
                 **terms,
-                "alpha": where.alpha,
+                "fade": where.alpha,  # the newest block's fade-in weight; "alpha" is its loss term
                 "resolution": where.resolution,
                 "seconds": round(seconds_before + elapsed, 2),
             }

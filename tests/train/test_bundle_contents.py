@@ -151,7 +151,7 @@ def test_a_budget_left_over_trains_the_final_level_on(tmp_path, tiny_dataset, ca
     assert trained_levels(TINY, result.step) == [16, 32]
     records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     extra = [r for r in records if r.get("step", 0) > TINY.total_steps() and "loss" in r]
-    assert extra and all(r["resolution"] == 32 and r["alpha"] == 1.0 for r in extra)
+    assert extra and all(r["resolution"] == 32 and r["fade"] == 1.0 for r in extra)
     assert torch.load(run / loop.CHECKPOINT, weights_only=True)["step"] == result.step
     again = loop.train(tiny_dataset, run, TINY, minutes=0.05, resume=True, progress=False)
     assert again.stopped == "time budget" and again.step > result.step
