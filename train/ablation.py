@@ -120,6 +120,27 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     ),
     # Depth: the sample model's depth error rose (1.27 -> 1.53 % of height) with the
     # conditioned form; its depth term is the smallest of the loss (0.002 of 0.17).
+    "bones2d-add32+bce-depth2": (
+        "bones2d-add32+bce with the depth loss weighted x2",
+        {
+            "conditioning": "bones2d",
+            "mask_loss": "bce",
+            "conditioning_mode": "add",
+            "conditioning_top": 32,
+            "depth_weight": 2.0,
+        },
+    ),
+    "bones2d-add32+bce-depth2-seed1": (
+        "`bones2d-add32+bce-depth2`, seed 1",
+        {
+            "conditioning": "bones2d",
+            "mask_loss": "bce",
+            "conditioning_mode": "add",
+            "conditioning_top": 32,
+            "depth_weight": 2.0,
+            "seed": 1,
+        },
+    ),
     "bones2d-add32+bce-depth4": (
         "bones2d-add32+bce with the depth loss weighted x4",
         {
