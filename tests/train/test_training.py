@@ -97,6 +97,27 @@ def test_resume_continues_exactly(tmp_path, tiny_dataset):
     assert seconds == sorted(seconds)
 
 
+def _flushed() -> bool:
+    return (torch.tensor([1e-39], dtype=torch.float32) * 1.0).item() == 0.0
+
+
+def test_training_flushes_denormals_and_gives_the_setting_back(tmp_path, tiny_dataset, monkeypatch):
+    seen = []
+    forward = loop.forward_loss
+
+    def recording(*args, **kwargs):
+        seen.append(_flushed())
+        return forward(*args, **kwargs)
+
+    monkeypatch.setattr(loop, "forward_loss", recording)
+    assert loop.flush_denormal(False) in (True, False) and not _flushed()
+    loop.train(tiny_dataset, tmp_path / "run", TINY, steps=3, progress=False)
+    assert seen == [True, True, True] and not _flushed()
+    with pytest.raises(loop.TrainingError):  # an early refusal gives it back too
+        loop.train(tiny_dataset, tmp_path / "run", TINY, steps=3, progress=False)
+    assert not _flushed()
+
+
 def test_a_nan_loss_stops_with_the_step_and_the_checkpoint(tmp_path, tiny_dataset, monkeypatch):
     real = loop.total_loss
     calls = {"n": 0}
@@ -243,7 +264,8 @@ def test_presets_are_consistent():
         assert TrainConfig.from_json(config.to_json()) == config
 
 
-def test_ctrl_c_stops_with_a_usable_checkpoint(tmp_path, tiny_dataset):
+@pytest.mark.parametrize("signum", ["SIGINT", "SIGTERM"])
+def test_ctrl_c_or_sigterm_stops_with_a_usable_checkpoint(tmp_path, tiny_dataset, signum):
     import os
     import signal
     import time
@@ -258,7 +280,7 @@ def test_ctrl_c_stops_with_a_usable_checkpoint(tmp_path, tiny_dataset):
         if log_file.exists() and len(log_file.read_text().splitlines()) >= 30:
             break
         time.sleep(0.05)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(getattr(signal, signum))
     stdout, stderr = proc.communicate(timeout=60)
     assert proc.returncode == 130, stderr
     assert "stopped: interrupted" in stdout and "--resume" in stdout
