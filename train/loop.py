@@ -20,6 +20,7 @@ final level is reached within the budget (train.budget; the plan is saved in run
 from __future__ import annotations
 
 import copy
+import functools
 import io
 import json
 import math
@@ -27,9 +28,10 @@ import os
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, ParamSpec, TypeVar
 
 import cv2
 import numpy as np
@@ -297,6 +299,31 @@ def logged_seconds(log: Path, step: int) -> float:
     return seconds
 
 
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+def _denormals_flushed(function: Callable[P, R]) -> Callable[P, R]:
+    """Run `function` with denormal floats flushed to zero, the caller's setting restored."""
+
+    @functools.wraps(function)
+    def flushed(*args: P.args, **kwargs: P.kwargs) -> R:
+        flushing = flush_denormal(True)
+        try:
+            return function(*args, **kwargs)
+        finally:
+            flush_denormal(flushing)
+
+    return flushed
+
+
+# Denormal floats flushed to zero (x86 FTZ/DAZ) while training, the caller's setting
+# restored after: the sigmoid's saturated background logits and a fading-in block's
+# small gradients produce denormals, and an Intel core takes microcode assists on each.
+# Unflushed, the sample model's 128x128 steps slowed from 0.28 s to 1.7 s within 350
+# steps of its fade-in (Xeon, 2 cores); flushed, they held at 0.28 s. The same step
+# measured beside it: 0.61 s flushed, 0.75-1.13 s not.
+@_denormals_flushed
 def train(
     dataset: str | Path,
     out: str | Path,
@@ -308,31 +335,6 @@ def train(
     progress: bool = True,
 ) -> TrainResult:
     """Train Rig2Image on a capture dataset (see the module doc)."""
-    # Denormal floats flushed to zero (x86 FTZ/DAZ) while training, the caller's setting
-    # restored after: the sigmoid's saturated background logits and a fading-in block's
-    # small gradients produce denormals, and an Intel core takes microcode assists on each.
-    # Unflushed, the sample model's 128x128 steps slowed from 0.28 s to 1.7 s within 350
-    # steps of its fade-in (Xeon, 2 cores); flushed, they held at 0.28 s. The same step
-    # measured beside it: 0.61 s flushed, 0.75-1.13 s not.
-    flushing = flush_denormal(True)
-    try:
-        return _train(
-            dataset, out, config, steps=steps, minutes=minutes, resume=resume, progress=progress
-        )
-    finally:
-        flush_denormal(flushing)
-
-
-def _train(
-    dataset: str | Path,
-    out: str | Path,
-    config: TrainConfig,
-    *,
-    steps: int | None = None,
-    minutes: float | None = None,
-    resume: bool = False,
-    progress: bool = True,
-) -> TrainResult:
     dataset, out = Path(dataset), Path(out)
     began = time.monotonic()  # the budget counts from here: the step-rate probe is part of it
     ctx = distributed.context()  # one process unless under torchrun (train.distributed)
