@@ -23,7 +23,7 @@ def _ephemeral_low() -> int:
         return 32768
 
 
-def free_port(kind: int = socket.SOCK_DGRAM) -> int:
+def free_port() -> int:
     """A port on 127.0.0.1 that nothing holds now (UDP and TCP), chosen below the kernel's
     ephemeral range.
 
@@ -43,7 +43,7 @@ def free_port(kind: int = socket.SOCK_DGRAM) -> int:
         except OSError:
             continue
         return port
-    raise RuntimeError(f"no free {kind} port on 127.0.0.1 below {low} after 200 tries")
+    raise RuntimeError(f"no free port on 127.0.0.1 below {low} after 200 tries")
 
 
 TINY_JOINTS = ["hips", "hips/spine", "hips/spine/head", "hips/leg_l", "hips/leg_r"]

@@ -44,6 +44,15 @@ from rigspace.train.loop import RUN_FILE, build_model, train
 from rigspace.train.network import Rig2Image
 from rigspace.train.predictor import BundlePredictor
 
+ADD32_BCE: dict[str, Any] = {
+    "conditioning": "bones2d",
+    "mask_loss": "bce",
+    "conditioning_mode": "add",
+    "conditioning_top": 32,
+}
+"""The sample model's form (bones2d maps up to 32x32, projected and added; cross-entropy
+mask): the base of the variants named bones2d-add32+bce..."""
+
 VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "paper": ("the paper's input (rotations only), small widths, L2/L1 mask loss", {}),
     "joints2d": ("+ per-joint 2D Gaussian maps at every block", {"conditioning": "joints2d"}),
@@ -70,12 +79,7 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     ),
     "bones2d-add32+bce": (
         "bones2d-add+bce, maps computed up to 32x32; 64x64 adds the 32x32 projection upsampled",
-        {
-            "conditioning": "bones2d",
-            "mask_loss": "bce",
-            "conditioning_mode": "add",
-            "conditioning_top": 32,
-        },
+        ADD32_BCE,
     ),
     "bones2d-add16+bce": (
         "bones2d-add+bce, maps computed up to 16x16 only, upsampled above",
@@ -88,68 +92,30 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     ),
     "bones2d-add32+bce+rare": (
         "bones2d-add32+bce, rare poses (the cartwheel) drawn more often: --oversample 1",
-        {
-            "conditioning": "bones2d",
-            "mask_loss": "bce",
-            "conditioning_mode": "add",
-            "conditioning_top": 32,
-            "oversample": 1.0,
-        },
+        {**ADD32_BCE, "oversample": 1.0},
     ),
     # Width, on the conditioned form: what more (or fewer) FLOPs buy at the same steps.
     "bones2d-add32+bce-base64": (
         "bones2d-add32+bce with half the channels at every level (base width 64)",
-        {
-            "conditioning": "bones2d",
-            "mask_loss": "bce",
-            "conditioning_mode": "add",
-            "conditioning_top": 32,
-            "base_width": 64,
-            "min_width": 8,
-        },
+        {**ADD32_BCE, "base_width": 64, "min_width": 8},
     ),
     "bones2d-add32+bce-width32": (
         "bones2d-add32+bce with 32 channels at 32x32 and 64x64 (min width 32)",
-        {
-            "conditioning": "bones2d",
-            "mask_loss": "bce",
-            "conditioning_mode": "add",
-            "conditioning_top": 32,
-            "min_width": 32,
-        },
+        {**ADD32_BCE, "min_width": 32},
     ),
     # Depth: the sample model's depth error rose (1.27 -> 1.53 % of height) with the
     # conditioned form; its depth term is the smallest of the loss (0.002 of 0.17).
     "bones2d-add32+bce-depth2": (
         "bones2d-add32+bce with the depth loss weighted x2",
-        {
-            "conditioning": "bones2d",
-            "mask_loss": "bce",
-            "conditioning_mode": "add",
-            "conditioning_top": 32,
-            "depth_weight": 2.0,
-        },
+        {**ADD32_BCE, "depth_weight": 2.0},
     ),
     "bones2d-add32+bce-depth2-seed1": (
         "`bones2d-add32+bce-depth2`, seed 1",
-        {
-            "conditioning": "bones2d",
-            "mask_loss": "bce",
-            "conditioning_mode": "add",
-            "conditioning_top": 32,
-            "depth_weight": 2.0,
-            "seed": 1,
-        },
+        {**ADD32_BCE, "depth_weight": 2.0, "seed": 1},
     ),
     "bones2d-add32+bce-depth4": (
         "bones2d-add32+bce with the depth loss weighted x4",
-        {
-            "conditioning": "bones2d",
-            "mask_loss": "bce",
-            "conditioning_mode": "add",
-            "conditioning_top": 32,
-            "depth_weight": 4.0,
-        },
+        {**ADD32_BCE, "depth_weight": 4.0},
     ),
     # The same variants from another seed: how much of a difference is the seed's.
     "paper-seed1": ("`paper`, seed 1", {"seed": 1}),
@@ -160,35 +126,15 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     ),
     "bones2d-add32+bce-seed1": (
         "`bones2d-add32+bce`, seed 1",
-        {
-            "conditioning": "bones2d",
-            "mask_loss": "bce",
-            "conditioning_mode": "add",
-            "conditioning_top": 32,
-            "seed": 1,
-        },
+        {**ADD32_BCE, "seed": 1},
     ),
     "bones2d-add32+bce-depth4-seed1": (
         "`bones2d-add32+bce-depth4`, seed 1",
-        {
-            "conditioning": "bones2d",
-            "mask_loss": "bce",
-            "conditioning_mode": "add",
-            "conditioning_top": 32,
-            "depth_weight": 4.0,
-            "seed": 1,
-        },
+        {**ADD32_BCE, "depth_weight": 4.0, "seed": 1},
     ),
     "bones2d-add32+bce+rare-seed1": (
         "`bones2d-add32+bce+rare`, seed 1",
-        {
-            "conditioning": "bones2d",
-            "mask_loss": "bce",
-            "conditioning_mode": "add",
-            "conditioning_top": 32,
-            "oversample": 1.0,
-            "seed": 1,
-        },
+        {**ADD32_BCE, "oversample": 1.0, "seed": 1},
     ),
 }
 SPLITS = ("heldout-views", "heldout-clips")
@@ -478,7 +424,7 @@ def cost(dataset: Path, names: list[str], resolution: int = 128, rounds: int = 8
     from rigspace.train.conditioning import dataset_skeleton, parents_of
     from rigspace.train.data import SampleSet
     from rigspace.train.export import export_graph
-    from rigspace.train.int8check import rig_feeds, session
+    from rigspace.train.int8check import graph_feeds, rig_feeds, session
     from rigspace.train.network import Shape
     from rigspace.train.quantize import head_nodes, quantize
 
@@ -519,11 +465,7 @@ def cost(dataset: Path, names: list[str], resolution: int = 128, rounds: int = 8
                 one = {k: v[:1] for k, v in feeds.items()}
                 for precision, path in (("fp32", fp32), ("int8", int8)):
                     graph = session(path)
-                    wanted = {i.name for i in graph.get_inputs()}
-                    graphs[key][f"{branch}.{precision}"] = (
-                        graph,
-                        {k: v for k, v in one.items() if k in wanted},
-                    )
+                    graphs[key][f"{branch}.{precision}"] = (graph, graph_feeds(graph, one))
             rows[key] = {
                 "parameters": int(sum(p.numel() for p in model.parameters())),
                 "mflop": mflop(model, resolution),

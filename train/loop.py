@@ -6,12 +6,10 @@ The run folder holds run.json (the config and the dataset it trained on), checkp
 (loadable with torch.load(weights_only=True): tensors, numbers and strings only),
 log.jsonl (a line per step: the loss and its terms albedo, mask, alpha, depth, normal;
 the level's resolution, its block's fade-in weight `fade` and the training seconds; older
-logs, the sample model's among them, hold the fade weight under `alpha` in place of
-that term), and
-previews/level_<R>.png (prediction | ground truth | error). Every step's
-batch is a pure function of (seed, step) and the RNG state is checkpointed, so a resumed
-run continues exactly where it stopped. Ctrl-C (or SIGTERM) saves a checkpoint and returns; a
-non-finite loss stops with the step and the last good checkpoint named; a damaged sample
+logs hold the fade weight under `alpha` in place of that term), and previews/level_<R>.png
+(prediction | ground truth | error). Every step's batch is a pure function of (seed, step)
+and the RNG state is checkpointed, so a resumed run continues exactly where it stopped.
+Ctrl-C (or SIGTERM) saves a checkpoint and returns; a non-finite loss stops with the step and the last good checkpoint named; a damaged sample
 stops with a checkpoint and the capture command that re-renders it. With `minutes`, a new
 run first measures its step time at every level and sizes its steps per level so that the
 final level is reached within the budget (train.budget; the plan is saved in run.json).

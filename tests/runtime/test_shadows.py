@@ -932,13 +932,14 @@ def test_the_character_layer_blended_matches_every_pixel_evaluated_by_numpy(tmp_
             # out; how many there are depends on the model's depth, not on the kernels.
             r, c = np.mgrid[rows, cols]
             points, _ = engine_module._world_points(
-                layer.depth[rows, cols].ravel(), r.ravel() + 0, c.ravel() + 0,
+                layer.depth[rows, cols].ravel(), r.ravel(), c.ravel(),
                 np.zeros((r.size, 3), np.float32), camera, (layer.x0, layer.y0),
             )  # fmt: skip
-            under = (points[1].reshape(r.shape) < GROUND_CONTACT) & (coverage > 0)
+            on = coverage > 0
+            under = (points[1].reshape(r.shape) < GROUND_CONTACT) & on
             found.append(
                 [
-                    None if v is None else (1 - (1 - v[rows, cols]) * coverage, under, coverage > 0)
+                    None if v is None else (1 - (1 - v[rows, cols]) * coverage, under, on)
                     for v in out
                 ]
             )

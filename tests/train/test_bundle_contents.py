@@ -142,8 +142,9 @@ def test_a_time_budget_plans_the_schedule_before_training(tmp_path, tiny_dataset
 
 
 def test_a_budget_left_over_trains_the_final_level_on(tmp_path, tiny_dataset, capsys):
-    """The tiny preset's 40 steps take a second or two; a 24-second budget (room for a busy CI machine) is not left unused:
-    the final level trains on (alpha 1) until it ends, and so does a resumed finished run."""
+    """The tiny preset's 40 steps take a second or two; a 24-second budget (room for a busy
+    CI machine) is not left unused: the final level trains on (fade 1) until it ends, and so
+    does a resumed finished run."""
     run = tmp_path / "model" / "training"
     result = loop.train(tiny_dataset, run, TINY, minutes=0.4, progress=False)
     assert result.stopped == "time budget" and result.step > TINY.total_steps()

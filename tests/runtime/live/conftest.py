@@ -37,4 +37,4 @@ def udp_port_bound(port: int) -> bool:
 
 @pytest.fixture
 def free_tcp_port() -> int:
-    return free_port(socket.SOCK_STREAM)
+    return free_port()
