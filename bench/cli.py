@@ -56,13 +56,15 @@ class Plan:
     stress_rigs: int
     drift_rigs: int
     stability_steps: int
+    display_sizes: tuple[tuple[int, int], ...] = ((640, 360), (1920, 1080))
+    display_frames: int = 17
 
 
 QUICK = Plan(
     per_split=6, repeats=5, frames=4, accuracy_samples=6, frame_sizes=(256,), skip_frames=8,
     levels=(32, 128), capture_resolutions=(128,), capture_frames=(0.0, 7.0), capture_views=4,
     presets=("tiny", "small"), training_steps=3, memory_frames=2, stress_rigs=2_000,
-    drift_rigs=32, stability_steps=0,
+    drift_rigs=32, stability_steps=0, display_sizes=((640, 360),), display_frames=2,
 )  # fmt: skip
 FULL = Plan(
     per_split=48, repeats=20, frames=12, accuracy_samples=24, frame_sizes=(256, 512),
@@ -305,6 +307,12 @@ def training_stability(dataset: Path, tmp: Path, steps: int) -> dict[str, Any]:
     }
 
 
+def _texture(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
+    from rigspace.bench import texture
+
+    return texture.measure(plan.display_sizes, plan.display_frames)
+
+
 def _memory(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
     from rigspace.bench import memory
 
@@ -343,6 +351,7 @@ MEASURE = {
     "pareto": _pareto,
     "accuracy": _accuracy,
     "frames": _frames,
+    "texture": _texture,
     "skips": _skips,
     "efficiency": _efficiency,
     "capture": _capture,

@@ -102,6 +102,20 @@ def _frames(rows: list[dict[str, Any]]) -> list[str]:
     ]
 
 
+def _texture(rows: list[dict[str, Any]]) -> list[str]:
+    from rigspace.bench.texture import table
+
+    return [
+        "## The character at the size it is seen (textures against the albedo branch)",
+        "",
+        "The previs shot against its skinned mesh (`--reference`): per frame the character "
+        "region's albedo and beauty PSNR and its own coverage's IoU (medians over the frames), "
+        "and milliseconds per frame (the texture sampler's own: `sampler ms`).",
+        "",
+        *table(rows),
+    ]
+
+
 def _skips(r: dict[str, Any]) -> list[str]:
     lines = [
         "## What each skip costs",
@@ -244,6 +258,7 @@ SECTIONS: dict[str, Callable[[Any], list[str]]] = {
     "pareto": _pareto,
     "accuracy": _accuracy,
     "frames": _frames,
+    "texture": _texture,
     "skips": _skips,
     "efficiency": _efficiency,
     "capture": _capture,

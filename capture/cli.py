@@ -43,6 +43,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--samples", type=int, default=2, help="anti-aliasing: s x s samples per pixel (default 2)"
     )
     parser.add_argument(
+        "--every",
+        type=int,
+        default=1,
+        metavar="N",
+        help="capture every Nth frame of each clip (default 1: all; a small evaluation set, "
+        "e.g. at a high --resolution)",
+    )
+    parser.add_argument(
         "--frames-per-item",
         type=int,
         default=16,
@@ -90,6 +98,7 @@ def run(args: argparse.Namespace) -> int:
         renderer=args.renderer,
         samples_per_axis=args.samples,
         frames_per_item=args.frames_per_item,
+        every=args.every,
     )
     if args.ray is not None:
         from rigspace.capture.ray_capture import capture_on_ray

@@ -7,6 +7,8 @@ Layout of a dataset folder:
     params.npz              the parameters table, every sample in dataset order (finalize)
     manifest.json           counts, splits, checksums, settings (finalize)
     contact_sheet.png       a grid of maps from a few samples (finalize)
+    charts.json             the character's texture charts (rigspace.sdk.charts), which the
+                            samples' chart AOV numbers: only for a character with textures
 
 A work item is one clip's chunk of frames seen from one group of ring views (a ring, or
 its held-out views). Items are independent; `--shard i/n` takes items i, i+n, ... An
@@ -35,6 +37,7 @@ import numpy as np
 
 from rigspace.capture.ring import HELDOUT_CLIPS, HELDOUT_VIEWS, SPLITS, TRAIN, RingView
 from rigspace.capture.settings import CaptureSettings, Clip
+from rigspace.sdk.charts import ChartTable
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.exr import read_exr
 
@@ -44,6 +47,7 @@ SETTINGS_FILE = "capture.json"
 MANIFEST_FILE = "manifest.json"
 PARAMS_FILE = "params.npz"
 CONTACT_SHEET = "contact_sheet.png"
+CHARTS_FILE = "charts.json"
 ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
 """The earliest time a zip entry can carry: every archive entry gets it."""
 EMPTY_PIXELS = 4.0
@@ -78,7 +82,10 @@ def resume_command(folder: str | Path) -> str:
         else:
             args += ["--clips", *(c["name"] for c in clips)]
         args += ["--renderer", settings["renderer"], "--samples", str(settings["samples_per_axis"])]
-        args += ["--frames-per-item", str(settings["frames_per_item"]), "--resume"]
+        args += ["--frames-per-item", str(settings["frames_per_item"])]
+        if settings.get("every", 1) != 1:
+            args += ["--every", str(settings["every"])]
+        args += ["--resume"]
     except (OSError, ValueError, KeyError, TypeError, IndexError):
         return "rigspace capture ... --resume"
     return shlex.join(args)
@@ -151,7 +158,7 @@ def work_items(
     groups = view_groups(settings.views(), settings)
     items: list[WorkItem] = []
     for clip_index, clip in enumerate(settings.clips):
-        times = clip.times(samples=samples)
+        times = settings.clip_times(clip, samples)
         for start in range(0, len(times), settings.frames_per_item):
             chunk = tuple(float(t) for t in times[start : start + settings.frames_per_item])
             for group in groups:
@@ -289,9 +296,43 @@ def clean_temporaries(folder: Path) -> int:
     return removed
 
 
+def write_charts(folder: Path, charts: ChartTable) -> None:
+    """The character's texture charts as charts.json (nothing for a character without textures:
+    then its samples have no texture AOVs either)."""
+    path = folder / CHARTS_FILE
+    if len(charts):
+        write_atomic(path, (json.dumps(charts.to_json(), indent=2) + "\n").encode())
+    else:
+        path.unlink(missing_ok=True)
+
+
+def read_charts(folder: str | Path) -> dict[str, Any] | None:
+    """A dataset's charts.json (None when it has none: no textured mesh, or an older capture)."""
+    path = Path(folder) / CHARTS_FILE
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DatasetError(
+            f"{path} is not readable JSON ({exc}).",
+            f"run `{resume_command(folder)}` to rewrite it.",
+        ) from exc
+    if not isinstance(data, dict) or data.get("format") != "rigspace.charts":
+        raise DatasetError(
+            f"{path} is not a rigspace chart table.",
+            f"run `{resume_command(folder)}` to rewrite it.",
+        )
+    return data
+
+
 def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> dict[str, Any]:
     """Assemble params.npz and manifest.json from every item's record (all must exist)."""
     records = [load_record(folder, item) for item in items]
+    table_of_charts = read_charts(folder)
+    charts = (
+        {"file": CHARTS_FILE, "count": len(table_of_charts["charts"])} if table_of_charts else None
+    )
     table = {key: np.concatenate([r[key] for r in records]) for key in records[0]}
     params_bytes = npz_bytes(table)
     write_atomic(folder / PARAMS_FILE, params_bytes)
@@ -301,6 +342,8 @@ def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> 
     for path, checksum in zip(table["path"], table["sha256"], strict=True):
         digest.update(f"{path} {checksum}\n".encode())
     digest.update(hashlib.sha256(params_bytes).digest())
+    if charts:  # the chart numbering is part of what the samples mean
+        digest.update(hashlib.sha256((folder / CHARTS_FILE).read_bytes()).digest())
     total_bytes = int(sum((folder / str(p)).stat().st_size for p in table["path"]))
     manifest = {
         "format": FORMAT,
@@ -344,7 +387,19 @@ def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> 
             "A": "coverage mask in [0, 1]",
             "Z": "camera-space depth along -Z, scene units, +inf where empty",
             "N.X,N.Y,N.Z": "camera-space unit normal, 0 where empty",
+            **(
+                {
+                    "uv.U,uv.V": "USD st of the visible surface on its chart's texture (the "
+                    "nearest sample's chart, mean over its samples on that chart), 0 where "
+                    "chart is 0",
+                    "chart": f"texture chart of the visible surface, 1..{charts['count']} "
+                    f"({CHARTS_FILE}), 0: background or no texture",
+                }
+                if charts
+                else {}
+            ),
         },
+        **({"charts": charts} if charts else {}),
         "params": {
             "file": PARAMS_FILE,
             "rig": "per joint (skeleton order) the world rotation in the camera frame, 6D "

@@ -41,7 +41,7 @@ FORMAT_VERSION = 1
 SAMPLES_PER_SHARD = 1000
 """Default: about 170 MB per shard at the paper's 256x256 (170 KB a sample), within the
 100 MB - 1 GB that object stores and sequential readers handle best."""
-COPIED = (ds.MANIFEST_FILE, ds.PARAMS_FILE, "capsules.json", ds.CONTACT_SHEET)
+COPIED = (ds.MANIFEST_FILE, ds.PARAMS_FILE, "capsules.json", ds.CONTACT_SHEET, ds.CHARTS_FILE)
 KEY_DIGITS = 9
 
 

@@ -137,7 +137,7 @@ class ItemWorker:
         for t in item.times:
             start = time.perf_counter()
             world = self.rig.world_transforms(t)
-            meshes = self.rig.posed_meshes(t)
+            meshes = self.rig.posed_meshes(t, charts=True)  # texture AOVs (sdk/charts.py)
             joint_position = world[self.joint][:3, 3]
             timings["pose"] += time.perf_counter() - start
             for view in item.views:
@@ -421,6 +421,8 @@ def capture(
     complete = all(ds.record_path(folder, i).is_file() for i in items)
     manifest = None
     if complete:
+        # The texture charts the samples' chart AOV numbers (before the manifest names them).
+        ds.write_charts(folder, rig.texture_charts())
         manifest = ds.finalize(folder, settings, items)
         write_contact_sheet(folder)
         # The character's shadow capsules, fitted at bind pose; export copies them into the bundle.

@@ -90,6 +90,7 @@ class CaptureOverrides:
     frames_per_item: int = field(
         default=16, metadata={"help": "frames per work item (the unit of sharding and resume)"}
     )
+    every: int = field(default=1, metadata={"help": "capture every Nth frame of each clip"})
 
 
 @dataclass(frozen=True)
@@ -118,6 +119,8 @@ class CaptureSettings:
     renderer: str
     samples_per_axis: int
     frames_per_item: int = 16
+    every: int = 1
+    """Every Nth frame of each clip is captured (1: all)."""
 
     @property
     def lens(self) -> Lens:
@@ -142,7 +145,13 @@ class CaptureSettings:
     def to_json(self) -> dict[str, Any]:
         data = asdict(self)
         data["clips"] = [asdict(c) for c in self.clips]
+        if self.every == 1:  # as captures before the option recorded it (resume compares)
+            del data["every"]
         return data
+
+    def clip_times(self, clip: Clip, samples: Sequence[float] | np.ndarray = ()) -> np.ndarray:
+        """The time codes captured of a clip: every `every`th authored frame, snapped."""
+        return clip.times(samples=samples)[:: self.every]
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> CaptureSettings:
@@ -364,6 +373,10 @@ def resolve_settings(
         raise CaptureError(
             f"--frames-per-item {overrides.frames_per_item} must be at least 1.", "use e.g. 16."
         )
+    if overrides.every < 1:
+        raise CaptureError(
+            f"--every {overrides.every} must be at least 1.", "use 1 (every frame), 2, 10, ..."
+        )
     if not 1 <= overrides.samples_per_axis <= MAX_SAMPLES_PER_AXIS:
         raise CaptureError(
             f"--samples {overrides.samples_per_axis} is outside 1 to {MAX_SAMPLES_PER_AXIS}.",
@@ -400,5 +413,6 @@ def resolve_settings(
         renderer=overrides.renderer,
         samples_per_axis=overrides.samples_per_axis,
         frames_per_item=overrides.frames_per_item,
+        every=overrides.every,
     )
     return settings, rig

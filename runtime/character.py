@@ -8,9 +8,14 @@ The steps of the paper's scene composition, for one character and one camera:
    billboard's on-screen size; only the branches the frame needs;
 4. the maps warped into the frame through the billboard's homography, mask-aware (the
    unlit mode runs the albedo branch alone and takes coverage from its alpha):
-   albedo stays premultiplied, normals and depth are warped premultiplied by coverage
-   and divided back, so empty pixels never bleed in; normals rotated by R into the
-   render camera's frame; depth = the billboard plane plus the network's offset.
+   normals and depth are warped premultiplied by coverage and divided back, so empty
+   pixels never bleed in; normals rotated by R into the render camera's frame; depth =
+   the billboard plane plus the network's offset. Coverage magnified past the network's
+   resolution gets its edge back to one frame pixel (sdk.texturing.sharpen_coverage);
+5. colour: with a texture head (bundle `texture`), the character's own textures sampled
+   where the network says each pixel lands, at the size on screen (rigspace.sdk.texturing);
+   the albedo branch, un-premultiplied, where no texture drives the colour or the chart is
+   unsure (and for bundles without a head); premultiplied by the coverage.
 Only the billboard's screen bounding box is computed.
 """
 
@@ -18,7 +23,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 from pxr import Usd, UsdGeom, Vt
 
@@ -31,9 +35,14 @@ from rigspace.sdk.errors import SceneError
 from rigspace.sdk.model import BundleModel
 from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.rotations import rig_parameters
+from rigspace.sdk.texturing import (
+    ChartTextures,
+    TextureMismatch,
+    display_colour,
+    region_warper,
+    sharpen_coverage,
+)
 
-WARP_INTERPOLATION = cv2.INTER_LINEAR
-"""How the network's maps are resampled into the frame."""
 COVERAGE_EPSILON = 1e-4
 """Warped coverage below this counts as empty (divisions by coverage are guarded by it)."""
 
@@ -51,6 +60,11 @@ class Layer:
     level: int
     branches: tuple[str, ...]
     info: dict = field(default_factory=dict)
+    uv: np.ndarray | None = None
+    """(h, w, 2) the texture st each pixel read (0 where the albedo branch coloured it), with
+    a texture head; None without."""
+    chart: np.ndarray | None = None
+    """(h, w) int32 the texture chart each pixel read (0: none)."""
 
 
 def joint_order(model_joints: list[str], skeleton_joints: list[str], where: str) -> np.ndarray:
@@ -94,6 +108,28 @@ class NeuralCharacter:
         """Shadow capsules (skeleton joint index, a, b, radius), None without any."""
         self.no_shadow = self._load_capsules(raw)
         """Why the character casts no shadow ("" when it has capsules)."""
+        self.textures: ChartTextures | None = None
+        """Its meshes' textures by texture chart, when its bundle has a texture head."""
+        self.no_texture = self._load_textures()
+        """Why its colour comes from the albedo branch alone ("" when it samples textures)."""
+
+    def _load_textures(self) -> str:
+        if not self.model.charts:
+            return "its model bundle has no texture head"
+        table = self.model.chart_table()
+        assert table is not None  # the bundle has charts
+        sources = {self.rig.mesh_name(m): m for m in self.rig.mesh_sources()}
+        try:
+            textures = ChartTextures.build(table, sources)
+        except TextureMismatch as exc:
+            return (
+                f"{exc} (the scene's character is not the one its bundle was trained on; retrain "
+                "on this character, or restore its meshes)"
+            )
+        if not textures.any_texture:
+            return "none of its meshes has a texture"
+        self.textures = textures
+        return ""
 
     def _load_capsules(self, raw: dict) -> str:
         name = raw.get("capsules")
@@ -156,27 +192,11 @@ class NeuralCharacter:
     def resample(self, out, billboard: Billboard, camera: Camera, level: int, branches) -> Layer:
         out = {name: value[0] for name, value in out.items()}  # the batch of one
         x0, y0, w, h = billboard.region(camera)
-        shift = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1]], dtype=np.float64)
-        homography = shift @ billboard.homography(level)
-
-        def warp(image: np.ndarray) -> np.ndarray:
-            """(C, R, R) network map -> (h, w, C) frame region; pixel centres at +0.5."""
-            hwc = np.ascontiguousarray(np.moveaxis(image, 0, -1), dtype=np.float32)
-            # OpenCV maps pixel centres at integer coordinates; ours sit at +0.5.
-            centre = np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1]])
-            matrix = np.linalg.inv(centre) @ homography @ centre
-            warped = cv2.warpPerspective(
-                hwc,
-                matrix,
-                (w, h),
-                flags=WARP_INTERPOLATION,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=0,
-            )
-            return warped.reshape(h, w, -1)
-
+        homography = billboard.homography(level)  # network pixels -> frame pixels
+        warp = region_warper(homography, (x0, y0, w, h))
         mask = None
         albedo = depth = normal = None
+        info: dict = {}
         if "geometry" in branches:
             coverage = warp(out["mask"])[..., 0]
             mask = np.clip(coverage, 0.0, 1.0)
@@ -197,12 +217,20 @@ class NeuralCharacter:
             plane = billboard.plane_depth(camera, offset, origin=(x0, y0))
             depth = np.where(has, plane, np.inf).astype(np.float32)
             normal = normal.astype(np.float32)
-        if "albedo" in branches:
-            albedo = np.clip(warp(out["albedo"]), 0.0, 1.0)
-            if mask is None and "alpha" in out:  # the unlit mode: coverage from the albedo branch
-                mask = np.clip(warp(out["alpha"])[..., 0], 0.0, 1.0)
+        if mask is None and "alpha" in out:  # the unlit mode: coverage from the albedo branch
+            mask = np.clip(warp(out["alpha"])[..., 0], 0.0, 1.0)
         if mask is None:
             raise ValueError(
                 "no coverage: run the geometry branch, or the albedo branch of a format-2 bundle"
             )
-        return Layer(x0, y0, albedo, mask.astype(np.float32), depth, normal, level, tuple(branches))
+        uv = chart = None
+        if "albedo" in branches:
+            albedo, sharp, info = display_colour(
+                out, homography, (x0, y0, w, h), mask, self.textures
+            )
+            sample = info.pop("sample", None)
+            if sample is not None:
+                uv, chart = sample.st, sample.chart
+        else:
+            sharp = sharpen_coverage(mask)
+        return Layer(x0, y0, albedo, sharp, depth, normal, level, tuple(branches), info, uv, chart)

@@ -88,6 +88,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="cap the characters' level of detail at R x R (faster, less detail)",
     )
     parser.add_argument(
+        "--no-textures",
+        action="store_true",
+        help="colour characters from their albedo branch even where their bundle has a texture "
+        "head (the network's image alone, for comparison)",
+    )
+    parser.add_argument(
         "--aovs",
         type=_aovs,
         default=None,
@@ -123,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
     engine = Engine(
         args.scene, camera=args.camera, width=width, height=height,
         renderer=args.renderer, precision="int8" if args.int8 else "fp32", aovs=aovs,
-        prim_samples=args.prim_samples, max_level=args.max_level,
+        prim_samples=args.prim_samples, max_level=args.max_level, textures=not args.no_textures,
     )  # fmt: skip
     truth = None
     video = None
@@ -164,8 +170,16 @@ def run(args: argparse.Namespace) -> int:
             if k in picks:
                 thumbs.append(png)
             if truth is not None:
+                truth_frame = truth.render(float(t))
+                coverage = {
+                    c.path: (
+                        engine.coverage_of(c.path, float(t)),
+                        truth.coverage_of(c.path, float(t)),
+                    )
+                    for c in engine.characters
+                }
                 frame.report["reference"] = compare_with_reference(
-                    frame, truth.render(float(t)), out / f"compare_{t:08.1f}.png"
+                    frame, truth_frame, out / f"compare_{t:08.1f}.png", coverage
                 )
             reports.append(frame.report)
     finally:
@@ -327,10 +341,12 @@ def reference_summary(reports: list[dict]) -> str:
             else "reference: nothing to compare: no character was drawn by the network."
         )
     beauty, albedo = [c["psnr"] for c in rows], [c["albedo_psnr"] for c in rows]
+    ious = [c["mask_iou"] for c in rows if c.get("mask_iou") is not None]
     return (
         f"reference: character region, median over {len(rows)} character frames: beauty "
         f"PSNR {np.median(beauty):.2f} dB (min {min(beauty):.2f}), albedo PSNR "
         f"{np.median(albedo):.2f} dB (the region holds the prims behind it too)"
+        + (f", mask IoU {np.median(ious):.3f} (its own coverage)" if ious else "")
         + (f"; {empty} frames had nothing to compare (under a pixel)" if empty else "")
     )
 
@@ -341,13 +357,36 @@ MIN_COMPARED_PX = 1.0
 both images and its PSNR (120 dB, the 1e-12 floor) would say nothing about the network."""
 
 
-def compare_with_reference(frame, truth, path: Path) -> list[dict]:
-    """PSNR of each evaluated character's region (lit beauty) against the reference frame,
-    and an image neural | reference | 4x error."""
+def coverages(engine, truth, time: float) -> dict:
+    """Per character path, its own coverage in the network's frame and its skinned mesh's in
+    the reference frame (Engine.coverage_of), both last rendered at `time`."""
+    return {
+        c.path: (engine.coverage_of(c.path, time), truth.coverage_of(c.path, time))
+        for c in engine.characters
+    }
+
+
+def compare_with_reference(frame, truth, path: Path, coverage: dict | None = None) -> list[dict]:
+    """compare_regions, and an image neural | reference | 4x error at `path`."""
     import cv2
     import numpy as np
 
     from rigspace.sdk.color import linear_to_srgb
+
+    results = compare_regions(frame, truth, coverage)
+    error = np.clip(4 * np.abs(frame.beauty - truth.beauty), 0, 1)
+    row = np.concatenate(
+        [linear_to_srgb(frame.beauty), linear_to_srgb(truth.beauty), error], axis=1
+    )
+    cv2.imwrite(str(path), (row * 255 + 0.5).astype(np.uint8)[..., ::-1])
+    return results
+
+
+def compare_regions(frame, truth, coverage: dict | None = None) -> list[dict]:
+    """PSNR of each evaluated character's region (lit beauty and albedo) against the reference
+    frame, and the IoU of its own coverage against its skinned mesh's in that region
+    (`coverage`: per character path, the two (H, W) coverages, `coverages`; both at 0.5)."""
+    import numpy as np
 
     results = []
     for entry in frame.report["characters"]:
@@ -368,19 +407,18 @@ def compare_with_reference(frame, truth, path: Path) -> list[dict]:
             continue
         x, y, w, h = entry["region"]
         region = np.s_[y : y + h, x : x + w]
-        results.append(
-            {
-                "path": entry["path"],
-                "region": entry["region"],
-                "psnr": _psnr(frame.beauty[region], truth.beauty[region]),
-                "albedo_psnr": _psnr(frame.maps.albedo[region], truth.maps.albedo[region]),
-            }
-        )
-    error = np.clip(4 * np.abs(frame.beauty - truth.beauty), 0, 1)
-    row = np.concatenate(
-        [linear_to_srgb(frame.beauty), linear_to_srgb(truth.beauty), error], axis=1
-    )
-    cv2.imwrite(str(path), (row * 255 + 0.5).astype(np.uint8)[..., ::-1])
+        result = {
+            "path": entry["path"],
+            "region": entry["region"],
+            "psnr": _psnr(frame.beauty[region], truth.beauty[region]),
+            "albedo_psnr": _psnr(frame.maps.albedo[region], truth.maps.albedo[region]),
+        }
+        neural, mesh = (coverage or {}).get(entry["path"], (None, None))
+        if neural is not None and mesh is not None:
+            a, b = neural[region] >= 0.5, mesh[region] >= 0.5
+            union = int(np.logical_or(a, b).sum())
+            result["mask_iou"] = float(np.logical_and(a, b).sum() / union) if union else None
+        results.append(result)
     return results
 
 

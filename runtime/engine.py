@@ -123,6 +123,7 @@ class Engine:
         aovs: tuple[str, ...] = AOVS,
         prim_samples: int = 2,
         max_level: int | None = None,
+        textures: bool = True,
         live: bool = True,
         sources: dict[str, str] | None = None,
     ) -> None:
@@ -132,7 +133,9 @@ class Engine:
         with no lights on it and nothing overlapping its billboard runs its albedo branch only.
         `prim_samples` per axis anti-alias the scene prims (2: 2x2 per pixel; 1: none, about
         twice as fast on a software renderer). `max_level` caps the level of detail (the
-        network's output resolution) to trade detail for time. `live`: enabled
+        network's output resolution) to trade detail for time. `textures` False colours every
+        character from its albedo branch even where its bundle has a texture head (a
+        comparison, or a scene whose textures should not be read). `live`: enabled
         RigspaceLiveBindingAPI bindings drive their characters (runtime/live; their sources
         open at the first frame, or `open_live()`; `close()` or `with` stops them);
         `sources` maps binding names to URLs that replace theirs and enable them."""
@@ -165,7 +168,11 @@ class Engine:
                 models[folder] = BundleModel(folder, precision)
                 if not reference:
                     models[folder].preload()  # a damaged bundle fails here, not mid-sequence
-            self.characters.append(NeuralCharacter(prim, models[folder]))
+            character = NeuralCharacter(prim, models[folder])
+            if not textures and character.textures is not None:
+                character.textures = None
+                character.no_texture = "textures are turned off (--no-textures)"
+            self.characters.append(character)
         self.reference = reference
         self.live = LiveInput(self.stage, self.characters, sources or {}, live and not reference)
         """The characters' live bindings (runtime/live/engine.py)."""
@@ -186,6 +193,13 @@ class Engine:
         self._no_shadow = [(c.path, c.no_shadow) for c in self.characters if c.no_shadow]
         for path, why in self._no_shadow:  # said once, here and in the first frame's report
             print(f"rigspace render: warning: {path} casts no shadow: {why}.", file=sys.stderr)
+        for c in self.characters:
+            if c.model.charts and c.no_texture and not reference and textures:
+                print(
+                    f"rigspace render: warning: {c.path} samples no texture, its colour comes from "
+                    f"the albedo branch: {c.no_texture}.",
+                    file=sys.stderr,
+                )
         self._frame: tuple[tuple, Frame] | None = None
         self._light_problems: list[str] = []
         self._edited = False
@@ -504,8 +518,10 @@ class Engine:
         timings = dict.fromkeys(STAGES, 0.0)
         camera, camera_key = self._camera_at(time)
         scene_meshes = meshes = self.scene.meshes(time)
-        if self.reference:
-            meshes = meshes + [m for c in self.characters for m in c.rig.posed_meshes(time)]
+        if self.reference:  # the meshes with their charts: the texture AOVs to compare with
+            meshes = meshes + [
+                m for c in self.characters for m in c.rig.posed_meshes(time, charts=True)
+            ]
         prims, reused = self._scene_maps(meshes, camera, camera_key)
         timings["scene"] = clock.perf_counter() - start
         lights = self._lights_at(time)
@@ -664,6 +680,14 @@ class Engine:
         report["scene_prims"]["lit_reused"] = lit_reused
         albedo, normal = prims.albedo.copy(), prims.normal.copy()
         depth, mask = prims.depth.copy(), prims.mask.copy()
+        # Texture AOVs (uv, chart) when anything has them: the reference mode's meshes, or a
+        # character coloured from its textures.
+        layers = [self._layers[c.character.path].layer for c in candidates]
+        uv = chart = None
+        if prims.chart is not None or any(layer.chart is not None for layer in layers):
+            shape = prims.mask.shape
+            uv = prims.uv.copy() if prims.uv is not None else np.zeros((*shape, 2), np.float32)
+            chart = prims.chart.copy() if prims.chart is not None else np.zeros(shape, np.int32)
         for c in candidates:
             cached = self._layers[c.character.path]
             layer = cached.layer
@@ -691,7 +715,7 @@ class Engine:
                 )
             timings["lighting"] += clock.perf_counter() - t
             t = clock.perf_counter()
-            _composite(layer, cached.lit, beauty, albedo, normal, depth, mask)
+            _composite(layer, cached.lit, beauty, albedo, normal, depth, mask, uv, chart)
             timings["composite"] += clock.perf_counter() - t
         t = clock.perf_counter()
         dome = next((light for light in lights if light.kind == AMBIENT), None)
@@ -700,13 +724,34 @@ class Engine:
             beauty += (1.0 - mask)[..., None] * self._dome_background(dome, camera, camera_key)
         timings["composite"] += clock.perf_counter() - t
         report["shadows"]["maps_drawn"] = self.shadows.drawn  # maps are drawn when first needed
-        for array in (beauty, albedo, normal, depth, mask):
-            array.flags.writeable = False  # shared with the frame cache
-        frame = Frame(beauty, Maps(albedo, normal, depth, mask), report, dome is not None)
+        for array in (beauty, albedo, normal, depth, mask, uv, chart):
+            if array is not None:
+                array.flags.writeable = False  # shared with the frame cache
+        maps = Maps(albedo, normal, depth, mask, uv, chart)
+        frame = Frame(beauty, maps, report, dome is not None)
         self._frame = (frame_key, frame)
         self._frame_at = time
         report["seconds"] = _seconds(timings, start)
         return frame
+
+    def coverage_of(self, path: str, time: float) -> np.ndarray | None:
+        """(H, W) a character's own coverage at `time`, before any depth test: its layer's in
+        the last frame (None when it was not drawn), or in the reference mode its skinned
+        mesh drawn alone (what `--reference` measures the network's silhouette against)."""
+        character = next((c for c in self.characters if c.path == path), None)
+        if character is None:
+            return None
+        camera, _ = self._camera_at(time)
+        if self.reference:
+            return self.renderer.render(character.rig.posed_meshes(time), camera).mask
+        cached = self._layers.get(path)
+        if cached is None:
+            return None
+        layer = cached.layer
+        full = np.zeros((camera.height, camera.width), np.float32)
+        h, w = layer.mask.shape
+        full[layer.y0 : layer.y0 + h, layer.x0 : layer.x0 + w] = layer.mask
+        return full
 
     def _repeat(self, last: Frame, start: float) -> Frame:
         """The last frame again, its report saying so."""
@@ -739,8 +784,17 @@ class Engine:
                 else f"the smallest level covering its {c.billboard.size_px:.0f} px"
             ),
             branches=list(layer.branches),
+            colour=(
+                f"its textures on {100 * layer.info['textured']:.1f}% of its pixels, the albedo "
+                "branch on the rest"
+                if "textured" in layer.info
+                else "the albedo branch"
+                if "albedo" in layer.branches
+                else "none (the albedo branch did not run)"
+            ),
             size_px=round(c.billboard.size_px, 1),
             region=[int(layer.x0), int(layer.y0), *map(int, layer.mask.shape[::-1])],
+            **({"texture_ms": layer.info["texture_ms"]} if "texture_ms" in layer.info else {}),
         )
 
 
@@ -834,13 +888,15 @@ def _camera_key(camera: Camera) -> bytes:
     return camera.camera_to_world.tobytes() + np.asarray(lens, dtype=np.float64).tobytes()
 
 
-def _composite(layer: Layer, lit: np.ndarray, beauty, albedo, normal, depth, mask) -> None:
+def _composite(
+    layer: Layer, lit: np.ndarray, beauty, albedo, normal, depth, mask, uv=None, chart=None
+) -> None:
     """Depth-test a character layer against the frame and composite it with its coverage.
 
     Where the character is in front: colour = its premultiplied colour + (1 - a) * frame,
-    a its coverage; elsewhere the frame is unchanged (a = 0 and nothing added). Normals and
-    depth take the character's where it is in front and at least half covers the pixel.
-    In place, on the region only.
+    a its coverage; elsewhere the frame is unchanged (a = 0 and nothing added). Normals,
+    depth (and the texture AOVs uv and chart, when given) take the character's where it is
+    in front and at least half covers the pixel. In place, on the region only.
     """
     h, w = layer.mask.shape
     region = np.s_[layer.y0 : layer.y0 + h, layer.x0 : layer.x0 + w]
@@ -859,7 +915,10 @@ def _composite(layer: Layer, lit: np.ndarray, beauty, albedo, normal, depth, mas
         out += colour if front is None else colour * front[..., None]
     out = mask[region]
     out += a * (1.0 - out)
+    solid = (layer.mask >= 0.5) if front is None else front & (layer.mask >= 0.5)
     if front is not None and layer.normal is not None:
-        solid = front & (layer.mask >= 0.5)
         np.copyto(normal[region], layer.normal, where=solid[..., None])
         np.copyto(depth[region], layer.depth, where=solid)
+    if uv is not None and chart is not None:
+        np.copyto(uv[region], 0.0 if layer.uv is None else layer.uv, where=solid[..., None])
+        np.copyto(chart[region], 0 if layer.chart is None else layer.chart, where=solid)

@@ -7,6 +7,10 @@ under 8-bit quantisation and 0.03 degrees) and float32 for Z (half would lose 0.
 at 400 units away). zip compression: byte-identical output for identical input (piz is
 not), which is what makes resumed and sharded datasets checksum-equal. Channels are read
 back by name, since OpenImageIO may reorder them.
+
+A sample of a textured character also holds its texture AOVs (sdk/charts.py): uv.U, uv.V
+the visible surface's USD st (float32: a 4K texture needs 1/4096, and UDIM coordinates reach
+10) and chart, its texture chart (float32 integer; 0 where there is none).
 """
 
 from __future__ import annotations
@@ -21,6 +25,8 @@ from rigspace.sdk.render import Maps
 
 CHANNELS = ("R", "G", "B", "A", "Z", "N.X", "N.Y", "N.Z")
 FORMATS = (oiio.HALF,) * 4 + (oiio.FLOAT,) + (oiio.HALF,) * 3
+TEXTURE_CHANNELS = ("uv.U", "uv.V", "chart")
+TEXTURE_FORMATS = (oiio.FLOAT,) * 3
 COMPRESSION = "zip"
 DATE_TIME = "1980:01:01 00:00:00"
 """OpenImageIO stamps the write time into DateTime unless one is set; a fixed value (the
@@ -32,13 +38,11 @@ class ExrError(OSError):
 
 
 def pack(maps: Maps) -> np.ndarray:
-    """(H, W, 8) float32 pixels in CHANNELS order."""
-    return np.ascontiguousarray(
-        np.concatenate(
-            [maps.albedo, maps.mask[..., None], maps.depth[..., None], maps.normal], axis=-1
-        ),
-        dtype=np.float32,
-    )
+    """(H, W, 8) float32 pixels in CHANNELS order (then TEXTURE_CHANNELS when maps has them)."""
+    parts = [maps.albedo, maps.mask[..., None], maps.depth[..., None], maps.normal]
+    if maps.uv is not None and maps.chart is not None:
+        parts += [maps.uv, maps.chart[..., None].astype(np.float32)]
+    return np.ascontiguousarray(np.concatenate(parts, axis=-1), dtype=np.float32)
 
 
 def write_channels(
@@ -80,8 +84,12 @@ def write_channels(
 def write_exr(
     path: str | Path, maps: Maps, attributes: dict[str, str | float] | None = None
 ) -> None:
-    """Write a sample's maps (CHANNELS, FORMATS) to `path` atomically."""
-    write_channels(path, pack(maps), CHANNELS, FORMATS, attributes)
+    """Write a sample's maps (CHANNELS, FORMATS; TEXTURE_CHANNELS too when the maps have
+    texture AOVs) to `path` atomically."""
+    textured = maps.uv is not None and maps.chart is not None
+    channels = CHANNELS + TEXTURE_CHANNELS if textured else CHANNELS
+    formats = FORMATS + TEXTURE_FORMATS if textured else FORMATS
+    write_channels(path, pack(maps), channels, formats, attributes)
 
 
 def read_exr(path: str | Path) -> Maps:
@@ -102,9 +110,13 @@ def read_exr(path: str | Path) -> Maps:
     def channel(name: str) -> np.ndarray:
         return pixels[..., names.index(name)]
 
-    return Maps(
+    maps = Maps(
         albedo=np.stack([channel(c) for c in ("R", "G", "B")], axis=-1),
         normal=np.stack([channel(c) for c in ("N.X", "N.Y", "N.Z")], axis=-1),
         depth=channel("Z"),
         mask=channel("A"),
     )
+    if all(c in names for c in TEXTURE_CHANNELS):
+        maps.uv = np.stack([channel("uv.U"), channel("uv.V")], axis=-1)
+        maps.chart = np.rint(channel("chart")).astype(np.int32)
+    return maps

@@ -4,7 +4,11 @@ Albedo follows UsdPreviewSurface: `diffuseColor` connected to a UsdUVTexture (it
 read through USD's asset resolver, so textures inside .usdz packages work; 8-bit images
 and sourceColorSpace "sRGB" are decoded to linear; scale and bias applied) with the UV
 set named by the UsdPrimvarReader_float2 feeding it, else `diffuseColor`'s value, else
-primvars:displayColor, else 18% grey. Textures wrap with repeat.
+primvars:displayColor, else 18% grey. Textures wrap as wrapS and wrapT say (repeat,
+mirror, clamp, black; useMetadata, the fallback, is repeat: PNG and JPEG carry no wrap
+metadata, and repeat is what the renderers always did). A file path with `<UDIM>` reads
+every tile found (UsdShade.UdimUtils) into one atlas image, which the uv reach through an
+affine transform (Albedo.uv_scale, uv_offset), so renderers sample it as one texture.
 """
 
 from __future__ import annotations
@@ -13,7 +17,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from pxr import Ar, Usd, UsdGeom, UsdShade
+from pxr import Ar, Sdf, Usd, UsdGeom, UsdShade
 
 from rigspace.sdk.color import srgb_to_linear
 from rigspace.sdk.errors import SceneError
@@ -102,6 +106,11 @@ def read_texture(asset, color_space: str = "auto", where: str = "") -> np.ndarra
     return np.ascontiguousarray(image)
 
 
+WRAP_MODES = ("repeat", "mirror", "clamp", "black")
+"""UsdUVTexture wrapS / wrapT values the renderers and the runtime's sampler implement, in
+the order of their codes (Albedo.wrap_codes)."""
+
+
 @dataclass
 class Albedo:
     """Where a mesh's albedo comes from: a texture with a UV set, or colours."""
@@ -109,8 +118,54 @@ class Albedo:
     color: np.ndarray
     """(3,) constant or (N, 3) per point, linear."""
     texture: np.ndarray | None = None
-    """(H, W, 3) linear, UsdUVTexture scale and bias already applied."""
+    """(H, W, 3) linear, UsdUVTexture scale and bias already applied (a UDIM texture: its
+    tiles in one atlas, tile 1001 at the bottom left)."""
     uv_set: str = "st"
+    wrap: tuple[str, str] = ("repeat", "repeat")
+    """UsdUVTexture wrapS, wrapT (WRAP_MODES)."""
+    uv_scale: tuple[float, float] = (1.0, 1.0)
+    uv_offset: tuple[float, float] = (0.0, 0.0)
+    """The texture is sampled at st * uv_scale + uv_offset: the identity, except for a UDIM
+    atlas, whose tiles [u0, u0 + nu) x [v0, v0 + nv) it maps onto [0, 1]^2."""
+    udim: bool = False
+
+    @property
+    def wrap_codes(self) -> tuple[int, int]:
+        return WRAP_MODES.index(self.wrap[0]), WRAP_MODES.index(self.wrap[1])
+
+
+def read_udim_atlas(
+    source: AlbedoTexture, color_space: str
+) -> tuple[np.ndarray, tuple[float, float], tuple[float, float]]:
+    """A UDIM texture's tiles in one atlas image, and the uv scale and offset that map st onto
+    it: tile 1001 + u + 10 v covers st [u, u+1) x [v, v+1). Tiles of other sizes are resized
+    to the largest (bilinear); missing tiles in the atlas's rectangle stay black."""
+    tiles = source.udim_tiles()
+    if not tiles:
+        raise SceneError(
+            f"UDIM texture @{source.file.path}@ ({source.where}) has no tile on disk.",
+            "put its tiles (name.1001.png, ...) beside the layer, or correct inputs:file.",
+        )
+    images = {
+        tile: read_texture(Sdf.AssetPath(path, path), color_space, f"{source.where}, tile {tile}")
+        for path, tile in tiles
+    }
+    height = max(i.shape[0] for i in images.values())
+    width = max(i.shape[1] for i in images.values())
+    cells = {tile: ((tile - 1001) % 10, (tile - 1001) // 10) for tile in images}
+    u0 = min(c[0] for c in cells.values())
+    v0 = min(c[1] for c in cells.values())
+    nu = max(c[0] for c in cells.values()) - u0 + 1
+    nv = max(c[1] for c in cells.values()) - v0 + 1
+    atlas = np.zeros((nv * height, nu * width, 3), np.float32)
+    for tile, image in images.items():
+        if image.shape[:2] != (height, width):
+            image = cv2.resize(image, (width, height), interpolation=cv2.INTER_LINEAR)
+        u, v = cells[tile]
+        row = (nv - 1 - (v - v0)) * height  # v grows upwards; image rows downwards
+        col = (u - u0) * width
+        atlas[row : row + height, col : col + width] = image
+    return atlas, (1.0 / nu, 1.0 / nv), (-u0 / nu, -v0 / nv)
 
 
 def _input_source(shader_input: UsdShade.Input):
@@ -153,9 +208,35 @@ class AlbedoTexture:
         asset = self.file
         if asset is None or not asset.path:
             return f"{self.where} is empty"
+        if UsdShade.UdimUtils.IsUdimIdentifier(asset.path):
+            if not self.udim_tiles():
+                return f"UDIM texture @{asset.path}@ ({self.where}) has no tile on disk"
+            return None
         if not asset.resolvedPath:
             return f"texture @{asset.path}@ ({self.where}) does not resolve"
         return None
+
+    def udim_tiles(self) -> list[tuple[str, int]]:
+        """(resolved path, tile number) of every tile of a `<UDIM>` file path found on disk."""
+        attribute = self.shader.GetInput("file").GetAttr()
+        stack = attribute.GetPropertyStack(Usd.TimeCode.Default())
+        layer = stack[0].layer if stack else Sdf.Layer.CreateAnonymous()
+        found = UsdShade.UdimUtils.ResolveUdimTilePaths(self.file.path, layer)
+        return sorted((str(path), int(tile)) for path, tile in found)
+
+    def wrap(self) -> tuple[str, str]:
+        """wrapS, wrapT as WRAP_MODES (useMetadata and unauthored: repeat)."""
+        modes = []
+        for name in ("wrapS", "wrapT"):
+            value = self.shader.GetInput(name)
+            token = str(value.Get()) if value and value.Get() is not None else "useMetadata"
+            if token not in (*WRAP_MODES, "useMetadata"):
+                raise SceneError(
+                    f"inputs:{name} of {self.shader.GetPath()} is {token!r}.",
+                    f"author one of {', '.join(WRAP_MODES)} or useMetadata.",
+                )
+            modes.append("repeat" if token == "useMetadata" else token)
+        return modes[0], modes[1]
 
 
 def _surface(prim: Usd.Prim) -> tuple[UsdShade.Material | None, UsdShade.Shader | None]:
@@ -199,9 +280,14 @@ def read_albedo(prim: Usd.Prim) -> Albedo:
                 raise SceneError(
                     f"Texture {source.where} is empty.", "author the image's path in inputs:file."
                 )
-            image = read_texture(
-                source.file, str(color_space.Get()) if color_space else "auto", source.where
-            )
+            space = str(color_space.Get()) if color_space and color_space.Get() else "auto"
+            wrap = source.wrap()
+            uv_scale, uv_offset, udim = (1.0, 1.0), (0.0, 0.0), False
+            if UsdShade.UdimUtils.IsUdimIdentifier(source.file.path):
+                image, uv_scale, uv_offset = read_udim_atlas(source, space)
+                wrap, udim = ("clamp", "clamp"), True
+            else:
+                image = read_texture(source.file, space, source.where)
             scale, bias = texture.GetInput("scale"), texture.GetInput("bias")
             if scale and scale.Get() is not None:
                 image = image * np.asarray(scale.Get(), np.float32)[:3]
@@ -211,6 +297,10 @@ def read_albedo(prim: Usd.Prim) -> Albedo:
                 color=np.asarray(DEFAULT_COLOR, np.float32),
                 texture=np.ascontiguousarray(image, dtype=np.float32),
                 uv_set=uv_set,
+                wrap=wrap,
+                uv_scale=uv_scale,
+                uv_offset=uv_offset,
+                udim=udim,
             )
         if diffuse and diffuse.Get() is not None and not diffuse.HasConnectedSource():
             return Albedo(color=np.asarray(diffuse.Get(), np.float32))
@@ -244,11 +334,14 @@ class MeshSource:
             texture=self.albedo.texture,
             color=self.albedo.color,
             name=self.path,
+            wrap=self.albedo.wrap_codes,
+            uv_scale=self.albedo.uv_scale,
+            uv_offset=self.albedo.uv_offset,
         )
 
 
-def read_mesh_source(prim: Usd.Prim, time: Usd.TimeCode | None = None) -> MeshSource:
-    """Topology, UVs and albedo of a UsdGeom.Mesh (points at `time`, default: the default time)."""
+def _topology(prim: Usd.Prim, time: Usd.TimeCode | None):
+    """A mesh's points and its triangles, with each triangle's corners and face."""
     mesh = UsdGeom.Mesh(prim)
     when = Usd.TimeCode.Default() if time is None else time
     points = mesh.GetPointsAttr().Get(when)
@@ -266,7 +359,14 @@ def read_mesh_source(prim: Usd.Prim, time: Usd.TimeCode | None = None) -> MeshSo
             f"Mesh {prim.GetPath()} indexes point {int(np.max(indices))} of {len(points)}.",
             "re-export the mesh; its faceVertexIndices are out of range.",
         )
-    albedo = read_albedo(prim)
+    return np.asarray(points, dtype=np.float32), triangles, corners, faces
+
+
+def _part(
+    prim: Usd.Prim, name: str, topology, albedo: Albedo, keep: np.ndarray | None = None
+) -> MeshSource:
+    """The triangles `keep` selects (all: None) of a mesh with the albedo of their material."""
+    points, triangles, corners, faces = topology
     corner_uv = None
     if albedo.texture is not None:
         primvar = UsdGeom.PrimvarsAPI(prim).GetPrimvar(albedo.uv_set)
@@ -281,10 +381,41 @@ def read_mesh_source(prim: Usd.Prim, time: Usd.TimeCode | None = None) -> MeshSo
             )
     if albedo.color.ndim == 2 and len(albedo.color) != len(points):
         albedo.color = albedo.color.mean(axis=0)
+    if keep is not None:
+        triangles = triangles[keep]
+        corner_uv = None if corner_uv is None else corner_uv[keep]
     return MeshSource(
-        path=str(prim.GetPath()),
-        rest_points=np.asarray(points, dtype=np.float32),
-        triangles=triangles,
-        corner_uv=corner_uv,
-        albedo=albedo,
+        path=name, rest_points=points, triangles=triangles, corner_uv=corner_uv, albedo=albedo
     )
+
+
+def read_mesh_source(prim: Usd.Prim, time: Usd.TimeCode | None = None) -> MeshSource:
+    """Topology, UVs and albedo of a UsdGeom.Mesh (points at `time`, default: the default time),
+    with the material bound to the mesh itself."""
+    return _part(prim, str(prim.GetPath()), _topology(prim, time), read_albedo(prim))
+
+
+def read_mesh_parts(prim: Usd.Prim, time: Usd.TimeCode | None = None) -> list[MeshSource]:
+    """A mesh split by its materials: one part per material-bind GeomSubset (named by the
+    subset's path, with the subset's bound material) and one for the faces no subset takes
+    (named by the mesh's path, with the mesh's own); a mesh without subsets is one part.
+    The parts share the mesh's points (their triangles index them), so a skinned mesh is
+    skinned once for all of its parts."""
+    subsets = UsdShade.MaterialBindingAPI(prim).GetMaterialBindSubsets()
+    if not subsets:
+        return [read_mesh_source(prim, time)]
+    topology = _topology(prim, time)
+    faces = topology[3]
+    taken = np.zeros(len(faces), bool)
+    parts = []
+    for subset in subsets:
+        indices = np.asarray(subset.GetIndicesAttr().Get(Usd.TimeCode.Default()) or [], np.int64)
+        keep = np.isin(faces, indices) & ~taken  # a face in two subsets: the first one's
+        taken |= keep
+        if keep.any():
+            parts.append(
+                _part(prim, str(subset.GetPath()), topology, read_albedo(subset.GetPrim()), keep)
+            )
+    if not taken.all():
+        parts.append(_part(prim, str(prim.GetPath()), topology, read_albedo(prim), ~taken))
+    return parts

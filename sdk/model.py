@@ -4,13 +4,15 @@ Shared by `rigspace eval` and the runtime; imports no torch. Sessions are create
 per graph, so a frame that needs only albedo at 32x32 never loads the other graphs.
 CUDA is used when onnxruntime offers it, the CPU otherwise. Outputs are named by the
 graphs themselves: albedo graphs give `albedo` and (bundle format 2) `alpha`, geometry
-graphs `depth`, `normal` and `mask`. A pose-conditioned bundle (manifest `conditioning`)
+graphs `depth`, `normal` and `mask`; a bundle with a texture head (manifest `texture`) also
+gives `chart` and `uv` from its albedo graphs. A pose-conditioned bundle (manifest `conditioning`)
 also reads `joints2d` in every graph; it is computed here from the rig parameters with
 rigspace.sdk.conditioning (the function training used), so callers pass the rig alone.
 """
 
 from __future__ import annotations
 
+import json
 import warnings
 from pathlib import Path
 from typing import Any
@@ -84,8 +86,32 @@ class BundleModel:
         self.albedo_has_alpha = self.manifest.format_version >= 2
         """Whether the albedo branch alone gives coverage (lets unlit frames skip geometry)."""
         self.joints = list(self.manifest.joints)
+        self.charts = int((raw.get("texture") or {}).get("charts", 0))
+        """K texture charts the albedo graphs' texture head predicts (0: no texture head)."""
         self.skeleton = Skeleton2D.of_bundle(raw)
         """The skeleton a pose-conditioned bundle projects (None: the rig is the only input)."""
+
+    def chart_table(self) -> dict[str, Any] | None:
+        """The bundle's texture charts (charts.json, rigspace.sdk.charts), None without a head."""
+        texture = self.manifest.raw.get("texture")
+        if not texture:
+            return None
+        path = self.manifest.folder / str(texture.get("file", "charts.json"))
+        try:
+            table = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise BundleError(
+                f"Model bundle {self.manifest.folder}: its texture charts {path.name} cannot be "
+                f"read ({exc}).",
+                "re-export the bundle with `rigspace train`, or restore the file.",
+            ) from exc
+        if not isinstance(table, dict) or len(table.get("charts", [])) != self.charts:
+            raise BundleError(
+                f"Model bundle {self.manifest.folder}: {path.name} does not list the "
+                f"{self.charts} texture charts its manifest says.",
+                "re-export the bundle with `rigspace train`.",
+            )
+        return table
 
     def _checked(self, int8: str, fp32: str) -> str:
         check = self.manifest.raw.get("int8_check", {}).get("graphs", {}).get(int8, {})

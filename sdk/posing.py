@@ -15,19 +15,21 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from pxr import Usd, UsdGeom, UsdSkel, Vt
+from pxr import Sdf, Usd, UsdGeom, UsdSkel, Vt
 
 from rigspace.sdk.camera import from_gf
 from rigspace.sdk.character_rules import resolve_character
+from rigspace.sdk.charts import ChartTable, chart_table
 from rigspace.sdk.errors import SceneError
-from rigspace.sdk.geometry import MeshSource, read_mesh_source
+from rigspace.sdk.geometry import MeshSource, read_mesh_parts
 from rigspace.sdk.render import DrawMesh, vertex_normals
 
 
 @dataclass
 class _SkinnedMesh:
     query: UsdSkel.SkinningQuery
-    source: MeshSource
+    parts: list[MeshSource]
+    """The mesh by material (sdk.geometry.read_mesh_parts), skinned once for all of them."""
 
 
 class CharacterRig:
@@ -55,8 +57,40 @@ class CharacterRig:
         # Constant per skeleton: inverted once, not per pose.
         self._bind_inverse = [m.GetInverse() for m in self.skeleton.GetBindTransformsAttr().Get()]
         self._meshes = [
-            _SkinnedMesh(query, read_mesh_source(query.GetPrim())) for query in found.skel.skinning
+            _SkinnedMesh(query, read_mesh_parts(query.GetPrim())) for query in found.skel.skinning
         ]
+        self._charts: ChartTable | None = None
+
+    # -- texture charts -----------------------------------------------------------------
+
+    def mesh_name(self, mesh: MeshSource) -> str:
+        """A skinned mesh's (or material subset's) path relative to the character prim (how
+        bundles name it)."""
+        return str(Sdf.Path(mesh.path).MakeRelativePath(self.character.GetPath()))
+
+    def texture_charts(self) -> ChartTable:
+        """The texture charts of the character's textured meshes (rigspace.sdk.charts), from
+        their rest points; computed once."""
+        if self._charts is None:
+            self._charts = chart_table(
+                [
+                    (
+                        self.mesh_name(part),
+                        part.rest_points,
+                        part.triangles,
+                        part.corner_uv if part.albedo.texture is not None else None,
+                        max(part.albedo.texture.shape[:2])
+                        if part.albedo.texture is not None
+                        else 1,
+                    )
+                    for part in self.mesh_sources()
+                ]
+            )
+        return self._charts
+
+    def mesh_sources(self) -> list[MeshSource]:
+        """The skinned meshes' parts (topology, uvs and albedo), in skinning order."""
+        return [part for m in self._meshes for part in m.parts]
 
     # -- time range ---------------------------------------------------------------------
 
@@ -101,15 +135,21 @@ class CharacterRig:
 
     # -- skinned meshes -----------------------------------------------------------------
 
-    def posed_meshes(self, time: float, local: Vt.Matrix4dArray | None = None) -> list[DrawMesh]:
-        """The character's meshes skinned by UsdSkel at `time`, in world space."""
+    def posed_meshes(
+        self, time: float, local: Vt.Matrix4dArray | None = None, charts: bool = False
+    ) -> list[DrawMesh]:
+        """The character's meshes skinned by UsdSkel at `time`, in world space; with `charts`,
+        textured meshes carry their texture charts (renderers then give uv and chart maps)."""
+        charted = {}
+        if charts:
+            charted = {m.mesh: m.triangle_chart for m in self.texture_charts().meshes}
         skel = self.skel_transforms(self.local_transforms(time) if local is None else local)
         # UsdSkel skinning transforms: inverse(bind) * skel-space joint (row-vector order).
         skinning = Vt.Matrix4dArray([b * s for b, s in zip(self._bind_inverse, skel, strict=True)])
         to_world = self.skeleton_to_world(time)
         meshes = []
         for mesh in self._meshes:
-            points = Vt.Vec3fArray.FromNumpy(mesh.source.rest_points)
+            points = Vt.Vec3fArray.FromNumpy(mesh.parts[0].rest_points)
             if not mesh.query.ComputeSkinnedPoints(skinning, points, Usd.TimeCode(time)):
                 raise SceneError(
                     f"UsdSkel could not skin {mesh.query.GetPrim().GetPath()} at time {time}.",
@@ -118,7 +158,9 @@ class CharacterRig:
             p = np.asarray(points, dtype=np.float64)
             world = (p @ to_world[:3, :3].T + to_world[:3, 3]).astype(np.float32)
             # Normals once per pose, not once per camera that renders it.
-            meshes.append(
-                mesh.source.draw_mesh(world, vertex_normals(world, mesh.source.triangles))
-            )
+            normals = vertex_normals(world, np.concatenate([p.triangles for p in mesh.parts]))
+            for part in mesh.parts:
+                drawn = part.draw_mesh(world, normals)
+                drawn.chart = charted.get(self.mesh_name(part))
+                meshes.append(drawn)
         return meshes

@@ -12,6 +12,11 @@ resumes an interrupted one. DIR/ablation.md (the table), DIR/ablation_cost.png (
 against MFLOP) and DIR/ablation_curve.png (held-out
 quality against steps) are rewritten after every variant.
 
+With `--display HIRES` (a capture of the same ring at a higher resolution, `rigspace capture
+... --resolution 512 --every 30`) each variant is also measured at the size it is seen
+(train/display.py): at 2x, 4x, ... its resolution, up to the training dataset's resolution and
+HIRES's, the model as the runtime draws it against the truth captured at that size.
+
     python -m rigspace.train.ablation DATASET --out DIR --cost 128 --variants ...
 
 prints what each distinct architecture among the variants costs at 128x128 (MFLOP, fp32 and
@@ -136,6 +141,26 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
         "`bones2d-add32+bce+rare`, seed 1",
         {**ADD32_BCE, "oversample": 1.0, "seed": 1},
     ),
+    # Texture: colour from the character's own textures where a head says each pixel lands
+    # (train/network.py), against the albedo branch alone, on the sample model's form.
+    "sample-form": (
+        "the sample model's form (bones2d-add32+bce, depth x2), albedo branch only",
+        {**ADD32_BCE, "depth_weight": 2.0},
+    ),
+    "sample-form+texture": (
+        "sample-form with the texture head (chart and coordinates, loss weights 1)",
+        {**ADD32_BCE, "depth_weight": 2.0, "texture": True, "chart_weight": 1.0, "uv_weight": 1.0},
+    ),
+    "sample-form+texture-light": (
+        "sample-form+texture with the texture terms weighted 0.25",
+        {
+            **ADD32_BCE,
+            "depth_weight": 2.0,
+            "texture": True,
+            "chart_weight": 0.25,
+            "uv_weight": 0.25,
+        },
+    ),
 }
 SPLITS = ("heldout-views", "heldout-clips")
 TIMING_REPEATS = 30
@@ -221,20 +246,67 @@ def milliseconds(bundle: Path, rig: np.ndarray, resolution: int) -> float:
     return 1e3 * min(times)
 
 
+def display_metrics(
+    bundle: Path, datasets: list[Path], split: str, limit: int
+) -> dict[str, dict[str, Any]]:
+    """The variant measured at the sizes it is seen (train/display.py), from every dataset
+    above its resolution: per size, albedo PSNR, mask IoU and ms per sample of the runtime's
+    drawing, and the same of the truth at its resolution upsampled."""
+    from rigspace.train.display import (
+        MODES,
+        DisplayPredictor,
+        UpsampledTruth,
+        display_sizes,
+        scene_textures,
+    )
+
+    model = BundleModel(bundle, "fp32")
+    level = max(model.resolutions)
+    out: dict[str, dict[str, Any]] = {}
+    for folder in datasets:
+        full = DatasetTable(folder)
+        textures, _ = scene_textures(model, full.manifest)
+        for size in display_sizes(level, full.resolution):
+            if str(size) in out:
+                continue
+            table = DatasetTable(folder, size)
+            entry = {}
+            for predictor in (
+                *(DisplayPredictor(model, table, mode, textures) for mode in MODES),
+                UpsampledTruth(table, level),
+            ):
+                report = evaluate(predictor, table, split, limit=limit)
+                entry[predictor.name] = {
+                    "albedo_psnr": report["metrics"]["albedo_psnr"]["mean"],
+                    "mask_iou": report["metrics"]["mask_iou"]["mean"],
+                    "ms": 1e3 * report["seconds_per_sample"],
+                    "samples": report["samples"],
+                }
+            out[str(size)] = entry
+    return out
+
+
 def run_variant(
-    dataset: Path, out: Path, name: str, steps_per_level: int, resolution: int, limit: int
+    dataset: Path,
+    out: Path,
+    name: str,
+    steps_per_level: int,
+    resolution: int,
+    limit: int,
+    display: Path | None = None,
 ) -> dict[str, Any]:
-    """Train, export and evaluate one variant (resuming what an earlier call left)."""
+    """Train, export and evaluate one variant (resuming what an earlier call left); with
+    `display`, also measured at the sizes it is seen (display_metrics)."""
     description, overrides = VARIANTS[name]
     folder = out / name
-    config = preset(
-        "small",
-        resolution=resolution,
-        steps_per_level=steps_per_level,
-        eval_every=max(1, steps_per_level // 3),
-        checkpoint_every=max(1, steps_per_level // 3),
-        **overrides,
-    )
+    options: dict[str, Any] = {
+        "texture": False,  # the variants before the texture head were measured without one
+        "resolution": resolution,
+        "steps_per_level": steps_per_level,
+        "eval_every": max(1, steps_per_level // 3),
+        "checkpoint_every": max(1, steps_per_level // 3),
+    }
+    config = preset("small", **(options | overrides))
     began = time.monotonic()
     result = train(
         dataset, folder / "run", config, resume=(folder / "run" / RUN_FILE).exists(), progress=False
@@ -267,6 +339,8 @@ def run_variant(
         "metrics": metrics,
         "curve": curve(folder / "run" / "log.jsonl"),
     }
+    if display is not None:
+        record["display"] = display_metrics(bundle, [dataset, display], "heldout-views", limit)
     (folder / "result.json").write_text(json.dumps(_finite(record), indent=2) + "\n")
     return record
 
@@ -331,6 +405,35 @@ def table_markdown(records: list[dict[str, Any]]) -> str:
                         "-" if value is None or not math.isfinite(value) else fmt.format(value)
                     )
         lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def display_markdown(records: list[dict[str, Any]]) -> str:
+    """The variants measured at the sizes they are seen (display_metrics): per size, albedo
+    PSNR and mask IoU of each way of drawing, and ms per sample of the runtime's; empty when
+    no variant was."""
+    shown = [r for r in records if r.get("display")]
+    if not shown:
+        return ""
+    lines = ["", "At the size the character is seen (held-out views, `--display`):", ""]
+    head = "| variant | size | runtime dB | runtime IoU | albedo branch dB | bilinear dB | truth at R upsampled dB | runtime ms |"
+    lines += [head, "|---|---|---|---|---|---|---|---|"]
+
+    def cell(entry: dict[str, Any], mode: str, key: str, fmt: str) -> str:
+        value = entry.get(mode, {}).get(key)
+        return "-" if value is None else fmt.format(value)
+
+    for r in shown:
+        for size, entry in sorted(r["display"].items(), key=lambda kv: int(kv[0])):
+            truth = next((k for k in entry if k.startswith("truth")), "")
+            lines.append(
+                f"| `{r['variant']}` | {size} | {cell(entry, 'runtime', 'albedo_psnr', '{:.2f}')} "
+                f"| {cell(entry, 'runtime', 'mask_iou', '{:.3f}')} "
+                f"| {cell(entry, 'albedo branch', 'albedo_psnr', '{:.2f}')} "
+                f"| {cell(entry, 'bilinear', 'albedo_psnr', '{:.2f}')} "
+                f"| {cell(entry, truth, 'albedo_psnr', '{:.2f}')} "
+                f"| {cell(entry, 'runtime', 'ms', '{:.1f}')} |"
+            )
     return "\n".join(lines) + "\n"
 
 
@@ -554,7 +657,7 @@ def report(out: Path) -> list[dict[str, Any]]:
         log = out / record["variant"] / "run" / "log.jsonl"
         if log.is_file():
             record["curve"] = curve(log)
-    (out / "ablation.md").write_text(table_markdown(records))
+    (out / "ablation.md").write_text(table_markdown(records) + display_markdown(records))
     if records:
         plot_curves(records, out / "ablation_curve.png")
         plot_cost(records, out / "ablation_cost.png")
@@ -619,6 +722,19 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     parser.add_argument(
+        "--redisplay",
+        action="store_true",
+        help="only measure the finished --variants at the sizes they are seen again (with "
+        "--display) and rewrite the report",
+    )
+    parser.add_argument(
+        "--display",
+        type=Path,
+        metavar="HIRES",
+        help="also measure each variant at the size it is seen, on this capture of the same "
+        "ring at a higher resolution (and on DATASET above the variant's resolution)",
+    )
+    parser.add_argument(
         "--retime",
         action="store_true",
         help="only re-measure ms of the finished variants, interleaved, and rewrite the report",
@@ -651,6 +767,22 @@ def main(argv: list[str] | None = None) -> int:
         if args.breakdown:
             print(breakdown(args.out, args.dataset, args.variants), end="")
             return 0
+        if args.redisplay:
+            for name in args.variants:
+                path = args.out / name / "result.json"
+                if not path.is_file():
+                    continue
+                record = json.loads(path.read_text())
+                record["display"] = display_metrics(
+                    args.out / name / "bundle",
+                    [args.dataset, *([args.display] if args.display else [])],
+                    "heldout-views",
+                    args.limit,
+                )
+                path.write_text(json.dumps(_finite(record), indent=2) + "\n")
+                print(f"ablation: {name}: display {record['display']}", file=sys.stderr)
+            report(args.out)
+            return 0
         if args.retime:
             for name, ms in retime(args.out, args.dataset).items():
                 print(f"ablation: {name}: {ms:.2f} ms fp32", file=sys.stderr)
@@ -662,7 +794,13 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             began = time.monotonic()
             record = run_variant(
-                args.dataset, args.out, name, args.steps_per_level, args.resolution, args.limit
+                args.dataset,
+                args.out,
+                name,
+                args.steps_per_level,
+                args.resolution,
+                args.limit,
+                args.display,
             )
             views = record["metrics"]["heldout-views"]
             print(

@@ -262,6 +262,66 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--record", action="store_true", help="store the model's metrics in the bundle manifest"
     )
+    parser.add_argument(
+        "--display",
+        action="store_true",
+        help="measure at the size the character is seen: on a dataset captured above the "
+        "model's resolution (capture --resolution 512 --every 10), at 2x, 4x, ... the model's "
+        "resolution up to the dataset's, the model as `rigspace render` draws it (textures, "
+        "sharpened coverage) against the albedo branch, plain bilinear upsampling and the truth "
+        "at the model's resolution upsampled",
+    )
+
+
+def run_display(args: argparse.Namespace) -> int:
+    """`rigspace eval --display` (train/display.py)."""
+    from rigspace.sdk.model import BundleModel
+    from rigspace.train.display import (
+        MODES,
+        DisplayPredictor,
+        UpsampledTruth,
+        display_sizes,
+        scene_textures,
+    )
+    from rigspace.train.evaluate import DatasetTable, compare, format_table, to_json
+
+    full = DatasetTable(Path(args.dataset))
+    model = BundleModel(Path(args.model), "int8" if args.int8 else "fp32")
+    level = max(model.resolutions)
+    sizes = display_sizes(level, full.resolution)
+    if not sizes:
+        raise RigspaceError(
+            f"--display: {args.dataset} is captured at {full.resolution}x{full.resolution}, not "
+            f"above the model's {level}x{level}.",
+            f"capture a small evaluation set at 2x or 4x: `rigspace capture SCENE --out DIR "
+            f"--resolution {4 * level} --every 10`.",
+        )
+    textures, why = scene_textures(model, full.manifest)
+    if why:
+        print(f"note: runtime colour is the albedo branch: {why}", file=sys.stderr)
+    results = {}
+    for size in sizes:
+        table = DatasetTable(Path(args.dataset), size)
+        predictors = [DisplayPredictor(model, table, mode, textures) for mode in MODES]
+        predictors.append(UpsampledTruth(table, level))
+        out_dir = Path(args.errors) / f"display_{size}" if args.errors else None
+        result = compare(predictors, table, args.split, limit=args.limit or None, out_dir=out_dir)
+        results[size] = result
+        if not args.json:
+            print(f"at {size}x{size} ({size // level}x the model's {level}x{level}):")
+            print(format_table(result))
+    if args.record:
+        manifest_path = Path(args.model) / "manifest.json"
+        manifest = json.loads(manifest_path.read_text())
+        display = manifest.setdefault("metrics", {}).setdefault("display", {})
+        for size, result in results.items():
+            display.setdefault(args.split, {})[str(size)] = json.loads(
+                to_json({"samples": result["samples"], "rows": result["rows"]})
+            )
+        manifest_path.write_text(json.dumps(manifest, indent=2) + "\n")
+    if args.json:
+        sys.stdout.write(to_json({str(k): v for k, v in results.items()}))
+    return 0
 
 
 def run_eval(args: argparse.Namespace) -> int:
@@ -277,6 +337,8 @@ def run_eval(args: argparse.Namespace) -> int:
 
     if args.errors:
         check_folder(Path(args.errors), "--errors")  # before the evaluation, not after it
+    if args.display:
+        return run_display(args)
     table = DatasetTable(Path(args.dataset))
     top = model_top_level(Path(args.model))
     if top is not None and table.resolution > top and table.resolution % top == 0:

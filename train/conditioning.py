@@ -113,7 +113,9 @@ class ConditionMaps(nn.Module):
 
     def forward(self, joints2d: torch.Tensor, resolution: int) -> torch.Tensor:
         xy = joints2d.reshape(-1, self.joints, 2)
-        grid = (torch.arange(resolution, dtype=joints2d.dtype) + 0.5) * (2.0 / resolution) - 1.0
+        grid = (torch.arange(resolution, dtype=joints2d.dtype, device=joints2d.device) + 0.5) * (
+            2.0 / resolution
+        ) - 1.0
         gx, gy = grid.view(1, 1, 1, -1), grid.view(1, 1, -1, 1)
         sigma = max(self.sigma, 2.0 / resolution)
         if self.kind == "joints2d":

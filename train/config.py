@@ -113,6 +113,36 @@ class TrainConfig:
             "it read the top maps upsampled (add: their 1x1 projection, upsampled)"
         },
     )
+    texture: bool = field(
+        default=False,
+        metadata={
+            "help": "a texture head on the albedo branch: per pixel the texture chart and the "
+            "coordinates within it, so the runtime samples the character's own textures at the "
+            "size on screen (datasets with texture charts; the small and paper presets turn it on)"
+        },
+    )
+    texture_branch: str = field(
+        default="albedo",
+        metadata={
+            "help": "the branch whose heads carry the texture head: albedo (an unlit frame runs "
+            "the albedo branch alone and is still textured) or geometry (the branch that knows "
+            "where the surface is)"
+        },
+    )
+    chart_weight: float = field(
+        default=0.25,
+        metadata={
+            "help": "weight of the chart classification loss (cross-entropy; at 1 the other "
+            "maps lose more, docs/texture.md)"
+        },
+    )
+    uv_weight: float = field(
+        default=4.0,
+        metadata={
+            "help": "weight of the chart coordinates loss (at 1 the coordinates are 40%% less "
+            "precise than at 10; at 10 depth is 37%% worse; docs/texture.md)"
+        },
+    )
     seed: int = field(default=0, metadata={"help": "seed for weights, sampling and shuffling"})
     bf16: bool = field(
         default=False,
@@ -156,6 +186,7 @@ class TrainConfig:
             "mask_loss": MASK_LOSSES,
             "conditioning": ("none", "joints2d", "bones2d"),
             "conditioning_mode": CONDITIONING_MODES,
+            "texture_branch": ("albedo", "geometry"),
         }
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
@@ -194,7 +225,7 @@ PRESETS: dict[str, TrainConfig] = {
         checkpoint_every=20,
     ),
     # The committed sample model: about an hour on 2 CPU cores at 128x128.
-    "small": TrainConfig(preset="small", steps_per_level=4000),
+    "small": TrainConfig(preset="small", steps_per_level=4000, texture=True),
     # The paper's widths (512-channel latent and trunk), for a GPU.
     "paper": TrainConfig(
         preset="paper",
@@ -205,6 +236,7 @@ PRESETS: dict[str, TrainConfig] = {
         min_width=32,
         batch=32,
         lr=1e-3,
+        texture=True,
         steps_per_level=20000,
         eval_every=2000,
         eval_samples=256,

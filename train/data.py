@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from rigspace.capture.dataset import DatasetError, read_manifest
+from rigspace.capture.dataset import DatasetError, read_charts, read_manifest
 from rigspace.capture.ring import stage_axes
 from rigspace.sdk.conditioning import Skeleton2D, joints2d
 from rigspace.sdk.exr import read_exr
@@ -88,6 +88,61 @@ def targets_at(
     )
 
 
+def chart_boxes(folder: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """(K+1, 2) centres and half sizes of a dataset's texture charts' uv boxes (row 0, no
+    chart: centre 0, half 1), from its charts.json; None when it has no texture charts."""
+    table = read_charts(folder)
+    if table is None or not table.get("charts"):
+        return None
+    charts = table["charts"]
+    center = np.zeros((len(charts) + 1, 2), np.float32)
+    half = np.ones((len(charts) + 1, 2), np.float32)
+    for chart in charts:
+        lo, hi = np.asarray(chart["uv_min"], np.float64), np.asarray(chart["uv_max"], np.float64)
+        center[int(chart["index"])] = (lo + hi) / 2
+        half[int(chart["index"])] = np.maximum((hi - lo) / 2, 1e-6)
+    return center, half
+
+
+def chart_targets(
+    chart: np.ndarray, uv: np.ndarray, boxes: tuple[np.ndarray, np.ndarray], factor: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(R, R) chart and (2, R, R) chart coordinates in [-1, 1] over the chart's uv box, from
+    a sample's (H, W) chart and (H, W, 2) uv, downsampled by `factor`.
+
+    A box of factor x factor pixels takes its commonest chart (ties: a chart before none,
+    then the lower number) and
+    the mean uv of its pixels on that chart: coordinates are never averaged across charts,
+    so never across a seam. Coordinates are 0 where the chart is 0.
+    """
+    h, w = chart.shape
+    r, c = h // factor, w // factor
+    blocks = chart.reshape(r, factor, c, factor).transpose(0, 2, 1, 3).reshape(r, c, -1)
+    if factor == 1:
+        mode = chart.astype(np.int64)
+        uv_mode = uv.astype(np.float64)
+    else:
+        charts = np.arange(int(chart.max(initial=0)) + 1)
+        counts = (blocks[..., None] == charts).sum(axis=2).astype(np.float64)
+        counts[..., 0] -= 0.5  # a tie between a chart and none goes to the chart
+        mode = counts.argmax(axis=-1)
+        same = blocks == mode[..., None]
+        uv_blocks = (
+            uv.reshape(r, factor, c, factor, 2).transpose(0, 2, 1, 3, 4).reshape(r, c, -1, 2)
+        )
+        uv_mode = (uv_blocks * same[..., None]).sum(axis=2) / same.sum(axis=2)[..., None]
+    center, half = boxes
+    if mode.max(initial=0) >= len(center):
+        raise DatasetError(
+            f"A sample names texture chart {int(mode.max())}; the dataset's charts.json has "
+            f"{len(center) - 1}.",
+            "capture the dataset again (charts.json and the samples disagree).",
+        )
+    local = (uv_mode - center[mode]) / half[mode]
+    local = np.where(mode[..., None] > 0, local, 0.0)
+    return mode.astype(np.int64), np.moveaxis(local, -1, 0).astype(np.float32)
+
+
 ITEM_COLUMNS = ["rig", "joint_camera"]
 """The params.npz columns a training item is made from (a shard sample's .npz holds them all)."""
 POSE_COLUMNS = ("clip", "time", "camera_to_world")
@@ -133,6 +188,8 @@ class SplitInfo:
         self.joints = list(self.manifest["joints"])
         self.skeleton: Skeleton2D | None = None
         """Set (train.conditioning.dataset_skeleton) to add each item's `joints2d`."""
+        self.charts: tuple[np.ndarray, np.ndarray] | None = None
+        """Set (chart_boxes) to add each item's `chart` and `uv` (the texture head's targets)."""
 
     def make_item(self, maps: Maps, row: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """A sample's item from its maps and its params row (ITEM_COLUMNS): rig (J*6,),
@@ -157,6 +214,20 @@ class SplitInfo:
         }
         if self.skeleton is not None:  # pose conditioning: the runtime's function, same input
             item["joints2d"] = joints2d(item["rig"][None], self.skeleton)[0]
+        if self.charts is not None:  # the texture head's targets
+            if maps.chart is None or maps.uv is None:
+                raise DatasetError(
+                    "A sample of this dataset has no texture AOVs (uv, chart), though its "
+                    "charts.json says the character is textured.",
+                    "capture the dataset again with this rigspace.",
+                )
+            chart, uv = chart_targets(
+                np.where(maps.mask > 0, maps.chart, 0),
+                maps.uv,
+                self.charts,
+                self.dataset_resolution // self.resolution,
+            )
+            item["chart"], item["uv"] = chart[None], uv
         return item
 
     def batch_of(self, items: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:

@@ -100,16 +100,20 @@ class Context:
         dist.broadcast(tensor, src=0)
         return type(value)(int(tensor.item()))
 
-    def mean(self, loss: torch.Tensor, terms: dict[str, float]) -> tuple[float, dict[str, float]]:
-        """The step's loss and terms averaged over the ranks (what a log line shows)."""
-        if self.world == 1:
-            return float(loss.detach()), terms
+    def mean(
+        self, loss: torch.Tensor, terms: dict[str, torch.Tensor]
+    ) -> tuple[float, dict[str, float]]:
+        """The step's loss and terms averaged over the ranks (what a log line shows), read
+        from the device in one transfer."""
         import torch
+
+        values = torch.stack([loss.detach(), *terms.values()]).to(torch.float64)
+        if self.world == 1:
+            read = values.tolist()
+            return read[0], dict(zip(terms, read[1:], strict=True))
         import torch.distributed as dist
 
-        values = torch.tensor(
-            [float(loss.detach()), *terms.values()], dtype=torch.float64, device=self._comm_device
-        )
+        values = values.to(self._comm_device)
         dist.all_reduce(values)
         values = (values / self.world).cpu()
         return float(values[0]), dict(zip(terms, values[1:].tolist(), strict=True))

@@ -22,6 +22,10 @@ frame even when both branches are needed. Graph inputs and outputs:
     normal  float32 (N, 3, R, R)      camera-space unit normals
     mask    float32 (N, 1, R, R)      coverage, [0, 1]
     alpha   float32 (N, 1, R, R)      coverage from the albedo branch, [0, 1]
+    chart   float32 (N, K+1, R, R)    texture chart probabilities (softmax; 0: no chart), from
+                                      the albedo branch of a model with a texture head
+    uv      float32 (N, 2K, R, R)     per chart its (u, v) within its uv box, [-1, 1]
+    MODEL/charts.json               the texture charts (rigspace.sdk.charts), with a head
 
 Only the levels the run trained are exported, each int8 graph is checked against its fp32
 graph (train.int8check), and the dataset's capsules.json (rigspace.sdk.capsules) is copied.
@@ -42,7 +46,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from rigspace.capture.dataset import read_manifest
+from rigspace.capture.dataset import CHARTS_FILE, read_manifest
 from rigspace.sdk.bundle import CONDITIONED_VERSION, FORMAT, FORMAT_VERSION
 from rigspace.sdk.capsules import FILE_NAME as CAPSULES
 from rigspace.sdk.capsules import read_capsules
@@ -52,7 +56,7 @@ from rigspace.train.config import TrainConfig
 from rigspace.train.data import SampleSet, depth_scale
 from rigspace.train.int8check import TOLERANCES, check_int8, rig_feeds
 from rigspace.train.loop import CHECKPOINT, RUN_FILE, TrainingError, build_model
-from rigspace.train.network import Rig2Image
+from rigspace.train.network import BRANCH_CHANNELS, Rig2Image
 from rigspace.train.quantize import int8_name
 
 OPSET = 17
@@ -91,15 +95,42 @@ class BranchAtLevel(nn.Module):
         self.model, self.branch = model, getattr(model, branch)
         self.name, self.resolution = branch, resolution
         self.head = self.branch.heads[self.branch.resolutions.index(resolution)]
+        self.groups = head_groups(branch, model.charts if branch == model.texture_branch else 0)
 
     def forward(self, features: torch.Tensor, joints2d: torch.Tensor | None = None):
         maps = self.model.condition_maps(joints2d, self.resolution)  # in the graph (conditioned)
         x = self.branch.features_at(features, self.resolution, maps)
         w, b = self.head.weight, self.head.bias
-        parts = [F.conv2d(x, w[i:j], b[i:j]) for i, j in HEAD_GROUPS[self.name]]
+        parts = [F.conv2d(x, w[i:j], b[i:j]) for i, j in self.groups]
+        own = len(HEAD_GROUPS[self.name])
         if self.name == "albedo":
-            return torch.sigmoid(parts[0]), torch.sigmoid(parts[1])
-        return parts[0], F.normalize(parts[1], dim=1, eps=1e-6), torch.sigmoid(parts[2])
+            outputs: tuple = (torch.sigmoid(parts[0]), torch.sigmoid(parts[1]))
+        else:
+            outputs = (parts[0], F.normalize(parts[1], dim=1, eps=1e-6), torch.sigmoid(parts[2]))
+        if len(parts) > own:  # the texture head: chart probabilities and coordinates
+            outputs = (*outputs, torch.softmax(parts[own], dim=1), parts[own + 1])
+        return outputs
+
+
+def head_groups(branch: str, charts: int) -> tuple[tuple[int, int], ...]:
+    """A branch's head channels by output (HEAD_GROUPS), with the texture head's chart and
+    uv groups after the branch's own when it carries a texture head of `charts` charts."""
+    groups = HEAD_GROUPS[branch]
+    if charts:
+        start = BRANCH_CHANNELS[branch]
+        groups = (
+            *groups,
+            (start, start + charts + 1),
+            (start + charts + 1, start + 3 * charts + 1),
+        )
+    return groups
+
+
+def output_names(branch: str, charts: int) -> list[str]:
+    """The outputs of a branch's graph (the trunk's: features); "chart" and "uv" too when it
+    carries the texture head (`charts` > 0)."""
+    names = OUTPUTS[branch]
+    return [*names, "chart", "uv"] if charts else names
 
 
 OUTPUTS = {
@@ -123,7 +154,7 @@ def export_graph(model: Rig2Image, branch: str, resolution: int, path: Path) -> 
     inputs = [INPUTS[branch]]
     if joints2d is not None:
         example, inputs = (*example, joints2d), [*inputs, "joints2d"]
-    names = OUTPUTS[branch]
+    names = output_names(branch, model.charts if branch == model.texture_branch else 0)
     with warnings.catch_warnings():
         # The TorchScript exporter is deprecated in favour of torch.export; it is the one that
         # needs no onnxscript and gives plain, stable graphs for this small static network.
@@ -179,7 +210,7 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-BUNDLE_GRAPHS = ("trunk*.onnx", "albedo_*.onnx", "geometry_*.onnx")
+BUNDLE_GRAPHS = ("trunk*.onnx", "albedo_*.onnx", "geometry_*.onnx", CHARTS_FILE)
 """Names of the graphs an export writes: a re-export removes those it no longer writes."""
 INT8_CHECK_SAMPLES = 32
 """Held-out rows (training rows when there are none) each int8 graph is checked on."""
@@ -290,6 +321,18 @@ def export_bundle(
             "mask": "float32 (N,1,R,R) coverage in [0,1]",
             "alpha": "float32 (N,1,R,R) coverage in [0,1] from the albedo branch (for frames "
             "that run the albedo branch alone)",
+            **(
+                {
+                    "chart": "float32 (N,K+1,R,R) texture chart probabilities (softmax over "
+                    "the charts of texture.file; 0: background or no texture), from the "
+                    "graphs of the branch texture.branch",
+                    "uv": "float32 (N,2K,R,R) per chart k (channels 2(k-1), 2(k-1)+1) its "
+                    "texture coordinates within its uv box (charts.json uv_min..uv_max mapped "
+                    "to -1..1), from the graphs of the branch texture.branch",
+                }
+                if model.charts
+                else {}
+            ),
         },
         "depth": {
             "encoding": "relative-to-look-at-joint",
@@ -349,6 +392,16 @@ def export_bundle(
     if capsules.is_file():
         manifest["capsules"] = CAPSULES
         written.append(CAPSULES)
+    if model.charts:
+        # The chart table the texture head numbers, from the dataset (capture wrote it).
+        shutil.copyfile(dataset / CHARTS_FILE, out / CHARTS_FILE)
+        manifest["texture"] = {
+            "charts": model.charts,
+            "file": CHARTS_FILE,
+            "branch": model.texture_branch,
+            "outputs": ["chart", "uv"],
+        }
+        written.append(CHARTS_FILE)
     manifest["files"] = {
         name: {"bytes": (out / name).stat().st_size, "sha256": _sha256(out / name)}
         for name in sorted(written)

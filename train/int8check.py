@@ -48,6 +48,9 @@ TOLERANCES: dict[str, tuple[str, float]] = {
     "normal_mean_deg": ("<=", 45.0),
     "normal_zero_fraction": ("<=", 0.05),
     "depth_mae": ("<=", 0.25),
+    # The texture head: the chart picked and the coordinates (chart box half-widths).
+    "chart_agreement": (">=", 0.8),
+    "uv_mae": ("<=", 0.1),
 }
 """Per metric: the comparison a passing int8 graph meets against fp32. Depth is in the
 bundle's depth units (depth.scale, half the view's extent at the joint's distance)."""
@@ -63,6 +66,10 @@ AIM: dict[str, tuple[str, float]] = {
     "mask_iou": (">=", 0.97),
     "normal_mean_deg": ("<=", 3.0),
     "depth_mae": ("<=", 0.015),
+    # Coordinates within 0.005 of a chart's half-width: under a texel of the sample's 80-250
+    # texel wide charts.
+    "chart_agreement": (">=", 0.99),
+    "uv_mae": ("<=", 0.005),
 }
 """Per metric, int8 against fp32: what a graph meets to be offered as a speed option."""
 MIN_SPEEDUP = 1.5
@@ -109,7 +116,32 @@ def drift(fp32: dict[str, np.ndarray], int8: dict[str, np.ndarray]) -> dict[str,
             out["depth_mae"] = float(depth.mean())
         else:
             out.update(normal_mean_deg=None, normal_zero_fraction=None, depth_mae=None)
+    if "chart" in fp32:
+        out.update(texture_drift(fp32, int8))
     return out
+
+
+def texture_drift(
+    fp32: dict[str, np.ndarray], int8: dict[str, np.ndarray]
+) -> dict[str, float | None]:
+    """The texture head's drift where fp32's coverage (alpha or mask, the graph's own) covers:
+    the share of pixels whose most likely chart agrees, and the mean |uv| difference of fp32's
+    chart's pair there."""
+    coverage = fp32["alpha"] if "alpha" in fp32 else fp32["mask"]
+    covered = coverage[:, 0] >= MASK_VALID
+    chart = fp32["chart"].argmax(axis=1)
+    charted = covered & (chart > 0)
+    if not charted.any():
+        return {"chart_agreement": None, "uv_mae": None}
+    agreement = float(np.mean(int8["chart"].argmax(axis=1)[covered] == chart[covered]))
+    pair = np.maximum(chart - 1, 0)[:, None]
+    difference = [
+        np.take_along_axis(int8["uv"][:, c::2], pair, 1)
+        - np.take_along_axis(fp32["uv"][:, c::2], pair, 1)
+        for c in (0, 1)
+    ]
+    uv = np.abs(np.concatenate(difference, axis=1)).mean(axis=1)[charted]
+    return {"chart_agreement": agreement, "uv_mae": float(uv.mean())}
 
 
 def verdict(

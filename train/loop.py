@@ -42,9 +42,9 @@ from rigspace.train import distributed
 from rigspace.train.budget import Pace, apply_plan, plan_schedule
 from rigspace.train.conditioning import dataset_skeleton, parents_of
 from rigspace.train.config import TrainConfig
-from rigspace.train.data import SampleSet
+from rigspace.train.data import SampleSet, chart_boxes
 from rigspace.train.loss import targets_for, total_loss
-from rigspace.train.network import Rig2Image, Shape, albedo_maps, geometry_maps
+from rigspace.train.network import Rig2Image, Shape, albedo_maps, geometry_maps, texture_maps
 from rigspace.train.stream import open_split, prefetcher
 
 CHECKPOINT = "checkpoint.pt"
@@ -163,8 +163,17 @@ def _preview(model, samples: SampleSet, resolution: int, path: Path) -> dict[str
         heads = model(torch.from_numpy(batch["rig"]), resolution, joints2d=joints2d)
         albedo = albedo_maps(heads["albedo"][-1]).numpy()
         mask = geometry_maps(heads["geometry"][-1])[2].numpy()
-        target = targets_for({k: torch.from_numpy(v) for k, v in batch.items()}, resolution)
+        target = targets_for(
+            {k: torch.from_numpy(v) for k, v in batch.items()}, resolution, model.charts
+        )
     target_albedo, target_mask = target["albedo"].numpy(), target["mask"].numpy()
+    quick: dict[str, float] = {}
+    if model.charts and "chart" in target:  # how often the texture head names the right chart
+        branch = model.texture_branch
+        logits, _ = texture_maps(heads[branch][-1], model.charts, branch)
+        covered = target_mask[:, 0] > 0.5
+        right = logits.argmax(dim=1).numpy() == target["chart"][:, 0].numpy()
+        quick["chart_accuracy"] = float(right[covered].mean()) if covered.any() else math.nan
     mse = float(np.mean((albedo - target_albedo) ** 2))
     inter = np.logical_and(mask > 0.5, target_mask > 0.5).sum()
     union = np.logical_or(mask > 0.5, target_mask > 0.5).sum()
@@ -183,6 +192,7 @@ def _preview(model, samples: SampleSet, resolution: int, path: Path) -> dict[str
     return {
         "albedo_psnr": 10 * math.log10(1.0 / max(mse, 1e-12)),
         "mask_iou": float(inter / max(union, 1)),
+        **quick,
     }
 
 
@@ -196,6 +206,13 @@ def prepare_run(
     steps per level when resumed with the same options.
     """
     manifest = read_manifest(dataset)
+    if config.texture and manifest.get("charts") is None and not resume:
+        print(
+            f"rigspace train: {dataset} has no texture charts (its character has no texture, "
+            "or it was captured before texture AOVs): no texture head; the albedo head alone "
+            "gives colour",
+            file=sys.stderr,
+        )
     if config.resolution > manifest["resolution"]:
         raise TrainingError(
             f"--resolution {config.resolution} is above the dataset's {manifest['resolution']}.",
@@ -228,12 +245,16 @@ def prepare_run(
 
 def run_record(dataset: Path, manifest: dict[str, Any], config: TrainConfig) -> dict[str, Any]:
     """What run.json records of a run (a resumed run must match it)."""
-    return {
+    record = {
         "config": config.to_json(),
         "dataset": str(Path(dataset).resolve()),
         "dataset_checksum": manifest["checksum"],
         "joints": manifest["joints"],
     }
+    charts = (manifest.get("charts") or {}).get("count", 0) if config.texture else 0
+    if charts:  # the texture head's size (runs without one record nothing, as before)
+        record["charts"] = int(charts)
+    return record
 
 
 def measure_step_seconds(
@@ -346,9 +367,14 @@ def train(
         raise TrainingError(
             f"{dataset} has no training samples.", "capture with some non-held-out views."
         )
-    model = Rig2Image(Shape(len(samples.joints), parents=parents_of(samples.joints)), config)
+    boxes = chart_boxes(dataset) if config.texture else None
+    charts = 0 if boxes is None else len(boxes[0]) - 1
+    shape = Shape(len(samples.joints), parents=parents_of(samples.joints), charts=charts)
+    model = Rig2Image(shape, config)
     if model.conditioned:  # every item gets joints2d (train.conditioning)
         samples.skeleton = held_out.skeleton = dataset_skeleton(dataset, manifest)
+    if model.charts:  # every item gets its texture head's targets (chart, uv)
+        samples.charts = held_out.charts = boxes
     if config.channels_last:
         model = model.to(memory_format=torch.channels_last)
     plan = None
@@ -544,7 +570,9 @@ def build_model(
     while it trained), its run.json, and the step it reached."""
     run = json.loads((run_folder / RUN_FILE).read_text())
     config = TrainConfig.from_json(run["config"])
-    shape = Shape(len(run["joints"]), parents=parents_of(run["joints"]))
+    shape = Shape(
+        len(run["joints"]), parents=parents_of(run["joints"]), charts=int(run.get("charts", 0))
+    )
     model = Rig2Image(shape, replace(config, channels_last=False))
     state = load_checkpoint(checkpoint or run_folder / CHECKPOINT)
     try:

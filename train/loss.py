@@ -3,6 +3,12 @@
 Coverage (the geometry mask and the albedo alpha) can instead use cross-entropy or add a
 soft IoU term (config.mask_loss), and weigh silhouette-edge pixels more (config.edge_weight):
 the ablation's mask-loss variants (docs/training.md).
+
+The texture head (config.texture, train/network.py) adds two terms: the chart, a
+cross-entropy over the K + 1 charts weighted by the target's coverage, and the chart
+coordinates, the same (1 - a) L2 + a L1 on only the target chart's (u, v) pair where the
+target has a chart and at least half covers the pixel: coordinates are never compared
+across a seam, and a chart's field is free wherever its chart is not seen.
 """
 
 from __future__ import annotations
@@ -11,7 +17,7 @@ import torch
 import torch.nn.functional as F
 
 from rigspace.train.config import TrainConfig
-from rigspace.train.network import albedo_maps, fade, geometry_maps
+from rigspace.train.network import BRANCH_CHANNELS, albedo_maps, fade, geometry_maps
 
 
 def mixed(pred: torch.Tensor, target: torch.Tensor, a: float, weight: torch.Tensor | None = None):
@@ -56,19 +62,73 @@ def downsample(x: torch.Tensor, size: int) -> torch.Tensor:
     return x if factor == 1 else F.avg_pool2d(x, factor)
 
 
-def targets_for(batch: dict[str, torch.Tensor], size: int) -> dict[str, torch.Tensor]:
-    """Targets at a lower level: box averages; depth and normals weighted by coverage."""
+def chart_downsample(
+    chart: torch.Tensor, uv: torch.Tensor, size: int, charts: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, 1, R, R) charts and (N, 2, R, R) coordinates at `size`: each box's commonest chart
+    (ties: a chart before none, then the lower number) and the mean coordinates of its pixels
+    on that chart, as train.data.chart_targets makes the training resolution's. `charts` is
+    K (the classes are 0..K: given, so nothing waits on the device to count them)."""
+    factor = chart.shape[-1] // size
+    if factor == 1:
+        return chart, uv
+    labels = chart[:, 0].long()
+    counts = F.avg_pool2d(F.one_hot(labels, charts + 1).permute(0, 3, 1, 2).float(), factor)
+    counts[:, 0] -= 0.5 / factor**2  # a tie between a chart and none goes to the chart
+    mode = counts.argmax(dim=1, keepdim=True)  # argmax takes the first of equal counts
+    same = labels[:, None] == F.interpolate(mode.float(), scale_factor=float(factor)).long()
+    same = same.to(uv.dtype)
+    mean = F.avg_pool2d(uv * same, factor) / F.avg_pool2d(same, factor).clamp_min(1e-6)
+    return mode, mean
+
+
+def targets_for(
+    batch: dict[str, torch.Tensor], size: int, charts: int = 0
+) -> dict[str, torch.Tensor]:
+    """Targets at a lower level: box averages; depth and normals weighted by coverage; for a
+    texture head of `charts` charts, its chart and coordinates by chart_downsample."""
     mask = downsample(batch["mask"], size)
     weight = mask.clamp_min(1e-6)
     normal = F.normalize(
         downsample(batch["normal"] * batch["mask"], size) / weight, dim=1, eps=1e-6
     )
-    return {
+    targets = {
         "albedo": downsample(batch["albedo"], size),
         "mask": mask,
         "normal": normal,
         "depth": downsample(batch["depth"] * batch["mask"], size) / weight,
     }
+    if charts and "chart" in batch:
+        targets["chart"], targets["uv"] = chart_downsample(
+            batch["chart"], batch["uv"], size, charts
+        )
+    return targets
+
+
+def head_charts(head: torch.Tensor, branch: str = "albedo") -> int:
+    """K, the texture charts a branch's head predicts (0: no texture head)."""
+    extra = head.shape[1] - BRANCH_CHANNELS[branch]
+    return (extra - 1) // 3 if extra > 0 else 0
+
+
+def texture_loss(
+    logits: torch.Tensor, coords: torch.Tensor, target: dict[str, torch.Tensor], config: TrainConfig
+) -> dict[str, torch.Tensor]:
+    """The chart and chart-coordinate terms of one level from the texture head's chart logits
+    (N, K+1, R, R) and coordinates (N, 2K, R, R) (see the module doc)."""
+    n, channels, h, w = coords.shape
+    chart = target["chart"][:, 0].long()
+    coverage = target["mask"][:, 0].float()
+    ce = F.cross_entropy(logits.float(), chart, reduction="none")
+    chart_term = (ce * coverage).sum() / coverage.sum().clamp_min(1.0)
+    # The target chart's own (u, v) pair per pixel, in one gather (chart 0 reads pair 0 but
+    # has no weight). Gathering, not slicing: a slice's backward zero-fills a gradient the
+    # size of the whole head, which measured 0.3 s of a 0.9 s step at 128x128.
+    pair = (chart - 1).clamp_min(0)[:, None, None].expand(n, 1, 2, h, w)
+    uv = coords.reshape(n, channels // 2, 2, h, w).gather(1, pair)[:, 0]
+    valid = ((chart > 0) & (coverage > 0.5)).to(coords.dtype)[:, None]
+    uv_term = mixed(uv.float(), target["uv"].float(), config.l1_weight, valid)
+    return {"chart": config.chart_weight * chart_term, "uv": config.uv_weight * uv_term}
 
 
 def level_loss(
@@ -76,10 +136,23 @@ def level_loss(
 ) -> dict[str, torch.Tensor]:
     """The loss terms of one level's head outputs against targets of the same size."""
     a = config.l1_weight
+    texture = None
+    branch = config.texture_branch
+    charts = head_charts(albedo_head if branch == "albedo" else geometry_head, branch)
+    if charts:  # split the texture head off once (see texture_loss on slicing)
+        head = albedo_head if branch == "albedo" else geometry_head
+        own, logits, coords = torch.split(
+            head, [BRANCH_CHANNELS[branch], charts + 1, 2 * charts], dim=1
+        )
+        texture = (logits, coords)
+        if branch == "albedo":
+            albedo_head = own
+        else:
+            geometry_head = own
     depth, normal, _ = geometry_maps(geometry_head)
     inside = (target["mask"] > 0.5).float()  # depth and normals where the target has surface
     edges = edge_weights(target["mask"], config.edge_weight)
-    return {
+    terms = {
         "albedo": mixed(albedo_maps(albedo_head), target["albedo"], a),
         "mask": config.mask_weight
         * coverage_loss(geometry_head[:, 4:5], target["mask"], config, edges),
@@ -88,6 +161,9 @@ def level_loss(
         "depth": config.depth_weight * mixed(depth, target["depth"], a, inside),
         "normal": config.normal_weight * mixed(normal, target["normal"], a, inside),
     }
+    if texture is not None:
+        terms |= texture_loss(*texture, target, config)
+    return terms
 
 
 def total_loss(
@@ -95,19 +171,22 @@ def total_loss(
     batch: dict[str, torch.Tensor],
     alpha: float,
     config: TrainConfig,
-) -> tuple[torch.Tensor, dict[str, float]]:
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Loss of the newest level (faded in by alpha) plus the lower heads at lower_level_weight.
 
     Keeping every lower head trained against downsampled targets is what makes each level
     a usable output for the runtime's level of detail.
     """
     albedo_levels, geometry_levels = heads["albedo"], heads["geometry"]
+    textured = albedo_levels if config.texture_branch == "albedo" else geometry_levels
+    charts = head_charts(textured[-1], config.texture_branch)
     top = fade(albedo_levels, alpha), fade(geometry_levels, alpha)
-    terms = level_loss(*top, targets_for(batch, top[0].shape[-1]), config)
+    terms = level_loss(*top, targets_for(batch, top[0].shape[-1], charts), config)
     loss = torch.stack(list(terms.values())).sum()
     for albedo_head, geometry_head in zip(albedo_levels[:-1], geometry_levels[:-1], strict=True):
         lower = level_loss(
-            albedo_head, geometry_head, targets_for(batch, albedo_head.shape[-1]), config
+            albedo_head, geometry_head, targets_for(batch, albedo_head.shape[-1], charts), config
         )
         loss = loss + config.lower_level_weight * torch.stack(list(lower.values())).sum()
-    return loss, {k: float(v.detach()) for k, v in terms.items()}
+    # The terms stay tensors (the caller reads them all at once: one device sync a step).
+    return loss, {k: v.detach() for k, v in terms.items()}

@@ -18,6 +18,15 @@ by a 1x1 convolution to the block's width and added to its features ("add", whic
 computed at levels up to that resolution only; blocks above it read them upsampled. The maps
 are computed from a small `joints2d` input (rigspace.sdk.conditioning), so with "none" the
 network, its parameters and its checkpoints are the paper's.
+
+Texture head (config.texture, not in the paper; after Textured Neural Avatars, Shysheya et
+al. 2019): for a character with K texture charts (rigspace.sdk.charts) one branch's heads
+(config.texture_branch, the albedo branch by default) also predict, per pixel, the chart (K + 1 logits, 0: no chart) and, for every chart,
+the texture coordinates within it (2K channels, the chart's uv box mapped to [-1, 1]). Each
+chart's coordinate field is continuous wherever that chart is seen, so no output ever has
+to jump at a seam: the loss reads only the target chart's pair (train/loss.py) and the
+runtime samples the material's own texture where the classifier picks a chart
+(rigspace.sdk.texturing); the albedo head stays, as the fallback and for comparison.
 """
 
 from __future__ import annotations
@@ -45,6 +54,8 @@ class Shape:
     encoding: int = 6
     parents: tuple[int, ...] = ()
     """Each joint's parent index (-1 for a root); needed by bones2d conditioning only."""
+    charts: int = 0
+    """Texture charts K of the character (rigspace.sdk.charts); 0: no texture head."""
 
     @property
     def inputs(self) -> int:
@@ -140,6 +151,15 @@ ALBEDO_CHANNELS = 4  # premultiplied RGB 3, coverage (alpha) 1
 GEOMETRY_CHANNELS = 5  # depth 1, normal 3, mask 1
 
 
+BRANCH_CHANNELS = {"albedo": ALBEDO_CHANNELS, "geometry": GEOMETRY_CHANNELS}
+"""Each branch's own head channels, before a texture head's."""
+
+
+def texture_channels(charts: int) -> int:
+    """Texture head channels for K charts: K + 1 chart logits, then a (u, v) pair per chart."""
+    return 0 if charts <= 0 else (charts + 1) + 2 * charts
+
+
 class Rig2Image(nn.Module):
     """The whole network; `forward` returns each head's maps at every level up to `resolution`."""
 
@@ -165,8 +185,14 @@ class Rig2Image(nn.Module):
         self.trunk = UpBlock(
             width(config, GRID), width(config, TRUNK), extra, config.conditioning_mode
         )
-        self.albedo = Branch(config, ALBEDO_CHANNELS, extra)
-        self.geometry = Branch(config, GEOMETRY_CHANNELS, extra)
+        self.charts = shape.charts if config.texture else 0
+        """K texture charts the texture head predicts (0: no texture head)."""
+        self.texture_branch = config.texture_branch
+        """The branch whose heads carry the texture head (config.texture_branch)."""
+        texture = texture_channels(self.charts)
+        on_albedo = self.texture_branch == "albedo"
+        self.albedo = Branch(config, ALBEDO_CHANNELS + (texture if on_albedo else 0), extra)
+        self.geometry = Branch(config, GEOMETRY_CHANNELS + (0 if on_albedo else texture), extra)
 
     @property
     def conditioned(self) -> bool:
@@ -232,6 +258,16 @@ def albedo_maps(head: torch.Tensor) -> torch.Tensor:
 def albedo_alpha(head: torch.Tensor) -> torch.Tensor:
     """The albedo branch's coverage in [0, 1] (trained against the same target as the mask)."""
     return torch.sigmoid(head[:, 3:4])
+
+
+def texture_maps(
+    head: torch.Tensor, charts: int, branch: str = "albedo"
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(chart logits (N, K+1, R, R), chart coordinates (N, 2K, R, R)) from the head of the
+    branch that carries the texture head: chart k's (u, v) within its uv box, in [-1, 1], are
+    channels 2(k-1) and 2(k-1) + 1 of the coordinates."""
+    start = BRANCH_CHANNELS[branch]
+    return head[:, start : start + charts + 1], head[:, start + charts + 1 : start + 3 * charts + 1]
 
 
 def geometry_maps(head: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -17,7 +17,9 @@ from rigspace.sdk import schema
 from rigspace.sdk.color import linear_to_srgb
 from rigspace.sdk.errors import RigspaceError
 
-MAPS = ("beauty", "albedo", "normal", "depth", "mask")
+MAPS = ("beauty", "albedo", "normal", "depth", "mask", "chart", "uv")
+"""chart and uv: where a character's texture head says each pixel lands (its texture chart,
+one colour each, and the st it read as red and green), black where no texture coloured it."""
 VIEWS = ("neural", "reference", "compare", "error")
 """neural: the network's frame; reference: the skinned mesh's (--reference); compare: the two
 side by side; error: 4x their absolute difference."""
@@ -59,7 +61,25 @@ def map_image(frame: Frame, name: str) -> np.ndarray:
         return np.repeat((value * 255 + 0.5).astype(np.uint8)[..., None], 3, axis=2)
     if name == "mask":
         return np.repeat((np.clip(maps.mask, 0, 1) * 255 + 0.5).astype(np.uint8)[..., None], 3, 2)
+    if name in ("chart", "uv"):
+        shape = maps.mask.shape
+        if maps.chart is None or maps.uv is None:
+            return np.zeros((*shape, 3), np.uint8)
+        if name == "chart":
+            return _chart_colours(maps.chart)
+        st = maps.uv - np.floor(maps.uv)  # the fractional st: a UDIM tile's own coordinates
+        rgb = np.concatenate([st, np.zeros((*shape, 1), np.float32)], axis=-1)
+        return (np.where(maps.chart[..., None] > 0, rgb, 0.0) * 255 + 0.5).astype(np.uint8)
     raise ValueError(name)
+
+
+def _chart_colours(chart: np.ndarray) -> np.ndarray:
+    """One bright colour per texture chart (golden-angle hues), black for none."""
+    hue = (np.arange(int(chart.max(initial=0)) + 1) * 137.508) % 360
+    hsv = np.stack([hue / 2, np.full_like(hue, 200), np.full_like(hue, 230)], -1)
+    palette = cv2.cvtColor(hsv.astype(np.uint8)[None], cv2.COLOR_HSV2RGB)[0]
+    palette[0] = 0
+    return palette[chart]
 
 
 def encode(rgb: np.ndarray) -> bytes:

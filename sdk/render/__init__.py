@@ -18,6 +18,9 @@ from rigspace.sdk.plugins import Kind, PluginSet, discover
 # linear RGB premultiplied by coverage; mask is coverage in [0, 1]. Every pixel is sampled on the
 # same s x s stratified grid, at (k + 0.5) / s within the pixel; albedo and mask average the
 # samples (an empty sample counts as 0), depth and normal come from the nearest hit sample.
+# Meshes with texture charts (DrawMesh.chart) also give the surface's texture coordinates:
+# chart from the nearest hit sample, uv the mean of the samples on that same chart (a chart's
+# uvs are continuous, so the mean never blends across a seam); 0 where no chart is seen.
 
 DEFAULT_COLOR = (0.18, 0.18, 0.18)
 """Linear mid grey (18% reflectance), the albedo of a mesh with no colour or texture."""
@@ -41,10 +44,20 @@ class DrawMesh:
     corner_uv: np.ndarray | None = None
     """(T,3,2) float32 faceVarying uv, USD st convention (v = 0 is the BOTTOM row of the texture)."""
     texture: np.ndarray | None = None
-    """(H,W,3) float32 linear RGB, sampled bilinear with repeat wrap and no mipmaps."""
+    """(H,W,3) float32 linear RGB, sampled bilinear (no mipmaps) at st * uv_scale + uv_offset,
+    wrapped per axis as `wrap` says."""
     color: Any = DEFAULT_COLOR
     """(3,) constant or (N,3) per-vertex linear RGB, used where there is no texture."""
     name: str = ""
+    chart: np.ndarray | None = None
+    """(T,) int32 texture chart of each triangle (rigspace.sdk.charts; 0: none), for a textured
+    mesh: with it, renderers also give the maps' `uv` and `chart` (capture's texture AOVs)."""
+    wrap: tuple[int, int] = (0, 0)
+    """The texture's wrap mode along s and t: 0 repeat, 1 mirror, 2 clamp (to the edge texel),
+    3 black (rigspace.sdk.geometry.WRAP_MODES)."""
+    uv_scale: tuple[float, float] = (1.0, 1.0)
+    uv_offset: tuple[float, float] = (0.0, 0.0)
+    """The texture is read at st * uv_scale + uv_offset (a UDIM atlas; the uv map keeps st)."""
 
 
 @dataclass
@@ -57,6 +70,10 @@ class MeshArrays:
     corner_uv: np.ndarray | None  # (T,3,2) float32, only when there is a texture
     texture: np.ndarray | None  # (H,W,3) float32
     color: np.ndarray  # (3,) or (N,3) float32
+    chart: np.ndarray | None = None  # (T,) int32, only for a textured mesh with charts
+    wrap: tuple[int, int] = (0, 0)
+    uv_scale: tuple[float, float] = (1.0, 1.0)
+    uv_offset: tuple[float, float] = (0.0, 0.0)
 
 
 def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -115,7 +132,24 @@ def mesh_arrays(mesh: DrawMesh) -> MeshArrays:
     color = np.ascontiguousarray(mesh.color, dtype=np.float32)
     if color.shape != (3,):
         color = _array(mesh, "color", color, np.float32, (n, 3))
-    return MeshArrays(points, tris, normals, uv, texture, color)
+    chart = None
+    if mesh.chart is not None:
+        if texture is None:
+            raise ValueError(
+                f"DrawMesh {mesh.name or '(unnamed)'} has texture charts but no texture: charts "
+                "say where a texture lands."
+            )
+        chart = _array(mesh, "chart", mesh.chart, np.int32, (t,))
+        if t and chart.min() < 0:
+            raise ValueError(f"DrawMesh {mesh.name or '(unnamed)'}: chart indices must be >= 0.")
+    wrap = (int(mesh.wrap[0]), int(mesh.wrap[1]))
+    if not all(0 <= w <= 3 for w in wrap):
+        raise ValueError(
+            f"DrawMesh {mesh.name or '(unnamed)'}: wrap modes must be 0-3, got {mesh.wrap}."
+        )
+    scale = (float(mesh.uv_scale[0]), float(mesh.uv_scale[1]))
+    offset = (float(mesh.uv_offset[0]), float(mesh.uv_offset[1]))
+    return MeshArrays(points, tris, normals, uv, texture, color, chart, wrap, scale, offset)
 
 
 def depth_arrays(mesh: DrawMesh) -> tuple[np.ndarray, np.ndarray]:
@@ -153,14 +187,22 @@ class Maps:
     """(H,W) float32 distance along the camera's -Z in scene units, +inf where empty."""
     mask: np.ndarray
     """(H,W) float32 coverage in [0, 1]."""
+    uv: np.ndarray | None = None
+    """(H,W,2) float32 USD st of the visible surface on its chart's texture, 0 where no chart;
+    None when no mesh drawn had charts."""
+    chart: np.ndarray | None = None
+    """(H,W) int32 texture chart of the visible surface (rigspace.sdk.charts), 0: none."""
 
     def as_dict(self) -> dict[str, np.ndarray]:
-        return {
+        maps = {
             "albedo": self.albedo,
             "normal": self.normal,
             "depth": self.depth,
             "mask": self.mask,
         }
+        if self.uv is not None and self.chart is not None:
+            maps |= {"uv": self.uv, "chart": self.chart}
+        return maps
 
 
 def empty_maps(height: int, width: int) -> Maps:
@@ -188,18 +230,27 @@ def maps_from_samples(
     albedo: np.ndarray,
     normal: np.ndarray,
     depth: np.ndarray,
+    uv: np.ndarray | None = None,
+    chart: np.ndarray | None = None,
 ) -> Maps:
     """Reduce a supersampled image, (H*s, W*s, ...) with row 0 at the top, to per-pixel maps.
 
     `hit` (H*s,W*s) bool; `albedo` (H*s,W*s,3) must be zero where there is no hit; `normal`
-    (H*s,W*s,3) and `depth` (H*s,W*s) may hold anything there. Pixel (i, j)'s sub-sample (a, b)
-    is fine pixel (i*s + a, j*s + b). Both renderers reduce through here, so identically.
+    (H*s,W*s,3) and `depth` (H*s,W*s) may hold anything there; `uv` (H*s,W*s,2) and `chart`
+    (H*s,W*s) int, when given, only where a charted mesh is hit. Pixel (i, j)'s sub-sample
+    (a, b) is fine pixel (i*s + a, j*s + b). Both renderers reduce through here, so identically.
     """
     s = samples_per_axis
+    if chart is not None:
+        chart = np.where(hit, chart, 0).astype(np.int32)
     if s == 1:  # one sample per pixel: nothing to reduce
         depth = np.where(hit, depth, np.float32(np.inf)).astype(np.float32)
         normal = np.where(hit[..., None], normal, np.float32(0)).astype(np.float32)
-        return Maps(albedo.astype(np.float32), normal, depth, hit.astype(np.float32))
+        maps = Maps(albedo.astype(np.float32), normal, depth, hit.astype(np.float32))
+        if uv is not None and chart is not None:
+            maps.chart = chart
+            maps.uv = np.where(chart[..., None] > 0, uv, np.float32(0)).astype(np.float32)
+        return maps
     h, w = hit.shape[0] // s, hit.shape[1] // s
     count = np.float32(s * s)
     mask = np.zeros((h, w), np.float32)
@@ -218,7 +269,21 @@ def maps_from_samples(
     rows = np.arange(h)[:, None] * s + k // s
     cols = np.arange(w)[None, :] * s + k % s
     out_normal = np.where(np.isfinite(out_depth)[..., None], normal[rows, cols], np.float32(0))
-    return Maps(out_albedo, out_normal.astype(np.float32), out_depth, mask)
+    maps = Maps(out_albedo, out_normal.astype(np.float32), out_depth, mask)
+    if uv is not None and chart is not None:
+        maps.chart = np.where(np.isfinite(out_depth), chart[rows, cols], 0).astype(np.int32)
+        # uv: the mean over the samples on the nearest sample's chart (a chart's uvs are
+        # continuous there, so nothing is blended across a seam or with another surface's).
+        total = np.zeros((h, w, 2), np.float64)
+        on_chart = np.zeros((h, w), np.float64)
+        for sample_chart, sample_uv in zip(
+            _pixel_samples(chart, s), _pixel_samples(uv, s), strict=True
+        ):
+            same = (sample_chart == maps.chart) & (maps.chart > 0)
+            total += np.where(same[..., None], sample_uv, 0.0)
+            on_chart += same
+        maps.uv = (total / np.maximum(on_chart, 1)[..., None]).astype(np.float32)
+    return maps
 
 
 @dataclass(frozen=True)

@@ -30,26 +30,55 @@ def unavailable() -> str | None:
     return None
 
 
-def sample_bilinear(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """(N,3) bilinear samples of an (H,W,3) image at USD st coordinates (N,2), repeat wrap.
+def _fold(x: np.ndarray, mode: int) -> np.ndarray:
+    """Mirror wrap folds a coordinate into [0, 1] (then clamped to the edge); others as is."""
+    if mode != 1:
+        return x
+    m = np.mod(x, np.float32(2))
+    return np.where(m > 1, np.float32(2) - m, m)
 
-    Matches GL's GL_LINEAR + GL_REPEAT on the texture the gl renderer uploads: texel k's centre
-    is at (k + 0.5) / size, and st v = 0 is the image's bottom row (row H-1).
+
+def _texel_index(i: np.ndarray, n: int, mode: int) -> np.ndarray:
+    """Texel indices wrapped: repeat takes them modulo n, every other mode clamps to the edge."""
+    return i % n if mode == 0 else np.clip(i, 0, n - 1)
+
+
+def sample_bilinear(
+    texture: np.ndarray,
+    uv: np.ndarray,
+    wrap: tuple[int, int] = (0, 0),
+    uv_scale: tuple[float, float] = (1.0, 1.0),
+    uv_offset: tuple[float, float] = (0.0, 0.0),
+) -> np.ndarray:
+    """(N,3) bilinear samples of an (H,W,3) image at USD st coordinates (N,2).
+
+    Matches GL's GL_LINEAR on the texture the gl renderer uploads: texel k's centre is at
+    (k + 0.5) / size, and st v = 0 is the image's bottom row (row H-1); st * uv_scale +
+    uv_offset reads the image, wrapped per axis as in the gl shader (0 repeat, 1 mirror,
+    2 clamp to the edge texel, 3 black outside [0, 1]).
     """
     h, w = texture.shape[:2]
     texels = texture.reshape(-1, 3)
     # float32 texture coordinates, as GL interpolates them.
-    x = uv[:, 0].astype(np.float32) * np.float32(w) - np.float32(0.5)
-    y = uv[:, 1].astype(np.float32) * np.float32(h) - np.float32(0.5)
+    s = uv[:, 0].astype(np.float32) * np.float32(uv_scale[0]) + np.float32(uv_offset[0])
+    t = uv[:, 1].astype(np.float32) * np.float32(uv_scale[1]) + np.float32(uv_offset[1])
+    outside = np.zeros(len(uv), bool)
+    if wrap[0] == 3:
+        outside |= (s < 0) | (s > 1)
+    if wrap[1] == 3:
+        outside |= (t < 0) | (t > 1)
+    x = _fold(s, wrap[0]) * np.float32(w) - np.float32(0.5)
+    y = _fold(t, wrap[1]) * np.float32(h) - np.float32(0.5)
     x0, y0 = np.floor(x), np.floor(y)
     fx, fy = (x - x0)[:, None], (y - y0)[:, None]
     ix, iy = x0.astype(np.intp), y0.astype(np.intp)
-    c0, c1 = ix % w, (ix + 1) % w
+    c0, c1 = _texel_index(ix, w, wrap[0]), _texel_index(ix + 1, w, wrap[0])
     # Rows counted from the bottom (st) -> array rows counted from the top, as flat offsets.
-    r0, r1 = (h - 1 - iy % h) * w, (h - 1 - (iy + 1) % h) * w
+    r0 = (h - 1 - _texel_index(iy, h, wrap[1])) * w
+    r1 = (h - 1 - _texel_index(iy + 1, h, wrap[1])) * w
     lower = texels.take(r0 + c0, axis=0) * (1 - fx) + texels.take(r0 + c1, axis=0) * fx
     upper = texels.take(r1 + c0, axis=0) * (1 - fx) + texels.take(r1 + c1, axis=0) * fx
-    return lower * (1 - fy) + upper * fy
+    return np.where(outside[:, None], np.float32(0), lower * (1 - fy) + upper * fy)
 
 
 def _interpolate(corners: np.ndarray, bary: np.ndarray) -> np.ndarray:
@@ -72,7 +101,7 @@ def _shade(
     n = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
     if arrays.texture is not None:
         uv = _interpolate(arrays.corner_uv.take(prim, axis=0), bary)
-        albedo = sample_bilinear(arrays.texture, uv)
+        albedo = sample_bilinear(arrays.texture, uv, arrays.wrap, arrays.uv_scale, arrays.uv_offset)
     elif arrays.color.ndim == 2:
         albedo = _interpolate(arrays.color.take(tri, axis=0), bary)
     else:
@@ -162,6 +191,9 @@ class EmbreeRenderer:
         count = len(geom)
         albedo = np.zeros((count, 3), np.float32)
         normal = np.zeros((count, 3), np.float32)
+        charted = any(a.chart is not None for a in prepared)
+        uv = np.zeros((count, 2), np.float32) if charted else None
+        chart = np.zeros(count, np.int32) if charted else None
         normal_to_camera = np.linalg.inv(camera.world_to_camera[:3, :3]).T
         u, v = hits["u"], hits["v"]
         for g, arrays in enumerate(prepared):  # a loop over meshes; the rays are vectorised
@@ -170,7 +202,12 @@ class EmbreeRenderer:
                 continue
             # embree's barycentrics: p = (1 - u - v) p0 + u p1 + v p2.
             bary = np.stack([1 - u[sel] - v[sel], u[sel], v[sel]], axis=1)
-            albedo[sel], normal[sel] = _shade(arrays, hits["primID"][sel], bary, normal_to_camera)
+            prim = hits["primID"][sel]
+            albedo[sel], normal[sel] = _shade(arrays, prim, bary, normal_to_camera)
+            if arrays.chart is not None and uv is not None and chart is not None:
+                assert arrays.corner_uv is not None  # charts come with a texture (mesh_arrays)
+                uv[sel] = _interpolate(arrays.corner_uv.take(prim, axis=0), bary)
+                chart[sel] = arrays.chart.take(prim)
         depth = (hits["tfar"].astype(np.float64) + t_near) * cos
         fine = (h * s, w * s)
         return maps_from_samples(
@@ -179,6 +216,8 @@ class EmbreeRenderer:
             albedo.reshape(*fine, 3),
             normal.reshape(*fine, 3),
             depth.reshape(fine).astype(np.float32),
+            None if uv is None else uv.reshape(*fine, 2),
+            None if chart is None else chart.reshape(fine),
         )
 
     def close(self) -> None:

@@ -35,16 +35,19 @@ in vec3 in_position;
 in vec3 in_normal;
 in vec3 in_color;
 in vec2 in_uv;
+in float in_chart;
 out vec3 v_normal;
 out vec3 v_color;
 out vec2 v_uv;
 out float v_depth;
+flat out float v_chart;  // one chart per triangle: weld_corners keeps a vertex per chart
 void main() {
     vec4 p = world_to_camera * vec4(in_position, 1.0);
     v_depth = -p.z;  // distance along -Z; perspective-correct interpolation keeps it exact
     v_normal = normal_to_camera * in_normal;
     v_color = in_color;
     v_uv = in_uv;
+    v_chart = in_chart;
     gl_Position = projection * p;
 }
 """
@@ -53,16 +56,35 @@ FRAGMENT_SHADER = """
 #version 330 core
 uniform bool use_texture;
 uniform sampler2D albedo_texture;
+uniform vec2 uv_scale;   // st * uv_scale + uv_offset reads the texture (a UDIM atlas)
+uniform vec2 uv_offset;
+uniform ivec2 wrap;      // per axis: 0 repeat, 1 mirror, 2 clamp, 3 black (sdk.geometry)
 in vec3 v_normal;
 in vec3 v_color;
 in vec2 v_uv;
 in float v_depth;
+flat in float v_chart;
 layout(location = 0) out vec4 out_albedo;    // rgb albedo, a = 1: this sample is covered
 layout(location = 1) out vec4 out_geometry;  // xyz camera-space normal, w depth along -Z
+layout(location = 2) out vec4 out_surface;   // uv (USD st), texture chart (0: none), 1
+// The texture's hardware wrap is REPEAT for repeat and CLAMP_TO_EDGE otherwise: mirror folds
+// the coordinate into [0, 1] first, black is zero outside [0, 1].
+float fold(float x, int mode) {
+    if (mode != 1) return x;
+    float m = mod(x, 2.0);
+    return m > 1.0 ? 2.0 - m : m;
+}
+vec3 albedo_at(vec2 uv) {
+    vec2 st = uv * uv_scale + uv_offset;
+    bool outside = (wrap.x == 3 && (st.x < 0.0 || st.x > 1.0))
+        || (wrap.y == 3 && (st.y < 0.0 || st.y > 1.0));
+    return outside ? vec3(0.0) : texture(albedo_texture, vec2(fold(st.x, wrap.x), fold(st.y, wrap.y))).rgb;
+}
 void main() {
-    out_albedo = vec4(use_texture ? texture(albedo_texture, v_uv).rgb : v_color, 1.0);
+    out_albedo = vec4(use_texture ? albedo_at(v_uv) : v_color, 1.0);
     float len = length(v_normal);
     out_geometry = vec4(len > 0.0 ? v_normal / len : vec3(0.0), v_depth);
+    out_surface = vec4(v_chart > 0.0 ? v_uv : vec2(0.0), v_chart, 1.0);
 }
 """
 
@@ -143,27 +165,45 @@ class _Slot:
             self.texture.release()
 
 
-def weld_corners(triangles: np.ndarray, corner_uv: np.ndarray) -> tuple[np.ndarray, ...]:
-    """GPU vertices for faceVarying uv: one per distinct (vertex, uv) pair, found vectorised.
+def weld_corners(
+    triangles: np.ndarray, corner_uv: np.ndarray, chart: np.ndarray | None = None
+) -> tuple[np.ndarray, ...]:
+    """GPU vertices for faceVarying uv: one per distinct (vertex, uv, chart), found vectorised.
 
-    Returns remap (V,) source vertex per GPU vertex, uv (V,2) and index (T,3) into the GPU
-    vertices. Only corners on a uv seam are duplicated, so an indexed draw shades about as few
-    vertices as the mesh has (de-indexing every corner measured ~1 ms slower at 20k triangles).
+    Returns remap (V,) source vertex per GPU vertex, uv (V,2), index (T,3) into the GPU
+    vertices and the chart (V,) of each GPU vertex (zeros without `chart`, (T,) per triangle).
+    Only corners on a uv seam or chart border are duplicated, so an indexed draw shades about
+    as few vertices as the mesh has (de-indexing every corner measured ~1 ms slower at 20k
+    triangles); every vertex of a triangle has the triangle's chart, so a flat varying is exact.
     """
     corners = triangles.reshape(-1).astype(np.uint64)
     uv = np.ascontiguousarray(corner_uv, dtype=np.float32).reshape(-1, 2)
     uv_bits = uv.view(np.uint64)[:, 0]  # both float32 halves of the uv as one exact key
-    _, first, inverse = np.unique(
-        np.stack([corners, uv_bits], axis=1), axis=0, return_index=True, return_inverse=True
+    charts = (
+        np.zeros(len(corners), np.uint64)
+        if chart is None
+        else np.repeat(np.asarray(chart, np.int64), 3).astype(np.uint64)
     )
-    return corners[first].astype(np.intp), uv[first], inverse.reshape(-1, 3).astype(np.int32)
+    _, first, inverse = np.unique(
+        np.stack([corners, uv_bits, charts], axis=1),
+        axis=0,
+        return_index=True,
+        return_inverse=True,
+    )
+    return (
+        corners[first].astype(np.intp),
+        uv[first],
+        inverse.reshape(-1, 3).astype(np.int32),
+        charts[first].astype(np.float32),
+    )
 
 
 def _static_key(mesh: DrawMesh) -> tuple:
     """Identity of what a slot caches (see DrawMesh: these are cached by array identity)."""
-    parts = (mesh.triangles, mesh.corner_uv, mesh.texture, mesh.color)
+    parts = (mesh.triangles, mesh.corner_uv, mesh.texture, mesh.color, mesh.chart)
+    look = (tuple(mesh.wrap), tuple(mesh.uv_scale), tuple(mesh.uv_offset))
     shapes = tuple(np.shape(p) if p is not None else None for p in parts)
-    return (*(id(p) for p in parts), shapes)
+    return (*(id(p) for p in parts), shapes, look)
 
 
 class GLRenderer:
@@ -194,14 +234,18 @@ class GLRenderer:
         self._depth_size: tuple[int, int] = (0, 0)
         self._fbo: Any = None
         self._targets: list[Any] = []
-        self._fine_size: tuple[int, int] = (0, 0)
+        self._fine_size: tuple[int, int, int] = (0, 0, 0)
+        """(width, height, colour targets) of the framebuffer: 3 with the surface target."""
         self._fine = np.empty((2, 0, 0, 4), np.float32)
         self.last_timings: dict[str, float] = {}
         """Seconds of the last render: draw (upload, rasterise) and readback (read, reduce)."""
 
     # --- resources ------------------------------------------------------------------------------
-    def _framebuffer(self, width: int, height: int) -> Any:
-        if self._fine_size != (width, height):
+    def _framebuffer(self, width: int, height: int, charted: bool) -> Any:
+        """The supersampled framebuffer: albedo and geometry targets, and the surface target
+        (uv, chart) only while charted meshes are drawn (the runtime's prims never are)."""
+        count = 3 if charted else 2
+        if self._fine_size != (width, height, count):
             limit = self._ctx.info["GL_MAX_RENDERBUFFER_SIZE"]
             if max(width, height) > limit:
                 raise ValueError(
@@ -209,16 +253,16 @@ class GLRenderer:
                     f"limit {limit}; lower the resolution or samples_per_axis."
                 )
             self._release_framebuffer()
+            # albedo, geometry, surface (uv and chart: read back only when a mesh has charts)
             self._targets = [
-                self._ctx.renderbuffer((width, height), 4, dtype="f4"),
-                self._ctx.renderbuffer((width, height), 4, dtype="f4"),
+                self._ctx.renderbuffer((width, height), 4, dtype="f4") for _ in range(count)
             ]
             depth = self._ctx.depth_renderbuffer((width, height))
             self._fbo = self._ctx.framebuffer(self._targets, depth)
             self._targets.append(depth)
-            self._fine_size = (width, height)
+            self._fine_size = (width, height, count)
             # Read-back memory, reused: maps_from_samples copies what it keeps.
-            self._fine = np.empty((2, height, width, 4), np.float32)
+            self._fine = np.empty((count, height, width, 4), np.float32)
         return self._fbo
 
     def _release_framebuffer(self) -> None:
@@ -226,7 +270,7 @@ class GLRenderer:
             self._fbo.release()
             for t in self._targets:
                 t.release()
-        self._fbo, self._targets, self._fine_size = None, [], (0, 0)
+        self._fbo, self._targets, self._fine_size = None, [], (0, 0, 0)
 
     def _slot(self, key: tuple, mesh: DrawMesh, arrays: MeshArrays) -> _Slot:
         slot = self._slots.get(key)
@@ -236,8 +280,9 @@ class GLRenderer:
         if arrays.corner_uv is None:
             remap, index = None, arrays.triangles
             uv = np.zeros((n, 2), np.float32)
+            chart = np.zeros(n, np.float32)
         else:
-            remap, uv, index = weld_corners(arrays.triangles, arrays.corner_uv)
+            remap, uv, index, chart = weld_corners(arrays.triangles, arrays.corner_uv, arrays.chart)
         count = n if remap is None else len(remap)
         if arrays.color.ndim == 1:
             colors = np.broadcast_to(arrays.color, (count, 3))
@@ -249,9 +294,16 @@ class GLRenderer:
             "in_normal": ctx.buffer(reserve=count * 12, dynamic=True),
             "in_color": ctx.buffer(np.ascontiguousarray(colors, np.float32).tobytes()),
             "in_uv": ctx.buffer(np.ascontiguousarray(uv, np.float32).tobytes()),
+            "in_chart": ctx.buffer(np.ascontiguousarray(chart, np.float32).tobytes()),
             "index": ctx.buffer(np.ascontiguousarray(index, np.int32).tobytes()),
         }
-        fmt = {"in_position": "3f", "in_normal": "3f", "in_color": "3f", "in_uv": "2f"}
+        fmt = {
+            "in_position": "3f",
+            "in_normal": "3f",
+            "in_color": "3f",
+            "in_uv": "2f",
+            "in_chart": "1f",
+        }
         vao = ctx.vertex_array(
             self._program,
             [(buffers[a], fmt[a], a) for a in fmt],
@@ -265,9 +317,9 @@ class GLRenderer:
             # uploaded: upload bottom row first so st addresses the texture unchanged.
             data = np.ascontiguousarray(arrays.texture[::-1]).tobytes()
             texture = ctx.texture((w, h), 3, data, dtype="f4", alignment=4)
-            texture.repeat_x = texture.repeat_y = True
+            texture.repeat_x, texture.repeat_y = arrays.wrap[0] == 0, arrays.wrap[1] == 0
             texture.filter = (self._gl.LINEAR, self._gl.LINEAR)  # bilinear, no mipmaps
-        refs = (mesh.triangles, mesh.corner_uv, mesh.texture, mesh.color)
+        refs = (mesh.triangles, mesh.corner_uv, mesh.texture, mesh.color, mesh.chart)
         slot = _Slot(remap, buffers, vao, texture, refs)
         self._slots[key] = slot
         return slot
@@ -284,8 +336,9 @@ class GLRenderer:
         if not prepared:
             return empty_maps(camera.height, camera.width)
         w2c = camera.world_to_camera
+        charted = any(a.chart is not None for _, a in prepared)
         with self._ctx:
-            fbo = self._framebuffer(width, height)
+            fbo = self._framebuffer(width, height, charted)
             fbo.use()
             fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
             self._ctx.enable(self._gl.DEPTH_TEST)
@@ -309,6 +362,9 @@ class GLRenderer:
                 self._program["use_texture"].value = slot.texture is not None
                 if slot.texture is not None:
                     slot.texture.use(0)
+                    self._program["uv_scale"].value = arrays.uv_scale
+                    self._program["uv_offset"].value = arrays.uv_offset
+                    self._program["wrap"].value = arrays.wrap
                 slot.vao.render(self._gl.TRIANGLES)
             # Slots not drawn this call are released so changing scenes do not grow GPU memory.
             for key in [k for k in self._slots if k not in used]:
@@ -318,10 +374,19 @@ class GLRenderer:
             fine = self._fine
             fbo.read_into(fine[0], components=4, attachment=0, dtype="f4")
             fbo.read_into(fine[1], components=4, attachment=1, dtype="f4")
+            if charted:
+                fbo.read_into(fine[2], components=4, attachment=2, dtype="f4")
         # GL's rows run bottom-up: flip (a view) so row 0 is the top.
         albedo, geometry = fine[0, ::-1], fine[1, ::-1]
+        surface = fine[2, ::-1] if charted else None
         maps = maps_from_samples(
-            s, albedo[..., 3] > 0, albedo[..., :3], geometry[..., :3], geometry[..., 3]
+            s,
+            albedo[..., 3] > 0,
+            albedo[..., :3],
+            geometry[..., :3],
+            geometry[..., 3],
+            None if surface is None else surface[..., :2],
+            None if surface is None else np.rint(surface[..., 2]).astype(np.int32),
         )
         self.last_timings = {"draw": drawn - started, "readback": time.perf_counter() - drawn}
         return maps

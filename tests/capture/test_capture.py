@@ -18,7 +18,7 @@ from rigspace.capture.pipeline import capture
 from rigspace.capture.settings import CaptureError, CaptureOverrides
 from rigspace.sdk import rotations
 from rigspace.sdk.errors import RigspaceError, SceneError
-from rigspace.sdk.exr import CHANNELS, read_exr
+from rigspace.sdk.exr import CHANNELS, TEXTURE_CHANNELS, read_exr
 from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.stage import open_stage
 from tests.capture.conftest import (
@@ -60,7 +60,8 @@ def test_exr_channels_and_conventions(dataset):
     with np.load(dataset.folder / ds.PARAMS_FILE) as table:
         first = dataset.folder / str(table["path"][0])
     image = oiio.ImageInput.open(str(first))
-    assert set(image.spec().channelnames) == set(CHANNELS)
+    # CesiumMan is textured: its samples hold the texture AOVs too.
+    assert set(image.spec().channelnames) == set(CHANNELS + TEXTURE_CHANNELS)
     image.close()
     maps = read_exr(first)
     assert maps.mask.max() == 1 and 0 < maps.mask.mean() < 0.6
@@ -73,6 +74,36 @@ def test_exr_channels_and_conventions(dataset):
     with np.load(dataset.folder / ds.PARAMS_FILE) as table:
         joint = table["joint_camera"][0]
     assert np.allclose(joint, [0, 0, -3.0], atol=1e-4)
+
+
+def test_texture_aovs_and_charts(dataset):
+    """Where the mask is whole, the surface has a chart of charts.json and its uv lies inside
+    that chart's uv box; background has chart 0 and uv 0; the manifest names both."""
+    folder = dataset.folder
+    manifest = json.loads((folder / ds.MANIFEST_FILE).read_text())
+    charts = ds.read_charts(folder)
+    assert charts is not None and manifest["charts"] == {
+        "file": ds.CHARTS_FILE,
+        "count": len(charts["charts"]),
+    }
+    assert "uv.U,uv.V" in manifest["channels"] and "chart" in manifest["channels"]
+    boxes = {c["index"]: (np.array(c["uv_min"]), np.array(c["uv_max"])) for c in charts["charts"]}
+    assert sorted(boxes) == list(range(1, len(boxes) + 1))
+    seen: set[int] = set()
+    with np.load(folder / ds.PARAMS_FILE) as table:
+        paths = [str(p) for p in table["path"][:8]]
+    for path in paths:
+        maps = read_exr(folder / path)
+        assert maps.uv is not None and maps.chart is not None
+        assert np.all(maps.chart[maps.mask == 0] == 0) and np.all(maps.uv[maps.mask == 0] == 0)
+        whole = maps.mask == 1
+        assert np.all(maps.chart[whole] > 0)
+        for k in np.unique(maps.chart[whole]):
+            lo, hi = boxes[int(k)]
+            uv = maps.uv[whole & (maps.chart == k)]
+            assert np.all(uv >= lo - 1e-6) and np.all(uv <= hi + 1e-6)
+        seen |= set(np.unique(maps.chart[whole]).tolist())
+    assert len(seen) >= 4  # a body seen from around shows several charts
 
 
 def test_contact_sheet_is_an_image(dataset):

@@ -134,6 +134,8 @@ def test_reference_mode_compares_the_network_with_the_mesh(tmp_path):
     # The mesh and the network agree far better than chance (floor; measured values are in
     # docs/runtime.md), and the comparison image is neural | reference | error.
     assert hero["psnr"] > 15
+    # The character's own silhouette against its skinned mesh's, in its region (floor).
+    assert 0.7 < hero["mask_iou"] <= 1.0
     image = cv2.imread(str(out / "compare_000700.0.png"))
     assert image.shape == (90, 3 * 160, 3)
 

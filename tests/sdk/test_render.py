@@ -331,11 +331,20 @@ def test_sample_bilinear_matches_texel_centres():
 
 def test_welded_uv_vertices_reproduce_every_corner():
     mesh = textured_sphere(rings=6, segments=8)
-    remap, uv, index = weld_corners(mesh.triangles, mesh.corner_uv)
+    remap, uv, index, chart = weld_corners(mesh.triangles, mesh.corner_uv)
     np.testing.assert_array_equal(remap[index], mesh.triangles)
     np.testing.assert_array_equal(uv[index], mesh.corner_uv)
+    np.testing.assert_array_equal(chart, 0)
     # Only the seam column (u = 1 next to u = 0) and the poles' per-segment uvs add vertices.
     assert len(mesh.points) < len(remap) < mesh.triangles.size
+    # With charts every triangle's three vertices carry its chart (a flat varying is exact),
+    # and only corners on a chart border are added.
+    charts = (np.arange(len(mesh.triangles)) % 3 + 1).astype(np.int32)
+    remap2, uv2, index2, chart2 = weld_corners(mesh.triangles, mesh.corner_uv, charts)
+    np.testing.assert_array_equal(remap2[index2], mesh.triangles)
+    np.testing.assert_array_equal(uv2[index2], mesh.corner_uv)
+    np.testing.assert_array_equal(chart2[index2], np.repeat(charts[:, None], 3, axis=1))
+    assert len(remap) < len(remap2) <= mesh.triangles.size
 
 
 def test_edge_pixels_are_premultiplied(renderer):

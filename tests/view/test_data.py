@@ -15,7 +15,7 @@ def test_summary_has_the_stage_timing_cameras_and_layers(previs_client):
     assert s["cameras"] == ["/World/ShotCam"]
     assert [layer["name"] for layer in s["layers"]] == ["previs.usda"]
     assert any(u.endswith("sample_character.usda") for u in s["used"])
-    assert s["maps"] == ["beauty", "albedo", "normal", "depth", "mask"]
+    assert s["maps"] == ["beauty", "albedo", "normal", "depth", "mask", "chart", "uv"]
 
 
 def test_tree_marks_rigspace_prims_applied_schemas_and_inactive_ones(previs_client):

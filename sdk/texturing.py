@@ -1,0 +1,427 @@
+"""Sample a character's own textures where its network says each pixel lands (the texture head).
+
+A bundle with a texture head (train/network.py) gives, at its resolution R, per pixel the
+probabilities of K + 1 texture charts (rigspace.sdk.charts; 0: none) and, for every chart,
+coordinates within that chart's uv box. At the size the character has on screen (a frame
+region reached through a homography from the network's pixels), each covered pixel:
+
+1. takes the chart of its nearest network pixel that has one (of the four around it),
+   unless that pixel's probability is under CHART_CONFIDENCE (then: the albedo branch);
+2. interpolates that chart's coordinates bilinearly over the network pixels around it that
+   show the same chart (weights renormalised), so nothing is blended across a seam;
+3. maps them to USD st (the chart's box; a UDIM chart stays inside its tile), then to the
+   texture image (st * scale + offset, the wrap modes of rigspace.sdk.geometry);
+4. reads the texture over the pixel's footprint (the coordinates' derivatives through the
+   bilinear cell and the homography): a grid of trilinear taps from the mip chain, a
+   supersampled, anisotropic box filter (MAX_TAPS), so a texture seen small or at a grazing
+   angle does not alias and one seen large stays sharp.
+
+Charts whose material has no texture, and pixels the classifier is unsure of, are left to
+the albedo branch (`used` is False there). sdk/texture_kernel.py's sample_region is the
+numba kernel, a loop over pixels; sample_region_reference the same in vectorised numpy,
+which the tests hold it to.
+`sharpen_coverage` turns coverage upsampled by a large factor back into a one-pixel edge.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from rigspace.sdk.charts import uv_fingerprint
+from rigspace.sdk.geometry import MeshSource
+
+CHART_CONFIDENCE = 0.5
+"""A pixel whose chart probability is below this is sampled from the albedo branch instead:
+the classifier is unsure there (a chart border, a silhouette)."""
+MAX_LEVELS = 16
+"""Mip levels kept per image (a 32768-texel side)."""
+MAX_TAPS = 4
+"""A pixel's texture footprint is read as a grid of at most MAX_TAPS x MAX_TAPS trilinear taps
+(a supersampled, anisotropic box filter): against the same views drawn with 8x8 samples per
+pixel it scores 26.3 dB at 128x128 (the renderers' 2x2: 22.6; one isotropic trilinear read:
+19.7) and 31.2 dB at 512x512 (2x2: 32.0), measured on the sample character."""
+EDGE_PIXELS = 1.0
+"""The width, in frame pixels, of the sharpened coverage's edge ramp."""
+SHARP_RAMP = 2.0
+"""Coverage ramps up to this many pixels wide (central differences read a one-pixel ramp as
+two) are already sharp: sharpen_coverage keeps them."""
+
+
+def mip_chain(image: np.ndarray) -> list[np.ndarray]:
+    """An image's mip levels, from itself down to 1x1: each level the 2x2 box mean of the one
+    above (an odd side is extended by its edge texel first)."""
+    levels = [np.ascontiguousarray(image, dtype=np.float32)]
+    while max(levels[-1].shape[:2]) > 1 and len(levels) < MAX_LEVELS:
+        a = levels[-1]
+        h, w = a.shape[:2]
+        if h % 2 or w % 2:
+            a = np.pad(a, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+        a = a.reshape(a.shape[0] // 2, 2, a.shape[1] // 2, 2, 3).mean(axis=(1, 3))
+        levels.append(np.ascontiguousarray(a, dtype=np.float32))
+    return levels
+
+
+@dataclass
+class ChartTextures:
+    """What to sample for each chart, packed as the kernel reads it (index 0: no chart)."""
+
+    charts: int
+    center: np.ndarray
+    """(K+1, 2) float32 centre of each chart's uv box."""
+    half: np.ndarray
+    """(K+1, 2) float32 half size of each chart's uv box."""
+    image: np.ndarray
+    """(K+1,) int32 the image each chart reads, -1: none (the albedo branch colours it)."""
+    transform: np.ndarray
+    """(K+1, 4) float32 scale u, scale v, offset u, offset v: st -> the image's [0, 1]."""
+    wrap: np.ndarray
+    """(K+1, 2) int32 wrap modes along s and t (rigspace.sdk.geometry.WRAP_MODES)."""
+    bounds: np.ndarray
+    """(K+1, 4) float32 st box the coordinates are clamped to (a UDIM chart's tile), else
+    -inf .. inf."""
+    texels: np.ndarray
+    """(n, 3) float32 every image's mip levels, one after the other, rows from the top."""
+    levels: np.ndarray
+    """(images, MAX_LEVELS, 3) int64 offset into texels, width, height of each level."""
+    level_count: np.ndarray
+    """(images,) int32 levels per image."""
+    untextured: tuple[str, ...] = ()
+    """Meshes among the charts' whose material has no texture (the albedo branch colours them)."""
+
+    @classmethod
+    def build(
+        cls,
+        table: dict,
+        sources: dict[str, MeshSource],
+    ) -> ChartTextures:
+        """From a bundle's charts.json (`table`) and the character's meshes by their names
+        relative to the character prim (CharacterRig.mesh_name). Raises TextureMismatch when a
+        mesh is missing or its uv layout is not the one the charts were made for."""
+        charts = table.get("charts", [])
+        fingerprints = {m["mesh"]: m.get("uv_fingerprint") for m in table.get("meshes", [])}
+        k = len(charts)
+        center = np.zeros((k + 1, 2), np.float32)
+        half = np.ones((k + 1, 2), np.float32)
+        image = np.full(k + 1, -1, np.int32)
+        transform = np.tile(np.array([1, 1, 0, 0], np.float32), (k + 1, 1))
+        wrap = np.zeros((k + 1, 2), np.int32)
+        bounds = np.tile(np.array([-np.inf, -np.inf, np.inf, np.inf], np.float32), (k + 1, 1))
+        images: dict[str, int] = {}
+        chains: list[list[np.ndarray]] = []
+        untextured: list[str] = []
+        for chart in charts:
+            index, name = int(chart["index"]), str(chart["mesh"])
+            lo, hi = (
+                np.asarray(chart["uv_min"], np.float64),
+                np.asarray(chart["uv_max"], np.float64),
+            )
+            center[index] = (lo + hi) / 2
+            half[index] = np.maximum((hi - lo) / 2, 1e-6)
+            source = sources.get(name)
+            if source is None:
+                raise TextureMismatch(f"the mesh {name} its texture charts name is not there")
+            if source.albedo.texture is None or source.corner_uv is None:
+                if name not in untextured:
+                    untextured.append(name)
+                continue
+            if fingerprints.get(name) not in (
+                None,
+                uv_fingerprint(source.triangles, source.corner_uv),
+            ):
+                raise TextureMismatch(
+                    f"the mesh {name} has other uvs than the ones its texture charts were made for"
+                )
+            if name not in images:
+                images[name] = len(chains)
+                chains.append(mip_chain(source.albedo.texture))
+            albedo = source.albedo
+            image[index] = images[name]
+            transform[index] = (*albedo.uv_scale, *albedo.uv_offset)
+            wrap[index] = albedo.wrap_codes
+            if albedo.udim:
+                tile = int(chart["tile"]) - 1001
+                u, v = tile % 10, tile // 10
+                bounds[index] = (u, v, u + 1, v + 1)
+        levels = np.zeros((max(len(chains), 1), MAX_LEVELS, 3), np.int64)
+        count = np.zeros(max(len(chains), 1), np.int32)
+        parts, offset = [], 0
+        for n, chain in enumerate(chains):
+            count[n] = len(chain)
+            for level, texels in enumerate(chain):
+                levels[n, level] = (offset, texels.shape[1], texels.shape[0])
+                parts.append(texels.reshape(-1, 3))
+                offset += texels.shape[0] * texels.shape[1]
+        texels = np.concatenate(parts) if parts else np.zeros((1, 3), np.float32)
+        return cls(k, center, half, image, transform, wrap, bounds, texels, levels, count,
+                   tuple(untextured))  # fmt: skip
+
+    @property
+    def any_texture(self) -> bool:
+        return bool(np.any(self.image >= 0))
+
+    def texture_bytes(self) -> int:
+        return int(self.texels.nbytes)
+
+
+class TextureMismatch(Exception):
+    """The scene's meshes are not the ones a bundle's texture charts were made for."""
+
+
+def _prepare(probabilities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R, R) most likely chart and its probability from (K+1, R, R) probabilities."""
+    best = probabilities.argmax(axis=0).astype(np.int32)
+    confidence = np.take_along_axis(probabilities, best[None], 0)[0].astype(np.float32)
+    return best, confidence
+
+
+@dataclass
+class TextureSample:
+    """sample_textures' result over a frame region (h, w)."""
+
+    colour: np.ndarray
+    """(h, w, 3) float32 linear texture colour, not premultiplied; 0 where not `used`."""
+    used: np.ndarray
+    """(h, w) bool: the textures coloured the pixel (False: the albedo branch must)."""
+    st: np.ndarray
+    """(h, w, 2) float32 the USD st read there (0 where not used): the uv AOV."""
+    chart: np.ndarray
+    """(h, w) int32 the chart read there (0 where not used): the chart AOV."""
+
+
+def sample_textures(
+    textures: ChartTextures,
+    homography: np.ndarray,
+    region: tuple[int, int, int, int],
+    coverage: np.ndarray,
+    probabilities: np.ndarray,
+    coordinates: np.ndarray,
+    kernel: bool = True,
+    lod_bias: float = 0.0,
+) -> TextureSample:
+    """The character's own texture over a frame region (TextureSample).
+
+    `homography` maps network pixel coordinates (pixel k spans [k, k+1)) to frame pixel
+    coordinates; `region` is (x0, y0, w, h) of the frame; `coverage` (h, w) selects the
+    pixels to sample (> 0); `probabilities` (K+1, R, R) and `coordinates` (2K, R, R) are the
+    texture head's outputs for one character. `kernel` False runs the numpy reference."""
+    x0, y0, w, h = region
+    best, confidence = _prepare(np.asarray(probabilities, np.float32))
+    inverse = np.linalg.inv(np.asarray(homography, np.float64))
+    result = TextureSample(
+        np.zeros((h, w, 3), np.float32),
+        np.zeros((h, w), np.bool_),
+        np.zeros((h, w, 2), np.float32),
+        np.zeros((h, w), np.int32),
+    )
+    if not textures.any_texture:
+        return result
+    args = (
+        inverse, int(x0), int(y0), np.ascontiguousarray(coverage, np.float32), best, confidence,
+        np.ascontiguousarray(coordinates, np.float32), np.float32(CHART_CONFIDENCE),
+        np.float64(lod_bias), np.int64(MAX_TAPS), textures.center, textures.half, textures.image, textures.transform, textures.wrap,
+        textures.bounds, textures.texels, textures.levels, textures.level_count,
+        result.colour, result.used, result.st, result.chart,
+    )  # fmt: skip
+    if kernel:
+        _kernel()(*args)
+    else:
+        sample_region_reference(*args)
+    return result
+
+
+# --- the numpy reference ------------------------------------------------------------------
+
+
+def sample_region_reference(
+    inverse, x0, y0, coverage, best, confidence, coordinates, threshold, lod_bias, max_taps,
+    center, half, image, transform, wrap, bounds, texels, levels, level_count, out, used, st_out,
+    chart_out,
+):  # fmt: skip
+    """The kernel's computation in vectorised numpy, over all covered pixels at once (the
+    texture reads through the embree renderer's sample_bilinear): the reference the compiled
+    kernel (sdk/texture_kernel.py) is tested against."""
+    from rigspace.sdk.render.embree import sample_bilinear
+
+    r = best.shape[0]
+    ii, jj = np.nonzero(coverage > 0)
+    px, py = x0 + jj + 0.5, y0 + ii + 0.5
+    qx, qy, qw = (inverse[k, 0] * px + inverse[k, 1] * py + inverse[k, 2] for k in range(3))
+    ok = qw > 0
+    qw = np.where(ok, qw, 1.0)
+    nx, ny = qx / qw, qy / qw
+    # d(network position)/d(frame pixel): the homography's Jacobian.
+    jac = [
+        [(inverse[a, b] - n * inverse[2, b]) / qw for b in (0, 1)] for a, n in ((0, nx), (1, ny))
+    ]
+    xs, ys = nx - 0.5, ny - 0.5
+    ok &= (xs >= -0.5) & (ys >= -0.5) & (xs <= r - 0.5) & (ys <= r - 0.5)
+    j0, i0 = np.floor(xs).astype(np.int64), np.floor(ys).astype(np.int64)
+    fx, fy = xs - j0, ys - i0
+    rows = np.stack([np.clip(i0, 0, r - 1), np.clip(i0 + 1, 0, r - 1)])
+    cols = np.stack([np.clip(j0, 0, r - 1), np.clip(j0 + 1, 0, r - 1)])
+    wy, wx = np.stack([1 - fy, fy]), np.stack([1 - fx, fx])
+    corners = [(a, b) for a in (0, 1) for b in (0, 1)]
+    chart_at = np.stack([best[rows[a], cols[b]] for a, b in corners])  # (4, n)
+    weight = np.stack([wy[a] * wx[b] for a, b in corners])
+    # The nearest corner with a chart: the largest weight among those (first on ties).
+    pick = np.where(chart_at > 0, weight, -1.0).argmax(axis=0)
+    n = np.arange(len(px))
+    chart = chart_at[pick, n]
+    ci = np.stack([rows[a] for a, _ in corners])[pick, n]
+    cj = np.stack([cols[b] for _, b in corners])[pick, n]
+    ok &= (chart > 0) & (confidence[ci, cj] >= threshold) & (image[chart] >= 0)
+    pair = np.maximum(chart - 1, 0)
+    u_at = np.stack([coordinates[2 * pair, rows[a], cols[b]] for a, b in corners])
+    v_at = np.stack([coordinates[2 * pair + 1, rows[a], cols[b]] for a, b in corners])
+    same = chart_at == chart
+    total = (weight * same).sum(axis=0)
+    own_u, own_v = coordinates[2 * pair, ci, cj], coordinates[2 * pair + 1, ci, cj]
+    safe = np.where(total > 0, total, 1.0)
+    u = np.where(total > 0, (weight * same * u_at).sum(axis=0) / safe, own_u)
+    v = np.where(total > 0, (weight * same * v_at).sum(axis=0) / safe, own_v)
+    # Derivatives along network x (pairs in a row) and y (pairs in a column), same chart only.
+    du, dv = [], []
+    for first, second, row_weight, distinct in (
+        ((0, 1), (2, 3), wy, cols[0] != cols[1]),
+        ((0, 2), (1, 3), wx, rows[0] != rows[1]),
+    ):
+        acc_u, acc_v, acc_w = np.zeros_like(u), np.zeros_like(u), np.zeros_like(u)
+        for k, (p, q) in enumerate((first, second)):
+            valid = distinct & same[p] & same[q]
+            acc_u = acc_u + np.where(valid, row_weight[k] * (u_at[q] - u_at[p]), 0.0)
+            acc_v = acc_v + np.where(valid, row_weight[k] * (v_at[q] - v_at[p]), 0.0)
+            acc_w = acc_w + np.where(valid, row_weight[k], 0.0)
+        du.append(np.where(acc_w > 0, acc_u / np.maximum(acc_w, 1e-30), 0.0))
+        dv.append(np.where(acc_w > 0, acc_v / np.maximum(acc_w, 1e-30), 0.0))
+    hu, hv = half[chart, 0], half[chart, 1]
+    s = np.clip(center[chart, 0] + hu * u, bounds[chart, 0], bounds[chart, 2])
+    t = np.clip(center[chart, 1] + hv * v, bounds[chart, 1], bounds[chart, 3])
+    su, sv = transform[chart, 0], transform[chart, 1]
+    img = np.maximum(image[chart], 0)
+    width0, height0 = levels[img, 0, 1], levels[img, 0, 2]
+    ds = [hu * su * (du[0] * jac[0][b] + du[1] * jac[1][b]) * width0 for b in (0, 1)]
+    dt = [hv * sv * (dv[0] * jac[0][b] + dv[1] * jac[1][b]) * height0 for b in (0, 1)]
+    # The footprint (axes (ds[0], dt[0]) and (ds[1], dt[1]) in level-0 texels) as a grid of
+    # taps, each at most `cell` texels along both axes, read at that size's mip level.
+    length_x, length_y = np.hypot(ds[0], dt[0]), np.hypot(ds[1], dt[1])
+    cell = np.maximum(1.0, np.maximum(length_x, length_y) / max_taps)
+    taps_x = np.clip(np.ceil(length_x / cell - 1e-9), 1, max_taps).astype(np.int64)
+    taps_y = np.clip(np.ceil(length_y / cell - 1e-9), 1, max_taps).astype(np.int64)
+    lod = np.minimum(np.maximum(np.log2(cell) + lod_bias, 0.0), level_count[img] - 1.0)
+    level = np.floor(lod).astype(np.int64)
+    blend = lod - level
+    colour = np.zeros((len(px), 3))
+    base = np.stack([s * su + transform[chart, 2], t * sv + transform[chart, 3]], axis=1)
+    axis_x = np.stack([ds[0] / width0 * su, dt[0] / height0 * sv], axis=1)  # image [0, 1]
+    axis_y = np.stack([ds[1] / width0 * su, dt[1] / height0 * sv], axis=1)
+    count = (taps_x * taps_y)[:, None]
+    for kx in range(int(max_taps)):
+        for ky in range(int(max_taps)):
+            tapping = ok & (kx < taps_x) & (ky < taps_y)
+            ox = ((kx + 0.5) / taps_x - 0.5)[:, None]
+            oy = ((ky + 0.5) / taps_y - 0.5)[:, None]
+            at = base + ox * axis_x + oy * axis_y
+            for index in np.unique(img[tapping]):
+                for lvl in range(int(level_count[index])):
+                    offset0, width, height = levels[index, lvl]
+                    texture = texels[offset0 : offset0 + width * height].reshape(height, width, 3)
+                    for k in np.unique(chart[tapping & (img == index)]):
+                        mine = tapping & (chart == k)
+                        here = mine & (level == lvl)
+                        below = mine & (level + 1 == lvl) & (blend > 0)
+                        for where, part in ((here, 1 - blend), (below, blend)):
+                            if where.any():
+                                read = sample_bilinear(texture, at[where], tuple(wrap[k]))
+                                colour[where] += read * (part[where, None] / count[where])
+    st = np.stack([s, t], axis=1)
+    out[ii[ok], jj[ok]] = colour[ok]
+    used[ii[ok], jj[ok]] = True
+    st_out[ii[ok], jj[ok]] = st[ok]
+    chart_out[ii[ok], jj[ok]] = chart[ok]
+
+
+def _kernel():
+    """The compiled kernel (sdk/texture_kernel.py: numba, cached on disk), imported on first
+    use so that reading this module needs no numba."""
+    from rigspace.sdk.texture_kernel import sample_region
+
+    return sample_region
+
+
+WARP_INTERPOLATION = 1  # cv2.INTER_LINEAR
+"""How the network's maps are resampled into a frame (bilinear)."""
+COLOUR_EPSILON = 1e-3
+"""Coverage below which the albedo branch's premultiplied colour is not divided back."""
+
+
+def region_warper(homography: np.ndarray, region: tuple[int, int, int, int]):
+    """A function warping a (C, R, R) network map into the frame region (x0, y0, w, h) as
+    (h, w, C), bilinear, through `homography` (network pixel coordinates to frame pixel
+    coordinates; pixel k spans [k, k+1) in both), zero outside the network image."""
+    import cv2
+
+    x0, y0, w, h = region
+    shift = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1]], dtype=np.float64)
+    # OpenCV maps pixel centres at integer coordinates; ours sit at +0.5.
+    centre = np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1]])
+    matrix = np.linalg.inv(centre) @ shift @ np.asarray(homography, np.float64) @ centre
+
+    def warp(image: np.ndarray) -> np.ndarray:
+        hwc = np.ascontiguousarray(np.moveaxis(image, 0, -1), dtype=np.float32)
+        warped = cv2.warpPerspective(
+            hwc, matrix, (w, h), flags=WARP_INTERPOLATION, borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )  # fmt: skip
+        return warped.reshape(h, w, -1)
+
+    return warp
+
+
+def display_colour(
+    out: dict[str, np.ndarray],
+    homography: np.ndarray,
+    region: tuple[int, int, int, int],
+    coverage: np.ndarray,
+    textures: ChartTextures | None,
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """A character's colour and coverage over a frame region from one sample's network maps
+    (`out`: CHW, the bundle's names): coverage (h, w) as warped (the geometry mask, or the
+    albedo branch's alpha) sharpened; colour from its textures where the texture head says
+    (sample_textures), the albedo branch's, un-premultiplied, elsewhere; returned
+    premultiplied by the sharpened coverage, with `info` holding, when there is a texture
+    head, "textured" (the share of covered pixels the textures coloured), "texture_ms" (the
+    sampler's milliseconds) and "sample" (the TextureSample: st and chart per pixel)."""
+    warp = region_warper(homography, region)
+    sharp = sharpen_coverage(coverage)
+    alpha = np.clip(warp(out["alpha"])[..., 0], 0.0, 1.0) if "alpha" in out else coverage
+    colour = np.clip(warp(out["albedo"]), 0.0, 1.0) / np.maximum(alpha, COLOUR_EPSILON)[..., None]
+    colour = np.where(alpha[..., None] > COLOUR_EPSILON, np.clip(colour, 0.0, 1.0), 0.0)
+    info: dict = {}
+    if textures is not None and "chart" in out:
+        began = time.perf_counter()
+        sample = sample_textures(textures, homography, region, sharp, out["chart"], out["uv"])
+        info["texture_ms"] = round(1e3 * (time.perf_counter() - began), 3)
+        colour = np.where(sample.used[..., None], sample.colour, colour)
+        covered = max(int(np.count_nonzero(sharp > 0)), 1)
+        info["textured"] = round(float(sample.used.sum()) / covered, 4)
+        info["sample"] = sample
+    return (colour * sharp[..., None]).astype(np.float32), sharp, info
+
+
+def sharpen_coverage(coverage: np.ndarray) -> np.ndarray:
+    """Coverage upsampled from a smaller image, with its edge made one frame pixel wide.
+
+    An upsampled silhouette is a ramp as wide as the upsampling factor. Its 0.5 level line is
+    where the network puts the edge; dividing the distance to 0.5 by the ramp's slope gives
+    the signed distance to that line in frame pixels, and a ramp of EDGE_PIXELS over it is
+    the coverage of a crisp, anti-aliased edge. Where the ramp is no wider than SHARP_RAMP
+    pixels (no magnification) the coverage is kept as it is.
+    """
+    c = np.asarray(coverage, np.float32)
+    gy, gx = np.gradient(c)  # central differences: a one-pixel ramp reads as slope 1/2
+    slope = np.sqrt(gx * gx + gy * gy) * EDGE_PIXELS
+    sharp = np.clip((c - 0.5) / np.maximum(slope, 1e-6) + 0.5, 0.0, 1.0)
+    return np.where(slope < 1.0 / SHARP_RAMP, sharp, c).astype(np.float32)

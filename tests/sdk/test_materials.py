@@ -1,0 +1,82 @@
+"""A character with several materials (GeomSubsets), a UDIM texture and wrap modes: its parts,
+its texture charts, and both renderers drawing its colour and texture AOVs alike."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rigspace.sdk.camera import Camera
+from rigspace.sdk.posing import CharacterRig
+from rigspace.sdk.render import RenderSettings, choose_renderer
+from rigspace.sdk.stage import open_stage
+from tests.materials import CHARACTER, write_material_character
+
+MAX_ALBEDO_MAE = 1e-3
+"""As tests/sdk/test_render.py: the renderers' texture reads differ by interpolation rounding."""
+MIN_CHART_AGREEMENT = 0.99
+"""Pixels whose nearest samples tie in depth at a chart border may take either chart."""
+UV_DIFFERENCE_P99 = 1e-4
+"""Where both give the same chart: float32 interpolation differences only..."""
+MAX_UV_DIFFERENCE = 1 / 64
+"""...but for a pixel or two whose samples on that chart differ (a fold seen edge-on, where
+the depth order of two nearly equal samples flips): under a texel of the 64-texel textures."""
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory):
+    scene = write_material_character(tmp_path_factory.mktemp("materials"))
+    stage = open_stage(scene)
+    character = CharacterRig(stage.GetPrimAtPath(CHARACTER))
+    character.stage = stage  # type: ignore[attr-defined]  (kept alive with the rig)
+    return character
+
+
+def test_a_mesh_splits_into_its_material_subsets(rig):
+    parts = {rig.mesh_name(p): p for p in rig.mesh_sources()}
+    assert sorted(parts) == [f"../Asset/Body/{n}" for n in ("Boots", "Shirt", "Trousers")]
+    boots, trousers, shirt = (parts[f"../Asset/Body/{n}"] for n in ("Boots", "Trousers", "Shirt"))
+    assert boots.albedo.texture is None and boots.corner_uv is None
+    assert len(boots.triangles) + len(trousers.triangles) + len(shirt.triangles) == 16 * 24 * 2
+    assert shirt.albedo.wrap == ("mirror", "repeat") and shirt.albedo.uv_scale == (1.0, 1.0)
+    # The UDIM trousers: tiles 1001 and 1002 side by side in one atlas, st [0, 2) onto [0, 1).
+    assert trousers.albedo.udim and trousers.albedo.texture.shape == (64, 128, 3)
+    assert trousers.albedo.uv_scale == (0.5, 1.0) and trousers.albedo.wrap == ("clamp", "clamp")
+
+
+def test_charts_cover_the_textured_parts_by_tile(rig):
+    table = rig.texture_charts()
+    by_part = {}
+    for chart in table.charts:
+        by_part.setdefault(chart.mesh, []).append(chart.tile)
+    assert sorted(by_part) == ["../Asset/Body/Shirt", "../Asset/Body/Trousers"]  # boots: none
+    assert sorted(by_part["../Asset/Body/Trousers"]) == [1001, 1002]
+    meshes = {m.mesh: m.triangle_chart for m in table.meshes}
+    assert set(np.unique(meshes["../Asset/Body/Trousers"])) <= {c.index for c in table.charts}
+
+
+@pytest.mark.parametrize("time, azimuth", [(0.0, 0.0), (6.0, 100.0), (12.0, 215.0)])
+def test_both_renderers_draw_its_colour_and_texture_aovs_alike(rig, time, azimuth):
+    meshes = rig.posed_meshes(time, charts=True)
+    a = np.radians(azimuth)
+    camera = Camera.look_at(
+        [5 * np.sin(a), 1.0, 5 * np.cos(a)], [0, 1.0, 0], width=96, height=96,
+        focal_length=35, horizontal_aperture=20.955,
+    )  # fmt: skip
+    maps = {}
+    for name in ("gl", "embree"):
+        renderer = choose_renderer(name).create(RenderSettings(2))
+        maps[name] = renderer.render(meshes, camera)
+        renderer.close()
+    gl, embree = maps["gl"], maps["embree"]
+    whole = (gl.mask == 1) & (embree.mask == 1)
+    assert whole.sum() > 500
+    assert np.abs(gl.albedo - embree.albedo)[whole].mean() < MAX_ALBEDO_MAE
+    assert (gl.chart == embree.chart)[whole].mean() >= MIN_CHART_AGREEMENT
+    same = whole & (gl.chart == embree.chart) & (gl.chart > 0)
+    difference = np.abs(gl.uv - embree.uv)[same]
+    assert np.percentile(difference, 99) < UV_DIFFERENCE_P99
+    assert difference.max() < MAX_UV_DIFFERENCE
+    # The boots have no texture: no chart there; the rest is charted.
+    charted = set(np.unique(gl.chart[whole]).tolist())
+    assert 0 in charted and len(charted) >= 3

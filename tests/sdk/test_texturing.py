@@ -1,0 +1,210 @@
+"""The runtime's texture sampler: mip chains, the numba kernel against its numpy reference,
+exact reads where the texture is magnified, chart borders, fallbacks and edge sharpening."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rigspace.sdk.geometry import Albedo, MeshSource
+from rigspace.sdk.render.embree import sample_bilinear
+from rigspace.sdk.texturing import (
+    CHART_CONFIDENCE,
+    ChartTextures,
+    TextureMismatch,
+    mip_chain,
+    sample_textures,
+    sharpen_coverage,
+)
+
+KERNEL_TOLERANCE = 1e-5
+"""Kernel (float64 scalar) against reference (float32 texture reads): rounding only."""
+
+
+def _source(texture, wrap=("repeat", "repeat"), name="Body") -> MeshSource:
+    triangles = np.array([[0, 1, 2]], np.int32)
+    uv = np.array([[[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]], np.float32)
+    albedo = Albedo(np.zeros(3, np.float32), texture, "st", wrap)
+    return MeshSource(name, np.zeros((3, 3), np.float32), triangles, uv, albedo)
+
+
+def _table(boxes, mesh="Body", fingerprint=None) -> dict:
+    charts = [
+        {"index": k + 1, "mesh": mesh, "tile": 1001, "uv_min": lo, "uv_max": hi, "triangles": 1}
+        for k, (lo, hi) in enumerate(boxes)
+    ]
+    return {"charts": charts, "meshes": [{"mesh": mesh, "uv_fingerprint": fingerprint}]}
+
+
+def test_mip_chain_halves_down_to_one_texel_and_keeps_the_mean():
+    image = np.random.default_rng(0).random((20, 12, 3)).astype(np.float32)
+    chain = mip_chain(image)
+    assert [c.shape[:2] for c in chain] == [(20, 12), (10, 6), (5, 3), (3, 2), (2, 1), (1, 1)]
+    even = mip_chain(image[:16, :8])
+    assert np.allclose(even[-1][0, 0], image[:16, :8].mean(axis=(0, 1)), atol=1e-6)
+
+
+def _random_case(seed: int, size: int = 24):
+    """Random network outputs (3 charts, one of them untextured), two images with other wrap
+    modes, and a perspective homography magnifying the network image about 3x."""
+    rng = np.random.default_rng(seed)
+    first = rng.random((64, 48, 3)).astype(np.float32)
+    second = rng.random((16, 16, 3)).astype(np.float32)
+    sources = {
+        "Body": _source(first, ("repeat", "mirror")),
+        "Cloth": _source(second, ("clamp", "black"), "Cloth"),
+        "Plain": _source(None, name="Plain"),
+    }
+    table = _table([((0.1, 0.2), (0.6, 0.9)), ((-0.2, 0.3), (1.3, 1.1))])
+    table["charts"][1]["mesh"] = "Cloth"
+    table["charts"].append(
+        {
+            "index": 3,
+            "mesh": "Plain",
+            "tile": 1001,
+            "uv_min": [0, 0],
+            "uv_max": [1, 1],
+            "triangles": 1,
+        }
+    )
+    textures = ChartTextures.build(table, sources)
+    logits = rng.normal(size=(4, size, size)) * 3
+    probabilities = np.exp(logits) / np.exp(logits).sum(axis=0)
+    coordinates = rng.uniform(-1.2, 1.2, (6, size, size)).astype(np.float32)
+    homography = np.array([[3.1, 0.2, 5.0], [-0.1, 2.9, 3.0], [0.002, 0.001, 1.0]])
+    region = (4, 2, 80, 76)
+    coverage = (rng.random((76, 80)) > 0.2).astype(np.float32)
+    return textures, homography, region, coverage, probabilities.astype(np.float32), coordinates
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_kernel_matches_the_numpy_reference(seed):
+    case = _random_case(seed)
+    got = sample_textures(*case)
+    ref = sample_textures(*case, kernel=False)
+    np.testing.assert_array_equal(got.used, ref.used)
+    np.testing.assert_array_equal(got.chart, ref.chart)
+    used = got.used
+    assert used.sum() > 500 and (~used & (case[3] > 0)).sum() > 100  # both kinds occur
+    assert np.abs(got.colour - ref.colour).max() < KERNEL_TOLERANCE
+    assert np.abs(got.st - ref.st).max() < KERNEL_TOLERANCE
+
+
+def test_magnified_linear_coordinates_read_the_texture_exactly():
+    """A chart whose coordinates are a linear ramp over the network image, magnified 4x: every
+    frame pixel reads the texture at its own st, exactly (mip level 0), as the renderers would."""
+    size, scale = 16, 4.0
+    texture = np.random.default_rng(3).random((32, 32, 3)).astype(np.float32)
+    textures = ChartTextures.build(_table([((0.0, 0.0), (1.0, 1.0))]), {"Body": _source(texture)})
+    centres = (np.arange(size) + 0.5) / size * 2 - 1  # the box's [-1, 1] at pixel centres
+    coordinates = np.stack(
+        [
+            np.broadcast_to(centres[None, :], (size, size)),
+            np.broadcast_to(-centres[:, None], (size, size)),
+        ]
+    ).astype(np.float32)
+    probabilities = np.zeros((2, size, size), np.float32)
+    probabilities[1] = 1.0
+    frame = int(size * scale)
+    sample = sample_textures(
+        textures, np.diag([scale, scale, 1.0]), (0, 0, frame, frame),
+        np.ones((frame, frame), np.float32), probabilities, coordinates,
+    )  # fmt: skip
+    out, used = sample.colour, sample.used
+    # Frame pixel centres map to network x = (j + 0.5) / scale: st = that / size, v flipped.
+    x = (np.arange(frame) + 0.5) / scale / size
+    st = np.stack(np.meshgrid(x, 1 - x), axis=-1).reshape(-1, 2)
+    inside = (np.abs(st - 0.5) <= 0.5 - 0.5 / size).all(axis=1).reshape(frame, frame)
+    expected = sample_bilinear(texture, st).reshape(frame, frame, 3)
+    assert used.all()
+    assert np.abs(out - expected)[inside].max() < 1e-5
+
+
+def test_coordinates_are_never_blended_across_charts():
+    """Two charts side by side whose coordinates disagree wildly outside their own pixels: every
+    frame pixel reads only its chart's values."""
+    size = 8
+    texture = np.zeros((2, 2, 3), np.float32)
+    texture[:, 0] = (1, 0, 0)  # left half red: u < 0.5
+    texture[:, 1] = (0, 0, 1)  # right half blue
+    source = _source(texture, ("clamp", "clamp"))
+    textures = ChartTextures.build(
+        _table([((0.0, 0.0), (0.5, 1.0)), ((0.5, 0.0), (1.0, 1.0))]), {"Body": source}
+    )
+    probabilities = np.zeros((3, size, size), np.float32)
+    probabilities[1, :, :4], probabilities[2, :, 4:] = 1.0, 1.0
+    coordinates = np.zeros((4, size, size), np.float32)
+    coordinates[0], coordinates[2] = -0.5, 0.5  # each chart's own: inside its half
+    coordinates[0, :, 4:], coordinates[2, :, :4] = 50.0, -50.0  # garbage where not seen
+    sample = sample_textures(
+        textures, np.diag([8.0, 8.0, 1.0]), (0, 0, 64, 64), np.ones((64, 64), np.float32),
+        probabilities, coordinates,
+    )  # fmt: skip
+    out, used = sample.colour, sample.used
+    np.testing.assert_array_equal(sample.chart[:, :32], 1)
+    np.testing.assert_array_equal(sample.chart[:, 32:], 2)
+    assert used.all()
+    assert np.allclose(out[:, :32], (1, 0, 0)) and np.allclose(out[:, 32:], (0, 0, 1))
+
+
+def test_unsure_and_untextured_pixels_are_left_to_the_albedo_branch():
+    size = 4
+    textures = ChartTextures.build(
+        {
+            "charts": [
+                {
+                    "index": 1,
+                    "mesh": "Body",
+                    "tile": 1001,
+                    "uv_min": [0, 0],
+                    "uv_max": [1, 1],
+                    "triangles": 1,
+                },
+                {
+                    "index": 2,
+                    "mesh": "Plain",
+                    "tile": 1001,
+                    "uv_min": [0, 0],
+                    "uv_max": [1, 1],
+                    "triangles": 1,
+                },
+            ],
+            "meshes": [],
+        },
+        {"Body": _source(np.ones((4, 4, 3), np.float32)), "Plain": _source(None, name="Plain")},
+    )
+    assert textures.untextured == ("Plain",)
+    probabilities = np.zeros((3, size, size), np.float32)
+    probabilities[1] = 1.0
+    probabilities[:, 0, 0] = (0.35, CHART_CONFIDENCE - 0.05, 0.2)  # most likely, but unsure
+    probabilities[:, 3, 3] = (0.0, 0.0, 1.0)  # the untextured chart
+    used = sample_textures(
+        textures, np.eye(3), (0, 0, size, size), np.ones((size, size), np.float32),
+        probabilities, np.zeros((4, size, size), np.float32),
+    ).used  # fmt: skip
+    assert not used[0, 0] and not used[3, 3] and used.sum() == size * size - 2
+
+
+def test_charts_of_other_uvs_are_refused():
+    source = _source(np.ones((4, 4, 3), np.float32))
+    with pytest.raises(TextureMismatch, match="other uvs"):
+        ChartTextures.build(_table([((0, 0), (1, 1))], fingerprint="0" * 64), {"Body": source})
+    with pytest.raises(TextureMismatch, match="is not there"):
+        ChartTextures.build(_table([((0, 0), (1, 1))], mesh="Gone"), {"Body": source})
+
+
+def test_sharpened_coverage_has_a_one_pixel_edge_at_the_same_place():
+    """A disc's coverage at 32x32 upsampled 8x is a ramp 8 pixels wide; sharpened, it is one
+    pixel wide and its area (where the edge is) stays the disc's."""
+    import cv2
+
+    small = 32
+    y, x = np.mgrid[0:small, 0:small] + 0.5
+    disc = np.clip(10.0 - np.hypot(x - 16, y - 16) + 0.5, 0, 1).astype(np.float32)
+    big = cv2.resize(disc, (256, 256), interpolation=cv2.INTER_LINEAR)
+    sharp = sharpen_coverage(big)
+    partial = lambda c: int(((c > 0.02) & (c < 0.98)).sum())  # noqa: E731
+    assert partial(sharp) < partial(big) / 4
+    assert abs(sharp.sum() - np.pi * 80**2) / (np.pi * 80**2) < 0.02
+    # Already sharp coverage (no magnification) is kept as it is.
+    np.testing.assert_array_equal(sharpen_coverage(disc), disc)

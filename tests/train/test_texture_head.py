@@ -1,0 +1,178 @@
+"""The texture head: its targets (numpy and torch agree), a loss that never compares coordinates
+across charts, the device-clean network (meta device), and a textured run exported and read."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch", reason="training needs the train extra (torch)")
+
+from rigspace.sdk.model import BundleModel  # noqa: E402
+from rigspace.train import loop  # noqa: E402
+from rigspace.train.config import preset  # noqa: E402
+from rigspace.train.data import SampleSet, chart_boxes, chart_targets  # noqa: E402
+from rigspace.train.export import export_bundle  # noqa: E402
+from rigspace.train.loss import chart_downsample, texture_loss, total_loss  # noqa: E402
+from rigspace.train.network import Rig2Image, Shape, texture_channels, texture_maps  # noqa: E402
+
+TINY = preset("tiny", texture=True)
+BOXES = (
+    np.array([[0, 0], [0.25, 0.5], [0.75, 0.5]], np.float32),
+    np.array([[1, 1], [0.25, 0.5], [0.25, 0.5]], np.float32),
+)
+"""Two charts: the left and right halves of the texture."""
+
+
+def _labels(size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A chart image with blocks of charts 0, 1, 2 and uvs inside each chart's box."""
+    rng = np.random.default_rng(seed)
+    chart = rng.integers(0, 3, (size // 2, size // 2)).repeat(2, 0).repeat(2, 1)
+    chart[rng.random((size, size)) < 0.2] = rng.integers(0, 3)
+    uv = BOXES[0][chart] + BOXES[1][chart] * rng.uniform(-1, 1, (size, size, 2))
+    return chart.astype(np.int32), np.where(chart[..., None] > 0, uv, 0).astype(np.float32)
+
+
+def test_chart_targets_take_each_boxes_commonest_chart_and_its_own_mean():
+    chart = np.array([[1, 1, 2, 0], [1, 2, 2, 0], [0, 0, 0, 0], [0, 0, 2, 2]], np.int32)
+    uv = np.zeros((4, 4, 2), np.float32)
+    uv[..., 0] = np.where(chart == 1, 0.1, np.where(chart == 2, 0.9, 0))
+    uv[1, 0, 0] = 0.3  # chart 1's pixels: mean u 0.1 0.1 0.3 -> 1/6 (never 0.9's)
+    target_chart, local = chart_targets(chart, uv, BOXES, 2)
+    np.testing.assert_array_equal(target_chart, [[1, 2], [0, 2]])
+    assert local[0, 0, 0] == pytest.approx((0.5 / 3 - 0.25) / 0.25)
+    assert local[0, 0, 1] == pytest.approx((0.9 - 0.75) / 0.25)
+    assert np.all(local[:, 1, 0] == 0)  # chart 0: no coordinates
+
+
+@pytest.mark.parametrize("factor", [1, 2, 4])
+def test_numpy_and_torch_targets_agree(factor):
+    """Lower levels' targets (loss.chart_downsample, torch) equal the training resolution's
+    made from the same pixels (data.chart_targets, numpy)."""
+    chart, uv = _labels(16)
+    full_chart, full_uv = chart_targets(chart, uv, BOXES, 1)
+    expected_chart, expected_uv = chart_targets(chart, uv, BOXES, factor)
+    got_chart, got_uv = chart_downsample(
+        torch.from_numpy(full_chart)[None, None], torch.from_numpy(full_uv)[None], 16 // factor, 2
+    )
+    np.testing.assert_array_equal(got_chart[0, 0].numpy(), expected_chart)
+    keep = expected_chart > 0
+    np.testing.assert_allclose(got_uv[0].numpy()[:, keep], expected_uv[:, keep], atol=1e-5)
+
+
+def _head(charts: int, size: int, seed: int = 0) -> torch.Tensor:
+    torch.manual_seed(seed)
+    return torch.randn(2, 4 + texture_channels(charts), size, size)
+
+
+def test_the_loss_reads_only_the_target_charts_coordinates():
+    """Changing a chart's coordinates where another chart is the target changes nothing: no
+    coordinate is ever compared across a seam; changing them on its own pixels does."""
+    size = 8
+    chart, uv = _labels(size)
+    target_chart, local = chart_targets(chart, uv, BOXES, 1)
+    target = {
+        "chart": torch.from_numpy(target_chart)[None, None].repeat(2, 1, 1, 1),
+        "uv": torch.from_numpy(local)[None].repeat(2, 1, 1, 1),
+        "mask": torch.ones(2, 1, size, size),
+    }
+    head = _head(2, size)
+
+    def loss(h):
+        return texture_loss(*texture_maps(h, 2), target, TINY)
+
+    base = loss(head)
+    elsewhere = head.clone()
+    _, coords = texture_maps(elsewhere, 2)
+    not_one = torch.from_numpy(target_chart != 1)
+    coords[:, 0:2, not_one] += 100.0  # chart 1's pair where chart 1 is not the target
+    assert loss(elsewhere)["uv"] == pytest.approx(float(base["uv"]))
+    own = head.clone()
+    texture_maps(own, 2)[1][:, 0:2, ~not_one] += 1.0
+    assert loss(own)["uv"] > base["uv"] + 0.1
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        {},
+        {"conditioning": "joints2d"},
+        {"conditioning": "bones2d", "conditioning_mode": "add", "conditioning_top": 16},
+        {"conditioning": "bones2d", "conditioning_mode": "concat", "mask_loss": "bce"},
+        {"mask_loss": "soft-iou", "edge_weight": 2.0},
+    ],
+)
+def test_forward_loss_and_backward_on_the_meta_device(overrides):
+    """Every tensor the network, its conditioning and its loss make follows its inputs'
+    device: on `meta` a tensor made without device= fails as it would on CUDA."""
+    config = replace(TINY, **overrides)
+    parents = (-1, 0, 1, 2)
+    with torch.device("meta"):
+        model = Rig2Image(Shape(4, parents=parents, charts=3), config)
+    meta = torch.device("meta")
+    size = 32
+    batch = {
+        "rig": torch.empty(2, 24, device=meta),
+        "joints2d": torch.empty(2, 8, device=meta) if model.conditioned else None,
+        "albedo": torch.empty(2, 3, size, size, device=meta),
+        "mask": torch.empty(2, 1, size, size, device=meta),
+        "normal": torch.empty(2, 3, size, size, device=meta),
+        "depth": torch.empty(2, 1, size, size, device=meta),
+        "chart": torch.zeros(2, 1, size, size, dtype=torch.long, device=meta),
+        "uv": torch.empty(2, 2, size, size, device=meta),
+    }
+    heads = model(batch["rig"], size, joints2d=batch["joints2d"])
+    loss, _ = total_loss(heads, {k: v for k, v in batch.items() if v is not None}, 0.5, config)
+    loss.backward()
+    assert loss.device.type == "meta"
+
+
+@pytest.fixture(scope="module")
+def textured_run(tmp_path_factory, tiny_dataset):
+    run = tmp_path_factory.mktemp("texture") / "run"
+    result = loop.train(tiny_dataset, run, replace(TINY, steps_per_level=60), progress=False)
+    assert result.stopped == "done"
+    return run
+
+
+def test_a_textured_run_learns_and_exports_its_head(textured_run, tiny_dataset, tmp_path):
+    log = [json.loads(line) for line in (textured_run / "log.jsonl").read_text().splitlines()]
+    assert {"chart", "uv"} <= set(log[-1])
+    first = [r for r in log if r["resolution"] == 16]
+
+    def mean(rows, key):
+        return float(np.mean([r[key] for r in rows]))
+
+    # Over the first level (60 steps, the tiny preset), both terms fall: measured 2.70 ->
+    # 2.27 (chart, ln 15 = 2.71 at chance) and 0.28 -> 0.23 (coordinates).
+    assert mean(first[-15:], "chart") < 0.95 * mean(first[:10], "chart")
+    assert mean(first[-15:], "uv") < 0.95 * mean(first[:10], "uv")
+    run = json.loads((textured_run / "run.json").read_text())
+    boxes = chart_boxes(tiny_dataset)
+    assert boxes is not None and run["charts"] == len(boxes[0]) - 1
+    manifest = export_bundle(textured_run, tmp_path / "model", int8=False)
+    assert manifest["texture"]["charts"] == run["charts"]
+    assert (tmp_path / "model" / "charts.json").is_file()
+    model = BundleModel(tmp_path / "model")
+    rows = SampleSet(tiny_dataset, "heldout-views")
+    out = model.predict(rows.rig[rows.rows[:2]], 32, ("albedo",))
+    k = run["charts"]
+    assert out["chart"].shape == (2, k + 1, 32, 32) and out["uv"].shape == (2, 2 * k, 32, 32)
+    assert np.allclose(out["chart"].sum(axis=1), 1, atol=1e-5)  # probabilities
+    # The ONNX graph computes what the torch head does.
+    trained, _, _ = loop.build_model(textured_run)
+    with torch.no_grad():
+        heads = trained(torch.from_numpy(rows.rig[rows.rows[:2]]), 32, ("albedo",))
+        logits, coords = texture_maps(heads["albedo"][-1], k)
+    np.testing.assert_allclose(out["uv"], coords.numpy(), atol=1e-4)
+    np.testing.assert_allclose(out["chart"], torch.softmax(logits, 1).numpy(), atol=1e-5)
+
+
+def test_an_untextured_config_trains_no_head(tiny_dataset):
+    items = SampleSet(tiny_dataset, "train")
+    assert "chart" not in items.item(0)  # the head's targets only when asked for
+    model = Rig2Image(Shape(19, charts=5), preset("tiny"))
+    assert model.charts == 0 and model.albedo.heads[0].out_channels == 4

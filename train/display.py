@@ -1,0 +1,147 @@
+"""Measure a model at the size it is seen: its maps upsampled onto a higher-resolution capture.
+
+The network draws a character at R x R; on screen it is often larger (the previs shot's is
+about 324 pixels tall at 640x360). `rigspace eval MODEL DATASET --display` evaluates on a
+dataset captured at a multiple of R (a small one: `rigspace capture ... --resolution 512
+--every 10`) at every power of two from 2R up to the dataset's resolution (targets box-
+downsampled to it), with these predictors of the same held-out rows:
+
+- `runtime`: what `rigspace render` draws: the character's own textures where the texture
+  head says (rigspace.sdk.texturing), the albedo branch elsewhere, coverage upsampled and
+  sharpened to a one-pixel edge;
+- `albedo branch`: the same without the textures (a bundle without a texture head);
+- `bilinear`: every map bilinearly upsampled, as the runtime drew before;
+- `truth at R, upsampled`: the captured maps box-downsampled to R and upsampled bilinearly:
+  the best any R x R image-space predictor can do at this size.
+
+No torch: it runs the bundle through onnxruntime as the runtime does.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from rigspace.sdk.model import BundleModel
+from rigspace.sdk.render import Maps
+from rigspace.sdk.texturing import ChartTextures, display_colour, region_warper
+from rigspace.train.evaluate import DatasetTable, downsample_maps
+from rigspace.train.predictor import MASK_VALID
+
+MODES = ("runtime", "albedo branch", "bilinear")
+
+
+def scene_textures(model: BundleModel, manifest: dict) -> tuple[ChartTextures | None, str]:
+    """The textures of the dataset's character by the bundle's charts (its scene opened
+    read-only), and why there are none ("" when there are)."""
+    if not model.charts:
+        return None, "the bundle has no texture head"
+    from rigspace.sdk.posing import CharacterRig
+    from rigspace.sdk.stage import open_stage
+
+    stage = open_stage(manifest["scene"])
+    rig = CharacterRig(stage.GetPrimAtPath(manifest["character"]))
+    table = model.chart_table()
+    assert table is not None
+    textures = ChartTextures.build(table, {rig.mesh_name(m): m for m in rig.mesh_sources()})
+    return (textures, "") if textures.any_texture else (None, "the character has no texture")
+
+
+class DisplayPredictor:
+    """A bundle's top level drawn at a table's (higher) resolution (module doc's modes)."""
+
+    def __init__(
+        self, model: Path | BundleModel, table: DatasetTable, mode: str = "runtime",
+        textures: ChartTextures | None = None,
+    ) -> None:  # fmt: skip
+        self.model = model if isinstance(model, BundleModel) else BundleModel(model)
+        self.table = table
+        self.mode = mode
+        self.level = max(self.model.resolutions)
+        self.textures = textures if mode == "runtime" else None
+        self.name = mode
+        self.footprint_bytes = self.model.footprint_bytes() + (
+            self.textures.texture_bytes() if self.textures is not None else 0
+        )
+
+    def predict(self, indices: np.ndarray) -> list[Maps]:
+        rig = self.table.column("rig")[indices].reshape(len(indices), -1)
+        joint_depth = -self.table.column("joint_camera")[indices][:, 2].astype(np.float32)
+        out = self.model.predict(rig, self.level)
+        size = self.table.resolution
+        scale = size / self.level
+        homography = np.diag([scale, scale, 1.0])
+        region = (0, 0, size, size)
+        warp = region_warper(homography, region)
+        maps = []
+        for k in range(len(indices)):
+            one = {name: value[k] for name, value in out.items()}
+            coverage = np.clip(warp(one["mask"])[..., 0], 0.0, 1.0)
+            if self.mode == "bilinear":
+                albedo = np.clip(warp(one["albedo"]), 0.0, 1.0)
+                mask = coverage
+            else:
+                albedo, mask, _ = display_colour(one, homography, region, coverage, self.textures)
+            weight = np.maximum(coverage, 1e-6)[..., None]
+            normal = warp(one["normal"] * one["mask"]) / weight
+            length = np.linalg.norm(normal, axis=-1, keepdims=True)
+            normal = np.where(length > 0, normal / np.maximum(length, 1e-12), 0.0)
+            offset = warp(one["depth"] * one["mask"])[..., 0] / weight[..., 0]
+            valid = coverage >= MASK_VALID
+            depth = np.where(valid, joint_depth[k] + self.model.depth_scale * offset, np.inf)
+            maps.append(
+                Maps(
+                    albedo=albedo.astype(np.float32),
+                    normal=np.where(valid[..., None], normal, 0.0).astype(np.float32),
+                    depth=depth.astype(np.float32),
+                    mask=mask.astype(np.float32),
+                )
+            )
+        return maps
+
+
+class UpsampledTruth:
+    """The captured maps box-downsampled to R, upsampled bilinearly back to the table's size:
+    the ceiling of any R x R image-space predictor at that size."""
+
+    def __init__(self, table: DatasetTable, resolution: int) -> None:
+        self.table = table
+        self.factor = table.resolution // resolution
+        self.name = f"truth at {resolution}, upsampled"
+
+    def predict(self, indices: np.ndarray) -> list[Maps]:
+        size = self.table.resolution
+        homography = np.diag([float(self.factor), float(self.factor), 1.0])
+        warp = region_warper(homography, (0, 0, size, size))
+        maps = []
+        for index in indices:
+            small = downsample_maps(self.table.maps(int(index)), self.factor)
+            mask = small.mask[None]
+            depth = np.where(np.isfinite(small.depth), small.depth, 0.0)[None] * mask
+            coverage = warp(mask)[..., 0]
+            weight = np.maximum(coverage, 1e-6)
+            normal = warp(np.moveaxis(small.normal, -1, 0) * mask)
+            length = np.linalg.norm(normal, axis=-1, keepdims=True)
+            valid = coverage >= MASK_VALID
+            maps.append(
+                Maps(
+                    albedo=warp(np.moveaxis(small.albedo, -1, 0)),
+                    normal=np.where(
+                        valid[..., None], normal / np.maximum(length, 1e-12), 0.0
+                    ).astype(np.float32),
+                    depth=np.where(valid, warp(depth)[..., 0] / weight, np.inf).astype(np.float32),
+                    mask=coverage.astype(np.float32),
+                )
+            )
+        return maps
+
+
+def display_sizes(model_level: int, dataset_resolution: int) -> list[int]:
+    """2R, 4R, ... up to the dataset's resolution (each must divide it)."""
+    sizes, size = [], 2 * model_level
+    while size <= dataset_resolution:
+        if dataset_resolution % size == 0:
+            sizes.append(size)
+        size *= 2
+    return sizes
