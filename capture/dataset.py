@@ -37,7 +37,7 @@ import numpy as np
 
 from rigspace.capture.ring import HELDOUT_CLIPS, HELDOUT_VIEWS, SPLITS, TRAIN, RingView
 from rigspace.capture.settings import CaptureSettings, Clip
-from rigspace.sdk.charts import ChartTable
+from rigspace.sdk.charts import ChartTable, parse_charts
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.exr import read_exr
 
@@ -318,11 +318,14 @@ def read_charts(folder: str | Path) -> dict[str, Any] | None:
             f"{path} is not readable JSON ({exc}).",
             f"run `{resume_command(folder)}` to rewrite it.",
         ) from exc
-    if not isinstance(data, dict) or data.get("format") != "rigspace.charts":
+    try:
+        parse_charts(data)
+    except ValueError as exc:
         raise DatasetError(
-            f"{path} is not a rigspace chart table.",
-            f"run `{resume_command(folder)}` to rewrite it.",
-        )
+            f"{path} cannot be used: {exc}.",
+            f"capture the dataset again (`{resume_command(folder)}` rewrites it when the "
+            "dataset is otherwise whole).",
+        ) from exc
     return data
 
 

@@ -39,6 +39,7 @@ from rigspace.sdk.texturing import (
     ChartTextures,
     TextureMismatch,
     display_colour,
+    magnification,
     region_warper,
     sharpen_coverage,
 )
@@ -232,5 +233,5 @@ class NeuralCharacter:
             if sample is not None:
                 uv, chart = sample.st, sample.chart
         else:
-            sharp = sharpen_coverage(mask)
+            sharp = sharpen_coverage(mask, magnification(homography, (x0, y0, w, h)))
         return Layer(x0, y0, albedo, sharp, depth, normal, level, tuple(branches), info, uv, chart)

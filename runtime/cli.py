@@ -170,16 +170,11 @@ def run(args: argparse.Namespace) -> int:
             if k in picks:
                 thumbs.append(png)
             if truth is not None:
-                truth_frame = truth.render(float(t))
-                coverage = {
-                    c.path: (
-                        engine.coverage_of(c.path, float(t)),
-                        truth.coverage_of(c.path, float(t)),
-                    )
-                    for c in engine.characters
-                }
                 frame.report["reference"] = compare_with_reference(
-                    frame, truth_frame, out / f"compare_{t:08.1f}.png", coverage
+                    frame,
+                    truth.render(float(t)),
+                    out / f"compare_{t:08.1f}.png",
+                    coverages(engine, truth, float(t)),
                 )
             reports.append(frame.report)
     finally:

@@ -267,6 +267,8 @@ class Engine:
         """The branches a character needs this frame, and why (the unlit mode's decision)."""
         if lit:
             return BOTH, "lights reach it: normals and depth are shaded"
+        if c.character.textures is not None and c.character.model.texture_branch != "albedo":
+            return BOTH, "its texture head is on the geometry branch"
         if {"normal", "depth"} & set(self.aovs):
             return BOTH, "the normal or depth AOV is asked for"
         if not c.character.model.albedo_has_alpha:

@@ -231,6 +231,35 @@ def mesh_charts(
     return rank[label].astype(np.int32)
 
 
+def parse_charts(data: Any) -> tuple[Chart, ...]:
+    """The charts of a charts.json's content, checked; a ValueError says what is wrong (the
+    caller names the file and the fix). Chart indices must be exactly 1..K in order, so an
+    index read from a network's output always finds its chart."""
+    if not isinstance(data, dict) or data.get("format") != "rigspace.charts":
+        raise ValueError("it is not a rigspace chart table (format rigspace.charts)")
+    charts = data.get("charts")
+    if not isinstance(charts, list):
+        raise ValueError("its 'charts' is not a list")
+    out = []
+    for k, entry in enumerate(charts, start=1):
+        try:
+            chart = Chart.from_json(entry)
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            raise ValueError(
+                f"chart {k} is incomplete or mistyped ({type(exc).__name__}: {exc})"
+            ) from exc
+        if chart.index != k:
+            raise ValueError(f"chart {k} has index {chart.index}; indices must run 1..K in order")
+        box = np.array([*chart.uv_min, *chart.uv_max])
+        if not np.all(np.isfinite(box)) or np.any(box[:2] > box[2:]):
+            raise ValueError(f"chart {k}'s uv box {chart.uv_min} .. {chart.uv_max} is not a box")
+        out.append(chart)
+    meshes = data.get("meshes", [])
+    if not isinstance(meshes, list) or not all(isinstance(m, dict) and "mesh" in m for m in meshes):
+        raise ValueError("its 'meshes' is not a list of {mesh, triangles, uv_fingerprint}")
+    return tuple(out)
+
+
 @dataclass(frozen=True)
 class ChartedMesh:
     """A textured mesh's charts: the global chart of each triangle (1..K)."""

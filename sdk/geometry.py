@@ -408,14 +408,17 @@ def read_mesh_parts(prim: Usd.Prim, time: Usd.TimeCode | None = None) -> list[Me
     faces = topology[3]
     taken = np.zeros(len(faces), bool)
     parts = []
+    albedos: dict[str, Albedo] = {}  # subsets bound to one material share its texture's array
     for subset in subsets:
         indices = np.asarray(subset.GetIndicesAttr().Get(Usd.TimeCode.Default()) or [], np.int64)
         keep = np.isin(faces, indices) & ~taken  # a face in two subsets: the first one's
         taken |= keep
         if keep.any():
-            parts.append(
-                _part(prim, str(subset.GetPath()), topology, read_albedo(subset.GetPrim()), keep)
-            )
+            material, _ = UsdShade.MaterialBindingAPI(subset.GetPrim()).ComputeBoundMaterial()
+            key = str(material.GetPath()) if material else str(subset.GetPath())
+            if key not in albedos:
+                albedos[key] = read_albedo(subset.GetPrim())
+            parts.append(_part(prim, str(subset.GetPath()), topology, albedos[key], keep))
     if not taken.all():
         parts.append(_part(prim, str(prim.GetPath()), topology, read_albedo(prim), ~taken))
     return parts

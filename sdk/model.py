@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from rigspace.sdk.bundle import BundleError, ModelManifest, read_manifest
+from rigspace.sdk.charts import parse_charts
 from rigspace.sdk.conditioning import Skeleton2D, joints2d
 
 
@@ -86,8 +87,11 @@ class BundleModel:
         self.albedo_has_alpha = self.manifest.format_version >= 2
         """Whether the albedo branch alone gives coverage (lets unlit frames skip geometry)."""
         self.joints = list(self.manifest.joints)
-        self.charts = int((raw.get("texture") or {}).get("charts", 0))
-        """K texture charts the albedo graphs' texture head predicts (0: no texture head)."""
+        texture = raw.get("texture") or {}
+        self.charts = int(texture.get("charts", 0))
+        """K texture charts the texture head predicts (0: no texture head)."""
+        self.texture_branch = str(texture.get("branch", "albedo"))
+        """The branch whose graphs give the texture head's chart and uv outputs."""
         self.skeleton = Skeleton2D.of_bundle(raw)
         """The skeleton a pose-conditioned bundle projects (None: the rig is the only input)."""
 
@@ -105,10 +109,18 @@ class BundleModel:
                 f"read ({exc}).",
                 "re-export the bundle with `rigspace train`, or restore the file.",
             ) from exc
-        if not isinstance(table, dict) or len(table.get("charts", [])) != self.charts:
+        try:
+            charts = parse_charts(table)
+        except ValueError as exc:
             raise BundleError(
-                f"Model bundle {self.manifest.folder}: {path.name} does not list the "
-                f"{self.charts} texture charts its manifest says.",
+                f"Model bundle {self.manifest.folder}: its texture charts {path.name} cannot be "
+                f"used: {exc}.",
+                "re-export the bundle with `rigspace train`, or restore the file.",
+            ) from exc
+        if len(charts) != self.charts:
+            raise BundleError(
+                f"Model bundle {self.manifest.folder}: {path.name} lists {len(charts)} texture "
+                f"charts; its manifest says {self.charts}.",
                 "re-export the bundle with `rigspace train`.",
             )
         return table

@@ -170,10 +170,9 @@ def sample_region(
             blend = lod - level
             st_out[i, j, 0], st_out[i, j, 1] = s, t
             chart_out[i, j] = chart
-            s, t = s * su + transform[chart, 2], t * sv + transform[chart, 3]
-            # The axes in the image's [0, 1] coordinates.
-            xs_s, xs_t = dsx / width0 * su, dtx / height0 * sv
-            ys_s, ys_t = dsy / width0 * su, dty / height0 * sv
+            # The footprint's axes in st (texels / image size / the st -> image scale).
+            xs_s, xs_t = dsx / (width0 * su), dtx / (height0 * sv)
+            ys_s, ys_t = dsy / (width0 * su), dty / (height0 * sv)
             for c in range(3):
                 mean[c] = 0.0
             count = taps_x * taps_y
@@ -181,8 +180,11 @@ def sample_region(
                 ox = (kx + 0.5) / taps_x - 0.5
                 for ky in range(taps_y):
                     oy = (ky + 0.5) / taps_y - 0.5
-                    ts = s + ox * xs_s + oy * ys_s
-                    tt = t + ox * xs_t + oy * ys_t
+                    # Each tap's st stays in the chart's bounds (a UDIM chart's tile), then
+                    # goes to the image.
+                    ts = min(max(s + ox * xs_s + oy * ys_s, bounds[chart, 0]), bounds[chart, 2])
+                    tt = min(max(t + ox * xs_t + oy * ys_t, bounds[chart, 1]), bounds[chart, 3])
+                    ts, tt = ts * su + transform[chart, 2], tt * sv + transform[chart, 3]
                     _bilinear(
                         texels, levels, img, level, ts, tt, wrap[chart, 0], wrap[chart, 1], rgb
                     )

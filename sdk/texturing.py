@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rigspace.sdk.charts import uv_fingerprint
+from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.geometry import MeshSource
 
 CHART_CONFIDENCE = 0.5
@@ -45,9 +46,9 @@ pixel it scores 26.3 dB at 128x128 (the renderers' 2x2: 22.6; one isotropic tril
 19.7) and 31.2 dB at 512x512 (2x2: 32.0), measured on the sample character."""
 EDGE_PIXELS = 1.0
 """The width, in frame pixels, of the sharpened coverage's edge ramp."""
-SHARP_RAMP = 2.0
-"""Coverage ramps up to this many pixels wide (central differences read a one-pixel ramp as
-two) are already sharp: sharpen_coverage keeps them."""
+SHARP_RAMP = 1.5
+"""Coverage magnified up to this many times is kept as it is (its edge ramp is at most this
+many pixels wide)."""
 
 
 def mip_chain(image: np.ndarray) -> list[np.ndarray]:
@@ -109,7 +110,7 @@ class ChartTextures:
         transform = np.tile(np.array([1, 1, 0, 0], np.float32), (k + 1, 1))
         wrap = np.zeros((k + 1, 2), np.int32)
         bounds = np.tile(np.array([-np.inf, -np.inf, np.inf, np.inf], np.float32), (k + 1, 1))
-        images: dict[str, int] = {}
+        images: dict[int, int] = {}
         chains: list[list[np.ndarray]] = []
         untextured: list[str] = []
         for chart in charts:
@@ -134,11 +135,12 @@ class ChartTextures:
                 raise TextureMismatch(
                     f"the mesh {name} has other uvs than the ones its texture charts were made for"
                 )
-            if name not in images:
-                images[name] = len(chains)
+            key = id(source.albedo.texture)  # parts sharing a material share its mip chain
+            if key not in images:
+                images[key] = len(chains)
                 chains.append(mip_chain(source.albedo.texture))
             albedo = source.albedo
-            image[index] = images[name]
+            image[index] = images[key]
             transform[index] = (*albedo.uv_scale, *albedo.uv_offset)
             wrap[index] = albedo.wrap_codes
             if albedo.udim:
@@ -166,7 +168,7 @@ class ChartTextures:
         return int(self.texels.nbytes)
 
 
-class TextureMismatch(Exception):
+class TextureMismatch(RigspaceError):
     """The scene's meshes are not the ones a bundle's texture charts were made for."""
 
 
@@ -208,6 +210,13 @@ def sample_textures(
     pixels to sample (> 0); `probabilities` (K+1, R, R) and `coordinates` (2K, R, R) are the
     texture head's outputs for one character. `kernel` False runs the numpy reference."""
     x0, y0, w, h = region
+    if probabilities.shape[0] != textures.charts + 1 or coordinates.shape[0] != 2 * textures.charts:
+        raise TextureMismatch(
+            f"The texture head gives {probabilities.shape[0]} chart probabilities and "
+            f"{coordinates.shape[0]} coordinates; its charts.json has {textures.charts} charts "
+            f"(needs {textures.charts + 1} and {2 * textures.charts}).",
+            "re-export the bundle with `rigspace train` (its graphs and charts.json disagree).",
+        )
     best, confidence = _prepare(np.asarray(probabilities, np.float32))
     inverse = np.linalg.inv(np.asarray(homography, np.float64))
     result = TextureSample(
@@ -314,16 +323,29 @@ def sample_region_reference(
     level = np.floor(lod).astype(np.int64)
     blend = lod - level
     colour = np.zeros((len(px), 3))
-    base = np.stack([s * su + transform[chart, 2], t * sv + transform[chart, 3]], axis=1)
-    axis_x = np.stack([ds[0] / width0 * su, dt[0] / height0 * sv], axis=1)  # image [0, 1]
-    axis_y = np.stack([ds[1] / width0 * su, dt[1] / height0 * sv], axis=1)
+    # The footprint's axes in st (texels / image size / the st -> image scale).
+    axis_x = np.stack([ds[0] / (width0 * su), dt[0] / (height0 * sv)], axis=1)
+    axis_y = np.stack([ds[1] / (width0 * su), dt[1] / (height0 * sv)], axis=1)
     count = (taps_x * taps_y)[:, None]
     for kx in range(int(max_taps)):
         for ky in range(int(max_taps)):
             tapping = ok & (kx < taps_x) & (ky < taps_y)
             ox = ((kx + 0.5) / taps_x - 0.5)[:, None]
             oy = ((ky + 0.5) / taps_y - 0.5)[:, None]
-            at = base + ox * axis_x + oy * axis_y
+            # Each tap in the chart's bounds (a UDIM chart's tile), then in the image.
+            tap_s = np.clip(
+                s + ox[:, 0] * axis_x[:, 0] + oy[:, 0] * axis_y[:, 0],
+                bounds[chart, 0],
+                bounds[chart, 2],
+            )
+            tap_t = np.clip(
+                t + ox[:, 0] * axis_x[:, 1] + oy[:, 0] * axis_y[:, 1],
+                bounds[chart, 1],
+                bounds[chart, 3],
+            )
+            at = np.stack(
+                [tap_s * su + transform[chart, 2], tap_t * sv + transform[chart, 3]], axis=1
+            )
             for index in np.unique(img[tapping]):
                 for lvl in range(int(level_count[index])):
                     offset0, width, height = levels[index, lvl]
@@ -395,7 +417,7 @@ def display_colour(
     head, "textured" (the share of covered pixels the textures coloured), "texture_ms" (the
     sampler's milliseconds) and "sample" (the TextureSample: st and chart per pixel)."""
     warp = region_warper(homography, region)
-    sharp = sharpen_coverage(coverage)
+    sharp = sharpen_coverage(coverage, magnification(homography, region))
     alpha = np.clip(warp(out["alpha"])[..., 0], 0.0, 1.0) if "alpha" in out else coverage
     colour = np.clip(warp(out["albedo"]), 0.0, 1.0) / np.maximum(alpha, COLOUR_EPSILON)[..., None]
     colour = np.where(alpha[..., None] > COLOUR_EPSILON, np.clip(colour, 0.0, 1.0), 0.0)
@@ -411,17 +433,30 @@ def display_colour(
     return (colour * sharp[..., None]).astype(np.float32), sharp, info
 
 
-def sharpen_coverage(coverage: np.ndarray) -> np.ndarray:
-    """Coverage upsampled from a smaller image, with its edge made one frame pixel wide.
+def magnification(homography: np.ndarray, region: tuple[int, int, int, int]) -> float:
+    """Frame pixels per network pixel at a region's centre (the homography's local scale)."""
+    h = np.asarray(homography, np.float64)
+    inverse = np.linalg.inv(h)
+    x0, y0, w, height = region
+    centre = inverse @ np.array([x0 + w / 2, y0 + height / 2, 1.0])
+    q = centre[:2] / centre[2]
+    p = h @ np.array([q[0], q[1], 1.0])
+    jacobian = (h[:2, :2] - np.outer(p[:2] / p[2], h[2, :2])) / p[2]
+    return float(np.sqrt(abs(np.linalg.det(jacobian))))
 
-    An upsampled silhouette is a ramp as wide as the upsampling factor. Its 0.5 level line is
-    where the network puts the edge; dividing the distance to 0.5 by the ramp's slope gives
-    the signed distance to that line in frame pixels, and a ramp of EDGE_PIXELS over it is
-    the coverage of a crisp, anti-aliased edge. Where the ramp is no wider than SHARP_RAMP
-    pixels (no magnification) the coverage is kept as it is.
+
+def sharpen_coverage(coverage: np.ndarray, scale: float) -> np.ndarray:
+    """Coverage upsampled `scale` times from the network's image, with its edge made one frame
+    pixel wide again.
+
+    Bilinear upsampling turns the network's edge into a ramp about `scale` pixels wide around
+    its 0.5 level line, where the network puts the edge. Stretching the coverage about 0.5 by
+    `scale` (c' = 0.5 + scale (c - 0.5), clipped) keeps that line and makes the ramp one pixel
+    wide: a crisp, anti-aliased silhouette. It is a contrast stretch, not a threshold: a limb
+    thinner than a network pixel keeps a (weaker) coverage. At scale <= SHARP_RAMP (no or
+    little magnification) the coverage is kept as it is.
     """
     c = np.asarray(coverage, np.float32)
-    gy, gx = np.gradient(c)  # central differences: a one-pixel ramp reads as slope 1/2
-    slope = np.sqrt(gx * gx + gy * gy) * EDGE_PIXELS
-    sharp = np.clip((c - 0.5) / np.maximum(slope, 1e-6) + 0.5, 0.0, 1.0)
-    return np.where(slope < 1.0 / SHARP_RAMP, sharp, c).astype(np.float32)
+    if scale <= SHARP_RAMP:
+        return c
+    return np.clip((c - np.float32(0.5)) * np.float32(scale / EDGE_PIXELS) + 0.5, 0.0, 1.0)

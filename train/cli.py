@@ -311,14 +311,16 @@ def run_display(args: argparse.Namespace) -> int:
             print(f"at {size}x{size} ({size // level}x the model's {level}x{level}):")
             print(format_table(result))
     if args.record:
-        manifest_path = Path(args.model) / "manifest.json"
-        manifest = json.loads(manifest_path.read_text())
+        path = Path(args.model) / "manifest.json"
+        manifest = json.loads(path.read_text())
         display = manifest.setdefault("metrics", {}).setdefault("display", {})
         for size, result in results.items():
             display.setdefault(args.split, {})[str(size)] = json.loads(
                 to_json({"samples": result["samples"], "rows": result["rows"]})
             )
-        manifest_path.write_text(json.dumps(manifest, indent=2) + "\n")
+        tmp = path.with_name(f".manifest.json.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(manifest, indent=2) + "\n")
+        os.replace(tmp, path)
     if args.json:
         sys.stdout.write(to_json({str(k): v for k, v in results.items()}))
     return 0

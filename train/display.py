@@ -25,7 +25,7 @@ import numpy as np
 
 from rigspace.sdk.model import BundleModel
 from rigspace.sdk.render import Maps
-from rigspace.sdk.texturing import ChartTextures, display_colour, region_warper
+from rigspace.sdk.texturing import ChartTextures, TextureMismatch, display_colour, region_warper
 from rigspace.train.evaluate import DatasetTable, downsample_maps
 from rigspace.train.predictor import MASK_VALID
 
@@ -44,7 +44,10 @@ def scene_textures(model: BundleModel, manifest: dict) -> tuple[ChartTextures | 
     rig = CharacterRig(stage.GetPrimAtPath(manifest["character"]))
     table = model.chart_table()
     assert table is not None
-    textures = ChartTextures.build(table, {rig.mesh_name(m): m for m in rig.mesh_sources()})
+    try:
+        textures = ChartTextures.build(table, {rig.mesh_name(m): m for m in rig.mesh_sources()})
+    except TextureMismatch as exc:
+        return None, f"{exc} (the dataset's character is not the one the bundle was trained on)"
     return (textures, "") if textures.any_texture else (None, "the character has no texture")
 
 

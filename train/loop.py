@@ -251,9 +251,9 @@ def run_record(dataset: Path, manifest: dict[str, Any], config: TrainConfig) -> 
         "dataset_checksum": manifest["checksum"],
         "joints": manifest["joints"],
     }
-    charts = (manifest.get("charts") or {}).get("count", 0) if config.texture else 0
-    if charts:  # the texture head's size (runs without one record nothing, as before)
-        record["charts"] = int(charts)
+    boxes = chart_boxes(dataset) if config.texture else None
+    if boxes is not None:  # the texture head's size (runs without one record nothing, as before)
+        record["charts"] = len(boxes[0]) - 1
     return record
 
 

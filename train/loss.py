@@ -5,7 +5,8 @@ soft IoU term (config.mask_loss), and weigh silhouette-edge pixels more (config.
 the ablation's mask-loss variants (docs/training.md).
 
 The texture head (config.texture, train/network.py) adds two terms: the chart, a
-cross-entropy over the K + 1 charts weighted by the target's coverage, and the chart
+cross-entropy over the K + 1 charts weighted by the target's coverage (and by half on the
+empty pixels just outside the silhouette, so that "no chart" is learned there), and the chart
 coordinates, the same (1 - a) L2 + a L1 on only the target chart's (u, v) pair where the
 target has a chart and at least half covers the pixel: coordinates are never compared
 across a seam, and a chart's field is free wherever its chart is not seen.
@@ -111,6 +112,11 @@ def head_charts(head: torch.Tensor, branch: str = "albedo") -> int:
     return (extra - 1) // 3 if extra > 0 else 0
 
 
+BORDER_CHART_WEIGHT = 0.5
+"""The chart loss's weight on empty pixels within 2 of the silhouette (chart 0 is learned
+there; farther out the runtime never reads a chart)."""
+
+
 def texture_loss(
     logits: torch.Tensor, coords: torch.Tensor, target: dict[str, torch.Tensor], config: TrainConfig
 ) -> dict[str, torch.Tensor]:
@@ -120,7 +126,11 @@ def texture_loss(
     chart = target["chart"][:, 0].long()
     coverage = target["mask"][:, 0].float()
     ce = F.cross_entropy(logits.float(), chart, reduction="none")
-    chart_term = (ce * coverage).sum() / coverage.sum().clamp_min(1.0)
+    # Weighted by coverage, and by half over the empty pixels beside the silhouette, so that
+    # "no chart" is learned where the runtime reads charts at an edge (2 pixels around).
+    border = F.max_pool2d((coverage > 0).float()[:, None], 5, 1, 2)[:, 0]
+    weight = torch.maximum(coverage, BORDER_CHART_WEIGHT * border)
+    chart_term = (ce * weight).sum() / weight.sum().clamp_min(1.0)
     # The target chart's own (u, v) pair per pixel, in one gather (chart 0 reads pair 0 but
     # has no weight). Gathering, not slicing: a slice's backward zero-fills a gradient the
     # size of the whole head, which measured 0.3 s of a 0.9 s step at 128x128.

@@ -12,6 +12,7 @@ from rigspace.sdk.charts import (
     chart_table,
     components,
     mesh_charts,
+    parse_charts,
     udim_tile,
     uv_fingerprint,
 )
@@ -143,3 +144,20 @@ def test_real_characters_have_few_charts_and_few_seams_inside_them(path, prim, m
         fi, fj, jump, _ = _edges(mesh.rest_points, mesh.triangles, mesh.corner_uv, size)
         inside = (charts[fi] == charts[fj]) & (jump > SEAM_TEXELS)
         assert inside.sum() < 0.005 * len(fi)
+
+
+def test_a_chart_table_is_checked_when_read():
+    points, triangles, uv = grid(4, 2, lambda x, y, *_: (x / 4, y / 2))
+    good = chart_table([("A", points, triangles, uv, TEXELS)]).to_json()
+    assert [c.index for c in parse_charts(good)] == [1]
+    broken = [
+        ({"format": "other"}, "not a rigspace chart table"),
+        ({**good, "charts": {"1": {}}}, "not a list"),
+        ({**good, "charts": [{**good["charts"][0], "index": 2}]}, "indices must run 1..K"),
+        ({**good, "charts": [{"index": 1, "mesh": "A"}]}, "incomplete or mistyped"),
+        ({**good, "charts": [{**good["charts"][0], "uv_min": [2, 0]}]}, "is not a box"),
+        ({**good, "meshes": "A"}, "'meshes' is not a list"),
+    ]
+    for data, message in broken:
+        with pytest.raises(ValueError, match=message):
+            parse_charts(data)

@@ -12,6 +12,7 @@ from rigspace.sdk.texturing import (
     CHART_CONFIDENCE,
     ChartTextures,
     TextureMismatch,
+    magnification,
     mip_chain,
     sample_textures,
     sharpen_coverage,
@@ -21,10 +22,12 @@ KERNEL_TOLERANCE = 1e-5
 """Kernel (float64 scalar) against reference (float32 texture reads): rounding only."""
 
 
-def _source(texture, wrap=("repeat", "repeat"), name="Body") -> MeshSource:
+def _source(texture, wrap=("repeat", "repeat"), name="Body", udim=False) -> MeshSource:
     triangles = np.array([[0, 1, 2]], np.int32)
     uv = np.array([[[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]], np.float32)
     albedo = Albedo(np.zeros(3, np.float32), texture, "st", wrap)
+    if udim:  # an atlas of two tiles side by side, 1001 and 1002
+        albedo.uv_scale, albedo.udim, albedo.wrap = (0.5, 1.0), True, ("clamp", "clamp")
     return MeshSource(name, np.zeros((3, 3), np.float32), triangles, uv, albedo)
 
 
@@ -202,9 +205,35 @@ def test_sharpened_coverage_has_a_one_pixel_edge_at_the_same_place():
     y, x = np.mgrid[0:small, 0:small] + 0.5
     disc = np.clip(10.0 - np.hypot(x - 16, y - 16) + 0.5, 0, 1).astype(np.float32)
     big = cv2.resize(disc, (256, 256), interpolation=cv2.INTER_LINEAR)
-    sharp = sharpen_coverage(big)
+    scale = magnification(np.diag([8.0, 8.0, 1.0]), (0, 0, 256, 256))
+    assert scale == pytest.approx(8.0)
+    sharp = sharpen_coverage(big, scale)
     partial = lambda c: int(((c > 0.02) & (c < 0.98)).sum())  # noqa: E731
     assert partial(sharp) < partial(big) / 4
     assert abs(sharp.sum() - np.pi * 80**2) / (np.pi * 80**2) < 0.02
-    # Already sharp coverage (no magnification) is kept as it is.
-    np.testing.assert_array_equal(sharpen_coverage(disc), disc)
+    # Without magnification, coverage is kept as it is: a limb thinner than a pixel, and a
+    # region one pixel wide, too.
+    np.testing.assert_array_equal(sharpen_coverage(disc, 1.0), disc)
+    thin = np.full((1, 5), 0.4, np.float32)
+    np.testing.assert_array_equal(sharpen_coverage(thin, 1.0), thin)
+    assert sharpen_coverage(thin, 2.0)[0, 0] == pytest.approx(0.3)  # weaker, not erased
+
+
+def test_magnification_is_the_local_scale_of_the_homography():
+    turned = np.array([[0, -3.0, 10], [3.0, 0, 5], [0, 0, 1]])
+    assert magnification(turned, (0, 0, 40, 30)) == pytest.approx(3.0)
+    # Perspective: the scale where the region is.
+    tilted = np.array([[2.0, 0, 0], [0, 2.0, 0], [0.01, 0, 1]])
+    near, far = (magnification(tilted, (x, 0, 2, 2)) for x in (0, 100))
+    assert near > far
+
+
+def test_outputs_that_disagree_with_the_charts_are_refused():
+    textures = ChartTextures.build(
+        _table([((0, 0), (1, 1))]), {"Body": _source(np.ones((4, 4, 3), np.float32))}
+    )
+    with pytest.raises(TextureMismatch, match=r"charts\.json has 1 charts"):
+        sample_textures(
+            textures, np.eye(3), (0, 0, 4, 4), np.ones((4, 4), np.float32),
+            np.ones((3, 4, 4), np.float32), np.zeros((2, 4, 4), np.float32),
+        )  # fmt: skip

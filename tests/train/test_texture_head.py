@@ -4,6 +4,7 @@ across charts, the device-clean network (meta device), and a textured run export
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import replace
 
 import numpy as np
@@ -176,3 +177,19 @@ def test_an_untextured_config_trains_no_head(tiny_dataset):
     assert "chart" not in items.item(0)  # the head's targets only when asked for
     model = Rig2Image(Shape(19, charts=5), preset("tiny"))
     assert model.charts == 0 and model.albedo.heads[0].out_channels == 4
+
+
+def test_a_damaged_chart_table_is_a_named_error(textured_run, tiny_dataset, tmp_path):
+    from rigspace.capture.dataset import DatasetError
+    from rigspace.sdk.bundle import BundleError
+
+    dataset = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, dataset)
+    (dataset / "charts.json").write_text('{"format": "rigspace.charts", "charts": [{"index": 3}]}')
+    with pytest.raises(DatasetError, match=r"charts\.json cannot be used: chart 1 is incomplete"):
+        chart_boxes(dataset)
+    model = tmp_path / "model"
+    export_bundle(textured_run, model, int8=False)
+    (model / "charts.json").write_text("{not json")
+    with pytest.raises(BundleError, match=r"texture charts charts\.json cannot be read"):
+        BundleModel(model).chart_table()
