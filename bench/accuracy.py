@@ -18,7 +18,9 @@ of the same character through the whole `Engine` (neural) and `Engine(reference=
 Each map is compared over the billboard's region, as eval compares whole training
 images: albedo PSNR (premultiplied), mask IoU, normal mean angle (render-camera frame),
 depth MAE in % of the character's height. The scene's other prims are deactivated and no
-beauty is asked for, so the comparison is of the character alone, unlit.
+beauty is asked for, so the comparison is of the character alone, unlit. The runtime draws
+the albedo branch here (`textures=False`), the map the model's own row measures; what the
+character's textures change at display size is the bench's `texture` part.
 """
 
 from __future__ import annotations
@@ -170,7 +172,9 @@ def measure(
         for name, samples_ in cameras.items():
             path = f"/AccuracyCameras/{name.replace('-', '_')}"
             size = {"width": samples_[0][1].width, "height": samples_[0][1].height}
-            neural = Engine(layer, camera=path, precision=precision, aovs=AOVS, **size)
+            neural = Engine(
+                layer, camera=path, precision=precision, aovs=AOVS, textures=False, **size
+            )
             truth_engine = Engine(layer, camera=path, reference=True, aovs=AOVS, **size)
             rows, strips = [], []
             try:

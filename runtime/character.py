@@ -29,6 +29,7 @@ from pxr import Usd, UsdGeom, Vt
 from rigspace.runtime.billboard import Billboard, TrainingView, place
 from rigspace.runtime.shadows import PosedCapsules, chains, pose_capsules
 from rigspace.sdk import schema
+from rigspace.sdk.bundle import BundleError
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.capsules import CapsuleError, read_capsules
 from rigspace.sdk.errors import SceneError
@@ -117,7 +118,10 @@ class NeuralCharacter:
     def _load_textures(self) -> str:
         if not self.model.charts:
             return "its model bundle has no texture head"
-        table = self.model.chart_table()
+        try:
+            table = self.model.chart_table()
+        except BundleError as exc:  # a damaged charts.json: the albedo branch still draws it
+            return str(exc)
         assert table is not None  # the bundle has charts
         sources = {self.rig.mesh_name(m): m for m in self.rig.mesh_sources()}
         try:

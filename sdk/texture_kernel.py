@@ -59,7 +59,7 @@ def _bilinear(texels, levels, image, level, s, t, wrap_s, wrap_t, rgb):
 
 @nb.njit(cache=True, nogil=True)
 def sample_region(
-    inverse, x0, y0, coverage, best, confidence, coordinates, threshold, lod_bias, max_taps,
+    inverse, x0, y0, coverage, best, probabilities, coordinates, threshold, lod_bias, max_taps,
     center, half, image, transform, wrap, bounds, texels, levels, level_count, out, used, st_out,
     chart_out,
 ):  # fmt: skip
@@ -97,15 +97,33 @@ def sample_region(
             cols[0], cols[1] = min(max(j0, 0), r - 1), min(max(j0 + 1, 0), r - 1)
             wy[0], wy[1] = 1.0 - fy, fy
             wx[0], wx[1] = 1.0 - fx, fx
-            # The nearest of the four network pixels that shows a chart.
-            chart, ci, cj, weight = 0, 0, 0, -1.0
+            # Of the charts the four network pixels show, the one with the largest bilinearly
+            # interpolated probability: a chart border follows the probabilities' level line
+            # between network pixels, not their squares. Its confidence: that probability
+            # given some chart (not the silhouette's falloff).
+            none = 0.0
+            for a in range(2):
+                for b in range(2):
+                    none += wy[a] * wx[b] * probabilities[0, rows[a], cols[b]]
+            chart, score = 0, -1.0
             for a in range(2):
                 for b in range(2):
                     k = best[rows[a], cols[b]]
-                    if k > 0 and wy[a] * wx[b] > weight:
-                        chart, ci, cj, weight = k, rows[a], cols[b], wy[a] * wx[b]
-            if chart == 0 or confidence[ci, cj] < threshold or image[chart] < 0:
+                    if k > 0 and k != chart:
+                        p = 0.0
+                        for a2 in range(2):
+                            for b2 in range(2):
+                                p += wy[a2] * wx[b2] * probabilities[k, rows[a2], cols[b2]]
+                        if p > score:
+                            chart, score = k, p
+            if chart == 0 or score < threshold * max(1.0 - none, 1e-6) or image[chart] < 0:
                 continue
+            # The nearest of the four that shows the chart (its coordinates if none other does).
+            ci, cj, weight = 0, 0, -1.0
+            for a in range(2):
+                for b in range(2):
+                    if best[rows[a], cols[b]] == chart and wy[a] * wx[b] > weight:
+                        ci, cj, weight = rows[a], cols[b], wy[a] * wx[b]
             cu, cv = 2 * chart - 2, 2 * chart - 1
             u = v = total = 0.0
             for a in range(2):

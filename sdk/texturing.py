@@ -5,8 +5,10 @@ probabilities of K + 1 texture charts (rigspace.sdk.charts; 0: none) and, for ev
 coordinates within that chart's uv box. At the size the character has on screen (a frame
 region reached through a homography from the network's pixels), each covered pixel:
 
-1. takes the chart of its nearest network pixel that has one (of the four around it),
-   unless that pixel's probability is under CHART_CONFIDENCE (then: the albedo branch);
+1. takes, of the charts the four network pixels around it show, the one whose probability
+   interpolated bilinearly there is largest (chart borders follow the probabilities' level
+   lines, not the network's pixel squares), unless that probability, given some chart, is
+   under CHART_CONFIDENCE (then: the albedo branch);
 2. interpolates that chart's coordinates bilinearly over the network pixels around it that
    show the same chart (weights renormalised), so nothing is blended across a seam;
 3. maps them to USD st (the chart's box; a UDIM chart stays inside its tile), then to the
@@ -25,8 +27,10 @@ which the tests hold it to.
 
 from __future__ import annotations
 
+import hashlib
 import time
-from dataclasses import dataclass
+import weakref
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -65,6 +69,42 @@ def mip_chain(image: np.ndarray) -> list[np.ndarray]:
     return levels
 
 
+class _Packed:
+    """Images' mip chains packed for the kernel: texels (n, 3), levels, level counts."""
+
+    def __init__(self, textures: list[np.ndarray]):
+        self.levels = np.zeros((max(len(textures), 1), MAX_LEVELS, 3), np.int64)
+        self.count = np.zeros(max(len(textures), 1), np.int32)
+        parts, offset = [], 0
+        for n, texture in enumerate(textures):
+            chain = mip_chain(texture)
+            self.count[n] = len(chain)
+            for level, texels in enumerate(chain):
+                self.levels[n, level] = (offset, texels.shape[1], texels.shape[0])
+                parts.append(texels.reshape(-1, 3))
+                offset += texels.shape[0] * texels.shape[1]
+        self.texels = np.concatenate(parts) if parts else np.zeros((1, 3), np.float32)
+
+
+_PACKED: weakref.WeakValueDictionary[bytes, _Packed] = weakref.WeakValueDictionary()
+"""Packed mip chains by their images' content: characters of one asset (a crowd, each with
+its own rig and its own copy of the decoded textures) share one set, freed with the last."""
+
+
+def _pack(textures: list[np.ndarray]) -> _Packed:
+    digest = hashlib.blake2b(digest_size=20)
+    for texture in textures:
+        array = np.ascontiguousarray(texture, np.float32)
+        digest.update(repr(array.shape).encode())
+        digest.update(array.data)
+    key = digest.digest()
+    packed = _PACKED.get(key)
+    if packed is None:
+        packed = _Packed(textures)
+        _PACKED[key] = packed
+    return packed
+
+
 @dataclass
 class ChartTextures:
     """What to sample for each chart, packed as the kernel reads it (index 0: no chart)."""
@@ -91,6 +131,8 @@ class ChartTextures:
     """(images,) int32 levels per image."""
     untextured: tuple[str, ...] = ()
     """Meshes among the charts' whose material has no texture (the albedo branch colours them)."""
+    packed: _Packed | None = field(default=None, repr=False, compare=False)
+    """The shared mip chains `texels` comes from (kept alive while a character uses them)."""
 
     @classmethod
     def build(
@@ -111,7 +153,7 @@ class ChartTextures:
         wrap = np.zeros((k + 1, 2), np.int32)
         bounds = np.tile(np.array([-np.inf, -np.inf, np.inf, np.inf], np.float32), (k + 1, 1))
         images: dict[int, int] = {}
-        chains: list[list[np.ndarray]] = []
+        textures: list[np.ndarray] = []
         untextured: list[str] = []
         for chart in charts:
             index, name = int(chart["index"]), str(chart["mesh"])
@@ -137,8 +179,8 @@ class ChartTextures:
                 )
             key = id(source.albedo.texture)  # parts sharing a material share its mip chain
             if key not in images:
-                images[key] = len(chains)
-                chains.append(mip_chain(source.albedo.texture))
+                images[key] = len(textures)
+                textures.append(source.albedo.texture)
             albedo = source.albedo
             image[index] = images[key]
             transform[index] = (*albedo.uv_scale, *albedo.uv_offset)
@@ -147,18 +189,10 @@ class ChartTextures:
                 tile = int(chart["tile"]) - 1001
                 u, v = tile % 10, tile // 10
                 bounds[index] = (u, v, u + 1, v + 1)
-        levels = np.zeros((max(len(chains), 1), MAX_LEVELS, 3), np.int64)
-        count = np.zeros(max(len(chains), 1), np.int32)
-        parts, offset = [], 0
-        for n, chain in enumerate(chains):
-            count[n] = len(chain)
-            for level, texels in enumerate(chain):
-                levels[n, level] = (offset, texels.shape[1], texels.shape[0])
-                parts.append(texels.reshape(-1, 3))
-                offset += texels.shape[0] * texels.shape[1]
-        texels = np.concatenate(parts) if parts else np.zeros((1, 3), np.float32)
+        packed = _pack(textures)
+        texels, levels, count = packed.texels, packed.levels, packed.count
         return cls(k, center, half, image, transform, wrap, bounds, texels, levels, count,
-                   tuple(untextured))  # fmt: skip
+                   tuple(untextured), packed)  # fmt: skip
 
     @property
     def any_texture(self) -> bool:
@@ -172,11 +206,9 @@ class TextureMismatch(RigspaceError):
     """The scene's meshes are not the ones a bundle's texture charts were made for."""
 
 
-def _prepare(probabilities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(R, R) most likely chart and its probability from (K+1, R, R) probabilities."""
-    best = probabilities.argmax(axis=0).astype(np.int32)
-    confidence = np.take_along_axis(probabilities, best[None], 0)[0].astype(np.float32)
-    return best, confidence
+def _most_likely(probabilities: np.ndarray) -> np.ndarray:
+    """(R, R) most likely chart (0: none) from (K+1, R, R) probabilities."""
+    return probabilities.argmax(axis=0).astype(np.int32)
 
 
 @dataclass
@@ -217,7 +249,8 @@ def sample_textures(
             f"(needs {textures.charts + 1} and {2 * textures.charts}).",
             "re-export the bundle with `rigspace train` (its graphs and charts.json disagree).",
         )
-    best, confidence = _prepare(np.asarray(probabilities, np.float32))
+    probabilities = np.ascontiguousarray(probabilities, np.float32)
+    best = _most_likely(probabilities)
     inverse = np.linalg.inv(np.asarray(homography, np.float64))
     result = TextureSample(
         np.zeros((h, w, 3), np.float32),
@@ -228,7 +261,7 @@ def sample_textures(
     if not textures.any_texture:
         return result
     args = (
-        inverse, int(x0), int(y0), np.ascontiguousarray(coverage, np.float32), best, confidence,
+        inverse, int(x0), int(y0), np.ascontiguousarray(coverage, np.float32), best, probabilities,
         np.ascontiguousarray(coordinates, np.float32), np.float32(CHART_CONFIDENCE),
         np.float64(lod_bias), np.int64(MAX_TAPS), textures.center, textures.half, textures.image, textures.transform, textures.wrap,
         textures.bounds, textures.texels, textures.levels, textures.level_count,
@@ -245,7 +278,7 @@ def sample_textures(
 
 
 def sample_region_reference(
-    inverse, x0, y0, coverage, best, confidence, coordinates, threshold, lod_bias, max_taps,
+    inverse, x0, y0, coverage, best, probabilities, coordinates, threshold, lod_bias, max_taps,
     center, half, image, transform, wrap, bounds, texels, levels, level_count, out, used, st_out,
     chart_out,
 ):  # fmt: skip
@@ -275,13 +308,23 @@ def sample_region_reference(
     corners = [(a, b) for a in (0, 1) for b in (0, 1)]
     chart_at = np.stack([best[rows[a], cols[b]] for a, b in corners])  # (4, n)
     weight = np.stack([wy[a] * wx[b] for a, b in corners])
-    # The nearest corner with a chart: the largest weight among those (first on ties).
-    pick = np.where(chart_at > 0, weight, -1.0).argmax(axis=0)
+
+    def interpolated(charts):  # each pixel's probability of `charts` (n,), bilinearly
+        return sum(
+            weight[k] * probabilities[charts, rows[a], cols[b]] for k, (a, b) in enumerate(corners)
+        )
+
+    # Of the corners' charts, the largest interpolated probability (the first on ties).
+    score = np.stack([np.where(c > 0, interpolated(c), -1.0) for c in chart_at])
     n = np.arange(len(px))
-    chart = chart_at[pick, n]
+    chart = chart_at[score.argmax(axis=0), n]
+    given = score.max(axis=0)
+    none = interpolated(np.zeros(len(px), np.int64))
+    # The nearest corner that shows the chart (its coordinates if no other does).
+    pick = np.where(chart_at == chart, weight, -1.0).argmax(axis=0)
     ci = np.stack([rows[a] for a, _ in corners])[pick, n]
     cj = np.stack([cols[b] for _, b in corners])[pick, n]
-    ok &= (chart > 0) & (confidence[ci, cj] >= threshold) & (image[chart] >= 0)
+    ok &= (chart > 0) & (given >= threshold * np.maximum(1.0 - none, 1e-6)) & (image[chart] >= 0)
     pair = np.maximum(chart - 1, 0)
     u_at = np.stack([coordinates[2 * pair, rows[a], cols[b]] for a, b in corners])
     v_at = np.stack([coordinates[2 * pair + 1, rows[a], cols[b]] for a, b in corners])
@@ -376,7 +419,7 @@ def _kernel():
 WARP_INTERPOLATION = 1  # cv2.INTER_LINEAR
 """How the network's maps are resampled into a frame (bilinear)."""
 COLOUR_EPSILON = 1e-3
-"""Coverage below which the albedo branch's premultiplied colour is not divided back."""
+"""Alpha below which the albedo branch's colour is taken as empty (no edge to follow)."""
 
 
 def region_warper(homography: np.ndarray, region: tuple[int, int, int, int]):
@@ -410,27 +453,35 @@ def display_colour(
     textures: ChartTextures | None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """A character's colour and coverage over a frame region from one sample's network maps
-    (`out`: CHW, the bundle's names): coverage (h, w) as warped (the geometry mask, or the
-    albedo branch's alpha) sharpened; colour from its textures where the texture head says
-    (sample_textures), the albedo branch's, un-premultiplied, elsewhere; returned
-    premultiplied by the sharpened coverage, with `info` holding, when there is a texture
-    head, "textured" (the share of covered pixels the textures coloured), "texture_ms" (the
-    sampler's milliseconds) and "sample" (the TextureSample: st and chart per pixel)."""
+    (`out`: CHW, the bundle's names).
+
+    Coverage (h, w): `coverage` as warped (the geometry mask, or the albedo branch's alpha)
+    sharpened. Colour: from the textures where the texture head says (sample_textures), the
+    albedo branch's elsewhere, premultiplied by the albedo branch's own alpha sharpened the
+    same way (the edge it was trained with; the coverage without an alpha). Without
+    magnification nothing is sharpened and the albedo branch's premultiplied colour passes
+    through unchanged. `info` holds, when there is a texture head, "textured" (the share of
+    covered pixels the textures coloured), "texture_ms" (the sampler's milliseconds) and
+    "sample" (the TextureSample: st and chart per pixel)."""
     warp = region_warper(homography, region)
-    sharp = sharpen_coverage(coverage, magnification(homography, region))
+    scale = magnification(homography, region)
+    sharp = sharpen_coverage(coverage, scale)
     alpha = np.clip(warp(out["alpha"])[..., 0], 0.0, 1.0) if "alpha" in out else coverage
-    colour = np.clip(warp(out["albedo"]), 0.0, 1.0) / np.maximum(alpha, COLOUR_EPSILON)[..., None]
-    colour = np.where(alpha[..., None] > COLOUR_EPSILON, np.clip(colour, 0.0, 1.0), 0.0)
+    edge = sharpen_coverage(alpha, scale)
+    premultiplied = np.clip(warp(out["albedo"]), 0.0, 1.0)
+    # Sharpening moves the edge: the albedo branch's colour follows it (exactly 1 unsharpened).
+    gain = np.divide(edge, alpha, out=np.zeros_like(edge), where=alpha > COLOUR_EPSILON)
+    colour = premultiplied * gain[..., None]
     info: dict = {}
     if textures is not None and "chart" in out:
         began = time.perf_counter()
         sample = sample_textures(textures, homography, region, sharp, out["chart"], out["uv"])
         info["texture_ms"] = round(1e3 * (time.perf_counter() - began), 3)
-        colour = np.where(sample.used[..., None], sample.colour, colour)
+        colour = np.where(sample.used[..., None], sample.colour * edge[..., None], colour)
         covered = max(int(np.count_nonzero(sharp > 0)), 1)
         info["textured"] = round(float(sample.used.sum()) / covered, 4)
         info["sample"] = sample
-    return (colour * sharp[..., None]).astype(np.float32), sharp, info
+    return colour.astype(np.float32), sharp, info
 
 
 def magnification(homography: np.ndarray, region: tuple[int, int, int, int]) -> float:

@@ -9,7 +9,6 @@ import pytest
 from rigspace.sdk.geometry import Albedo, MeshSource
 from rigspace.sdk.render.embree import sample_bilinear
 from rigspace.sdk.texturing import (
-    CHART_CONFIDENCE,
     ChartTextures,
     TextureMismatch,
     magnification,
@@ -152,40 +151,56 @@ def test_coordinates_are_never_blended_across_charts():
 
 def test_unsure_and_untextured_pixels_are_left_to_the_albedo_branch():
     size = 4
+    chart = {"tile": 1001, "uv_min": [0, 0], "uv_max": [1, 1], "triangles": 1}
     textures = ChartTextures.build(
         {
             "charts": [
-                {
-                    "index": 1,
-                    "mesh": "Body",
-                    "tile": 1001,
-                    "uv_min": [0, 0],
-                    "uv_max": [1, 1],
-                    "triangles": 1,
-                },
-                {
-                    "index": 2,
-                    "mesh": "Plain",
-                    "tile": 1001,
-                    "uv_min": [0, 0],
-                    "uv_max": [1, 1],
-                    "triangles": 1,
-                },
+                {"index": 1, "mesh": "Body", **chart},
+                {"index": 2, "mesh": "Plain", **chart},
+                {"index": 3, "mesh": "Body", **chart},
             ],
             "meshes": [],
         },
         {"Body": _source(np.ones((4, 4, 3), np.float32)), "Plain": _source(None, name="Plain")},
     )
     assert textures.untextured == ("Plain",)
-    probabilities = np.zeros((3, size, size), np.float32)
+    probabilities = np.zeros((4, size, size), np.float32)
     probabilities[1] = 1.0
-    probabilities[:, 0, 0] = (0.35, CHART_CONFIDENCE - 0.05, 0.2)  # most likely, but unsure
-    probabilities[:, 3, 3] = (0.0, 0.0, 1.0)  # the untextured chart
-    used = sample_textures(
+    # Most likely chart 1, but with under CHART_CONFIDENCE of the charts' probability: unsure.
+    probabilities[:, 0, 0] = (0.1, 0.4, 0.2, 0.3)
+    probabilities[:, 3, 3] = (0.0, 0.0, 1.0, 0.0)  # the untextured chart
+    sample = sample_textures(
         textures, np.eye(3), (0, 0, size, size), np.ones((size, size), np.float32),
-        probabilities, np.zeros((4, size, size), np.float32),
-    ).used  # fmt: skip
-    assert not used[0, 0] and not used[3, 3] and used.sum() == size * size - 2
+        probabilities, np.zeros((6, size, size), np.float32),
+    )  # fmt: skip
+    assert not sample.used[0, 0] and not sample.used[3, 3]
+    assert sample.used.sum() == size * size - 2
+
+
+def test_chart_borders_follow_the_interpolated_probabilities():
+    """Two charts meeting between network pixels: upsampled 8x, the border lies where their
+    interpolated probabilities cross, not on the network's pixel squares (a staircase)."""
+    textures = ChartTextures.build(
+        _table([((0, 0), (1, 1)), ((0, 0), (1, 1))]),
+        {"Body": _source(np.ones((4, 4, 3), np.float32))},
+    )
+    size, scale = 4, 8
+    probabilities = np.zeros((3, size, size), np.float32)
+    # Chart 1's probability falls from 1 to 0 along x, sloped by the row: a diagonal border.
+    for i in range(size):
+        for j in range(size):
+            p = np.clip(0.5 + (1.5 - j) * 0.5 + (i - 1.5) * 0.25, 0.0, 1.0)
+            probabilities[1, i, j], probabilities[2, i, j] = p, 1.0 - p
+    homography = np.diag([scale, scale, 1.0])
+    frame = size * scale
+    for kernel in (True, False):
+        sample = sample_textures(
+            textures, homography, (0, 0, frame, frame), np.ones((frame, frame), np.float32),
+            probabilities, np.zeros((4, size, size), np.float32), kernel=kernel,
+        )  # fmt: skip
+        # Where chart 1 ends on each frame row: it moves by frame pixels, not by 8 at a time.
+        ends = [int(np.argmax(row != 1)) for row in sample.chart[4:-4]]
+        assert len(set(ends)) > size and all(np.diff(ends) >= 0)
 
 
 def test_charts_of_other_uvs_are_refused():
@@ -237,3 +252,14 @@ def test_outputs_that_disagree_with_the_charts_are_refused():
             textures, np.eye(3), (0, 0, 4, 4), np.ones((4, 4), np.float32),
             np.ones((3, 4, 4), np.float32), np.zeros((2, 4, 4), np.float32),
         )  # fmt: skip
+
+
+def test_characters_of_one_asset_share_their_mip_chains():
+    """A crowd: each character decodes its own copy of the textures; the packed mip chains
+    (the sampler's memory) are one set while any of them uses it."""
+    image = np.random.default_rng(3).random((32, 16, 3)).astype(np.float32)
+    first = ChartTextures.build(_table([((0, 0), (1, 1))]), {"Body": _source(image.copy())})
+    second = ChartTextures.build(_table([((0, 0), (1, 1))]), {"Body": _source(image.copy())})
+    assert second.texels is first.texels
+    other = ChartTextures.build(_table([((0, 0), (1, 1))]), {"Body": _source(image[::-1].copy())})
+    assert other.texels is not first.texels and not np.array_equal(other.texels, first.texels)

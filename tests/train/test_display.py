@@ -4,6 +4,7 @@ resolution, against the truth there and the truth at its resolution upsampled.""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -76,8 +77,8 @@ def test_eval_display_on_a_capture_not_above_the_model_says_what_to_capture(
 ):
     from tests.train.test_texture_head import TINY
 
-    folder = tmp_path / "m32"
-    train(tiny_dataset, folder / "training", TINY, steps=2, progress=False)
+    folder = tmp_path / "m32"  # every level to 32x32 (a step or two each): the bundle's top is 32
+    train(tiny_dataset, folder / "training", replace(TINY, steps_per_level=2), progress=False)
     export_bundle(folder / "training", folder, int8=False)
     assert main(["eval", str(folder), str(tiny_dataset), "--display"]) != 0
     err = capsys.readouterr().err

@@ -281,7 +281,7 @@ def test_ctrl_c_or_sigterm_stops_with_a_usable_checkpoint(tmp_path, tiny_dataset
             break
         time.sleep(0.05)
     proc.send_signal(getattr(signal, signum))
-    stdout, stderr = proc.communicate(timeout=60)
+    stdout, stderr = proc.communicate(timeout=240)  # a loaded CI machine: stop, save, exit
     assert proc.returncode == 130, stderr
     assert "stopped: interrupted" in stdout and "--resume" in stdout
     state = torch.load(out / "training" / loop.CHECKPOINT, weights_only=True)
