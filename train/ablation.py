@@ -161,6 +161,10 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
             "uv_weight": 0.25,
         },
     ),
+    "sample-form+texture-uv4": (
+        "sample-form+texture with the sample model's weights (chart 0.25, coordinates 4)",
+        {**ADD32_BCE, "depth_weight": 2.0, "texture": True},
+    ),
 }
 SPLITS = ("heldout-views", "heldout-clips")
 TIMING_REPEATS = 30
