@@ -14,11 +14,15 @@ def test_quick_bench_writes_json_markdown_and_plots(tmp_path):
     result = json.loads((out / "results.json").read_text())
     assert result["mode"] == "quick" and set(PARTS) <= set(result)
     assert result["machine"]["cores"] >= 1 and result["command"].startswith("rigspace")
-    # Ratios measured side by side: every skip is cheaper than the full frame it is a part of.
+    # Each skip case did skip what it is named for (behaviour; its time is measured, not
+    # tested: on a loaded machine a quick run's ratios swing past 1).
     rows = result["skips"]["int8"]["rows"]
     assert rows["full, still camera"]["fraction_of_full"] == 1.0
-    for case in ("off-screen", "unchanged", "far away", "unlit and unoccluded"):
-        assert rows[case]["fraction_of_full"] < 1.0, case
+    assert all(r["fraction_of_full"] > 0 for r in rows.values())
+    assert all(d.startswith("skipped") for d in rows["off-screen"]["decisions"])
+    assert rows["off-screen"]["levels"] == []
+    assert all(d.startswith("reused") for d in rows["unchanged"]["decisions"])
+    assert max(rows["far away"]["levels"]) < min(rows["full, still camera"]["levels"])
     assert rows["unlit and unoccluded"]["branches"] == ["albedo"]
     assert result["stability"]["stress"]["violations"] == {}
     variants = {r["variant"] for r in result["pareto"]["rows"]}

@@ -273,7 +273,12 @@ def test_ctrl_c_or_sigterm_stops_with_a_usable_checkpoint(tmp_path, tiny_dataset
     out = tmp_path / "model"
     cmd = [sys.executable, "-m", "rigspace.sdk", "train", str(tiny_dataset), "--out", str(out),
            "--preset", "tiny", "--steps-per-level", "100000"]  # fmt: skip
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # As from a terminal: a suite started in the background (`nohup ... &`) hands its children
+    # SIGINT ignored, and Python then installs no KeyboardInterrupt for it.
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
     log_file = out / "training" / "log.jsonl"
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
@@ -281,7 +286,7 @@ def test_ctrl_c_or_sigterm_stops_with_a_usable_checkpoint(tmp_path, tiny_dataset
             break
         time.sleep(0.05)
     proc.send_signal(getattr(signal, signum))
-    stdout, stderr = proc.communicate(timeout=240)  # a loaded CI machine: stop, save, exit
+    stdout, stderr = proc.communicate(timeout=120)  # a loaded machine: stop, save, exit
     assert proc.returncode == 130, stderr
     assert "stopped: interrupted" in stdout and "--resume" in stdout
     state = torch.load(out / "training" / loop.CHECKPOINT, weights_only=True)
