@@ -67,6 +67,12 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         "there are kept",
     )
     parser.add_argument(
+        "--device",
+        default="auto",
+        help="where to train: auto (a CUDA GPU when torch sees one, else the CPU), cpu, cuda "
+        "or cuda:N; under torchrun each rank takes its LOCAL_RANK's GPU unless cpu",
+    )
+    parser.add_argument(
         "--nproc",
         type=int,
         default=1,
@@ -97,7 +103,7 @@ def run_train(args: argparse.Namespace) -> int:
         return distributed.launch(args, args.nproc)
     from rigspace.train.loop import train  # torch: after the launch, which needs none
 
-    ctx = distributed.context()  # under torchrun: joins the process group
+    ctx = distributed.context(args.device)  # under torchrun: joins the process group
     if args.upgrade:
         return _upgrade(args, out)
     read_manifest(Path(args.dataset))  # a bad dataset fails before --force removes anything
@@ -113,6 +119,7 @@ def run_train(args: argparse.Namespace) -> int:
         steps=args.steps,
         minutes=args.minutes,
         resume=args.resume,
+        device=args.device,
     )
     if not ctx.is_main:  # rank 0 reports and exports; the others wait for it
         if result.stopped != "interrupted":

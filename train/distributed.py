@@ -140,13 +140,51 @@ def _torch() -> Any:
 _context: Context | None = None
 
 
-def context() -> Context:
-    """This process's Context; under torchrun the first call joins the process group."""
+DEVICES = "auto, cpu, cuda or cuda:N"
+
+
+def resolve_device(spec: str | None) -> torch.device:
+    """The torch device a `--device` value names: `auto` (CUDA when torch sees a GPU, else
+    the CPU), `cpu`, `cuda` (the current GPU) or `cuda:N`. None is `cpu` (the library's
+    default, as before). A GPU that is not there is an error naming what torch sees."""
+    torch = _torch()
+    text = (spec or "cpu").strip().lower()
+    if text == "auto":
+        text = "cuda" if torch.cuda.is_available() else "cpu"
+    if text == "cpu":
+        return torch.device("cpu")
+    kind, _, index = text.partition(":")
+    if kind != "cuda" or (index and not index.isdigit()):
+        raise RigspaceError(f"Unknown device {spec!r}.", f"pass --device {DEVICES}.")
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    wanted = int(index) if index else 0
+    if wanted >= count:
+        built = getattr(torch.version, "cuda", None)
+        seen = (
+            f"torch sees {count} GPU{'s' if count != 1 else ''}"
+            if built
+            else f"this torch ({torch.__version__}) is a CPU build"
+        )
+        raise RigspaceError(
+            f"Device {spec!r} is not available: {seen}.",
+            "pass --device cpu (or auto), or install a CUDA build of torch on a machine with "
+            "an NVIDIA GPU (README, 'GPU').",
+        )
+    return torch.device("cuda", wanted) if index else torch.device("cuda")
+
+
+def context(device: str | None = None) -> Context:
+    """This process's Context; under torchrun the first call joins the process group.
+
+    `device` (a --device value, resolve_device) picks one process's device; None keeps the
+    context already made (the CPU on the first call). Under torchrun each rank takes the GPU
+    of its LOCAL_RANK when torch sees GPUs, unless `device` is `cpu`."""
     global _context
-    if _context is not None:
-        return _context
     if not under_torchrun():
-        _context = Context()
+        if device is not None or _context is None:
+            _context = Context(device=resolve_device(device))
+        return _context
+    if _context is not None:
         return _context
     import torch
     import torch.distributed as dist
@@ -154,17 +192,17 @@ def context() -> Context:
     rank, world = int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"])
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))
     local_world = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))
-    if torch.cuda.is_available():
-        device = torch.device("cuda", local_rank)
-        torch.cuda.set_device(device)
+    if torch.cuda.is_available() and (device or "auto").strip().lower() != "cpu":
+        chosen = torch.device("cuda", local_rank)
+        torch.cuda.set_device(chosen)
         backend = "nccl"
     else:
-        device, backend = torch.device("cpu"), "gloo"
+        chosen, backend = torch.device("cpu"), "gloo"
         # The ranks of a node share its cores: one process's default would oversubscribe.
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // local_world))
     if not dist.is_initialized():
         dist.init_process_group(backend)
-    _context = Context(rank, world, device)
+    _context = Context(rank, world, chosen)
     return _context
 
 
@@ -188,6 +226,8 @@ def torchrun_argv(args: argparse.Namespace, nproc: int) -> list[str]:
     if args.minutes is not None:
         argv += ["--minutes", repr(args.minutes)]
     argv += [f"--{f.replace('_', '-')}" for f in ("resume", "no_int8", "force") if getattr(args, f)]
+    if getattr(args, "device", None):
+        argv += ["--device", str(args.device)]
     for f in TrainConfig.__dataclass_fields__.values():
         value = getattr(args, f.name, None)
         if f.name == "preset" or value is None:

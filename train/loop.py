@@ -112,7 +112,8 @@ def forward_loss(
     config: TrainConfig,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """One step's forward pass and loss at `resolution` with fade-in weight `alpha`."""
-    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=config.bf16):
+    kind = batch["rig"].device.type  # bf16 autocast where the batch is: cpu or cuda
+    with torch.autocast(kind, dtype=torch.bfloat16, enabled=config.bf16 and kind != "meta"):
         heads = model(batch["rig"], resolution, joints2d=batch.get("joints2d"))
         return total_loss(heads, batch, alpha, config)
 
@@ -263,14 +264,22 @@ def measure_step_seconds(
     previews: SampleSet,
     config: TrainConfig,
     steps: int = PROBE_STEPS,
+    device: torch.device | None = None,
 ) -> dict[int, float]:
     """Seconds per training step at every level, previews and checkpoints included.
 
-    Real steps (batches read through the Prefetcher) on a copy of the model, so the run
-    itself is unchanged: the fastest of `steps` timed steps after one warm-up step, plus a
-    preview's time over eval_every and a checkpoint's over checkpoint_every.
+    Real steps (batches read through the Prefetcher) on a copy of the model on `device` (the
+    CPU by default), so the run itself is unchanged: the fastest of `steps` timed steps after
+    one warm-up step (on a GPU, waited for), plus a preview's time over eval_every and a
+    checkpoint's over checkpoint_every.
     """
-    probe = copy.deepcopy(model)
+    device = device or torch.device("cpu")
+    probe = copy.deepcopy(model).to(device)
+
+    def done() -> None:  # a GPU step is queued, not finished, when Python returns
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
     optimizer = make_optimizer(probe, config)
     rng = torch.get_rng_state()
     prefetch = prefetcher(samples, config.batch, config.seed, oversample=config.oversample)
@@ -283,12 +292,19 @@ def measure_step_seconds(
                 for _ in range(steps + 1):
                     begin = time.perf_counter()
                     batch = to_torch(prefetch.get(step), config.channels_last)
+                    batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
                     loss, _ = forward_loss(probe, batch, resolution, 1.0, config)
                     optimise(probe, optimizer, loss, config)
+                    done()
                     times.append(time.perf_counter() - begin)
                     step += 1
                 begin = time.perf_counter()
-                _preview(probe, previews, resolution, Path(tmp) / "preview.png")
+                _preview(
+                    probe if device.type == "cpu" else copy.deepcopy(probe).cpu(),
+                    previews,
+                    resolution,
+                    Path(tmp) / "preview.png",
+                )
                 preview = time.perf_counter() - begin
                 begin = time.perf_counter()
                 torch.save({"m": probe.state_dict(), "o": optimizer.state_dict()}, io.BytesIO())
@@ -352,11 +368,13 @@ def train(
     minutes: float | None = None,
     resume: bool = False,
     progress: bool = True,
+    device: str | None = None,
 ) -> TrainResult:
-    """Train Rig2Image on a capture dataset (see the module doc)."""
+    """Train Rig2Image on a capture dataset (see the module doc). `device`: a --device value
+    (train.distributed.resolve_device; None: the CPU, or the context already made)."""
     dataset, out = Path(dataset), Path(out)
     began = time.monotonic()  # the budget counts from here: the step-rate probe is part of it
-    ctx = distributed.context()  # one process unless under torchrun (train.distributed)
+    ctx = distributed.context(device)  # one process unless under torchrun (train.distributed)
     manifest, config, existing = ctx.share(lambda: prepare_run(dataset, out, config, resume))
     if config.threads:
         torch.set_num_threads(config.threads)
@@ -382,7 +400,7 @@ def train(
         if minutes:
             previews = held_out if len(held_out) else samples
             probe = replace(config, batch=config.batch // ctx.world)  # one rank's share
-            rates = measure_step_seconds(model, samples, previews, probe)
+            rates = measure_step_seconds(model, samples, previews, probe, device=ctx.device)
             plan = plan_schedule(config, rates, 60 * minutes - (time.monotonic() - began))
             config = apply_plan(config, plan)
             print(f"rigspace train: {plan.summary()}", file=sys.stderr)

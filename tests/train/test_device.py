@@ -1,0 +1,54 @@
+"""`--device`: where training runs (train.distributed.resolve_device), refused by name when the
+GPU is not there, and the CPU run it picks on a machine without one."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch", reason="training needs the train extra (torch)")
+
+from rigspace.sdk.cli import main  # noqa: E402
+from rigspace.sdk.errors import RigspaceError  # noqa: E402
+from rigspace.train import distributed, loop  # noqa: E402
+from rigspace.train.config import preset  # noqa: E402
+
+NO_GPU = not torch.cuda.is_available()
+
+
+def test_device_names_resolve():
+    assert distributed.resolve_device(None) == torch.device("cpu")
+    assert distributed.resolve_device(" CPU ") == torch.device("cpu")
+    expected = torch.device("cuda") if torch.cuda.is_available() else torch.device("cpu")
+    assert distributed.resolve_device("auto") == expected
+    for bad in ("gpu", "cuda:x", "cuda:-1", "mps"):
+        with pytest.raises(RigspaceError, match="Unknown device") as raised:
+            distributed.resolve_device(bad)
+        assert "--device auto, cpu, cuda or cuda:N" in raised.value.fix
+
+
+@pytest.mark.skipif(not NO_GPU, reason="a GPU is there")
+def test_a_gpu_that_is_not_there_is_refused_before_anything_is_written(
+    tiny_dataset, tmp_path, capsys
+):
+    with pytest.raises(RigspaceError, match="not available") as raised:
+        distributed.resolve_device("cuda:0")
+    assert "--device cpu" in raised.value.fix
+    out = tmp_path / "model"
+    code = main(["train", str(tiny_dataset), "--out", str(out), "--preset", "tiny",
+                 "--steps", "2", "--device", "cuda"])  # fmt: skip
+    assert code != 0 and "Device 'cuda' is not available" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_auto_trains_on_the_cpu_without_a_gpu_and_bf16_autocasts_there(tiny_dataset, tmp_path):
+    config = preset("tiny", steps_per_level=2, bf16=True)
+    result = loop.train(tiny_dataset, tmp_path / "run", config, progress=False, device="auto")
+    assert result.step == config.total_steps() and np.isfinite(result.last_loss)
+    if NO_GPU:
+        assert distributed.context().device == torch.device("cpu")
+    run = json.loads((tmp_path / "run" / loop.RUN_FILE).read_text())
+    assert run["config"]["bf16"] is True
+    distributed.context("cpu")  # later tests in this process: the CPU, as by default
