@@ -283,9 +283,11 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
 def run_display(args: argparse.Namespace) -> int:
     """`rigspace eval --display` (train/display.py)."""
     from rigspace.sdk.model import BundleModel
+    from rigspace.train.data import chart_boxes
     from rigspace.train.display import (
         MODES,
         DisplayPredictor,
+        TrueCoordinates,
         UpsampledTruth,
         display_sizes,
         scene_textures,
@@ -311,6 +313,9 @@ def run_display(args: argparse.Namespace) -> int:
         table = DatasetTable(Path(args.dataset), size)
         predictors = [DisplayPredictor(model, table, mode, textures) for mode in MODES]
         predictors.append(UpsampledTruth(table, level))
+        boxes = chart_boxes(Path(args.dataset)) if textures is not None else None
+        if textures is not None and boxes is not None:
+            predictors.append(TrueCoordinates(table, level, textures, boxes))
         out_dir = Path(args.errors) / f"display_{size}" if args.errors else None
         result = compare(predictors, table, args.split, limit=args.limit or None, out_dir=out_dir)
         results[size] = result

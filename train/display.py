@@ -12,7 +12,11 @@ downsampled to it), with these predictors of the same held-out rows:
 - `albedo branch`: the same without the textures (a bundle without a texture head);
 - `bilinear`: every map bilinearly upsampled, as the runtime drew before;
 - `truth at R, upsampled`: the captured maps box-downsampled to R and upsampled bilinearly:
-  the best any R x R image-space predictor can do at this size.
+  the best any R x R image-space predictor can do at this size;
+- `textures at the true R coordinates`: the runtime's sampler fed the captured chart and
+  coordinates at R (made as training makes its targets) instead of the network's: the best
+  the texture path can do at this size, when the head is exact (bundles with a texture head,
+  datasets with the texture AOVs).
 
 No torch: it runs the bundle through onnxruntime as the runtime does.
 """
@@ -26,6 +30,7 @@ import numpy as np
 from rigspace.sdk.model import BundleModel
 from rigspace.sdk.render import Maps
 from rigspace.sdk.texturing import ChartTextures, TextureMismatch, display_colour, region_warper
+from rigspace.train.data import chart_targets
 from rigspace.train.evaluate import DatasetTable, downsample_maps
 from rigspace.train.predictor import MASK_VALID
 
@@ -148,3 +153,55 @@ def display_sizes(model_level: int, dataset_resolution: int) -> list[int]:
             sizes.append(size)
         size *= 2
     return sizes
+
+
+class TrueCoordinates(UpsampledTruth):
+    """The texture path's ceiling (module doc): truth at R, upsampled, for the geometry; the
+    colour and coverage the runtime would draw from a texture head that predicted the
+    captured charts (one-hot) and coordinates exactly, over the captured albedo and coverage
+    at R (the albedo branch's part: where no texture colours a pixel)."""
+
+    def __init__(
+        self, table: DatasetTable, resolution: int, textures: ChartTextures,
+        boxes: tuple[np.ndarray, np.ndarray],
+    ) -> None:  # fmt: skip
+        super().__init__(table, resolution)
+        self.resolution, self.textures, self.boxes = resolution, textures, boxes
+        self.name = f"textures at the true {resolution} coordinates"
+
+    def predict(self, indices: np.ndarray) -> list[Maps]:
+        size = self.table.resolution
+        homography = np.diag([float(self.factor), float(self.factor), 1.0])
+        region = (0, 0, size, size)
+        warp = region_warper(homography, region)
+        below = self.table.captured_resolution // self.resolution
+        k = self.textures.charts
+        maps = []
+        for index, truth in zip(indices, super().predict(indices), strict=True):
+            full = self.table.captured_maps(int(index))
+            if full.chart is None or full.uv is None:
+                raise TextureMismatch(
+                    f"{self.table.path(int(index))} has no texture AOVs (uv, chart)"
+                )
+            small = downsample_maps(full, below)
+            chart, coords = chart_targets(full.chart.astype(np.int64), full.uv, self.boxes, below)
+            r = chart.shape[0]
+            probabilities = np.zeros((k + 1, r, r), np.float32)
+            np.put_along_axis(probabilities, chart[None].astype(np.int64), 1.0, axis=0)
+            coordinates = np.zeros((2 * k, r, r), np.float32)
+            for c in np.unique(chart[chart > 0]):
+                on = chart == c
+                coordinates[2 * c - 2][on], coordinates[2 * c - 1][on] = (
+                    coords[0][on],
+                    coords[1][on],
+                )
+            out = {
+                "albedo": np.moveaxis(small.albedo, -1, 0),
+                "alpha": small.mask[None],
+                "chart": probabilities,
+                "uv": coordinates,
+            }
+            coverage = np.clip(warp(small.mask[None])[..., 0], 0.0, 1.0)
+            albedo, mask, _ = display_colour(out, homography, region, coverage, self.textures)
+            maps.append(Maps(albedo, truth.normal, truth.depth, mask.astype(np.float32)))
+        return maps
