@@ -282,6 +282,7 @@ def display_metrics(
                 report = evaluate(predictor, table, split, limit=limit)
                 entry[predictor.name] = {
                     "albedo_psnr": report["metrics"]["albedo_psnr"]["mean"],
+                    "albedo_ssim": report["metrics"]["albedo_ssim"]["mean"],
                     "mask_iou": report["metrics"]["mask_iou"]["mean"],
                     "ms": 1e3 * report["seconds_per_sample"],
                     "samples": report["samples"],
@@ -420,8 +421,11 @@ def display_markdown(records: list[dict[str, Any]]) -> str:
     if not shown:
         return ""
     lines = ["", "At the size the character is seen (held-out views, `--display`):", ""]
-    head = "| variant | size | runtime dB | runtime IoU | albedo branch dB | bilinear dB | truth at R upsampled dB | runtime ms |"
-    lines += [head, "|---|---|---|---|---|---|---|---|"]
+    head = (
+        "| variant | size | runtime dB | runtime SSIM | runtime IoU | albedo branch dB "
+        "| albedo branch SSIM | bilinear dB | truth at R upsampled dB | runtime ms |"
+    )
+    lines += [head, "|---|---|---|---|---|---|---|---|---|---|"]
 
     def cell(entry: dict[str, Any], mode: str, key: str, fmt: str) -> str:
         value = entry.get(mode, {}).get(key)
@@ -432,8 +436,10 @@ def display_markdown(records: list[dict[str, Any]]) -> str:
             truth = next((k for k in entry if k.startswith("truth")), "")
             lines.append(
                 f"| `{r['variant']}` | {size} | {cell(entry, 'runtime', 'albedo_psnr', '{:.2f}')} "
+                f"| {cell(entry, 'runtime', 'albedo_ssim', '{:.3f}')} "
                 f"| {cell(entry, 'runtime', 'mask_iou', '{:.3f}')} "
                 f"| {cell(entry, 'albedo branch', 'albedo_psnr', '{:.2f}')} "
+                f"| {cell(entry, 'albedo branch', 'albedo_ssim', '{:.3f}')} "
                 f"| {cell(entry, 'bilinear', 'albedo_psnr', '{:.2f}')} "
                 f"| {cell(entry, truth, 'albedo_psnr', '{:.2f}')} "
                 f"| {cell(entry, 'runtime', 'ms', '{:.1f}')} |"
