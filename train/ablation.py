@@ -299,9 +299,11 @@ def run_variant(
     resolution: int,
     limit: int,
     display: Path | None = None,
+    device: str | None = None,
 ) -> dict[str, Any]:
-    """Train, export and evaluate one variant (resuming what an earlier call left); with
-    `display`, also measured at the sizes it is seen (display_metrics)."""
+    """Train (on `device`, a --device value; None: the CPU), export and evaluate one variant
+    (resuming what an earlier call left); with `display`, also measured at the sizes it is
+    seen (display_metrics)."""
     description, overrides = VARIANTS[name]
     folder = out / name
     options: dict[str, Any] = {
@@ -313,9 +315,8 @@ def run_variant(
     }
     config = preset("small", **(options | overrides))
     began = time.monotonic()
-    result = train(
-        dataset, folder / "run", config, resume=(folder / "run" / RUN_FILE).exists(), progress=False
-    )
+    resume = (folder / "run" / RUN_FILE).exists()
+    result = train(dataset, folder / "run", config, resume=resume, progress=False, device=device)
     if result.stopped != "done":
         raise RigspaceError(f"Variant {name} stopped: {result.stopped}.", "re-run to resume it.")
     train_seconds = time.monotonic() - began
@@ -732,6 +733,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     parser.add_argument(
+        "--device",
+        default="cpu",
+        help="where the variants train: cpu (default: the same for every variant), auto, cuda "
+        "or cuda:N (rigspace train --device)",
+    )
+    parser.add_argument(
         "--redisplay",
         action="store_true",
         help="only measure the finished --variants at the sizes they are seen again (with "
@@ -811,6 +818,7 @@ def main(argv: list[str] | None = None) -> int:
                 args.resolution,
                 args.limit,
                 args.display,
+                args.device,
             )
             views = record["metrics"]["heldout-views"]
             print(

@@ -52,3 +52,15 @@ def test_auto_trains_on_the_cpu_without_a_gpu_and_bf16_autocasts_there(tiny_data
     run = json.loads((tmp_path / "run" / loop.RUN_FILE).read_text())
     assert run["config"]["bf16"] is True
     distributed.context("cpu")  # later tests in this process: the CPU, as by default
+
+
+@pytest.mark.skipif(not NO_GPU, reason="a GPU is there")
+def test_the_ablation_passes_its_device_to_every_variant(tiny_dataset, tmp_path, capsys):
+    from rigspace.train import ablation
+
+    out = tmp_path / "abl"
+    code = ablation.main([str(tiny_dataset), "--out", str(out), "--variants", "paper",
+                          "--steps-per-level", "1", "--device", "cuda:1"])  # fmt: skip
+    assert code != 0 and "Device 'cuda:1' is not available" in capsys.readouterr().err
+    assert not (out / "paper" / "run").exists()
+    distributed.context("cpu")
