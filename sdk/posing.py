@@ -25,16 +25,6 @@ from rigspace.sdk.geometry import MeshSource, read_mesh_parts
 from rigspace.sdk.render import DrawMesh, vertex_normals
 
 
-def _texels(part: MeshSource) -> int:
-    """The larger side of the image one texel of a part's uvs belongs to: a UDIM atlas's tile
-    (the atlas spans several st units), else the texture; 1 without a texture."""
-    albedo = part.albedo
-    if albedo.texture is None:
-        return 1
-    height, width = albedo.texture.shape[:2]
-    return max(round(width * albedo.uv_scale[0]), round(height * albedo.uv_scale[1]), 1)
-
-
 @dataclass
 class _SkinnedMesh:
     query: UsdSkel.SkinningQuery

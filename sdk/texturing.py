@@ -70,11 +70,13 @@ def mip_chain(image: np.ndarray) -> list[np.ndarray]:
 
 
 class _Packed:
-    """Images' mip chains packed for the kernel: texels (n, 3), levels, level counts."""
+    """Images' mip chains packed as the kernel reads them."""
 
     def __init__(self, textures: list[np.ndarray]):
         self.levels = np.zeros((max(len(textures), 1), MAX_LEVELS, 3), np.int64)
+        """(images, MAX_LEVELS, 3) int64 offset into texels, width, height of each level."""
         self.count = np.zeros(max(len(textures), 1), np.int32)
+        """(images,) int32 levels per image."""
         parts, offset = [], 0
         for n, texture in enumerate(textures):
             chain = mip_chain(texture)
@@ -84,6 +86,7 @@ class _Packed:
                 parts.append(texels.reshape(-1, 3))
                 offset += texels.shape[0] * texels.shape[1]
         self.texels = np.concatenate(parts) if parts else np.zeros((1, 3), np.float32)
+        """(n, 3) float32 every image's mip levels, one after the other, rows from the top."""
 
 
 _PACKED: weakref.WeakValueDictionary[bytes, _Packed] = weakref.WeakValueDictionary()
@@ -123,16 +126,23 @@ class ChartTextures:
     bounds: np.ndarray
     """(K+1, 4) float32 st box the coordinates are clamped to (a UDIM chart's tile), else
     -inf .. inf."""
-    texels: np.ndarray
-    """(n, 3) float32 every image's mip levels, one after the other, rows from the top."""
-    levels: np.ndarray
-    """(images, MAX_LEVELS, 3) int64 offset into texels, width, height of each level."""
-    level_count: np.ndarray
-    """(images,) int32 levels per image."""
+    packed: _Packed = field(repr=False, compare=False)
+    """The images' mip chains (texels, levels, level_count), shared by the characters of one
+    asset (_pack)."""
     untextured: tuple[str, ...] = ()
     """Meshes among the charts' whose material has no texture (the albedo branch colours them)."""
-    packed: _Packed | None = field(default=None, repr=False, compare=False)
-    """The shared mip chains `texels` comes from (kept alive while a character uses them)."""
+
+    @property
+    def texels(self) -> np.ndarray:
+        return self.packed.texels
+
+    @property
+    def levels(self) -> np.ndarray:
+        return self.packed.levels
+
+    @property
+    def level_count(self) -> np.ndarray:
+        return self.packed.count
 
     @classmethod
     def build(
@@ -189,10 +199,8 @@ class ChartTextures:
                 tile = int(chart["tile"]) - 1001
                 u, v = tile % 10, tile // 10
                 bounds[index] = (u, v, u + 1, v + 1)
-        packed = _pack(textures)
-        texels, levels, count = packed.texels, packed.levels, packed.count
-        return cls(k, center, half, image, transform, wrap, bounds, texels, levels, count,
-                   tuple(untextured), packed)  # fmt: skip
+        return cls(k, center, half, image, transform, wrap, bounds, _pack(textures),
+                   tuple(untextured))  # fmt: skip
 
     @property
     def any_texture(self) -> bool:
