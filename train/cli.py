@@ -308,12 +308,12 @@ def run_display(args: argparse.Namespace) -> int:
     textures, why = scene_textures(model, full.manifest)
     if why:
         print(f"note: runtime colour is the albedo branch: {why}", file=sys.stderr)
+    boxes = chart_boxes(Path(args.dataset)) if textures is not None else None
     results = {}
     for size in sizes:
         table = DatasetTable(Path(args.dataset), size)
         predictors = [DisplayPredictor(model, table, mode, textures) for mode in MODES]
         predictors.append(UpsampledTruth(table, level))
-        boxes = chart_boxes(Path(args.dataset)) if textures is not None else None
         if textures is not None and boxes is not None:
             predictors.append(TrueCoordinates(table, level, textures, boxes))
         out_dir = Path(args.errors) / f"display_{size}" if args.errors else None

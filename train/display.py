@@ -118,31 +118,37 @@ class UpsampledTruth:
         self.factor = table.resolution // resolution
         self.name = f"truth at {resolution}, upsampled"
 
-    def predict(self, indices: np.ndarray) -> list[Maps]:
+    def _warp(self):
         size = self.table.resolution
         homography = np.diag([float(self.factor), float(self.factor), 1.0])
-        warp = region_warper(homography, (0, 0, size, size))
-        maps = []
-        for index in indices:
-            small = downsample_maps(self.table.maps(int(index)), self.factor)
-            mask = small.mask[None]
-            depth = np.where(np.isfinite(small.depth), small.depth, 0.0)[None] * mask
-            coverage = warp(mask)[..., 0]
-            weight = np.maximum(coverage, 1e-6)
-            normal = warp(np.moveaxis(small.normal, -1, 0) * mask)
-            length = np.linalg.norm(normal, axis=-1, keepdims=True)
-            valid = coverage >= MASK_VALID
-            maps.append(
-                Maps(
-                    albedo=warp(np.moveaxis(small.albedo, -1, 0)),
-                    normal=np.where(
-                        valid[..., None], normal / np.maximum(length, 1e-12), 0.0
-                    ).astype(np.float32),
-                    depth=np.where(valid, warp(depth)[..., 0] / weight, np.inf).astype(np.float32),
-                    mask=coverage.astype(np.float32),
-                )
-            )
-        return maps
+        return homography, (0, 0, size, size), region_warper(homography, (0, 0, size, size))
+
+    def predict(self, indices: np.ndarray) -> list[Maps]:
+        _, _, warp = self._warp()
+        return [
+            self._upsampled(downsample_maps(self.table.maps(int(index)), self.factor), warp)
+            for index in indices
+        ]
+
+    @staticmethod
+    def _upsampled(small: Maps, warp) -> Maps:
+        """Maps at R (`small`) bilinearly upsampled by `warp`; normals and depth divided by
+        the upsampled coverage."""
+        mask = small.mask[None]
+        depth = np.where(np.isfinite(small.depth), small.depth, 0.0)[None] * mask
+        coverage = warp(mask)[..., 0]
+        weight = np.maximum(coverage, 1e-6)
+        normal = warp(np.moveaxis(small.normal, -1, 0) * mask)
+        length = np.linalg.norm(normal, axis=-1, keepdims=True)
+        valid = coverage >= MASK_VALID
+        return Maps(
+            albedo=warp(np.moveaxis(small.albedo, -1, 0)),
+            normal=np.where(valid[..., None], normal / np.maximum(length, 1e-12), 0.0).astype(
+                np.float32
+            ),
+            depth=np.where(valid, warp(depth)[..., 0] / weight, np.inf).astype(np.float32),
+            mask=coverage.astype(np.float32),
+        )
 
 
 def display_sizes(model_level: int, dataset_resolution: int) -> list[int]:
@@ -170,31 +176,28 @@ class TrueCoordinates(UpsampledTruth):
         self.name = f"textures at the true {resolution} coordinates"
 
     def predict(self, indices: np.ndarray) -> list[Maps]:
-        size = self.table.resolution
-        homography = np.diag([float(self.factor), float(self.factor), 1.0])
-        region = (0, 0, size, size)
-        warp = region_warper(homography, region)
+        homography, region, warp = self._warp()
         below = self.table.captured_resolution // self.resolution
         k = self.textures.charts
         maps = []
-        for index, truth in zip(indices, super().predict(indices), strict=True):
-            full = self.table.captured_maps(int(index))
+        for index in indices:
+            full = self.table.captured_maps(int(index))  # one read: the geometry and the colour
             if full.chart is None or full.uv is None:
                 raise TextureMismatch(
                     f"{self.table.path(int(index))} has no texture AOVs (uv, chart)"
                 )
+            shown = downsample_maps(full, self.table.factor)  # as table.maps(index)
+            truth = self._upsampled(downsample_maps(shown, self.factor), warp)
             small = downsample_maps(full, below)
             chart, coords = chart_targets(full.chart.astype(np.int64), full.uv, self.boxes, below)
             r = chart.shape[0]
             probabilities = np.zeros((k + 1, r, r), np.float32)
             np.put_along_axis(probabilities, chart[None].astype(np.int64), 1.0, axis=0)
             coordinates = np.zeros((2 * k, r, r), np.float32)
-            for c in np.unique(chart[chart > 0]):
-                on = chart == c
-                coordinates[2 * c - 2][on], coordinates[2 * c - 1][on] = (
-                    coords[0][on],
-                    coords[1][on],
-                )
+            rows, cols = np.nonzero(chart > 0)
+            on = chart[rows, cols]
+            coordinates[2 * on - 2, rows, cols] = coords[0, rows, cols]
+            coordinates[2 * on - 1, rows, cols] = coords[1, rows, cols]
             out = {
                 "albedo": np.moveaxis(small.albedo, -1, 0),
                 "alpha": small.mask[None],
