@@ -112,8 +112,13 @@ def forward_loss(
     config: TrainConfig,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """One step's forward pass and loss at `resolution` with fade-in weight `alpha`."""
-    kind = batch["rig"].device.type  # bf16 autocast where the batch is: cpu or cuda
-    with torch.autocast(kind, dtype=torch.bfloat16, enabled=config.bf16 and kind != "meta"):
+    # bf16 autocast where the batch is (cpu or cuda); torch refuses other device types
+    # (meta) even disabled, so those get a disabled cpu one.
+    kind = batch["rig"].device.type
+    casts = kind in ("cpu", "cuda")
+    with torch.autocast(
+        kind if casts else "cpu", dtype=torch.bfloat16, enabled=config.bf16 and casts
+    ):
         heads = model(batch["rig"], resolution, joints2d=batch.get("joints2d"))
         return total_loss(heads, batch, alpha, config)
 

@@ -17,7 +17,7 @@ from rigspace.train import loop  # noqa: E402
 from rigspace.train.config import preset  # noqa: E402
 from rigspace.train.data import SampleSet, chart_boxes, chart_targets  # noqa: E402
 from rigspace.train.export import export_bundle  # noqa: E402
-from rigspace.train.loss import chart_downsample, texture_loss, total_loss  # noqa: E402
+from rigspace.train.loss import chart_downsample, texture_loss  # noqa: E402
 from rigspace.train.network import Rig2Image, Shape, texture_channels, texture_maps  # noqa: E402
 
 TINY = preset("tiny", texture=True)
@@ -102,7 +102,12 @@ def test_the_loss_reads_only_the_target_charts_coordinates():
         {},
         {"conditioning": "joints2d"},
         {"conditioning": "bones2d", "conditioning_mode": "add", "conditioning_top": 16},
-        {"conditioning": "bones2d", "conditioning_mode": "concat", "mask_loss": "bce"},
+        {
+            "conditioning": "bones2d",
+            "conditioning_mode": "concat",
+            "mask_loss": "bce",
+            "bf16": True,
+        },
         {"mask_loss": "soft-iou", "edge_weight": 2.0},
     ],
 )
@@ -125,8 +130,10 @@ def test_forward_loss_and_backward_on_the_meta_device(overrides):
         "chart": torch.zeros(2, 1, size, size, dtype=torch.long, device=meta),
         "uv": torch.empty(2, 2, size, size, device=meta),
     }
-    heads = model(batch["rig"], size, joints2d=batch["joints2d"])
-    loss, _ = total_loss(heads, {k: v for k, v in batch.items() if v is not None}, 0.5, config)
+    # Through the training step's own forward_loss (its autocast included), bf16 on and off.
+    loss, _ = loop.forward_loss(
+        model, {k: v for k, v in batch.items() if v is not None}, size, 0.5, config
+    )
     loss.backward()
     assert loss.device.type == "meta"
 
