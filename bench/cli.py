@@ -16,12 +16,13 @@ import platform
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from rigspace.sdk.cli import CommandSpec
+from rigspace.sdk.predictors import add_device_argument, add_predictor_argument
 
 DESCRIPTION = """\
 Measure the whole pipeline side by side in one run and write the results: run time
@@ -58,6 +59,10 @@ class Plan:
     stability_steps: int
     display_sizes: tuple[tuple[int, int], ...] = ((640, 360), (1920, 1080))
     display_frames: int = 17
+    predictor: str = "auto"
+    """--predictor: what runs the fp32 networks in the frame and pareto parts."""
+    device: str = "auto"
+    """--device: where the predictors part (and the predictor of `predictor`) runs."""
 
 
 QUICK = Plan(
@@ -131,6 +136,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="PART",
         help=f"run only these parts: {', '.join(PARTS)}",
     )
+    add_predictor_argument(parser)
+    add_device_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -138,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
 
     from rigspace.sdk.errors import RigspaceError
 
-    plan = QUICK if args.quick else FULL
+    plan = replace(QUICK if args.quick else FULL, predictor=args.predictor, device=args.device)
     parts = tuple(args.only or PARTS)
     unknown = sorted(set(parts) - set(PARTS))
     if unknown:
@@ -224,7 +231,9 @@ def _plain(value: Any) -> Any:
 def _pareto(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
     from rigspace.bench import pareto
 
-    result = pareto.measure(plan.per_split, plan.repeats, 256, plan.frames, dataset)
+    result = pareto.measure(
+        plan.per_split, plan.repeats, 256, plan.frames, dataset, predictor=plan.predictor
+    )
     return result
 
 
@@ -237,7 +246,7 @@ def _accuracy(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
 def _frames(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
     from rigspace.bench import frames
 
-    return frames.measure(tmp, plan.frame_sizes, (1, 4), plan.frames)
+    return frames.measure(tmp, plan.frame_sizes, (1, 4), plan.frames, predictor=plan.predictor)
 
 
 def _skips(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
@@ -313,6 +322,14 @@ def _texture(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]
     return texture.measure(plan.display_sizes, plan.display_frames)
 
 
+def _predictors(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
+    from rigspace.bench import predictors
+    from rigspace.bench.scenes import ROOT
+
+    bundle = ROOT / "samples" / "models" / "sample"
+    return predictors.measure(bundle, plan.repeats, plan.levels, plan.device)
+
+
 def _memory(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
     from rigspace.bench import memory
 
@@ -354,6 +371,7 @@ MEASURE = {
     "texture": _texture,
     "skips": _skips,
     "efficiency": _efficiency,
+    "predictors": _predictors,
     "capture": _capture,
     "training": _training,
     "memory": _memory,

@@ -27,7 +27,7 @@ from onnx import helper, shape_inference
 
 from rigspace.bench.timing import repeat
 from rigspace.sdk.bundle import read_manifest
-from rigspace.sdk.model import BundleModel, default_providers
+from rigspace.sdk.model import BundleModel
 
 COUNTED = ("Conv", "ConvTranspose", "Gemm", "MatMul")
 """Op types whose FLOPs (2 x MACs) make up `total`."""
@@ -211,7 +211,7 @@ def peak_flops(threads: int = 0, size: int = 2048, repeats: int = 10) -> dict[st
     options = ort.SessionOptions()
     if threads:
         options.intra_op_num_threads = threads
-    providers = default_providers()
+    providers = ["CPUExecutionProvider"]  # the CPU's peak
     session = ort.InferenceSession(
         matmul_graph(size).SerializeToString(), options, providers=providers
     )
@@ -249,7 +249,7 @@ def efficiency(
     the float32 peak and may exceed 1.
     """
     flops = bundle_flops(bundle_folder, level, branches, precision, batch)
-    model = BundleModel(bundle_folder, precision, threads=threads)
+    model = BundleModel(bundle_folder, precision, threads=threads, predictor="onnxruntime")
     rig = np.random.default_rng(0).standard_normal((batch, len(model.joints) * 6))
     rig = (0.1 * rig).astype(np.float32)
     seconds = repeat(lambda: model.predict(rig, level, branches), repeats, WARMUP)

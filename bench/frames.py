@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from rigspace.bench.predictors import for_precision
 from rigspace.bench.scenes import PREVIS, crowd_scene
 from rigspace.bench.timing import summary
 from rigspace.runtime.engine import STAGES, Engine
@@ -44,10 +45,21 @@ def total_ms(reports: list[dict[str, Any]]) -> dict[str, float]:
 
 
 def measure_one(
-    scene: Path, size: int, precision: str, frames: int, prim_samples: int = 1
+    scene: Path,
+    size: int,
+    precision: str,
+    frames: int,
+    prim_samples: int = 1,
+    predictor: str = "auto",
 ) -> dict[str, Any]:
     reports = frame_reports(
-        scene, TIMES[: frames + 1], size, again=True, precision=precision, prim_samples=prim_samples
+        scene,
+        TIMES[: frames + 1],
+        size,
+        again=True,
+        precision=precision,
+        prim_samples=prim_samples,
+        predictor=for_precision(predictor, precision),
     )
     repeat = reports.pop()
     ms = {k: 1e3 * statistics.median(r["seconds"][k] for r in reports) for k in (*STAGES, "total")}
@@ -72,13 +84,14 @@ def measure(
     characters: tuple[int, ...] = (1, 4),
     frames: int = 8,
     prim_samples: int = 1,
+    predictor: str = "auto",
 ) -> list[dict[str, Any]]:
     rows = []
     for count in characters:
         scene = PREVIS if count == 1 else crowd_scene(folder, count)
         for size in sizes:
             for precision in ("fp32", "int8"):
-                rows.append(measure_one(scene, size, precision, frames, prim_samples))
+                rows.append(measure_one(scene, size, precision, frames, prim_samples, predictor))
     return rows
 
 

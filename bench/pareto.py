@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from rigspace.bench.frames import frame_reports, total_ms
+from rigspace.bench.predictors import for_precision
 from rigspace.bench.timing import timed
 from rigspace.capture.settings import resolve_settings
 from rigspace.sdk import schema
@@ -124,13 +125,17 @@ def _means(rows: list[dict[str, float]]) -> dict[str, float]:
     return {k: float(np.nanmean([r[k] for r in rows])) for k in KEYS}
 
 
-def model_rows(samples: Samples, repeats: int, frame_size: int, frames: int) -> list[dict]:
+def model_rows(
+    samples: Samples, repeats: int, frame_size: int, frames: int, predictor: str = "auto"
+) -> list[dict]:
     """One row per (level, precision): error per split, ms per evaluation and per frame."""
     rows = []
     size = samples.settings.resolution
     times = np.linspace(100.0, 1500.0, frames + 1)
     for precision in ("fp32", "int8"):
-        model = BundleModel(samples.bundle, precision)
+        model = BundleModel(
+            samples.bundle, precision, predictor=for_precision(predictor, precision)
+        )
         for level in model.resolutions:
             row: dict[str, Any] = {"kind": "model", "variant": f"{precision} level {level}"}
             row |= {"precision": precision, "level": level}
@@ -154,7 +159,13 @@ def model_rows(samples: Samples, repeats: int, frame_size: int, frames: int) -> 
             one = samples.rigs["heldout-views"][:1]
             row["evaluation"] = timed(partial(model.predict, one, level), repeats)
             row["frame"] = _frame_time(
-                PREVIS, frame_size, times, precision=precision, max_level=level, prim_samples=1
+                PREVIS,
+                frame_size,
+                times,
+                precision=precision,
+                max_level=level,
+                prim_samples=1,
+                predictor=for_precision(predictor, precision),
             )
             rows.append(row)
     return rows
@@ -235,9 +246,10 @@ def measure(
     dataset: Path | None = None,
     scene: Path = PREVIS,
     character: str = "/World/Hero",
+    predictor: str = "auto",
 ) -> dict[str, Any]:
     samples = Samples(scene, character, per_split)
-    rows = model_rows(samples, repeats, frame_size, frames)
+    rows = model_rows(samples, repeats, frame_size, frames, predictor)
     rows += renderer_rows(samples, repeats, frame_size, frames)
     if dataset is not None:
         rows += baseline_rows(dataset, limit=4 * per_split)

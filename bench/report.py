@@ -163,6 +163,12 @@ def _efficiency(r: dict[str, Any]) -> list[str]:
     return lines
 
 
+def _predictors(rows: list[dict[str, Any]]) -> list[str]:
+    from rigspace.bench.predictors import table
+
+    return table(rows)
+
+
 def _capture(rows: list[dict[str, Any]]) -> list[str]:
     lines = ["## Capture throughput", "", "| renderer | resolution | samples/s |", "|---|---|---|"]
     for row in rows:
@@ -261,6 +267,7 @@ SECTIONS: dict[str, Callable[[Any], list[str]]] = {
     "texture": _texture,
     "skips": _skips,
     "efficiency": _efficiency,
+    "predictors": _predictors,
     "capture": _capture,
     "training": _training,
     "memory": _memory,

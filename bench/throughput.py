@@ -90,8 +90,8 @@ def _step_rate(name: str, folder: Path, steps: int, warmup: int) -> dict[str, An
 
     from rigspace.train.config import preset
     from rigspace.train.data import Prefetcher, SampleSet
-    from rigspace.train.loop import forward_loss, make_optimizer, optimise, to_torch
     from rigspace.train.network import Rig2Image, Shape
+    from rigspace.train.step import forward_loss, make_optimizer, optimise, to_torch
 
     config = preset(name)
     have = int(read_manifest(folder)["resolution"])

@@ -40,6 +40,7 @@ from rigspace.capture.settings import CaptureSettings, Clip
 from rigspace.sdk.charts import ChartTable, parse_charts
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.exr import read_exr
+from rigspace.sdk.render import Maps
 
 FORMAT = "rigspace.dataset"
 FORMAT_VERSION = 1
@@ -424,3 +425,21 @@ def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> 
     }
     write_atomic(folder / MANIFEST_FILE, (json.dumps(manifest, indent=2) + "\n").encode())
     return manifest
+
+
+def read_sample(folder: Path, manifest: dict[str, Any], relative: str) -> Maps:
+    """A dataset sample's maps; a missing or damaged EXR is a DatasetError naming the file
+    and the capture command that re-renders it (training and evaluation read through here)."""
+    path = folder / relative
+    try:
+        return read_exr(path)
+    except OSError as exc:  # sdk.exr.ExrError is an OSError, as is a file that went away
+        state = "missing" if not path.is_file() else "damaged"
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        scene = manifest.get("scene", "SCENE")
+        raise DatasetError(
+            f"Sample {path} of the dataset is {state} ({reason}).",
+            f"re-render it: repeat the capture with --resume (`rigspace capture {scene} --out "
+            f"{folder} --resume`, with the original capture's other flags), which re-renders "
+            "missing and damaged samples.",
+        ) from exc

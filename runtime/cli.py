@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 from rigspace.sdk.cli import CommandSpec, time_range
 from rigspace.sdk.errors import RigspaceError, SceneError
+from rigspace.sdk.predictors import add_predictor_argument
 
 if TYPE_CHECKING:
     import numpy as np
@@ -74,6 +75,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--renderer", default="auto", help="renderer for the scene prims: gl, embree, auto"
     )
     parser.add_argument("--int8", action="store_true", help="evaluate the int8 graphs")
+    add_predictor_argument(parser)
     parser.add_argument(
         "--prim-samples",
         type=_positive,
@@ -130,6 +132,7 @@ def run(args: argparse.Namespace) -> int:
         args.scene, camera=args.camera, width=width, height=height,
         renderer=args.renderer, precision="int8" if args.int8 else "fp32", aovs=aovs,
         prim_samples=args.prim_samples, max_level=args.max_level, textures=not args.no_textures,
+        predictor=args.predictor,
     )  # fmt: skip
     truth = None
     video = None
@@ -187,7 +190,13 @@ def run(args: argparse.Namespace) -> int:
     tmp = out / f".report.json.{os.getpid()}.tmp"
     tmp.write_text(
         json.dumps(
-            {"scene": str(args.scene), "resolution": [width, height], "frames": reports}, indent=2
+            {
+                "scene": str(args.scene),
+                "resolution": [width, height],
+                "predictors": sorted({c.model.runner.description for c in engine.characters}),
+                "frames": reports,
+            },
+            indent=2,
         )
         + "\n"
     )

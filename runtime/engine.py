@@ -126,6 +126,7 @@ class Engine:
         textures: bool = True,
         live: bool = True,
         sources: dict[str, str] | None = None,
+        predictor: str = "auto",
     ) -> None:
         """`reference=True` draws each character's real skinned mesh with the renderer instead
         of its network (the ground truth that `rigspace render --reference` compares with).
@@ -138,7 +139,8 @@ class Engine:
         comparison, or a scene whose textures should not be read). `live`: enabled
         RigspaceLiveBindingAPI bindings drive their characters (runtime/live; their sources
         open at the first frame, or `open_live()`; `close()` or `with` stops them);
-        `sources` maps binding names to URLs that replace theirs and enable them."""
+        `sources` maps binding names to URLs that replace theirs and enable them. `predictor`
+        runs the networks (rigspace.sdk.predictors; "auto": the fastest that can)."""
         unknown = sorted(set(aovs) - set(AOVS))
         if unknown:
             raise SceneError(
@@ -165,7 +167,7 @@ class Engine:
                 continue
             folder = manifest.parent.resolve()
             if folder not in models:  # characters sharing a bundle share its sessions
-                models[folder] = BundleModel(folder, precision)
+                models[folder] = BundleModel(folder, precision, predictor=predictor)
                 if not reference:
                     models[folder].preload()  # a damaged bundle fails here, not mid-sequence
             character = NeuralCharacter(prim, models[folder])

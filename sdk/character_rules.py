@@ -353,7 +353,7 @@ def _check_graphs(folder: Path, _stamp: tuple) -> str | None:
     from rigspace.sdk.model import BundleModel  # onnxruntime, only once a bundle resolves
 
     try:
-        model = BundleModel(folder)
+        model = BundleModel(folder, predictor="onnxruntime")  # checks the ONNX files
         raw = model.manifest.raw
         sets = [raw["trunk"], *raw["levels"]]
         graphs = sorted(  # an fp32-only bundle (--no-int8) records its trunk's int8 as null
@@ -374,7 +374,7 @@ def _check_graphs(folder: Path, _stamp: tuple) -> str | None:
                 load.add(name)
                 changed += [name] if record else []
         for name in sorted(load):
-            model._session(name)  # the runtime loader: its errors, word for word
+            model.runner.load(name)  # the runtime loader: its errors, word for word
     except BundleError as exc:
         return str(exc)
     except (KeyError, TypeError, AttributeError) as exc:  # a manifest that lacks what it lists

@@ -1,8 +1,9 @@
 """Run a model bundle with onnxruntime: the trunk once, then only the branches and level asked for.
 
-Shared by `rigspace eval` and the runtime; imports no torch. Sessions are created lazily
-per graph, so a frame that needs only albedo at 32x32 never loads the other graphs.
-CUDA is used when onnxruntime offers it, the CPU otherwise. Outputs are named by the
+Shared by `rigspace eval` and the runtime; imports no torch itself. A predictor
+(rigspace.sdk.predictors: onnxruntime on the CPU or GPU, or torch) runs the graphs; the
+onnxruntime ones create a session per graph when first needed, so a frame that needs only
+albedo at 32x32 never loads the other graphs. Outputs are named by the
 graphs themselves: albedo graphs give `albedo` and (bundle format 2) `alpha`, geometry
 graphs `depth`, `normal` and `mask`; a bundle with a texture head (manifest `texture`) also
 gives `chart` and `uv` from its albedo graphs. A pose-conditioned bundle (manifest `conditioning`)
@@ -22,13 +23,7 @@ import numpy as np
 from rigspace.sdk.bundle import BundleError, ModelManifest, read_manifest
 from rigspace.sdk.charts import parse_charts
 from rigspace.sdk.conditioning import Skeleton2D, joints2d
-
-
-def default_providers() -> list[str]:
-    import onnxruntime as ort
-
-    available = ort.get_available_providers()
-    return [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in available]
+from rigspace.sdk.predictors import AUTO, GraphSet, Runner, open_predictor
 
 
 class BundleModel:
@@ -38,9 +33,13 @@ class BundleModel:
         self,
         path: str | Path,
         precision: str = "fp32",
-        providers: list[str] | None = None,
         threads: int = 0,
+        predictor: str = AUTO,
+        device: str = AUTO,
     ) -> None:
+        """`predictor`: a rigspace.sdk.predictors name, or "auto" (the fastest that can run
+        this bundle here); `device`: "auto", "cpu" or "cuda[:N]" (predictors that cannot run
+        there are passed over); `threads`: intra-op threads of CPU predictors (0: all)."""
         self.manifest: ModelManifest = read_manifest(path)
         raw = self.manifest.raw
         if "trunk" not in raw or "levels" not in raw:
@@ -51,8 +50,6 @@ class BundleModel:
         if precision not in ("fp32", "int8"):
             raise ValueError(f"precision must be 'fp32' or 'int8', got {precision!r}")
         self.precision = precision
-        self.providers = providers or default_providers()
-        self.threads = threads
         self.levels: dict[int, dict[str, str]] = {}
         self.int8_fallbacks: dict[str, str] = {}
         """int8 graphs the export's check failed (manifest int8_check) -> fp32 graph run instead."""
@@ -82,7 +79,13 @@ class BundleModel:
                 stacklevel=2,
             )
         self._trunk_file = trunk
-        self._sessions: dict[str, Any] = {}
+        graphs = {trunk: ("trunk", 8)}
+        for resolution, files in self.levels.items():
+            graphs |= {file: (branch, resolution) for branch, file in files.items()}
+        self.runner: Runner = open_predictor(
+            predictor, GraphSet(self.manifest, precision, threads, graphs, device)
+        )
+        """The predictor running the graphs (runner.description says which, on what)."""
         self.depth_scale = float(raw["depth"]["scale"])
         self.albedo_has_alpha = self.manifest.format_version >= 2
         """Whether the albedo branch alone gives coverage (lets unlit frames skip geometry)."""
@@ -147,31 +150,6 @@ class BundleModel:
                 return r
         return levels[-1]
 
-    def _session(self, name: str):
-        if name not in self._sessions:
-            import onnxruntime as ort
-
-            path = self.manifest.folder / name
-            if not path.is_file():
-                raise BundleError(
-                    f"Model file {path} is missing from the bundle.",
-                    "re-export the bundle, or restore the file.",
-                )
-            options = ort.SessionOptions()
-            if self.threads:
-                options.intra_op_num_threads = self.threads
-            try:
-                self._sessions[name] = ort.InferenceSession(
-                    str(path), options, providers=self.providers
-                )
-            except Exception as exc:  # onnxruntime raises its own types for bad files
-                raise BundleError(
-                    f"Model file {path} cannot be loaded ({type(exc).__name__}: "
-                    f"{str(exc).splitlines()[0][:200]}).",
-                    "the file is damaged: re-export the bundle with `rigspace train`.",
-                ) from exc
-        return self._sessions[name]
-
     def check_rig(self, rig: np.ndarray) -> np.ndarray:
         rig = np.ascontiguousarray(rig, dtype=np.float32)
         expected = len(self.joints) * 6
@@ -203,7 +181,7 @@ class BundleModel:
         feeds = {"rig": self.check_rig(rig)}
         if self.skeleton is not None:
             feeds["joints2d"] = joints2d if joints2d is not None else self._joints2d(rig)
-        return self._session(self._trunk_file).run(None, feeds)[0]
+        return self.runner.run(self._trunk_file, feeds)["features"]
 
     def branch(
         self,
@@ -217,10 +195,10 @@ class BundleModel:
                 f"The model has no level {resolution}; it has {self.resolutions}.",
                 "ask for one of those resolutions.",
             )
-        session = self._session(self.levels[resolution][branch])
+        graph = self.levels[resolution][branch]
         feeds = {"features": features}
         # The 8x8 level's graphs have no block, so no conditioning input (the export drops it).
-        if self.skeleton is not None and len(session.get_inputs()) > 1:
+        if self.skeleton is not None and "joints2d" in self.runner.inputs(graph):
             if joints2d is None:
                 raise BundleError(
                     f"Model bundle {self.manifest.folder} is pose-conditioned: its branch graphs "
@@ -228,8 +206,7 @@ class BundleModel:
                     "pass joints2d (BundleModel.joints2d(rig)), or call predict(rig, ...).",
                 )
             feeds["joints2d"] = joints2d
-        outputs = session.run(None, feeds)
-        return dict(zip((o.name for o in session.get_outputs()), outputs, strict=True))
+        return self.runner.run(graph, feeds)
 
     def predict(
         self, rig: np.ndarray, resolution: int, branches: tuple[str, ...] = ("albedo", "geometry")
@@ -244,10 +221,10 @@ class BundleModel:
 
     def preload(self) -> None:
         """Load every graph now, so a missing or damaged file fails before a sequence starts."""
-        self._session(self._trunk_file)
+        self.runner.load(self._trunk_file)
         for level in self.levels.values():
             for name in level.values():
-                self._session(name)
+                self.runner.load(name)
 
     def footprint_bytes(self) -> int:
         files = {self._trunk_file, *(g for level in self.levels.values() for g in level.values())}

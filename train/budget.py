@@ -113,7 +113,7 @@ def apply_plan(config: TrainConfig, plan: Plan) -> TrainConfig:
 
 
 def fade_steps(config: TrainConfig) -> int:
-    """Steps a new block takes to fade in (train.loop.schedule's alpha reaches 1)."""
+    """Steps a new block takes to fade in (train.step.schedule's alpha reaches 1)."""
     return max(1, int(config.fade_fraction * config.steps_per_level))
 
 

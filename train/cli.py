@@ -12,6 +12,7 @@ from pathlib import Path
 
 from rigspace.sdk.cli import CommandSpec
 from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.predictors import add_device_argument, add_predictor_argument
 
 TRAINING = "training"
 """Subfolder of a model bundle holding the run: run.json, checkpoint.pt, log, previews."""
@@ -67,6 +68,12 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         "there are kept",
     )
     parser.add_argument(
+        "--no-cache",
+        action="store_true",
+        help="read every sample from its EXR each time instead of decoding the dataset once "
+        "into DATASET/cache (`rigspace dataset cache`)",
+    )
+    parser.add_argument(
         "--device",
         default="auto",
         help="where to train: auto (a CUDA GPU when torch sees one, else the CPU), cpu, cuda "
@@ -120,6 +127,7 @@ def run_train(args: argparse.Namespace) -> int:
         minutes=args.minutes,
         resume=args.resume,
         device=args.device,
+        cache=not args.no_cache,
     )
     if not ctx.is_main:  # rank 0 reports and exports; the others wait for it
         if result.stopped != "interrupted":
@@ -261,6 +269,8 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
         "--limit", type=int, default=200, help="samples evaluated (evenly spaced; 0: all)"
     )
     parser.add_argument("--int8", action="store_true", help="evaluate the int8 graphs")
+    add_predictor_argument(parser)
+    add_device_argument(parser)
     parser.add_argument(
         "--no-baselines", action="store_true", help="skip nearest-view and interpolation"
     )
@@ -295,7 +305,12 @@ def run_display(args: argparse.Namespace) -> int:
     from rigspace.train.evaluate import DatasetTable, compare, format_table, to_json
 
     full = DatasetTable(Path(args.dataset))
-    model = BundleModel(Path(args.model), "int8" if args.int8 else "fp32")
+    model = BundleModel(
+        Path(args.model),
+        "int8" if args.int8 else "fp32",
+        predictor=args.predictor,
+        device=args.device,
+    )
     level = max(model.resolutions)
     sizes = display_sizes(level, full.resolution)
     if not sizes:
@@ -360,7 +375,12 @@ def run_eval(args: argparse.Namespace) -> int:
         # against box-downsampled targets, the ones it was trained on.
         table = DatasetTable(Path(args.dataset), top)
         print(f"note: targets {targets_note(table)}", file=sys.stderr)
-    predictors = [BundlePredictor(Path(args.model), table, int8=args.int8)]
+    predictors = [
+        BundlePredictor(
+            Path(args.model), table, int8=args.int8, predictor=args.predictor, device=args.device
+        )
+    ]
+    print(f"the model runs on {predictors[0].model.runner.description}", file=sys.stderr)
     if args.split == "heldout-clips" and not args.no_baselines:
         # Held-out clips were never captured from training views: nothing to interpolate.
         print(

@@ -15,7 +15,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from rigspace.capture.dataset import DatasetError
 from rigspace.sdk.conditioning import KINDS, Skeleton2D, bone_offsets, joint_parents
 
 BONE_LENGTH_TOLERANCE = 1e-3
@@ -33,6 +32,7 @@ def dataset_skeleton(folder: str | Path, manifest: dict[str, Any]) -> Skeleton2D
     Offsets are taken at each clip's first frame and must agree (a rig that stretches its
     bones cannot be conditioned this way); the view is the capture ring's.
     """
+    from rigspace.capture.dataset import DatasetError  # here: the network imports no dataset code
     from rigspace.sdk.posing import CharacterRig
     from rigspace.sdk.stage import open_stage
 

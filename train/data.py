@@ -16,10 +16,11 @@ from typing import Any
 
 import numpy as np
 
-from rigspace.capture.dataset import DatasetError, read_charts, read_manifest
+from rigspace.capture.cache import FOLDER as CACHE_FOLDER
+from rigspace.capture.cache import build_cache, open_cache, stale_reason
+from rigspace.capture.dataset import DatasetError, read_charts, read_manifest, read_sample
 from rigspace.capture.ring import stage_axes
 from rigspace.sdk.conditioning import Skeleton2D, joints2d
-from rigspace.sdk.exr import read_exr
 from rigspace.sdk.render import Maps
 from rigspace.sdk.rotations import matrix_from_rot6d, rot6d_from_matrix
 from rigspace.train.config import check_oversample
@@ -36,24 +37,6 @@ def depth_scale(manifest: dict[str, Any]) -> float:
     """
     ring = manifest["ring"]
     return float(ring["radius"] * (ring["horizontal_aperture"] / 2.0) / ring["focal_length"])
-
-
-def read_sample(folder: Path, manifest: dict[str, Any], relative: str) -> Maps:
-    """A dataset sample's maps; a missing or damaged EXR is a DatasetError naming the file
-    and the capture command that re-renders it (training and evaluation read through here)."""
-    path = folder / relative
-    try:
-        return read_exr(path)
-    except OSError as exc:  # sdk.exr.ExrError is an OSError, as is a file that went away
-        state = "missing" if not path.is_file() else "damaged"
-        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        scene = manifest.get("scene", "SCENE")
-        raise DatasetError(
-            f"Sample {path} of the dataset is {state} ({reason}).",
-            f"re-render it: repeat the capture with --resume (`rigspace capture {scene} --out "
-            f"{folder} --resume`, with the original capture's other flags), which re-renders "
-            "missing and damaged samples.",
-        ) from exc
 
 
 def area_downsample(x: np.ndarray, factor: int) -> np.ndarray:
@@ -234,8 +217,30 @@ class SplitInfo:
         return {key: np.stack([it[key] for it in items]) for key in items[0]}
 
 
+def ensure_cache(folder: str | Path, manifest: dict[str, Any], progress: bool = True) -> str:
+    """Build the dataset's decoded cache (capture.cache) unless a fresh one is there; returns
+    one line saying what happened. A cache that cannot be written (a read-only folder, a
+    full disk) is reported and training reads the EXRs instead."""
+    folder = Path(folder)
+    why = stale_reason(folder, manifest)
+    if why is None:
+        return f"decoded cache {folder / CACHE_FOLDER} is up to date"
+    with np.load(folder / "params.npz", allow_pickle=False) as table:
+        paths = [str(p) for p in table["path"]]
+    print(
+        f"rigspace train: decoding {len(paths)} samples once into {folder / CACHE_FOLDER} ({why})",
+        file=sys.stderr,
+    )
+    try:
+        cache = build_cache(folder, manifest, paths, progress=progress)
+    except OSError as exc:
+        return f"no decoded cache ({exc}): the samples are read from their EXRs"
+    return f"decoded cache {cache.root}: {cache.info['bytes'] / 2**30:.2f} GiB"
+
+
 class SampleSet(SplitInfo):
-    """One split of a dataset folder at a training resolution."""
+    """One split of a dataset folder at a training resolution. Samples come from the
+    dataset's decoded cache (capture.cache) when a fresh one is there, else from their EXRs."""
 
     def __init__(self, folder: str | Path, split: str, resolution: int | None = None) -> None:
         self.folder = Path(folder)
@@ -249,6 +254,7 @@ class SampleSet(SplitInfo):
             self.joint_depth = -table["joint_camera"][:, 2].astype(np.float32)
             self.columns = {c: table[c] for c in ITEM_COLUMNS}
         super().__init__(manifest, split, resolution)
+        self.cache = open_cache(self.folder, manifest)
         self._rarity: np.ndarray | None = None
         self._weights: dict[float, np.ndarray] = {}
 
@@ -258,7 +264,10 @@ class SampleSet(SplitInfo):
     def item(self, k: int) -> dict[str, np.ndarray]:
         """Sample k of the split (SplitInfo.make_item)."""
         row = int(self.rows[k])
-        maps = read_sample(self.folder, self.manifest, str(self.paths[row]))
+        if self.cache is not None:
+            maps = self.cache.maps(row)
+        else:
+            maps = read_sample(self.folder, self.manifest, str(self.paths[row]))
         return self.make_item(maps, {c: v[row] for c, v in self.columns.items()})
 
     def batch(self, ks: np.ndarray) -> dict[str, np.ndarray]:

@@ -43,102 +43,29 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from rigspace.capture.dataset import CHARTS_FILE, read_manifest
-from rigspace.sdk.bundle import CONDITIONED_VERSION, FORMAT, FORMAT_VERSION
+from rigspace.sdk.bundle import CONDITIONED_VERSION, FORMAT, FORMAT_VERSION, ModelManifest
 from rigspace.sdk.capsules import FILE_NAME as CAPSULES
 from rigspace.sdk.capsules import read_capsules
+from rigspace.sdk.conditioning import Skeleton2D
+from rigspace.sdk.predictors import GraphSet, OrtRunner
+from rigspace.sdk.weights import write_safetensors
 from rigspace.train.budget import trained_levels
 from rigspace.train.conditioning import dataset_skeleton
 from rigspace.train.config import TrainConfig
 from rigspace.train.data import SampleSet, depth_scale
+from rigspace.train.graphs import INPUTS, BranchAtLevel, Trunk, output_names
 from rigspace.train.int8check import TOLERANCES, check_int8, rig_feeds
 from rigspace.train.loop import CHECKPOINT, RUN_FILE, TrainingError, build_model
-from rigspace.train.network import BRANCH_CHANNELS, Rig2Image
+from rigspace.train.network import Rig2Image
 from rigspace.train.quantize import int8_name
+from rigspace.train.torch_predictor import CHECK_TOLERANCE, WEIGHTS, TorchRunner
 
 OPSET = 17
 CALIBRATION_SAMPLES = 128
 """Training samples fed to the int8 calibration (activation ranges)."""
-
-
-class Trunk(nn.Module):
-    """rig -> the shared 8x8 features."""
-
-    def __init__(self, model: Rig2Image) -> None:
-        super().__init__()
-        self.model = model
-
-    def forward(self, rig: torch.Tensor, joints2d: torch.Tensor | None = None) -> torch.Tensor:
-        return self.model.features(rig, joints2d)
-
-
-HEAD_GROUPS = {"albedo": ((0, 3), (3, 4)), "geometry": ((0, 1), (1, 4), (4, 5))}
-"""Channels of each branch's 1x1 head that make one output: albedo, alpha; depth, normal,
-mask (network.ALBEDO_CHANNELS, GEOMETRY_CHANNELS)."""
-
-
-class BranchAtLevel(nn.Module):
-    """features -> one branch's activated maps at one resolution.
-
-    Each output gets its own 1x1 convolution (the head's rows for its channels) and its own
-    activation, the same as network.albedo_maps, albedo_alpha and geometry_maps: the fp32
-    graph computes exactly what the one head does, but static int8 now gives each output
-    its own activation scale. With one shared scale a confident mask (logits spanning
-    hundreds) rounded every normal to zero (train.int8check; measured in docs/training.md).
-    """
-
-    def __init__(self, model: Rig2Image, branch: str, resolution: int) -> None:
-        super().__init__()
-        self.model, self.branch = model, getattr(model, branch)
-        self.name, self.resolution = branch, resolution
-        self.head = self.branch.heads[self.branch.resolutions.index(resolution)]
-        self.groups = head_groups(branch, model.charts if branch == model.texture_branch else 0)
-
-    def forward(self, features: torch.Tensor, joints2d: torch.Tensor | None = None):
-        maps = self.model.condition_maps(joints2d, self.resolution)  # in the graph (conditioned)
-        x = self.branch.features_at(features, self.resolution, maps)
-        w, b = self.head.weight, self.head.bias
-        parts = [F.conv2d(x, w[i:j], b[i:j]) for i, j in self.groups]
-        own = len(HEAD_GROUPS[self.name])
-        if self.name == "albedo":
-            outputs: tuple = (torch.sigmoid(parts[0]), torch.sigmoid(parts[1]))
-        else:
-            outputs = (parts[0], F.normalize(parts[1], dim=1, eps=1e-6), torch.sigmoid(parts[2]))
-        if len(parts) > own:  # the texture head: chart probabilities and coordinates
-            outputs = (*outputs, torch.softmax(parts[own], dim=1), parts[own + 1])
-        return outputs
-
-
-def head_groups(branch: str, charts: int) -> tuple[tuple[int, int], ...]:
-    """A branch's head channels by output (HEAD_GROUPS), with the texture head's chart and
-    uv groups after the branch's own when it carries a texture head of `charts` charts."""
-    groups = HEAD_GROUPS[branch]
-    if charts:
-        start = BRANCH_CHANNELS[branch]
-        groups = (
-            *groups,
-            (start, start + charts + 1),
-            (start + charts + 1, start + 3 * charts + 1),
-        )
-    return groups
-
-
-def output_names(branch: str, charts: int) -> list[str]:
-    """The outputs of a branch's graph (the trunk's: features); "chart" and "uv" too when it
-    carries the texture head (`charts` > 0)."""
-    names = OUTPUTS[branch]
-    return [*names, "chart", "uv"] if charts else names
-
-
-OUTPUTS = {
-    "trunk": ["features"],
-    "albedo": ["albedo", "alpha"],
-    "geometry": ["depth", "normal", "mask"],
-}
-INPUTS = {"trunk": "rig", "albedo": "features", "geometry": "features"}
 
 
 def export_graph(model: Rig2Image, branch: str, resolution: int, path: Path) -> None:
@@ -210,7 +137,7 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-BUNDLE_GRAPHS = ("trunk*.onnx", "albedo_*.onnx", "geometry_*.onnx", CHARTS_FILE)
+BUNDLE_GRAPHS = ("trunk*.onnx", "albedo_*.onnx", "geometry_*.onnx", CHARTS_FILE, WEIGHTS)
 """Names of the graphs an export writes: a re-export removes those it no longer writes."""
 INT8_CHECK_SAMPLES = 32
 """Held-out rows (training rows when there are none) each int8 graph is checked on."""
@@ -379,8 +306,8 @@ def export_bundle(
             "(rigspace.sdk.conditioning.joints2d); input of the trunk and of every branch "
             "graph above 8x8 (int8 variants included)"
         )
+    rows, split = check_rows(dataset)  # the int8 graphs' and the weights' check
     if int8:
-        rows, split = check_rows(dataset)
         manifest["int8_check"] = {
             "split": split,
             "samples": len(rows),
@@ -402,6 +329,7 @@ def export_bundle(
             "outputs": ["chart", "uv"],
         }
         written.append(CHARTS_FILE)
+    written.append(add_weights(out, manifest, model, step, run["config"], rows, split, skeleton))
     manifest["files"] = {
         name: {"bytes": (out / name).stat().st_size, "sha256": _sha256(out / name)}
         for name in sorted(written)
@@ -411,6 +339,73 @@ def export_bundle(
     os.replace(tmp, out / "manifest.json")
     remove_stale(out, set(written))
     return manifest
+
+
+def add_weights(
+    out: Path,
+    manifest: dict[str, Any],
+    model: Rig2Image,
+    step: int,
+    config: dict[str, Any],
+    rows: np.ndarray,
+    split: str,
+    skeleton: Skeleton2D | None,
+) -> str:
+    """Write the network's weights beside the graphs for the torch predictor
+    (train.torch_predictor) and its manifest section `torch`, with their check against the
+    fp32 graphs; returns the file's name. `manifest` is the bundle's, its graphs written."""
+    write_safetensors(
+        out / WEIGHTS,
+        {k: v.detach().cpu().float().numpy() for k, v in model.state_dict().items()},
+        {"format": "rigspace.weights", "step": str(step)},
+    )
+    manifest["torch"] = {
+        "file": WEIGHTS,
+        "config": config,
+        "joints": model.shape.joints,
+        "parents": list(model.shape.parents),
+        "charts": model.shape.charts,
+    }
+    manifest["torch"]["check"] = {"split": split, **check_weights(out, manifest, rows, skeleton)}
+    return WEIGHTS
+
+
+def check_weights(
+    folder: Path, manifest: dict[str, Any], rows: np.ndarray, skeleton: Skeleton2D | None
+) -> dict[str, Any]:
+    """The torch predictor (CPU, fp32) against every fp32 graph of a bundle being exported, on
+    the rig rows `rows`: the largest |difference| per graph over all its outputs, and
+    whether it is within CHECK_TOLERANCE with the same inputs and outputs by name."""
+    graphs = {manifest["trunk"]["graphs"]["trunk"]: ("trunk", 8)}
+    for level in manifest["levels"]:
+        for branch, file in level["graphs"].items():
+            graphs[file] = (branch, int(level["resolution"]))
+    bundle = ModelManifest(
+        folder / "manifest.json", tuple(manifest["joints"]), "rot6d", raw=manifest
+    )
+    request = GraphSet(bundle, "fp32", 1, graphs)
+    ours = TorchRunner(request, device="cpu", half=False, cuda_graphs=False)
+    onnx = OrtRunner(request, ["CPUExecutionProvider"], "CPU")
+    feeds = rig_feeds(rows, skeleton)
+    trunk = next(iter(graphs))
+    feeds["features"] = onnx.run(trunk, {k: feeds[k] for k in onnx.inputs(trunk)})["features"]
+    worst: dict[str, float] = {}
+    same = True
+    for graph in graphs:
+        names = onnx.inputs(graph)
+        same &= names == ours.inputs(graph)
+        given = {k: feeds[k] for k in names}
+        a, b = onnx.run(graph, given), ours.run(graph, given)
+        same &= sorted(a) == sorted(b)
+        worst[graph] = max(float(np.abs(a[k] - b[k]).max()) for k in a if k in b)
+    largest = max(worst.values())
+    return {
+        "samples": len(rows),
+        "max_abs": largest,
+        "tolerance": CHECK_TOLERANCE,
+        "ok": bool(same and largest <= CHECK_TOLERANCE),
+        "graphs": worst,
+    }
 
 
 def remove_stale(out: Path, keep: set[str]) -> list[str]:

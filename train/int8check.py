@@ -3,7 +3,7 @@
 Static int8 can break a graph outright rather than blur it: one activation scale per
 tensor, so a tensor whose channels span very different ranges loses the small ones. A
 head that made every output at once rounded all normals to zero under a confident mask
-(export.BranchAtLevel now gives each output its own); an outlier channel in the trunk's
+(graphs.BranchAtLevel now gives each output its own); an outlier channel in the trunk's
 features zeroes the others (both reproduced in tests/train). Such a graph must not
 reach the runtime. At export every int8 graph runs on held-out rows beside its fp32
 graph, on the same inputs (a branch on the fp32 trunk's features; the trunk through

@@ -42,10 +42,11 @@ from rigspace.train import distributed
 from rigspace.train.budget import Pace, apply_plan, plan_schedule
 from rigspace.train.conditioning import dataset_skeleton, parents_of
 from rigspace.train.config import TrainConfig
-from rigspace.train.data import SampleSet, chart_boxes
-from rigspace.train.loss import targets_for, total_loss
+from rigspace.train.data import SampleSet, chart_boxes, ensure_cache
+from rigspace.train.loss import targets_for
 from rigspace.train.network import Rig2Image, Shape, albedo_maps, geometry_maps, texture_maps
-from rigspace.train.stream import open_split, prefetcher
+from rigspace.train.step import forward_loss, make_optimizer, optimise, schedule, to_torch
+from rigspace.train.stream import is_shards, open_split, prefetcher
 
 CHECKPOINT = "checkpoint.pt"
 RUN_FILE = "run.json"
@@ -58,27 +59,6 @@ class TrainingError(RigspaceError):
 
 
 @dataclass
-class Schedule:
-    """Where a global step falls in the progressive schedule."""
-
-    level: int
-    """Index into config.levels()."""
-    resolution: int
-    alpha: float
-    """Fade-in weight of the newest block, 0 -> 1 linearly over the fade steps."""
-    first_step_of_level: bool
-
-
-def schedule(config: TrainConfig, step: int) -> Schedule:
-    levels = config.levels()
-    level = min(step // config.steps_per_level, len(levels) - 1)
-    local = step - level * config.steps_per_level
-    fade_steps = max(1, int(config.fade_fraction * config.steps_per_level))
-    alpha = 1.0 if level == 0 else min(1.0, local / fade_steps)
-    return Schedule(level, levels[level], alpha, local == 0)
-
-
-@dataclass
 class TrainResult:
     folder: Path
     step: int
@@ -87,49 +67,6 @@ class TrainResult:
     """'done', 'time budget', 'step budget' or 'interrupted'."""
     last_loss: float
     images_per_second: float
-
-
-def make_optimizer(model: torch.nn.Module, config: TrainConfig) -> torch.optim.Optimizer:
-    return torch.optim.Adam(
-        model.parameters(), lr=config.lr, betas=(config.adam_beta1, config.adam_beta2)
-    )
-
-
-def to_torch(batch: dict[str, np.ndarray], channels_last: bool) -> dict[str, torch.Tensor]:
-    out = {k: torch.from_numpy(v) for k, v in batch.items()}
-    if channels_last:
-        for k, v in out.items():
-            if v.ndim == 4:
-                out[k] = v.contiguous(memory_format=torch.channels_last)
-    return out
-
-
-def forward_loss(
-    model: Rig2Image,
-    batch: dict[str, torch.Tensor],
-    resolution: int,
-    alpha: float,
-    config: TrainConfig,
-) -> tuple[torch.Tensor, dict[str, float]]:
-    """One step's forward pass and loss at `resolution` with fade-in weight `alpha`."""
-    # bf16 autocast where the batch is (cpu or cuda); torch refuses other device types
-    # (meta) even disabled, so those get a disabled cpu one.
-    kind = batch["rig"].device.type
-    casts = kind in ("cpu", "cuda")
-    with torch.autocast(
-        kind if casts else "cpu", dtype=torch.bfloat16, enabled=config.bf16 and casts
-    ):
-        heads = model(batch["rig"], resolution, joints2d=batch.get("joints2d"))
-        return total_loss(heads, batch, alpha, config)
-
-
-def optimise(model: Rig2Image, optimizer, loss: torch.Tensor, config: TrainConfig) -> None:
-    """One step's backward pass, gradient clipping and optimiser update."""
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward()
-    if config.grad_clip > 0:
-        torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
-    optimizer.step()
 
 
 def save_checkpoint(folder: Path, model, optimizer, step: int, level: int) -> Path:
@@ -374,9 +311,11 @@ def train(
     resume: bool = False,
     progress: bool = True,
     device: str | None = None,
+    cache: bool = True,
 ) -> TrainResult:
     """Train Rig2Image on a capture dataset (see the module doc). `device`: a --device value
-    (train.distributed.resolve_device; None: the CPU, or the context already made)."""
+    (train.distributed.resolve_device; None: the CPU, or the context already made). `cache`:
+    decode a dataset folder's samples once into its cache first (train.data.ensure_cache)."""
     dataset, out = Path(dataset), Path(out)
     began = time.monotonic()  # the budget counts from here: the step-rate probe is part of it
     ctx = distributed.context(device)  # one process unless under torchrun (train.distributed)
@@ -384,6 +323,10 @@ def train(
     if config.threads:
         torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
+    if cache and not is_shards(dataset):  # rank 0 decodes; the others wait for it
+        said = ctx.share(lambda: ensure_cache(dataset, manifest, progress))
+        if ctx.is_main and progress:
+            print(f"rigspace train: {said}", file=sys.stderr)
     samples = open_split(dataset, "train", config.resolution)  # a dataset or shards folder
     held_out = open_split(dataset, "heldout-views", config.resolution)
     if len(samples) == 0:

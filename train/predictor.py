@@ -37,8 +37,17 @@ def to_maps(out: dict[str, np.ndarray], joint_depth: np.ndarray, depth_scale: fl
 class BundlePredictor:
     """Predicts a dataset's rows with a model bundle at the dataset's resolution."""
 
-    def __init__(self, model: Path, table: DatasetTable, int8: bool = False) -> None:
-        self.model = BundleModel(model, "int8" if int8 else "fp32")
+    def __init__(
+        self,
+        model: Path,
+        table: DatasetTable,
+        int8: bool = False,
+        predictor: str = "auto",
+        device: str = "auto",
+    ) -> None:
+        self.model = BundleModel(
+            model, "int8" if int8 else "fp32", predictor=predictor, device=device
+        )
         self.table = table
         self.name = "model (int8)" if int8 else "model"
         self.footprint_bytes = self.model.footprint_bytes()

@@ -32,11 +32,11 @@ from rigspace.train.loop import (
     TrainingError,
     TrainResult,
     load_checkpoint,
-    make_optimizer,
     save_checkpoint,
 )
 from rigspace.train.loss import downsample, mixed
 from rigspace.train.network import ALBEDO_CHANNELS, Rig2Image, Shape, albedo_alpha
+from rigspace.train.step import make_optimizer
 
 
 def upgrade_state(state: dict[str, torch.Tensor]) -> list[str]:

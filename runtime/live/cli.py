@@ -14,6 +14,7 @@ from typing import Any
 
 from rigspace.sdk.cli import CommandSpec
 from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.predictors import add_predictor_argument
 
 DESCRIPTION = """\
 rigspace live SCENE --out DIR [--seconds S] [--record TAKE.usda] [--source NAME=URL ...] [--video FILE]
@@ -109,6 +110,7 @@ def _live_parser() -> argparse.ArgumentParser:
     parser.add_argument("--resolution", type=_resolution, default=(640, 360), metavar="WxH")
     parser.add_argument("--start", type=float, help="first time code (default: the stage's start)")
     parser.add_argument("--renderer", default="auto", help="renderer for the scene prims")
+    add_predictor_argument(parser)
     parser.add_argument("--prim-samples", type=_positive, default=1, metavar="N",
                         help="N x N samples per pixel for the prims (default 1: real time first)")  # fmt: skip
     parser.add_argument("--max-level", type=_positive, metavar="R", help="cap the level of detail")
@@ -182,7 +184,7 @@ def live(args: argparse.Namespace) -> int:
     engine = Engine(
         args.scene, camera=args.camera, width=width, height=height, renderer=args.renderer,
         aovs=("beauty",), prim_samples=args.prim_samples, max_level=args.max_level,
-        sources=dict(args.source),
+        sources=dict(args.source), predictor=args.predictor,
     )  # fmt: skip
     video = recorder = None
     try:

@@ -14,6 +14,7 @@ from rigspace.runtime.cli import _resolution
 from rigspace.runtime.live.cli import _source
 from rigspace.sdk.cli import CommandSpec
 from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.predictors import add_predictor_argument
 
 if TYPE_CHECKING:  # the Engine, USD and uvicorn load when the command runs, not at --help
     import uvicorn
@@ -41,6 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera", help="Camera prim path (default: the stage's first)")
     parser.add_argument("--resolution", type=_resolution, default=(640, 360), metavar="WxH")
     parser.add_argument("--renderer", default="auto", help="gl, embree or auto")
+    add_predictor_argument(parser)
     parser.add_argument(
         "--reference",
         action="store_true",
@@ -77,6 +79,7 @@ def build(
     reference: bool = False,
     sources: dict[str, str] | None = None,
     renderer: str = "auto",
+    predictor: str = "auto",
 ) -> Viewer:
     """The viewer of one scene, its engines open (or `frames.error` saying why not)."""
     from rigspace.runtime.view.frames import FrameService
@@ -86,7 +89,8 @@ def build(
     model = SceneModel(scene)
     width, height = resolution
     frames = FrameService(scene, model.lock, width=width, height=height, reference=reference,
-                          sources=sources, renderer=renderer)  # fmt: skip
+                          sources=sources, renderer=renderer,
+                          predictor=predictor)  # fmt: skip
     frames.open(camera)
     return Viewer(model, frames)
 
@@ -131,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
         )
     viewer = build(args.scene, camera=args.camera, resolution=args.resolution,
                    reference=args.reference, sources=dict(args.source),
-                   renderer=args.renderer)  # fmt: skip
+                   renderer=args.renderer, predictor=args.predictor)  # fmt: skip
     if viewer.frames.error and args.source:
         # --source asks for a live pose: without frames there is nothing to drive.
         viewer.close()

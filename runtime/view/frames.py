@@ -117,6 +117,7 @@ class FrameService:
         reference: bool = False,
         sources: dict[str, str] | None = None,
         renderer: str = "auto",
+        predictor: str = "auto",
     ) -> None:
         self.scene = Path(scene)
         self.lock = lock
@@ -126,6 +127,7 @@ class FrameService:
         self.with_reference = reference
         self.sources = sources or {}
         self.renderer = renderer
+        self.predictor = predictor
         self.camera: str | None = None
         self.engines: Engines | None = None
         self.error: str | None = None
@@ -152,7 +154,8 @@ class FrameService:
             camera = camera or self.camera
             try:
                 full = Engine(self.scene, camera=camera, width=self.width, height=self.height,
-                              renderer=self.renderer, sources=self.sources)  # fmt: skip
+                              renderer=self.renderer, sources=self.sources,
+                              predictor=self.predictor)  # fmt: skip
             except RigspaceError as exc:
                 self.error = str(exc)
                 return
@@ -163,6 +166,7 @@ class FrameService:
                 preview = Engine(
                     self.scene, camera=self.camera, width=max(self.width // s, 1),
                     height=max(self.height // s, 1), renderer=self.renderer, live=False,
+                    predictor=self.predictor,
                     prim_samples=PREVIEW["prim_samples"], max_level=PREVIEW["max_level"],
                 )  # fmt: skip
             truth = None

@@ -119,7 +119,9 @@ def test_training_flushes_denormals_and_gives_the_setting_back(tmp_path, tiny_da
 
 
 def test_a_nan_loss_stops_with_the_step_and_the_checkpoint(tmp_path, tiny_dataset, monkeypatch):
-    real = loop.total_loss
+    from rigspace.train import step
+
+    real = step.total_loss
     calls = {"n": 0}
 
     def poisoned(*args, **kwargs):
@@ -127,7 +129,7 @@ def test_a_nan_loss_stops_with_the_step_and_the_checkpoint(tmp_path, tiny_datase
         calls["n"] += 1
         return (loss * float("nan") if calls["n"] == 26 else loss), terms
 
-    monkeypatch.setattr(loop, "total_loss", poisoned)
+    monkeypatch.setattr(step, "total_loss", poisoned)
     config = replace(TINY, checkpoint_every=10)
     with pytest.raises(
         loop.TrainingError, match=r"step 25 .*Last good checkpoint: .*checkpoint\.pt"
