@@ -283,7 +283,7 @@ def _capture(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]
 def _training(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
     from rigspace.bench import throughput
 
-    rows = throughput.training_throughput(plan.presets, plan.training_steps)
+    rows = throughput.training_throughput(plan.presets, plan.training_steps, device=plan.device)
     result: dict[str, Any] = {"throughput": rows}
     if dataset is not None and plan.stability_steps:
         result["stability"] = training_stability(dataset, tmp, plan.stability_steps)
@@ -330,6 +330,12 @@ def _predictors(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, A
     return predictors.measure(bundle, plan.repeats, plan.levels, plan.device)
 
 
+def _data(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
+    from rigspace.bench import data
+
+    return data.measure(dataset, 8 * plan.per_split)
+
+
 def _memory(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
     from rigspace.bench import memory
 
@@ -374,6 +380,7 @@ MEASURE = {
     "predictors": _predictors,
     "capture": _capture,
     "training": _training,
+    "data": _data,
     "memory": _memory,
     "stability": _stability,
 }

@@ -169,6 +169,12 @@ def _predictors(rows: list[dict[str, Any]]) -> list[str]:
     return table(rows)
 
 
+def _data(r: dict[str, Any]) -> list[str]:
+    from rigspace.bench.data import table
+
+    return table(r)
+
+
 def _capture(rows: list[dict[str, Any]]) -> list[str]:
     lines = ["## Capture throughput", "", "| renderer | resolution | samples/s |", "|---|---|---|"]
     for row in rows:
@@ -270,6 +276,7 @@ SECTIONS: dict[str, Callable[[Any], list[str]]] = {
     "predictors": _predictors,
     "capture": _capture,
     "training": _training,
+    "data": _data,
     "memory": _memory,
     "stability": _stability,
 }

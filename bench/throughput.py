@@ -84,12 +84,16 @@ def capture_dataset(out: Path, resolution: int, frames=DATASET_FRAMES, views=DAT
     return out
 
 
-def _step_rate(name: str, folder: Path, steps: int, warmup: int) -> dict[str, Any]:
-    """Time `warmup + steps` training steps of preset `name` on the dataset in `folder`."""
+def _step_rate(
+    name: str, folder: Path, steps: int, warmup: int, device: str | None = None
+) -> dict[str, Any]:
+    """Time `warmup + steps` training steps of preset `name` on the dataset in `folder`, on
+    `device` (a --device value; None: the CPU)."""
     import torch  # here, not at the top: capture rows need no torch
 
     from rigspace.train.config import preset
     from rigspace.train.data import Prefetcher, SampleSet
+    from rigspace.train.distributed import resolve_device
     from rigspace.train.network import Rig2Image, Shape
     from rigspace.train.step import forward_loss, make_optimizer, optimise, to_torch
 
@@ -120,7 +124,9 @@ def _step_rate(name: str, folder: Path, steps: int, warmup: int) -> dict[str, An
     if config.threads:
         torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
-    model = Rig2Image(Shape(len(samples.joints)), config)
+    where = resolve_device(device)
+    row["device"] = str(where)
+    model = Rig2Image(Shape(len(samples.joints)), config).to(where)
     if config.channels_last:
         model = model.to(memory_format=torch.channels_last)
     optimizer = make_optimizer(model, config)
@@ -132,9 +138,12 @@ def _step_rate(name: str, folder: Path, steps: int, warmup: int) -> dict[str, An
             start = time.perf_counter()
             # One step of train.loop.train at the final level, fade-in done (alpha 1).
             batch = to_torch(prefetch.get(step), config.channels_last)
+            batch = {k: v.to(where, non_blocking=True) for k, v in batch.items()}
             loss, _terms = forward_loss(model, batch, config.resolution, 1.0, config)
             optimise(model, optimizer, loss, config)
             losses.append(float(loss.detach()))
+            if where.type == "cuda":
+                torch.cuda.synchronize(where)
             if step >= warmup:
                 seconds.append(time.perf_counter() - start)
     finally:
@@ -159,6 +168,7 @@ def training_throughput(
     steps: int = 5,
     dataset: str | Path | None = None,
     warmup: int = 2,
+    device: str | None = None,
 ) -> list[dict[str, Any]]:
     """Training images/s per preset and whether every step's loss was finite.
 
@@ -183,7 +193,7 @@ def training_throughput(
                         Path(tmp) / f"ds_{resolution}", resolution
                     )
                 folder = captured[resolution]
-            row = _step_rate(name, folder, steps, warmup)
+            row = _step_rate(name, folder, steps, warmup, device)
             if dataset is None:
                 row["dataset"] = (
                     f"previs {CHARACTER}, frames {DATASET_FRAMES}, {DATASET_VIEWS} views"

@@ -259,14 +259,17 @@ def sample_textures(
         )
     probabilities = np.ascontiguousarray(probabilities, np.float32)
     best = _most_likely(probabilities)
-    inverse = np.linalg.inv(np.asarray(homography, np.float64))
     result = TextureSample(
         np.zeros((h, w, 3), np.float32),
         np.zeros((h, w), np.bool_),
         np.zeros((h, w, 2), np.float32),
         np.zeros((h, w), np.int32),
     )
-    if not textures.any_texture:
+    try:
+        inverse = np.linalg.inv(np.asarray(homography, np.float64))
+    except np.linalg.LinAlgError:  # a billboard of no size: nothing to read a texture for
+        return result
+    if not textures.any_texture or not np.all(np.isfinite(inverse)):
         return result
     args = (
         inverse, int(x0), int(y0), np.ascontiguousarray(coverage, np.float32), best, probabilities,
@@ -493,15 +496,22 @@ def display_colour(
 
 
 def magnification(homography: np.ndarray, region: tuple[int, int, int, int]) -> float:
-    """Frame pixels per network pixel at a region's centre (the homography's local scale)."""
+    """Frame pixels per network pixel at a region's centre (the homography's local scale);
+    1 (no sharpening) for a degenerate homography, as a billboard seen edge-on in a
+    viewport a few pixels wide gives (found by tests/bench/test_stability.py)."""
     h = np.asarray(homography, np.float64)
-    inverse = np.linalg.inv(h)
+    try:
+        inverse = np.linalg.inv(h)
+    except np.linalg.LinAlgError:
+        return 1.0
     x0, y0, w, height = region
     centre = inverse @ np.array([x0 + w / 2, y0 + height / 2, 1.0])
-    q = centre[:2] / centre[2]
-    p = h @ np.array([q[0], q[1], 1.0])
-    jacobian = (h[:2, :2] - np.outer(p[:2] / p[2], h[2, :2])) / p[2]
-    return float(np.sqrt(abs(np.linalg.det(jacobian))))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        q = centre[:2] / centre[2]
+        p = h @ np.array([q[0], q[1], 1.0])
+        jacobian = (h[:2, :2] - np.outer(p[:2] / p[2], h[2, :2])) / p[2]
+        scale = float(np.sqrt(abs(np.linalg.det(jacobian))))
+    return scale if np.isfinite(scale) else 1.0
 
 
 def sharpen_coverage(coverage: np.ndarray, scale: float) -> np.ndarray:

@@ -1,7 +1,8 @@
 """Quality against training time: a run's kept checkpoints, each evaluated on held-out samples.
 
     python -m rigspace.train.curve MODEL DATASET --checkpoints DIR [--limit 200] \
-        [--out docs/images/training_curve.png] [--clock FILE] [--target-psnr 31]
+        [--out docs/images/training_curve.png] [--clock FILE] [--target-psnr 31] \
+        [--device auto|cpu|cuda[:N]]
 
 A run keeps one checkpoint (MODEL/training/checkpoint.pt, replaced every
 `checkpoint_every` steps); copies of it taken while the run trained (DIR/*.pt, any names)
@@ -34,6 +35,7 @@ import torch
 
 from rigspace.capture.dataset import read_manifest
 from rigspace.sdk.conditioning import joints2d
+from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.render import Maps
 from rigspace.train.ablation import save_figure
 from rigspace.train.budget import trained_levels
@@ -53,23 +55,38 @@ AIMS = {"albedo_psnr": 31.0, "mask_iou": 0.95}
 class TorchPredictor:
     """A checkpoint's network as an evaluation predictor (rigspace.train.evaluate)."""
 
-    def __init__(self, model: Rig2Image, table: DatasetTable, scale: float, skeleton) -> None:
-        self.model, self.table, self.scale, self.skeleton = model, table, scale, skeleton
+    def __init__(
+        self,
+        model: Rig2Image,
+        table: DatasetTable,
+        scale: float,
+        skeleton,
+        device: torch.device | None = None,
+    ) -> None:
+        self.device = device or torch.device("cpu")
+        self.model = model.to(self.device)
+        self.table, self.scale, self.skeleton = table, scale, skeleton
         self.name = "model"
         self.footprint_bytes = sum(p.numel() * 4 for p in model.parameters())
 
     def predict(self, indices: np.ndarray) -> list[Maps]:
         rig = self.table.column("rig")[indices].reshape(len(indices), -1).astype(np.float32)
-        j2d = None if self.skeleton is None else torch.from_numpy(joints2d(rig, self.skeleton))
+        j2d = None
+        if self.skeleton is not None:
+            j2d = torch.from_numpy(joints2d(rig, self.skeleton)).to(self.device)
         resolution = self.table.resolution
         with torch.no_grad():
-            heads = self.model(torch.from_numpy(rig), resolution, joints2d=j2d)
+            heads = self.model(torch.from_numpy(rig).to(self.device), resolution, joints2d=j2d)
             depth, normal, mask = geometry_maps(heads["geometry"][-1])
+            albedo = albedo_maps(heads["albedo"][-1])
             out = {
-                "albedo": albedo_maps(heads["albedo"][-1]).numpy(),
-                "depth": depth.numpy(),
-                "normal": normal.numpy(),
-                "mask": mask.numpy(),
+                name: value.float().cpu().numpy()
+                for name, value in (
+                    ("albedo", albedo),
+                    ("depth", depth),
+                    ("normal", normal),
+                    ("mask", mask),
+                )
             }
         joint_depth = -self.table.column("joint_camera")[indices][:, 2]
         return to_maps(out, joint_depth, self.scale)
@@ -118,10 +135,18 @@ def minutes_at(step: int, clock: dict[int, float], sampled) -> float:
 
 
 def measure(
-    model_dir: Path, dataset: Path, checkpoints: list[Path], limit: int, clock_file: Path | None
+    model_dir: Path,
+    dataset: Path,
+    checkpoints: list[Path],
+    limit: int,
+    clock_file: Path | None,
+    device: str | None = None,
 ) -> list[dict[str, Any]]:
-    """One point per checkpoint past the final level's fade-in: step, minutes, metrics."""
+    """One point per checkpoint past the final level's fade-in: step, minutes, metrics.
+    `device`: a --device value (train.distributed.resolve_device; None: the CPU)."""
     from tqdm import tqdm
+
+    from rigspace.train.distributed import resolve_device
 
     folder = run_folder(model_dir)
     run = json.loads((folder / "run.json").read_text())
@@ -141,7 +166,7 @@ def measure(
     points = []
     for step, path in tqdm(kept, unit="checkpoint", file=sys.stderr):
         model, _, _ = build_model(folder, path)
-        predictor = TorchPredictor(model, table, scale, skeleton)
+        predictor = TorchPredictor(model, table, scale, skeleton, resolve_device(device))
         point: dict[str, Any] = {"step": step, "minutes": minutes_at(step, clock, sampled)}
         for split in splits:
             (row,) = compare([predictor], table, split, limit=limit)["rows"]
@@ -218,11 +243,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("training_curve.png"))
     parser.add_argument("--clock", type=Path, help="`unix_time step` lines (older logs)")
     parser.add_argument("--target-psnr", type=float, default=AIMS["albedo_psnr"])
+    parser.add_argument(
+        "--device",
+        default="auto",
+        help="where the checkpoints run: auto (a CUDA GPU when torch sees one), cpu, cuda[:N]",
+    )
     args = parser.parse_args(argv)
     paths = sorted(args.checkpoints.glob("*.pt"))
     if not paths:
         raise SystemExit(f"rigspace curve: no *.pt in {args.checkpoints}.")
-    points = measure(args.model, args.dataset, paths, args.limit, args.clock)
+    try:
+        points = measure(args.model, args.dataset, paths, args.limit, args.clock, args.device)
+    except RigspaceError as exc:  # a bad --device, dataset or checkpoint: said, no traceback
+        raise SystemExit(f"rigspace curve: {exc}") from None
     if not points:
         raise SystemExit(
             f"rigspace curve: none of the {len(paths)} checkpoints is past the final level's "

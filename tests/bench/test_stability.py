@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import event, given, settings
+from hypothesis import event, example, given, settings
 from hypothesis import strategies as st
 from pxr import Gf, Usd, UsdGeom, UsdLux, Vt
 
@@ -303,6 +303,12 @@ def posed(seed: int, joint: np.ndarray, scale: float) -> np.ndarray:
     near=st.floats(-6, -0.5).map(lambda e: 10.0**e),
     size=st.tuples(st.integers(1, 96), st.integers(1, 96)),
 )
+# A character of scale 0 in a viewport 1 pixel wide: a degenerate homography, which made the
+# texture path's magnification raise (singular) or return NaN coverage.
+@example(seed=0, distance=1.0, ratio=0.0, off_axis=0.0, around=0.0, focal=10.0, near=0.1,
+         size=(1, 5))  # fmt: skip
+@example(seed=0, distance=1.0, ratio=0.0, off_axis=0.0, around=0.0, focal=10.0, near=0.1,
+         size=(1, 3))  # fmt: skip
 def test_billboard_is_finite_or_skipped_and_its_maps_are_in_range(
     hero, seed, distance, ratio, off_axis, around, focal, near, size
 ):

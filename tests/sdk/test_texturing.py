@@ -243,6 +243,19 @@ def test_magnification_is_the_local_scale_of_the_homography():
     assert near > far
 
 
+def test_a_degenerate_homography_sharpens_nothing():
+    """A billboard seen edge-on in a viewport of a few pixels gives a singular or non-finite
+    homography: no sharpening, and no NaN coverage (hypothesis found both)."""
+    singular = np.array([[1.0, 0, 0], [0, 0, 0], [0, 0, 1]])
+    assert magnification(singular, (0, 1, 1, 3)) == 1.0
+    at_infinity = np.array([[1.0, 0, 0], [0, 1, 0], [1, 0, 0]])
+    assert magnification(at_infinity, (0, 0, 1, 5)) == 1.0
+    coverage = np.array([[0.3, 0.8]], np.float32)
+    np.testing.assert_array_equal(
+        sharpen_coverage(coverage, magnification(singular, (0, 0, 2, 1))), coverage
+    )
+
+
 def test_outputs_that_disagree_with_the_charts_are_refused():
     textures = ChartTextures.build(
         _table([((0, 0), (1, 1))]), {"Body": _source(np.ones((4, 4, 3), np.float32))}

@@ -219,7 +219,9 @@ def test_a_damaged_sample_names_the_file_and_the_capture_that_re_renders_it(
     tmp_path, fp32_bundle, tiny_dataset, capsys
 ):
     dataset = tmp_path / "ds"
-    shutil.copytree(tiny_dataset, dataset)
+    # Without the decoded cache an earlier run built: training decodes the EXRs (and so meets
+    # the damaged one) as a fresh dataset would.
+    shutil.copytree(tiny_dataset, dataset, ignore=shutil.ignore_patterns("cache"))
     table = DatasetTable(dataset)
     row = int(table.indices("train")[3])
     path = table.path(row)

@@ -66,3 +66,28 @@ def test_the_ablation_passes_its_device_to_every_variant(tiny_dataset, tmp_path,
     assert code != 0 and f"Device '{MISSING}' is not available" in capsys.readouterr().err
     assert not (out / "paper" / "run").exists()
     distributed.context("cpu")
+
+
+def test_eval_and_the_curve_take_a_device_and_refuse_one_that_is_not_there(
+    tiny_dataset, tmp_path, capsys
+):
+    from rigspace.train import curve
+    from rigspace.train.export import export_bundle
+
+    run = tmp_path / "run"
+    loop.train(tiny_dataset, run, preset("tiny"), progress=False)
+    keep = tmp_path / "keep"
+    keep.mkdir()
+    (keep / "last.pt").write_bytes((run / loop.CHECKPOINT).read_bytes())
+    args = [str(run), str(tiny_dataset), "--checkpoints", str(keep), "--limit", "2"]
+    args += ["--out", str(tmp_path / "curve.png")]
+    with pytest.raises(SystemExit, match=f"Device '{MISSING}' is not available"):
+        curve.main([*args, "--device", MISSING])
+    assert curve.main([*args, "--device", "cpu"]) == 0
+    bundle = tmp_path / "bundle"
+    export_bundle(run, bundle, int8=False)
+    evaluate = ["eval", str(bundle), str(tiny_dataset), "--limit", "2", "--no-baselines"]
+    assert main([*evaluate, "--device", "cpu"]) == 0
+    assert "the model runs on onnxruntime CPU (fp32)" in capsys.readouterr().err
+    assert main([*evaluate, "--device", MISSING]) != 0
+    assert f"does not run on {MISSING}" in capsys.readouterr().err
