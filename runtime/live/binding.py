@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -10,7 +11,17 @@ from urllib.parse import parse_qsl, quote
 
 import numpy as np
 
-from rigspace.runtime.live.buffer import BindingCounters, BufferSettings, LiveBuffer, LivePose
+from rigspace.runtime.live.buffer import (
+    CONNECTED,
+    LOST,
+    STALE,
+    WAITING,
+    BindingCounters,
+    BufferSettings,
+    LiveBuffer,
+    LivePose,
+)
+from rigspace.runtime.live.frames import quat_angle
 from rigspace.runtime.live.retarget import (
     PRESETS,
     Y_180,
@@ -31,6 +42,9 @@ DEFAULT_PRESET = {"vmc": "unity", "replay": "cmu", "bvh+tcp": "cmu"}
 sourceBones (and the source's bones match the preset's)."""
 BONE_PRESETS = {"unityHumanoid": "unity", "cmu": "cmu", "mixamo": "mixamo"}
 """bonePreset token -> retarget.PRESETS name ("auto": DEFAULT_PRESET, "none": same names)."""
+TURN_RATE = 240.0
+"""Degrees per second a joint turns at most in a connect, reconnect or loss transition (8 a
+tick at 30 fps): a fade that would turn a joint faster lasts longer than the blend seconds."""
 CLIP_FADE_SECONDS = 0.25
 """A clip blend moves at most this fast from 0 to 1 (a button press does not pop the pose)."""
 NATIVE_BASIS = {"vmc": Y_180}
@@ -51,6 +65,21 @@ class LiveBindingRuntime:
     clip_blend: np.ndarray = field(default_factory=lambda: np.zeros(0))
     """The eased blend per clip of the source's clip_names, as of the last frame."""
     _last_now: float | None = None
+    _shown: np.ndarray | None = None
+    """The (J, 4, 4) transforms this binding gave the last frame (a transition starts there)."""
+    _status: str = WAITING
+    """The pose's status in the last frame."""
+    _fade: tuple[float, float, np.ndarray | None] | None = None
+    """(start, seconds, held from-transforms or None: from the stage animation as it plays)
+    of the transition in progress."""
+    _anchor: np.ndarray | None = None
+    """While lost: the root translation where the performer left the character, minus the
+    stage's root then; the stage animation plays from there ("in place")."""
+
+    @property
+    def fading(self) -> bool:
+        """Whether a connect, reconnect or loss transition was in progress at the last frame."""
+        return self._fade is not None
 
     def start(self) -> None:
         self.source.start(self.buffer)
@@ -67,16 +96,67 @@ class LiveBindingRuntime:
         now: float | None = None,
         sample: Callable[[float], Any] | None = None,
         time_code: float | None = None,
+        past: bool = False,
     ) -> tuple[np.ndarray, LivePose]:
         """The stage's (J, 4, 4) local transforms with this binding's pose merged in, and the pose
         (its status and weight belong in the frame's report). A source with clip controls
         first blends the stage pose towards its clips: `sample(time_code)` gives the stage's
         local transforms at another time code (without it, clips are not blended)."""
         now = time.monotonic() if now is None else now
-        pose = self.buffer.pose(now)
+        # `past`: a take recorder catching up asks for the pose at a tick it missed.
+        pose = self.buffer.pose_at(now) if past else self.buffer.pose(now)
         if self.clip_ranges and sample is not None and time_code is not None:
             stage_local = self._blend_clips(stage_local, pose, now, sample, time_code)
         return self.retargeter.apply(stage_local, pose), pose
+
+    def apply_frame(
+        self,
+        stage_local: np.ndarray,
+        now: float | None = None,
+        sample: Callable[[float], Any] | None = None,
+        time_code: float | None = None,
+    ) -> tuple[np.ndarray, LivePose]:
+        """`apply` for a frame on screen: with the transitions at a connect, reconnect or loss
+        (`_transition`); a take records `apply`'s live pose itself."""
+        now = time.monotonic() if now is None else now
+        out, pose = self.apply(stage_local, now, sample, time_code)
+        if self.retargeter.space == "additive":  # controller offsets ease in with their weight
+            return out, pose
+        return self._transition(out, stage_local, pose, now), pose
+
+    def _transition(
+        self, out: np.ndarray, stage_local: np.ndarray, pose: LivePose, now: float
+    ) -> np.ndarray:
+        """No pops (issue 21). On a connect: a fade from the stage animation (as it plays on)
+        to the live pose; on a reconnect after a stale gap, from the held pose. Once lost: a
+        fade from the held pose to the stage animation in place, its root offset to where the
+        performer left the character. A fade lasts the binding's blend seconds, longer where a
+        joint has further to turn than TURN_RATE allows."""
+        root = self.retargeter.target_root
+        previous, self._status = self._status, pose.status
+        if pose.status == LOST and previous != LOST and self._shown is not None:
+            self._anchor = self._shown[root, 3, :3] - stage_local[root, 3, :3]
+        in_place = stage_local.copy()  # the stage animation, from where the performer left
+        if self._anchor is not None and self.retargeter.root_motion:
+            in_place[root, 3, :3] += self._anchor
+        if pose.status == LOST:
+            out = in_place
+        if pose.status != previous and pose.status in (CONNECTED, LOST):
+            held = previous == STALE or pose.status == LOST
+            frozen = self._shown.copy() if held and self._shown is not None else None
+            turn = float(_turn_degrees(in_place if frozen is None else frozen, out).max())
+            self._fade = (now, max(self.buffer.settings.blend, turn / TURN_RATE), frozen)
+        if self._fade is not None:
+            start, seconds, frozen = self._fade
+            u = (now - start) / seconds if seconds > 0 else 1.0
+            if u >= 1.0 or pose.status not in (CONNECTED, LOST):
+                self._fade = None
+                if pose.status == CONNECTED:
+                    self._anchor = None
+            else:
+                out = blend_transforms(in_place if frozen is None else frozen, out, max(u, 0.0))
+        self._shown = out
+        return out
 
     def _blend_clips(
         self,
@@ -175,6 +255,13 @@ def open_binding(
     else:
         names = {j.rsplit("/", 1)[-1] for j in joints} | set(joints)
         bone_map = {b: b for b in source.bones if b in names}
+    own = None if native else _own_skeleton(source)
+    if binding.source_meters_per_unit == 1.0 and own is not None:
+        # A BVH's units are its file's (sourceMetersPerUnit unauthored): the rest pose's height
+        # says which (a CMU conversion, centimetres, inches, metres), whatever its bone names.
+        meters_per_unit, note, sure = guess_units(own)
+        fix = "" if sure else f"; if wrong, author rigspace:live:{binding.name}:sourceMetersPerUnit"
+        print(f"rigspace live: {binding.name}: {note}{fix}", file=sys.stderr)
     basis = np.eye(3) if native else NATIVE_BASIS.get(scheme)
     if basis is None:
         basis = source_basis(binding.source_up_axis, binding.source_handedness)
@@ -220,6 +307,13 @@ def open_binding(
     )
 
 
+def _turn_degrees(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per joint, the angle (degrees) between two (J, 4, 4) row-vector local transforms."""
+    qa = quat_from_matrix(np.swapaxes(a[:, :3, :3], 1, 2))
+    qb = quat_from_matrix(np.swapaxes(b[:, :3, :3], 1, 2))
+    return np.degrees(quat_angle(qa, qb))
+
+
 def _with_gamepad_map(binding: Any, scheme: str) -> str:
     """The binding's URL with its gamepadOffsets/gamepadClips as axes=/clips= options (the
     URL's own options win: `--source pad=gamepad://...?axes=...` overrides the stage)."""
@@ -257,13 +351,47 @@ def _clip_ranges(
     return {c: clips[c] for c in wanted}
 
 
-def _rest_positions(source: Source, preset: Preset | None) -> np.ndarray | None:
-    """The source's rest joint positions: its own skeleton's (BVH stream and replay), else its
-    preset's canonical rest (VMC: a VRM-style T-pose), else None."""
+UNITS = {
+    "metres": 1.0,
+    "centimetres": 0.01,
+    "millimetres": 0.001,
+    "inches": 0.0254,
+    "the CMU ASF unit (1/0.45 inch)": 0.0254 / 0.45,
+}
+"""Length units BVH files come in, meters per unit."""
+REST_HEIGHT = 1.45
+"""Metres from the lowest to the highest joint of an adult's rest pose (toe to head joint;
+the shipped CMU clip: 1.28, CMU's own subjects up to about 1.6)."""
+SURE = 1.5
+"""A guess is sure when the height it gives is within this factor of REST_HEIGHT."""
+
+
+def guess_units(rest_positions: np.ndarray) -> tuple[float, str, bool]:
+    """(meters per unit, a sentence saying the guess, whether it is sure) for a BVH skeleton's
+    rest joint positions: the unit that makes the rest pose's height nearest an adult's."""
+    positions = np.asarray(rest_positions, dtype=np.float64)
+    height = float(np.ptp(positions, axis=0).max()) if len(positions) else 0.0
+    if not height > 0:
+        return 1.0, "the BVH rest pose has no extent: its units are taken as metres", False
+    name, unit = min(UNITS.items(), key=lambda u: abs(np.log(height * u[1] / REST_HEIGHT)))
+    metres = height * unit
+    sure = 1 / SURE <= metres / REST_HEIGHT <= SURE
+    return unit, f"BVH units: {name} (the rest pose is {metres:.2f} m tall in them)", sure
+
+
+def _own_skeleton(source: Source) -> np.ndarray | None:
+    """The rest joint positions of a source that brings its own skeleton (a BVH stream or
+    replay), else None."""
     skeleton = getattr(getattr(source, "decoder", None), "skeleton", None)
     if skeleton is not None:
         return skeleton.rest_positions()
-    own = getattr(source, "rest_positions", None)
+    return getattr(source, "rest_positions", None)
+
+
+def _rest_positions(source: Source, preset: Preset | None) -> np.ndarray | None:
+    """The source's rest joint positions: its own skeleton's (BVH stream and replay), else its
+    preset's canonical rest (VMC: a VRM-style T-pose), else None."""
+    own = _own_skeleton(source)
     if own is not None:
         return own
     return preset.rest_positions_for(source.bones) if preset is not None else None

@@ -54,8 +54,9 @@ class BufferSettings:
     None: LOST_FACTOR x timeout (Live Link too holds a subject's last pose before dropping it)."""
     blend: float = 0.5
     """Seconds over which a lost binding blends back to the stage animation."""
-    history: int = 256
-    """Snapshots kept for `delayed` (bounded: a flood cannot grow memory)."""
+    history: int = 2048
+    """Snapshots kept for `delayed` and for a take recorder that catches up (`pose_at`):
+    34 s at 60 Hz, bounded, so a flood cannot grow memory (2048 x 55 bones: 3.6 MB)."""
 
     @property
     def lost_after(self) -> float:
@@ -391,6 +392,40 @@ class LiveBuffer:
         return LivePose(
             rotations.copy(),
             valid.copy(),
+            None if root is None else np.array(root, dtype=np.float64),
+            status,
+            weight,
+            sample_time,
+        )
+
+    def pose_at(self, when: float) -> LivePose:
+        """The pose a frame at local monotonic time `when` (now or past) would have had, from
+        the kept snapshots: the newest one pushed by then (latest), or `delay` before it
+        (delayed). For a take recorder that fell behind (a stall, a busy machine): it catches up
+        with the poses of the ticks it missed instead of skipping them. Waits for the lock (it
+        is not on the frame thread). Before the first snapshot: the waiting pose."""
+        n = len(self.bones)
+        with self._lock:
+            times = self._local_times() if self._times else np.zeros(0)
+            i = int(np.searchsorted(times, when, side="right")) - 1
+            if i < 0:
+                rest = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+                return LivePose(rest, np.zeros(n, bool), None, WAITING, 0.0, math.nan)
+            newest = float(times[i])
+            if self.settings.mode == DELAYED and len(times) >= 2:
+                rotations, root, sample_time = self._delayed(when)
+            else:
+                (rotations, root), sample_time = self._snapshots[i], newest
+            valid = self._valid.copy()
+        s = self.settings
+        status = self._status(when, newest)
+        weight = 1.0
+        if status == LOST:
+            gone = when - (newest + s.lost_after)
+            weight = max(0.0, 1.0 - gone / s.blend) if s.blend > 0 else 0.0
+        return LivePose(
+            rotations.copy(),
+            valid,
             None if root is None else np.array(root, dtype=np.float64),
             status,
             weight,

@@ -133,9 +133,16 @@ def _calibrate_parser() -> argparse.ArgumentParser:
     return parser
 
 
+FIRST_FRAME_NOTE = 2.0
+"""Seconds a warm-up frame may take before `live` says why it was slow."""
+
+
 class _TakeThread(threading.Thread):
     """Records every live character's merged pose at each stage tick, whatever the renderer is
-    doing: the take keeps the stage's rate even when frames are dropped."""
+    doing: the take keeps the stage's rate even when frames are dropped. A tick this thread
+    reaches late (a stall: the GIL held by a compile, a loaded machine) is recorded all the
+    same, with the pose its bindings held at the tick's time (LiveBuffer.pose_at): every tick
+    of the run is in the take, stamped with its time code."""
 
     def __init__(self, engine, start_code: float, fps: float, t0: float, ticks: int) -> None:
         super().__init__(name="rigspace-live-take", daemon=True)
@@ -149,19 +156,27 @@ class _TakeThread(threading.Thread):
             for path, live in engine.live.characters.items()
         }
         self.halt = threading.Event()
+        self.end = math.inf
+        """Local time the run ended (finish): ticks due after it are not recorded."""
         self.error: BaseException | None = None
+
+    def finish(self, end: float) -> None:
+        """Record every tick due up to local time `end` (those missed included), then stop."""
+        self.end = end
+        self.halt.set()
 
     def run(self) -> None:
         try:
             for k in range(self.ticks):
-                wait = self.t0 + k / self.fps - time.monotonic()
-                if wait < -1.0 / self.fps:
-                    continue  # a tick this thread could not reach in time (a stall)
-                if (wait > 0 and self.halt.wait(wait)) or self.halt.is_set():
+                due = self.t0 + k / self.fps
+                wait = due - time.monotonic()
+                if wait > 0:
+                    self.halt.wait(wait)  # woken early by finish(): catch up, then stop
+                if due > self.end:
                     return
                 code = self.start_code + k
                 for path, live in self.engine.live.characters.items():
-                    local, _ = self.engine.live.merged(live.character, code)
+                    local, _ = self.engine.live.merged(live.character, code, due, past=True)
                     if local is not None:
                         self.takes[path].add(code, local)
         except BaseException as exc:  # reported by the main thread, which owns the exit
@@ -187,6 +202,7 @@ def live(args: argparse.Namespace) -> int:
         sources=dict(args.source), predictor=args.predictor,
     )  # fmt: skip
     video = recorder = None
+    result = None
     try:
         if not engine.live.active:
             print(
@@ -214,6 +230,18 @@ def live(args: argparse.Namespace) -> int:
                     f"--video {args.video} cannot be written ({exc}).",
                     "choose a writable .mp4 path in an existing folder.",
                 ) from exc
+        # One frame before the clock starts: sessions, GL buffers, shadow maps, and on a first
+        # run numba's compile of the shadow and texture kernels (cached on disk after; .ci/setup
+        # compiles them ahead), so that the first live frame is on time.
+        began = time.monotonic()
+        engine.render(float(start_code))
+        if time.monotonic() - began > FIRST_FRAME_NOTE:
+            print(
+                f"rigspace live: the first frame took {time.monotonic() - began:.1f} s (numba "
+                "compiled the shadow and texture kernels; they are cached for later runs): the "
+                "clock starts now",
+                file=sys.stderr,
+            )
         t0 = time.monotonic()
         if args.record:
             recorder = _TakeThread(engine, start_code, fps, t0, ticks)
@@ -221,7 +249,9 @@ def live(args: argparse.Namespace) -> int:
         result = _loop(engine, out, video, start_code, fps, t0, ticks, cv2, np, linear_to_srgb)
     finally:
         if recorder is not None:
-            recorder.halt.set()
+            # A run that went its length records every tick; an interrupted one up to now.
+            stopped = result is None or result[3]
+            recorder.finish(time.monotonic() if stopped else recorder.t0 + ticks / fps)
             recorder.join()
         bindings = engine.live.report() if engine.live.active else []
         engine.close()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from collections.abc import Sequence
@@ -30,6 +31,47 @@ class LiveCharacter:
     """binding name -> {status, weight, sample_time} of the last frame's pose."""
     last_local: np.ndarray | None = None
     """(J, 4, 4) the last frame's merged local transforms."""
+
+
+SOURCE_DESCRIPTION = {
+    "source_bones": ("sourceBones", ()),
+    "target_joints": ("targetJoints", ()),
+    "source_up_axis": ("sourceUpAxis", "Y"),
+    "source_handedness": ("sourceHandedness", "right"),
+    "source_meters_per_unit": ("sourceMetersPerUnit", 1.0),
+    "rest_pose": ("restPose", ()),
+    "bone_preset": ("bonePreset", "auto"),
+}
+"""What a binding says about its source (bone map, axes, units, calibration), at the schema's
+fallbacks: the new scheme's preset then applies."""
+
+
+def scheme(url: str) -> str:
+    return url.partition("://")[0].lower()
+
+
+def with_source(binding: schema.LiveBinding, url: str) -> schema.LiveBinding:
+    """`binding` with --source NAME=URL: that URL, enabled whatever the stage says. A URL of
+    another scheme is another kind of sender: what the binding authors about its source (bone
+    map, axes, handedness, units, calibration), written for the old one, is reset to the
+    schema's fallbacks so the new scheme's preset applies (said on stderr)."""
+    fields = {**binding.__dict__, "url": url, "enabled": True}
+    old, new = scheme(binding.url), scheme(url)
+    if old and old != new:
+        authored = [
+            attribute
+            for name, (attribute, fallback) in SOURCE_DESCRIPTION.items()
+            if fields[name] != fallback
+        ]
+        fields |= {name: fallback for name, (_, fallback) in SOURCE_DESCRIPTION.items()}
+        if authored:
+            print(
+                f"rigspace live: --source {binding.name}={url}: a {new}:// source replaces "
+                f"{old}://; the binding's {', '.join(authored)} (authored for {old}://) are "
+                f"reset, so the {new}:// preset applies",
+                file=sys.stderr,
+            )
+    return schema.LiveBinding(**fields)
 
 
 def _clip_ranges(prim: Usd.Prim) -> dict[str, tuple[float, float]]:
@@ -67,9 +109,7 @@ class LiveInput:
             for binding in schema.read_live_bindings(character.prim):
                 named.add(binding.name)
                 if binding.name in sources:
-                    # --source NAME=URL: that URL, enabled whatever the stage says.
-                    fields = {**binding.__dict__, "url": sources[binding.name], "enabled": True}
-                    binding = schema.LiveBinding(**fields)
+                    binding = with_source(binding, sources[binding.name])
                 if binding.enabled and enabled:
                     chosen.append(binding)
             if chosen:
@@ -133,9 +173,16 @@ class LiveInput:
                 live.runtimes.clear()
             self._opened = False
 
-    def merged(self, character: NeuralCharacter, time_code: float, now: float | None = None):
+    def merged(
+        self,
+        character: NeuralCharacter,
+        time_code: float,
+        now: float | None = None,
+        past: bool = False,
+    ):
         """(J, 4, 4) the character's local transforms at `time_code` with its bindings' poses
-        merged in (None without live bindings), and each binding's pose."""
+        merged in (None without live bindings), and each binding's pose. `past`: the poses the
+        bindings held at local time `now` (LiveBuffer.pose_at), for a recorder catching up."""
         live = self.characters.get(character.path)
         if live is None or not live.runtimes:
             return None, []
@@ -144,7 +191,10 @@ class LiveInput:
         local = np.asarray(rig.local_transforms(time_code), dtype=np.float64)
         poses = []
         for runtime in live.runtimes:
-            local, pose = runtime.apply(local, now, rig.local_transforms, time_code)
+            if past:  # a take recorder catching up: the live pose at a tick it missed
+                local, pose = runtime.apply(local, now, rig.local_transforms, time_code, True)
+            else:  # a frame: with the connect, reconnect and loss transitions
+                local, pose = runtime.apply_frame(local, now, rig.local_transforms, time_code)
             poses.append((runtime, pose))
         return local, poses
 

@@ -70,8 +70,13 @@ class VmcDecoder:
     a sender has sent T, only T closes frames and its value is the frame's timestamp (the
     sender's clock); senders without T get the receive time. Packets are parsed with python-osc's
     OscPacket, never its dispatcher, so a bundle's future timetag cannot stall the receiver.
-    Bone/Pos positions (the bone's local offset) are not used: retargeting takes rotations, and
-    root motion comes from Root/Pos.
+
+    Root motion (one rule, whichever the sender moves): the hips' position in the sender's
+    space, Root/Pos's position plus Root's rotation applied to the Hips Bone/Pos position (its
+    local offset). A sender that moves the avatar root (Root/Pos) and one that moves the hips
+    bone with Root fixed (as Unity-based senders do) both move the character; other bones'
+    positions are not used (retargeting takes rotations). A value with NaN or Inf is malformed
+    where it arrives (counted; the bone's last good value in the frame stays).
     """
 
     space = "local"
@@ -82,6 +87,11 @@ class VmcDecoder:
         self.counters = DecodeCounters()
         self._pending: dict[int, list] = {}
         self._sender_time = False
+        self._hips = self._index["Hips"] if "Hips" in self._index else -1
+        self._root_pose: tuple[np.ndarray, np.ndarray] | None = None
+        """The last good Root/Pos (position, (w, x, y, z)), right-handed."""
+        self._hips_offset: np.ndarray | None = None
+        """The last good Hips Bone/Pos position (its local offset), right-handed."""
 
     @property
     def buffered(self) -> int:
@@ -111,6 +121,9 @@ class VmcDecoder:
                     or any(type(v) not in _NUMBER for v in params[1:8])
                 ):
                     c.malformed += 1
+                    continue
+                if not all(math.isfinite(v) for v in params[1:8]):
+                    c.malformed += 1  # counted here: a later value in the frame would hide it
                     continue
                 if address == ROOT_POS:
                     index = 0
@@ -151,16 +164,41 @@ class VmcDecoder:
         quats, ok = unit_quaternions(quats)
         ok &= finite_pos
         c.malformed += int(np.count_nonzero(~ok))
-        is_root = (indices == 0) & ok
-        root_position = positions[is_root][0] if is_root.any() else None
         if not ok.any():
             return None
+        root_position = self._root_motion(indices, positions, quats, ok)
         c.frames += 1
         c.samples += int(np.count_nonzero(ok))
         # T's clock and the receive clock are different streams (the first frames of a sender
         # that sends T close on OK with receive times): no false clock reset between them.
         stream = 1 if self._sender_time else 0
         return Frame(stream, timestamp, indices[ok], quats[ok], root_position)
+
+    def _root_motion(
+        self, indices: np.ndarray, positions: np.ndarray, quats: np.ndarray, ok: np.ndarray
+    ) -> np.ndarray | None:
+        """The frame's root position by the class's rule (None when this frame moved neither
+        Root nor Hips: the buffer keeps the last one)."""
+        moved = False
+        for k in np.flatnonzero(ok & ((indices == 0) | (indices == self._hips))):
+            if indices[k] == 0:
+                self._root_pose = (positions[k], quats[k])
+            else:
+                self._hips_offset = positions[k]
+            moved = True
+        if not moved:
+            return None
+        offset = np.zeros(3) if self._hips_offset is None else self._hips_offset
+        if self._root_pose is None:
+            return offset.copy()
+        position, rotation = self._root_pose
+        return position + _rotate(rotation, offset)
+
+
+def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Vector `v` rotated by the unit quaternion `q` (w, x, y, z)."""
+    w, u = q[0], q[1:]
+    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
 
 
 def encode_frame(

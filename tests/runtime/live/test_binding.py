@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import socket
 import warnings
 
@@ -192,3 +193,96 @@ def test_validation_checks_the_new_attributes():
     assert "clip 'dance'" in found["ClipMissing"] and "(walk, wave," in found["ClipMissing"]
     unused = codes(hero_with(gamepadClips=["ABS_RZ:wave"]))  # on the vmc:// suit
     assert set(unused) == {"GamepadMapUnused"}
+
+
+def scaled_bvh(path, out, factor: float):
+    """The CMU clip rewritten in other units, by the format (HIERARCHY OFFSETs and the root's
+    three position channels, which this file's root lists first), not by the project's parser."""
+    lines, motion = [], False
+    for line in path.read_text().splitlines():
+        words = line.split()
+        if words[:1] == ["OFFSET"]:
+            line = (
+                line[: line.index("OFFSET")]
+                + "OFFSET "
+                + " ".join(f"{float(v) * factor:.6f}" for v in words[1:])
+            )
+        elif motion and words and words[0][0] in "-0123456789.":
+            values = [float(v) for v in words]
+            values[:3] = [v * factor for v in values[:3]]
+            line = " ".join(f"{v:.6f}" for v in values)
+        motion |= words[:1] == ["MOTION"]
+        lines.append(line)
+    out.write_text("\n".join(lines) + "\n")
+    return out
+
+
+@pytest.mark.parametrize(
+    ("factor", "unit", "name"),
+    [
+        (1.0, 0.0254 / 0.45, "the CMU ASF unit"),
+        (0.0254 / 0.45 / 0.01, 0.01, "centimetres"),  # the same clip in centimetres
+        (0.0254 / 0.45, 1.0, "metres"),
+    ],
+)
+def test_bvh_units_come_from_the_rest_pose(skel, tmp_path, capsys, factor, unit, name):
+    _, skel_prim, _ = skel
+    clip = scaled_bvh(CMU_CLIP, tmp_path / "clip.bvh", factor)
+    runtime = open_binding(binding(f"replay://{clip}"), skel_prim, 0.01)
+    assert runtime.retargeter.scale == pytest.approx(unit / 0.01, rel=1e-6)
+    note = capsys.readouterr().err
+    assert f"BVH units: {name}" in note and "1.28 m tall" in note
+    authored = open_binding(
+        binding(f"replay://{clip}", source_meters_per_unit=0.5), skel_prim, 0.01
+    )
+    assert authored.retargeter.scale == pytest.approx(0.5 / 0.01)  # authored wins, no guess
+
+
+def test_an_unsure_unit_guess_says_what_to_author(skel, tmp_path, capsys):
+    _, skel_prim, _ = skel
+    clip = scaled_bvh(CMU_CLIP, tmp_path / "tiny.bvh", 0.3)  # a 38 cm figure in CMU units
+    open_binding(binding(f"replay://{clip}"), skel_prim, 0.01)
+    assert "author rigspace:live:suit:sourceMetersPerUnit" in capsys.readouterr().err
+
+
+def _joint_angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per joint, the angle (deg) between two (J, 4, 4) row-vector transforms' rotations."""
+    qa = quat_from_matrix(np.swapaxes(a[:, :3, :3], 1, 2))
+    qb = quat_from_matrix(np.swapaxes(b[:, :3, :3], 1, 2))
+    return np.degrees(quat_angle(qa, qb))
+
+
+def test_connect_reconnect_and_loss_move_no_joint_more_than_10_degrees_a_tick(skel):
+    """30 fps ticks through a connect (the stage pose to a pose 120 deg away), a loss (held,
+    then the stage animation in place: the root stays where the performer left it) and a
+    reconnect to another far pose: no joint turns more than 10 deg in one tick, no root jump."""
+    from rigspace.runtime.live.frames import Frame
+
+    _, skel_prim, local = skel
+    runtime = open_binding(binding("vmc://127.0.0.1:1"), skel_prim, 0.01)  # never started
+    bones = runtime.source.bones
+    arm = [bones.index("LeftUpperArm"), bones.index("RightUpperArm"), bones.index("Hips")]
+
+    def frame(t: float, angle: float, x: float) -> Frame:
+        q = np.tile([np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)], (3, 1))
+        return Frame(0, t, np.array(arm), q, np.array([x, 0.95, 0.0]))
+
+    shown, roots, step, t = [], [], 1 / 30, 0.0
+    for phase, (until, angle, x) in enumerate(
+        [(1.0, 2.1, 0.0), (4.0, None, 0.0), (5.5, -2.1, 3.0)]
+    ):
+        while t < until:
+            if angle is not None:  # data flows (phases 0 and 2); phase 1: the sender is gone
+                runtime.buffer.push(frame(t, angle, x + (t - until) * 0.1), t)
+            out, pose = runtime.apply_frame(local, now=t + 0.001)
+            shown.append(out)
+            roots.append(out[runtime.retargeter.target_root, 3, :3].copy())
+            t += step
+        assert phase != 1 or pose.status == "lost"
+    per_tick = np.array([_joint_angles(a, b).max() for a, b in itertools.pairwise(shown)])
+    assert per_tick.max() <= 10.0, np.argmax(per_tick)
+    assert per_tick.max() > 1.0  # it did move: connect, loss and reconnect each turn the arms
+    jumps = np.linalg.norm(np.diff(roots, axis=0), axis=1)
+    assert jumps.max() < 0.25 * 100  # stage units (cm): under 25 cm a tick, even at reconnect
+    lost = [r for r, k in zip(roots, range(len(roots)), strict=True) if 2.6 < k * step < 4.0]
+    np.testing.assert_allclose(lost, [roots[int(2.0 / step)]] * len(lost), atol=1e-6)  # in place

@@ -255,3 +255,43 @@ def test_calibrate_stores_the_sources_rest_pose(tmp_path, clip, capsys):
                  f"vmc://127.0.0.1:{free_port()}", "--seconds", "0.2"])  # fmt: skip
     assert code == 2 and "received nothing" in capsys.readouterr().err
     assert scene.read_text() == before
+
+
+def test_a_take_holds_every_tick_even_when_the_recorder_stalls(tmp_path, clip, monkeypatch):
+    """A recorder that falls behind (here: stalled 0.5 s on one tick, as a compile holding the
+    GIL does) records the ticks it missed with the poses the binding held then."""
+    from rigspace.runtime.live.engine import LiveInput
+
+    real = LiveInput.merged
+    stalled: list[float] = []
+
+    def stalling(self, character, time_code, now=None, past=False):
+        if threading.current_thread().name == "rigspace-live-take" and time_code >= 5:
+            if not stalled:
+                stalled.append(time_code)
+                threading.Event().wait(0.5)  # 15 ticks at 30 fps
+        return real(self, character, time_code, now, past)
+
+    monkeypatch.setattr(LiveInput, "merged", stalling)
+    port = free_port()
+    url = f"vmc://127.0.0.1:{port}"
+    take = tmp_path / "take.usda"
+    sender = Sender(clip, url)
+    try:
+        code = main(
+            ["live", str(LIVE_SCENE), "--out", str(tmp_path / "out"), "--seconds", "1.5",
+             "--source", f"suit={url}", "--record", str(take), "--resolution", "64x36",
+             "--max-level", "16"]
+        )  # fmt: skip
+    finally:
+        sender.close()
+    assert code == 0 and stalled
+    recorded = read_take(take)
+    assert len(recorded.times) == 45  # every tick of 1.5 s at 30 fps
+    assert np.allclose(np.diff(recorded.times), 1 / 30)
+    # The ticks recorded late are the clip's frames too, moving forward (not one held pose).
+    expected = expected_locals(clip, LIVE_SCENE, url, 0.0)
+    errors = angles(recorded.rotations[:, None], expected[None]).max(axis=2)
+    late = slice(6, 20)
+    assert np.all(errors[late].min(axis=1) < 1e-3)
+    assert len(set(errors[late].argmin(axis=1))) > 5

@@ -54,6 +54,9 @@ def test_a_still_source_costs_a_reused_frame_and_every_frame_reports_the_binding
         moved = engine.render(11.0)
         assert moved.report["characters"][0]["live"][0]["status"] == "connected"
         assert moved.report["characters"][0]["decision"] == "evaluated"
+        # The connect fades in from the stage pose (issue 21: no pop); the held pose after it.
+        assert runtime.fading
+        assert wait_for(lambda: engine.render(11.0) is not None and not runtime.fading)
         send_pose(port, HELD, held_pose(0.6), 0.05)
         assert wait_for(lambda: runtime.counters().samples >= 4 * len(HELD))
         # A later stage time, the same live pose: the character's layer is reused (no network
@@ -96,3 +99,24 @@ def test_a_binding_whose_source_cannot_open_is_one_error_naming_it():
     message = str(error.value)
     assert message.startswith("Live binding 'suit' of /World/Hero: Live source 'suit'")
     assert "is in use" in message and "enabled = false" in message
+
+
+def test_a_source_of_another_scheme_does_not_inherit_the_old_sources_bone_map(capsys):
+    """live.usda's suit binding maps Unity bone names for vmc://; --source suit=bvh+tcp://...
+    is a CMU-style BVH sender, so that map, the axes and units reset to the bvh preset's."""
+    from pxr import Usd
+
+    from rigspace.runtime.live.engine import with_source
+    from rigspace.sdk import schema
+
+    stage = Usd.Stage.Open(str(LIVE_SCENE))
+    (suit,) = schema.read_live_bindings(stage.GetPrimAtPath("/World/Hero"))
+    assert suit.url.startswith("vmc://") and suit.source_bones
+    same = with_source(suit, "vmc://127.0.0.1:40000")
+    assert same.source_bones == suit.source_bones and same.url == "vmc://127.0.0.1:40000"
+    assert capsys.readouterr().err == ""
+    other = with_source(suit, "bvh+tcp://127.0.0.1:40001")
+    assert other.source_bones == () and other.target_joints == () and other.enabled
+    assert other.bone_preset == "auto" and other.source_meters_per_unit == 1.0
+    note = capsys.readouterr().err
+    assert "a bvh+tcp:// source replaces vmc://" in note and "sourceBones" in note

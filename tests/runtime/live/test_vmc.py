@@ -239,3 +239,54 @@ def test_sender_stops_and_restarts_stale_lost_connected():
         assert buffer.pose().weight == 1.0 and buffer.clock_resets == 1
     finally:
         source.stop()
+
+
+def _unity_sender_frame(root: tuple, hips: tuple, nan_first: bool = False) -> list[bytes]:
+    """One frame as a Unity-based sender writes it, from the VMC spec (not encode_frame):
+    /VMC/Ext/Root/Pos (name, p.xyz, q.xyzw), the bones' /VMC/Ext/Bone/Pos in one bundle (Hips
+    with its local position: where such senders put root motion), /VMC/Ext/OK."""
+    identity = [0.0, 0.0, 0.0, 1.0]
+    dgrams = [build_msg("/VMC/Ext/Root/Pos", ["root", *map(float, root), *identity]).dgram]
+    bundle = OscBundleBuilder(0)  # timetag 0 (spec: "immediately")
+    if nan_first:  # a bad value the next message of the same frame overwrites
+        bundle.add_content(build_msg(BONE_POS, ["Hips", float("nan"), 0.0, 0.0, *identity]))
+    bundle.add_content(build_msg(BONE_POS, ["Hips", *map(float, hips), *identity]))
+    bundle.add_content(build_msg(BONE_POS, ["Spine", 0.0, 0.1, 0.0, *identity]))
+    dgrams.append(bundle.build().dgram)
+    dgrams.append(build_msg("/VMC/Ext/OK", [1]).dgram)
+    return dgrams
+
+
+def test_root_motion_follows_the_hips_bone_when_the_sender_keeps_root_still():
+    decoder = VmcDecoder()
+    roots = []
+    for k, (x, y) in enumerate([(0.0, 0.98), (0.5, 1.20), (1.0, 0.98)]):  # travel and a hop
+        frames = []
+        for dgram in _unity_sender_frame((0.0, 0.0, 0.0), (x, y, 0.25)):
+            frames += decoder.feed(dgram, float(k))
+        (frame,) = frames
+        roots.append(frame.root_position)
+    # Right-handed: Unity's z mirrored; the hips' travel and its 22 cm hop both arrive.
+    np.testing.assert_allclose(roots, [[0.0, 0.98, -0.25], [0.5, 1.2, -0.25], [1.0, 0.98, -0.25]])
+
+
+def test_root_motion_of_a_sender_that_moves_root_is_unchanged_by_a_still_hips_offset():
+    decoder = VmcDecoder()
+    for k, x in enumerate([0.0, 2.0]):
+        frames = [
+            f
+            for d in _unity_sender_frame((x, 0.0, 0.0), (0.0, 0.98, 0.0))
+            for f in decoder.feed(d, k)
+        ]
+    assert frames[0].root_position == pytest.approx([2.0, 0.98, 0.0])
+
+
+def test_a_nan_value_overwritten_within_its_frame_is_still_counted():
+    decoder = VmcDecoder()
+    frames = [
+        f
+        for d in _unity_sender_frame((0, 0, 0), (0, 1, 0), nan_first=True)
+        for f in decoder.feed(d, 0.0)
+    ]
+    assert decoder.counters.malformed == 1
+    assert frames[0].root_position == pytest.approx([0.0, 1.0, 0.0])  # the good value stays
