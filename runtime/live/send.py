@@ -25,8 +25,11 @@ class HumanoidClip:
     rotations: np.ndarray
     """(F, H, 4) local rotations (w, x, y, z); identity is each bone's rest."""
     root_positions: np.ndarray
-    """(F, 3) metres."""
+    """(F, 3) metres: where the hips are."""
     frame_time: float
+    offsets: np.ndarray | None = None
+    """(H, 3) each bone's local position in the T-posed humanoid (from its parent, metres): what
+    Bone/Pos carries, so that a receiver that builds the skeleton from it gets a real one."""
 
 
 def humanoid_clip(
@@ -83,7 +86,7 @@ def humanoid_clip(
         local = r.apply(stage, pose)
         frames[f] = quat_from_matrix(np.swapaxes(local[:, :3, :3], 1, 2))
     metres = (basis @ roots.T).T * preset.meters_per_unit
-    return HumanoidClip(tuple(order), frames, metres, frame_time)
+    return HumanoidClip(tuple(order), frames, metres, frame_time, rest[:, 3, :3].copy())
 
 
 def send_vmc(
@@ -109,8 +112,13 @@ def send_vmc(
             wait = start + sent * step - time.monotonic()
             if wait > 0 and stop.wait(wait):
                 break
+            root = clip.root_positions[i]
+            if clip.offsets is not None and "Hips" in clip.bones:
+                # Root/Pos under the hips, Hips' Bone/Pos its height above it: a receiver that
+                # adds the two (rigspace's VmcDecoder, a Unity avatar) puts the hips on the clip's.
+                root = root - clip.offsets[clip.bones.index("Hips")]
             for dgram in encode_frame(
-                clip.bones, clip.rotations[i], clip.root_positions[i], None, sent * step
+                clip.bones, clip.rotations[i], root, None, sent * step, clip.offsets
             ):
                 sock.sendto(dgram, address)
             sent += 1

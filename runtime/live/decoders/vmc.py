@@ -104,6 +104,9 @@ class VmcDecoder:
     def feed(self, data: bytes, received: float) -> list[Frame]:
         c = self.counters
         c.packets += 1
+        if not bundle_sizes_fit(data):
+            c.malformed += 1  # python-osc would take the element's claimed size on trust
+            return []
         try:
             messages = OscPacket(data).messages
         except Exception:  # python-osc raises ParseError, and IndexError/struct errors on garbage
@@ -195,6 +198,30 @@ class VmcDecoder:
         return position + _rotate(rotation, offset)
 
 
+BUNDLE = b"#bundle\0"
+
+
+def bundle_sizes_fit(data: bytes) -> bool:
+    """Whether every element of an OSC bundle (nested ones too) has a size that is positive, a
+    multiple of 4 (OSC 1.0) and within its bundle; True for a plain message. python-osc slices
+    an element by its claimed size without checking it against the data."""
+    spans = [(0, len(data))]
+    while spans:
+        start, end = spans.pop()
+        if data[start : start + 8] != BUNDLE:
+            continue
+        at = start + 16  # "#bundle\0" and the 8-byte time tag
+        while at < end:
+            if at + 4 > end:
+                return False
+            size = int.from_bytes(data[at : at + 4], "big", signed=True)
+            if size <= 0 or size % 4 or at + 4 + size > end:
+                return False
+            spans.append((at + 4, at + 4 + size))
+            at += 4 + size
+    return True
+
+
 def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Vector `v` rotated by the unit quaternion `q` (w, x, y, z)."""
     w, u = q[0], q[1:]
@@ -207,10 +234,13 @@ def encode_frame(
     root_position: np.ndarray | None = None,
     root_rotation: np.ndarray | None = None,
     sender_time: float | None = None,
+    positions: np.ndarray | None = None,
 ) -> list[bytes]:
     """One VMC frame as a reference sender sends it: Root/Pos alone, the bones in one bundle,
     then OK and (when `sender_time` is given) T. Takes right-handed (w, x, y, z) rotations and
-    positions and converts them to Unity's frame (the conversion is its own inverse)."""
+    positions and converts them to Unity's frame (the conversion is its own inverse).
+    `positions` (B, 3): each bone's local position (its offset from its parent, metres), as
+    Bone/Pos carries it; None sends zeros."""
     from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
     from pythonosc.osc_message_builder import build_msg
 
@@ -221,10 +251,12 @@ def encode_frame(
         args = [ROOT, *map(float, p), float(-x), float(-y), float(z), float(w)]
         datagrams.append(build_msg(ROOT_POS, args).dgram)
     bundle = OscBundleBuilder(IMMEDIATELY)
-    for name, (w, x, y, z) in zip(bones, np.asarray(rotations, dtype=np.float64), strict=True):
-        bundle.add_content(
-            build_msg(BONE_POS, [name, 0.0, 0.0, 0.0, float(-x), float(-y), float(z), float(w)])
-        )
+    offsets = np.zeros((len(bones), 3)) if positions is None else np.asarray(positions, float)
+    for name, (w, x, y, z), (px, py, pz) in zip(
+        bones, np.asarray(rotations, dtype=np.float64), offsets * [1, 1, -1], strict=True
+    ):
+        args = [name, float(px), float(py), float(pz), float(-x), float(-y), float(z), float(w)]
+        bundle.add_content(build_msg(BONE_POS, args))
     datagrams.append(bundle.build().dgram)
     datagrams.append(build_msg(OK, [1]).dgram)
     if sender_time is not None:

@@ -162,3 +162,29 @@ def test_aligned_send_and_receive_point_the_bones_where_the_clip_does(scene):
         ):
             u, v = (q[leaves.index(child)] - q[leaves.index(parent)] for q in pos)
             assert np.arctan2(np.linalg.norm(np.cross(u, v)), np.dot(u, v)) < 1e-4, (f, parent)
+
+
+def test_send_puts_the_bones_real_offsets_on_the_wire_and_the_hips_where_the_clip_has_them(scene):
+    """Read with python-osc alone, as a third-party receiver would: Bone/Pos carries each bone's
+    offset (a real skeleton, not one collapsed at the origin), and Root/Pos plus the Hips offset
+    is the clip's hips position."""
+    from pythonosc.osc_packet import OscPacket
+
+    _, _, skeleton, _, frame_time, rotations, roots = scene
+    clip = humanoid_clip(skeleton, rotations[:3], roots[:3], frame_time)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx:
+        rx.bind(("127.0.0.1", 0))
+        rx.settimeout(10.0)
+        send_vmc(f"vmc://127.0.0.1:{rx.getsockname()[1]}", dataclasses.replace(clip), 50.0)
+        positions, root = {}, None
+        while root is None or len(positions) < len(clip.bones):
+            for timed in OscPacket(rx.recv(65536)).messages:
+                address, params = timed.message.address, timed.message.params
+                if address == "/VMC/Ext/Bone/Pos":
+                    positions.setdefault(params[0], np.array(params[1:4]))
+                elif address == "/VMC/Ext/Root/Pos" and root is None:
+                    root = np.array(params[1:4])
+    lengths = {bone: float(np.linalg.norm(p)) for bone, p in positions.items()}
+    assert lengths["Hips"] > 0.5 and lengths["LeftLowerLeg"] > 0.2 and lengths["Head"] > 0.05
+    hips = (root + positions["Hips"]) * [1, 1, -1]  # Unity's frame back to right-handed
+    np.testing.assert_allclose(hips, clip.root_positions[0], atol=1e-5)

@@ -290,3 +290,24 @@ def test_a_nan_value_overwritten_within_its_frame_is_still_counted():
     ]
     assert decoder.counters.malformed == 1
     assert frames[0].root_position == pytest.approx([0.0, 1.0, 0.0])  # the good value stays
+
+
+def test_a_bundle_element_claiming_more_bytes_than_it_has_is_malformed():
+    """From the OSC 1.0 spec: a bundle element is an int32 size then that many bytes."""
+    import struct
+
+    bundle = OscBundleBuilder(0)
+    bundle.add_content(build_msg(BONE_POS, ["Hips", 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]))
+    good = bundle.build().dgram
+    decoder = VmcDecoder()
+    decoder.feed(good, 0.0)
+    assert decoder.counters.malformed == 0 and decoder.buffered == 1
+    for size in (0x7FFFFFFF, 3, -4, 0):
+        bad = good[:16] + struct.pack(">i", size) + good[20:]
+        decoder.feed(bad, 0.0)
+    assert decoder.counters.malformed == 4
+    nested = OscBundleBuilder(0)
+    nested.add_content(bundle.build())
+    outer = nested.build().dgram
+    decoder.feed(outer[:36] + struct.pack(">i", 10**6) + outer[40:], 0.0)  # the inner one's
+    assert decoder.counters.malformed == 5
