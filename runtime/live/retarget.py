@@ -357,10 +357,15 @@ class Retargeter:
         points where the source bone points in the source's rest pose (this CMU conversion rests
         with the arms hanging, the sample character is bound in an A-pose).
 
-        `source_rest_positions` are (B, 3) joint positions in the source's rest pose. A bone's
-        direction runs to its mapped child that needs the smallest turn (the neck, not a
-        clavicle, for the chest); joints without a mapped child turn with their parent. Returns
-        the (M, 3, 3) turns applied (rest world rotations are turned in place)."""
+        `source_rest_positions` are (B, 3) joint positions in the source's rest pose. A joint
+        with one mapped child turns by the smallest rotation taking its bone onto the source's;
+        a joint with several (the pelvis: spine and thighs; the chest: neck and clavicles) by
+        the rotation that best takes all their directions onto the source's (`_fit_turn`), which
+        leaves no twist free: aligning a clip onto a T-posed humanoid and the humanoid onto the
+        character then gives the character what aligning the clip onto it directly gives (the
+        pelvis differed by 15 deg with the smallest turn to one child: issue 21). Joints
+        without a mapped child turn with their parent. Returns the (M, 3, 3) turns applied
+        (rest world rotations are turned in place)."""
         src = (self.basis @ np.asarray(source_rest_positions, dtype=np.float64).T).T
         target_of = dict(zip(self.map_target.tolist(), self.map_source.tolist(), strict=True))
         mapped = set(target_of)
@@ -373,17 +378,15 @@ class Retargeter:
         turns: dict[int, np.ndarray] = {}
         for level in self.target_levels:
             for j in (int(x) for x in level if int(x) in mapped):
-                best = None
+                pairs = []
                 for c in (c for c in mapped if nearest[c] == j):
                     u = self._rest_positions[c] - self._rest_positions[j]
                     v = src[target_of[c]] - src[target_of[j]]
                     if np.linalg.norm(u) > 1e-9 and np.linalg.norm(v) > 1e-9:
-                        turn = _swing(u, v)
-                        angle = np.arccos(np.clip((np.trace(turn) - 1) / 2, -1, 1))
-                        if best is None or angle < best[0]:
-                            best = (angle, turn)
-                parent = nearest[j]
-                turns[j] = best[1] if best else turns.get(parent, np.eye(3))
+                        pairs.append((u / np.linalg.norm(u), v / np.linalg.norm(v)))
+                # The root (the pelvis) by all its children; the others by their nearest bone.
+                turn = _fit_turn(pairs if nearest[j] < 0 else _nearest_pair(pairs))
+                turns[j] = turn if turn is not None else turns.get(nearest[j], np.eye(3))
         order = list(turns)
         applied = np.array([turns[j] for j in order])
         self._rest_world[order] = applied @ self._rest_world[order]
@@ -554,6 +557,29 @@ def blend_transforms(a: np.ndarray, b: np.ndarray, weight: float) -> np.ndarray:
     out[:, :3, :3] = rotation * scale[:, :, None]
     out[:, 3, :3] = (1 - weight) * a[:, 3, :3] + weight * b[:, 3, :3]
     return out
+
+
+def _nearest_pair(
+    pairs: list[tuple[np.ndarray, np.ndarray]],
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The one (u, v) of `pairs` whose smallest turn is the smallest (the neck, not a clavicle,
+    for the chest)."""
+    return sorted(pairs, key=lambda p: -float(np.dot(p[0], p[1])))[:1]
+
+
+def _fit_turn(pairs: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray | None:
+    """The rotation R that best takes unit directions u onto v (least squares over the pairs,
+    Kabsch's SVD solution; reflection excluded); for one pair, or directions all parallel,
+    the smallest turn (`_swing`); None without pairs."""
+    if not pairs:
+        return None
+    u = np.array([p[0] for p in pairs])
+    v = np.array([p[1] for p in pairs])
+    if len(pairs) == 1 or np.linalg.matrix_rank(u, tol=1e-6) < 2:
+        return _swing(u[0], v[0])
+    left, _, right = np.linalg.svd(v.T @ u)
+    d = np.sign(np.linalg.det(left @ right)) or 1.0
+    return left @ np.diag([1.0, 1.0, d]) @ right
 
 
 def _swing(u: np.ndarray, v: np.ndarray) -> np.ndarray:
