@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+import struct
 
 import numpy as np
 from pythonosc.osc_packet import OscPacket
@@ -107,51 +108,69 @@ class VmcDecoder:
         if not bundle_sizes_fit(data):
             c.malformed += 1  # python-osc would take the element's claimed size on trust
             return []
-        try:
-            messages = OscPacket(data).messages
-        except Exception:  # python-osc raises ParseError, and IndexError/struct errors on garbage
-            c.malformed += 1
-            return []
         frames: list[Frame] = []
-        for timed in messages:
-            msg = timed.message
-            c.messages += 1
-            address, params = msg.address, msg.params
-            if address == BONE_POS or address == ROOT_POS:
-                if (
-                    len(params) < 8
-                    or type(params[0]) is not str
-                    or any(type(v) not in _NUMBER for v in params[1:8])
-                ):
-                    c.malformed += 1
-                    continue
-                if not all(math.isfinite(v) for v in params[1:8]):
-                    c.malformed += 1  # counted here: a later value in the frame would hide it
-                    continue
-                if address == ROOT_POS:
-                    index = 0
-                else:
-                    index = self._index.get(params[0], -1)
-                    if index <= 0:  # unknown, or a bone calling itself Root
-                        c.unknown_bones += 1
-                        continue
-                self._pending[index] = params[1:8]
-            elif address == OK:
-                if not self._sender_time:
-                    frame = self._close(received)
-                    if frame is not None:
-                        frames.append(frame)
-            elif address == TIME:
-                if not params or type(params[0]) not in _NUMBER or not math.isfinite(params[0]):
-                    c.malformed += 1
-                    continue
-                self._sender_time = True
-                frame = self._close(float(params[0]))
+        flat = _flat_messages(data)
+        if flat is None:  # nested bundles (python-osc orders them by time tag) or not OSC
+            try:
+                messages = OscPacket(data).messages
+            except Exception:  # python-osc raises ParseError, IndexError, struct errors
+                c.malformed += 1
+                return []
+            for timed in messages:
+                self._message(timed.message.address, timed.message.params, received, frames)
+            return frames
+        for element in flat:
+            fast = _bone_message(element)
+            if fast is not None:  # the hot path: one struct unpack, no python-osc objects
+                self._message(fast[0], fast[1], received, frames)
+                continue
+            try:
+                messages = OscPacket(element).messages
+            except Exception:
+                c.malformed += 1
+                continue
+            for timed in messages:
+                self._message(timed.message.address, timed.message.params, received, frames)
+        return frames
+
+    def _message(self, address: str, params: list, received: float, frames: list[Frame]) -> None:
+        """One OSC message: a bone value collected, a frame closed, or a count."""
+        c = self.counters
+        c.messages += 1
+        if address == BONE_POS or address == ROOT_POS:
+            if (
+                len(params) < 8
+                or type(params[0]) is not str
+                or any(type(v) not in _NUMBER for v in params[1:8])
+            ):
+                c.malformed += 1
+                return
+            if not all(math.isfinite(v) for v in params[1:8]):
+                c.malformed += 1  # counted here: a later value in the frame would hide it
+                return
+            if address == ROOT_POS:
+                index = 0
+            else:
+                index = self._index.get(params[0], -1)
+                if index <= 0:  # unknown, or a bone calling itself Root
+                    c.unknown_bones += 1
+                    return
+            self._pending[index] = params[1:8]
+        elif address == OK:
+            if not self._sender_time:
+                frame = self._close(received)
                 if frame is not None:
                     frames.append(frame)
-            else:
-                c.ignored += 1
-        return frames
+        elif address == TIME:
+            if not params or type(params[0]) not in _NUMBER or not math.isfinite(params[0]):
+                c.malformed += 1
+                return
+            self._sender_time = True
+            frame = self._close(float(params[0]))
+            if frame is not None:
+                frames.append(frame)
+        else:
+            c.ignored += 1
 
     def _close(self, timestamp: float) -> Frame | None:
         """The frame of the bone values collected so far, or None if there are none valid."""
@@ -220,6 +239,53 @@ def bundle_sizes_fit(data: bytes) -> bool:
             spans.append((at + 4, at + 4 + size))
             at += 4 + size
     return True
+
+
+_FAST_ADDRESSES = {
+    (BONE_POS + "\0" * (4 - len(BONE_POS) % 4)).encode(): BONE_POS,
+    (ROOT_POS + "\0" * (4 - len(ROOT_POS) % 4)).encode(): ROOT_POS,
+}
+"""The padded OSC address strings of the messages a frame is made of (20 bytes each)."""
+_FAST_TAGS = b",sfffffff\0\0\0"
+"""Their type tags as reference senders write them: a name and seven float32."""
+_SEVEN = struct.Struct(">7f")
+
+
+def _flat_messages(data: bytes) -> list[bytes] | None:
+    """The messages of a datagram: itself, or a bundle's elements when none is a bundle
+    (element sizes already checked, bundle_sizes_fit); None for nested bundles."""
+    if data[:8] != BUNDLE:
+        return [data]
+    out, at = [], 16
+    while at < len(data):
+        size = int.from_bytes(data[at : at + 4], "big")
+        element = data[at + 4 : at + 4 + size]
+        if element[:8] == BUNDLE:
+            return None
+        out.append(element)
+        at += 4 + size
+    return out
+
+
+def _bone_message(message: bytes) -> tuple[str, list] | None:
+    """(address, params) of a Bone/Pos or Root/Pos message typed `,sfffffff` (what every VMC
+    sender sends, 95 % of a frame's bytes), parsed with one struct unpack: about 5x faster
+    than python-osc's general parser (a 60 KB bundle decoded on the receiver's thread takes the
+    GIL from the frame's). None for anything else (python-osc parses it, and judges it)."""
+    address = _FAST_ADDRESSES.get(message[:20])
+    if address is None or message[20:32] != _FAST_TAGS:
+        return None
+    end = message.find(b"\0", 32)
+    if end < 0:
+        return None
+    start = 32 + ((end - 32) // 4 + 1) * 4  # the name's padded end
+    if len(message) != start + 28:
+        return None
+    try:
+        name = message[32:end].decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+    return address, [name, *_SEVEN.unpack_from(message, start)]
 
 
 def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:

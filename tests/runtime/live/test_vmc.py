@@ -311,3 +311,40 @@ def test_a_bundle_element_claiming_more_bytes_than_it_has_is_malformed():
     outer = nested.build().dgram
     decoder.feed(outer[:36] + struct.pack(">i", 10**6) + outer[40:], 0.0)  # the inner one's
     assert decoder.counters.malformed == 5
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    name=st.text(max_size=40).filter(lambda t: "\0" not in t),
+    values=st.lists(st.floats(width=32, allow_nan=False), min_size=7, max_size=7),
+    root=st.booleans(),
+)
+def test_the_fast_bone_parser_reads_what_python_osc_reads(name, values, root):
+    from pythonosc.osc_packet import OscPacket
+
+    from rigspace.runtime.live.decoders.vmc import ROOT_POS, _bone_message
+
+    message = build_msg(ROOT_POS if root else BONE_POS, [name, *values]).dgram
+    (timed,) = OscPacket(message).messages
+    assert _bone_message(message) == (timed.message.address, timed.message.params)
+    assert _bone_message(message[:-4]) is None  # truncated: left to python-osc, which judges
+    other = build_msg(BONE_POS, [name, *values[:6], 1]).dgram  # an int among the floats
+    assert _bone_message(other) is None
+
+
+def test_a_large_bundle_decodes_the_same_on_the_fast_path_as_through_python_osc():
+    bundle = OscBundleBuilder(0)
+    for k in range(20):
+        for name in HUMAN_BODY_BONES:
+            q = [0.0, 0.0, float(np.sin(0.05 * k)), float(np.cos(0.05 * k))]  # x, y, z, w
+            bundle.add_content(build_msg(BONE_POS, [name, 0.0, 1.0, 0.0, *q]))
+    bundle.add_content(build_msg(OK, [1]))
+    data = bundle.build().dgram
+    assert len(data) > 60_000
+    (fast,) = VmcDecoder().feed(data, 0.0)
+    slow_decoder = VmcDecoder()
+    nested = OscBundleBuilder(0)  # nested: the python-osc path
+    nested.add_content(bundle.build())
+    (slow,) = slow_decoder.feed(nested.build().dgram, 0.0)
+    np.testing.assert_array_equal(fast.indices, slow.indices)
+    np.testing.assert_array_equal(fast.rotations, slow.rotations)
