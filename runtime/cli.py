@@ -59,6 +59,14 @@ def _aovs(text: str) -> tuple[str, ...]:
     return names
 
 
+def _model(text: str) -> tuple[str, str]:
+    """argparse type for --model [PRIM=]BUNDLE: (prim path or "", bundle folder)."""
+    prim, sep, bundle = text.partition("=")
+    if sep and prim.startswith("/"):
+        return prim, bundle
+    return "", text
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scene", help="the .usd* stage to render")
     parser.add_argument(
@@ -76,6 +84,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--int8", action="store_true", help="evaluate the int8 graphs")
     add_predictor_argument(parser)
+    parser.add_argument(
+        "--model",
+        action="append",
+        type=_model,
+        default=[],
+        metavar="[PRIM=]BUNDLE",
+        help="draw this model bundle for the neural character PRIM (PRIM= may be left out when "
+        "the stage has one) instead of its rigspace:model; the scene file is not edited "
+        "(a model just trained, before the scene names it)",
+    )
     parser.add_argument(
         "--prim-samples",
         type=_positive,
@@ -132,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
         args.scene, camera=args.camera, width=width, height=height,
         renderer=args.renderer, precision="int8" if args.int8 else "fp32", aovs=aovs,
         prim_samples=args.prim_samples, max_level=args.max_level, textures=not args.no_textures,
-        predictor=args.predictor,
+        predictor=args.predictor, models=dict(args.model),
     )  # fmt: skip
     truth = None
     video = None
@@ -140,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
         if args.reference:
             truth = Engine(args.scene, camera=args.camera, width=width, height=height,
                            renderer=args.renderer, reference=True, aovs=aovs,
-                           prim_samples=args.prim_samples)  # fmt: skip
+                           prim_samples=args.prim_samples, models=dict(args.model))  # fmt: skip
         times = frame_times(args.frames, args.step, engine.stage)
         if truth is not None:
             check_reference_poses(truth, times)

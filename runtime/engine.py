@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pxr import Tf, Usd, UsdGeom
+from pxr import Sdf, Tf, Usd, UsdGeom
 
 from rigspace.runtime import shadow_pass
 from rigspace.runtime.billboard import Billboard
@@ -127,6 +127,7 @@ class Engine:
         live: bool = True,
         sources: dict[str, str] | None = None,
         predictor: str = "auto",
+        models: dict[str, str] | None = None,
     ) -> None:
         """`reference=True` draws each character's real skinned mesh with the renderer instead
         of its network (the ground truth that `rigspace render --reference` compares with).
@@ -140,7 +141,9 @@ class Engine:
         RigspaceLiveBindingAPI bindings drive their characters (runtime/live; their sources
         open at the first frame, or `open_live()`; `close()` or `with` stops them);
         `sources` maps binding names to URLs that replace theirs and enable them. `predictor`
-        runs the networks (rigspace.sdk.predictors; "auto": the fastest that can)."""
+        runs the networks (rigspace.sdk.predictors; "auto": the fastest that can). `models`
+        maps neural character paths ("" for the stage's only one) to model bundles drawn
+        instead of their rigspace:model, in the session layer: the scene file is not edited."""
         unknown = sorted(set(aovs) - set(AOVS))
         if unknown:
             raise SceneError(
@@ -154,23 +157,25 @@ class Engine:
                 "render at least 1x1 pixels (--resolution WxH).",
             )
         self.stage: Usd.Stage = open_stage(scene)
+        if models:
+            use_models(self.stage, models)
         self.width, self.height = width, height
         self.camera_prim = self._camera(camera)
         validation.require_valid(self.stage, "render")  # inspect's checks, in inspect's words
         self.characters: list[NeuralCharacter] = []
         self.without_model: list[str] = []
-        models: dict[Path, BundleModel] = {}
+        loaded: dict[Path, BundleModel] = {}
         for prim in schema.neural_characters(self.stage):
             manifest = schema.resolve_model_path(schema.read_neural_character(prim))
             if manifest is None:
                 self.without_model.append(str(prim.GetPath()))
                 continue
             folder = manifest.parent.resolve()
-            if folder not in models:  # characters sharing a bundle share its sessions
-                models[folder] = BundleModel(folder, precision, predictor=predictor)
+            if folder not in loaded:  # characters sharing a bundle share its sessions
+                loaded[folder] = BundleModel(folder, precision, predictor=predictor)
                 if not reference:
-                    models[folder].preload()  # a damaged bundle fails here, not mid-sequence
-            character = NeuralCharacter(prim, models[folder])
+                    loaded[folder].preload()  # a damaged bundle fails here, not mid-sequence
+            character = NeuralCharacter(prim, loaded[folder])
             if not textures and character.textures is not None:
                 character.textures = None
                 character.no_texture = "textures are turned off (--no-textures)"
@@ -816,6 +821,40 @@ class _Candidate:
     """(x0, y0, w, h) of the billboard in the frame."""
     rig: np.ndarray | None = None
     """Rig parameters, computed only for the characters evaluated this frame."""
+
+
+def use_models(stage: Usd.Stage, models: dict[str, str]) -> None:
+    """Author each character's rigspace:model in the stage's session layer (render --model):
+    "" names the stage's only neural character. A path that is not a neural character, or ""
+    on a stage with several, is a SceneError naming them."""
+    characters = [str(p.GetPath()) for p in schema.neural_characters(stage)]
+    for path, bundle in models.items():
+        if not path:
+            if len(characters) != 1:
+                raise SceneError(
+                    f"--model {bundle}: the stage has {len(characters)} neural characters "
+                    f"({', '.join(characters) or 'none'}).",
+                    "name the one it is for: --model /World/Hero=BUNDLE.",
+                )
+            path = characters[0]
+        if path not in characters:
+            raise SceneError(
+                f"--model {path}={bundle}: {path} is not a neural character of the stage.",
+                f"use one of: {', '.join(characters) or '(none)'}.",
+            )
+        folder = Path(bundle).resolve()
+        if not (folder / "manifest.json").is_file():
+            raise SceneError(
+                f"--model {bundle} is not a model bundle (no manifest.json there).",
+                "give the folder `rigspace train ... --out` wrote.",
+            )
+        with Usd.EditContext(stage, stage.GetSessionLayer()):
+            attr = stage.GetPrimAtPath(path).GetAttribute("rigspace:model")
+            if not attr:
+                attr = stage.GetPrimAtPath(path).CreateAttribute(
+                    "rigspace:model", Sdf.ValueTypeNames.Asset, custom=False
+                )
+            attr.Set(Sdf.AssetPath(str(folder)))
 
 
 def _world_points(depth, rows, cols, normal, camera: Camera, origin):

@@ -283,7 +283,8 @@ def check_character_model(prim: Usd.Prim) -> Iterator[Issue]:
             "NoModel",
             f"Neural character {path} has no model bundle (rigspace:model is empty): it can be "
             "captured but the runtime cannot draw it. Fix: train one with `rigspace train` and "
-            "set rigspace:model to the bundle folder.",
+            "set rigspace:model to the bundle folder, or draw it with `rigspace render --model "
+            "BUNDLE`.",
         )
         return
     manifest_file = schema.resolve_model_path(character)

@@ -1,0 +1,138 @@
+"""`rigspace init`: a shot scene around a raw character, every value derived, inspect passing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pxr import Usd, UsdGeom
+
+from rigspace.sdk import schema, validation
+from rigspace.sdk.cli import main
+from rigspace.sdk.errors import SceneError
+from rigspace.sdk.scaffold import init_scene
+from tests.conftest import CESIUM_MAN
+
+ROBOT = """#usda 1.0
+(
+    defaultPrim = "Robot"
+    metersPerUnit = 1
+    upAxis = "Y"
+    timeCodesPerSecond = 24
+)
+
+def SkelRoot "Robot" (prepend apiSchemas = ["SkelBindingAPI"])
+{{
+    rel skel:animationSource = </Robot/Anim>
+    rel skel:skeleton = </Robot/Skel>
+
+    def Skeleton "Skel"
+    {{
+        uniform token[] joints = ["root", "root/hips", "root/hips/head"]
+        uniform matrix4d[] bindTransforms = [((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,0,0,1)), ((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,0.9,0,1)), ((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,1.6,0,1))]
+        uniform matrix4d[] restTransforms = [((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,0,0,1)), ((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,0.9,0,1)), ((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,0.7,0,1))]
+    }}
+
+    def SkelAnimation "Anim"
+    {{
+        uniform token[] joints = ["root", "root/hips", "root/hips/head"]
+        quatf[] rotations.timeSamples = {{ 1: [(1,0,0,0), (1,0,0,0), (1,0,0,0)], 24: [(1,0,0,0), (0.9659258,0,0.258819,0), (1,0,0,0)] }}
+        float3[] translations = [(0, 0, 0), (0, 0.9, 0), (0, 0.7, 0)]
+        half3[] scales = [(1, 1, 1), (1, 1, 1), (1, 1, 1)]
+    }}
+
+    def Mesh "Body" (prepend apiSchemas = ["SkelBindingAPI"])
+    {{
+        int[] faceVertexCounts = [4, 4]
+        int[] faceVertexIndices = [0, 1, 2, 3, 4, 5, 6, 7]
+        point3f[] points = [(-0.2, 0, 0), (0.2, 0, 0), (0.2, 1.8, 0), (-0.2, 1.8, 0), (0, 0, -0.2), (0, 0, 0.2), (0, 1.8, 0.2), (0, 1.8, -0.2)]
+        int[] primvars:skel:jointIndices = [1, 1, 1, 1, 1, 1, 1, 1] (
+            interpolation = "vertex"
+            elementSize = 1
+        )
+        float[] primvars:skel:jointWeights = [1, 1, 1, 1, 1, 1, 1, 1] (
+            interpolation = "vertex"
+            elementSize = 1
+        )
+        matrix4d primvars:skel:geomBindTransform = ((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,0,0,1))
+        rel skel:skeleton = </Robot/Skel>
+    }}
+{extra}
+}}
+"""
+
+
+def robot(tmp_path, extra: str = "", name: str = "robot.usda"):
+    path = tmp_path / name
+    path.write_text(ROBOT.format(extra=extra))
+    return path
+
+
+def test_a_rig_rooted_at_its_feet_is_aimed_at_its_middle_and_framed_whole(tmp_path):
+    scene = tmp_path / "shot.usda"
+    derived = init_scene(robot(tmp_path), scene)
+    assert derived.root_joint == "root" and derived.look_at_joint == "hips"  # not the feet
+    assert derived.clip == ("Anim", 1.0, 24.0)
+    stage = Usd.Stage.Open(str(scene))
+    validation.require_valid(stage, "capture")  # inspect's capture rules: no error
+    prim = stage.GetPrimAtPath(derived.character)
+    ring = schema.read_capture_ring(prim)
+    # The whole 1.8-unit figure within the square ring image around the hips, with a margin.
+    half = np.tan(np.arctan(ring.horizontal_aperture / 2 / ring.focal_length))
+    assert ring.radius * half > 0.95 > ring.radius * half / 2.5
+    near, far = ring.clipping_range
+    assert 0 < near < ring.radius - 1.0 and far > ring.radius + 1.0
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 1 and stage.GetEndTimeCode() == 24
+    camera = UsdGeom.Camera(stage.GetPrimAtPath(derived.camera))
+    assert camera and stage.GetPrimAtPath("/World/Sun") and stage.GetPrimAtPath("/World/Sky")
+
+
+def test_cesium_man_gets_the_values_the_hand_made_sample_has(tmp_path):
+    derived = init_scene(CESIUM_MAN, tmp_path / "shot.usda")
+    assert derived.look_at_joint == "Skeleton_torso_joint_1"  # samples/scenes/cesium_man.usda
+    assert 2.5 < derived.radius < 4.0  # the sample's hand-chosen radius: 3
+    assert derived.clip[1:] == (1.0, 48.0)
+
+
+def test_init_never_overwrites_and_leaves_nothing_behind_on_failure(tmp_path):
+    scene = tmp_path / "shot.usda"
+    scene.write_text("mine")
+    with pytest.raises(SceneError, match="never overwrites"):
+        init_scene(robot(tmp_path), scene)
+    assert scene.read_text() == "mine"
+    still = robot(tmp_path, name="still.usda")
+    still.write_text(
+        still.read_text().replace(
+            "rotations.timeSamples = { 1:",
+            "rotations = [(1,0,0,0), (1,0,0,0), (1,0,0,0)]\n        quatf[] unused.timeSamples = { 1:",
+        )
+    )
+    with pytest.raises(SceneError, match="no animation over time"):
+        init_scene(still, tmp_path / "still_shot.usda")
+    assert not (tmp_path / "still_shot.usda").exists()
+
+
+def test_several_skeletons_are_listed_and_one_is_chosen(tmp_path):
+    second = '    def Skeleton "Other"\n    {\n        uniform token[] joints = ["a"]\n    }\n'
+    asset = robot(tmp_path, extra=second)
+    with pytest.raises(SceneError) as info:
+        init_scene(asset, tmp_path / "a.usda")
+    assert "/Robot/Skel" in str(info.value) and "/Robot/Other" in str(info.value)
+    assert "--skeleton" in str(info.value)
+    derived = init_scene(asset, tmp_path / "b.usda", skeleton="/Robot/Skel")
+    assert derived.skeleton == "/World/robot/Asset/Skel"
+
+
+def test_an_asset_without_a_skeleton_says_what_is_missing(tmp_path):
+    plain = tmp_path / "prop.usda"
+    plain.write_text('#usda 1.0\n(defaultPrim = "Box")\ndef Cube "Box" {}\n')
+    with pytest.raises(SceneError, match="no UsdSkel Skeleton"):
+        init_scene(plain, tmp_path / "shot.usda")
+
+
+def test_the_command_prints_what_it_found_and_the_next_commands(tmp_path, capsys):
+    scene = tmp_path / "shot.usda"
+    assert main(["init", str(robot(tmp_path)), "--out", str(scene)]) == 0
+    out = capsys.readouterr().out
+    assert "look-at joint   hips: nearest the skinned meshes' centre" in out
+    assert f"rigspace render {scene} --model {tmp_path / 'shot_model'}" in out
+    assert main(["inspect", str(scene)]) == 0
