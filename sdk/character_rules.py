@@ -21,6 +21,7 @@ from rigspace.sdk.bindings import SkelBinding, ignored_animation_sources, skel_b
 from rigspace.sdk.bundle import BundleError, read_manifest
 from rigspace.sdk.geometry import albedo_texture
 from rigspace.sdk.issues import CAPTURE, RENDER, Issue, ValidatorSpec, error, warning
+from rigspace.sdk.stage import unreadable_layers
 
 MAPS = ("albedo", "normal", "depth", "mask")
 UP_AXES = ("Y", "Z")
@@ -205,6 +206,13 @@ def check_stage(root: Usd.Prim) -> Iterator[Issue]:
                 "normalisation, capture distances and depth are in these units). Fix: author "
                 "metersPerUnit in the root layer (0.01 for centimetres, 1 for metres).",
             )
+    for asset, why in unreadable_layers(stage):
+        yield error(
+            "UnreadableLayer",
+            f"Stage {name} uses the layer @{asset}@, which USD cannot read: {why} Whatever it "
+            "holds (a character, its skeleton, its meshes) is missing from the scene. Fix: "
+            "restore or re-export that file, or remove the reference to it.",
+        )
     if not stage.HasAuthoredMetadata("upAxis"):
         yield warning(
             "UpAxisAssumed",

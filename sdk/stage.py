@@ -39,6 +39,46 @@ def open_stage(path: str | Path) -> Usd.Stage:
         ) from exc
 
 
+def unreadable_layers(stage: Usd.Stage) -> list[tuple[str, str]]:
+    """(asset path as authored, why) for each layer the stage's layers name (sublayers,
+    references, payloads, recursively) that USD cannot read: missing, empty, truncated or
+    not USD. USD composes around such a layer and says nothing through Python; a character
+    under it then looks like one whose skeleton does not exist."""
+    bad: list[tuple[str, str]] = []
+    seen: set[str] = set()
+    todo = [stage.GetRootLayer()]
+    while todo:
+        layer = todo.pop()
+        for asset in layer.GetCompositionAssetDependencies():
+            path = layer.ComputeAbsolutePath(asset)
+            if path in seen:
+                continue
+            seen.add(path)
+            try:
+                found = Sdf.Layer.FindOrOpen(path)
+            except Tf.ErrorException as exc:
+                bad.append((asset, _usd_reason(_first_line(exc))))
+                continue
+            if found is None:
+                local = Path(path)
+                why = "it does not exist." if not local.exists() else "USD cannot read it."
+                bad.append((asset, why))
+                continue
+            todo.append(found)
+    return bad
+
+
+def _usd_reason(text: str) -> str:
+    """USD's error as a sentence: its parser's grammar rule dropped, file and line kept."""
+    text = re.sub(r"^Error in '.*?' at line \d+ in file \S+ : ", "", text).strip(" '")
+    parse = re.search(r"(\S+):(\d+):(\d+): parse error", text)
+    if parse:
+        return (
+            f"a syntax error at line {parse[2]}, column {parse[3]} (truncated, or edited by hand)."
+        )
+    return _sentence(text)
+
+
 USDA_HEADER = b"#usda "
 USDC_HEADER = b"PXR-USDC"
 ZIP_HEADER = b"PK\x03\x04"

@@ -15,11 +15,12 @@ them, in the same words (docs/conventions.md, "Validation").
 
 from __future__ import annotations
 
+import re
 import sys
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
-from pxr import Sdf, Usd, UsdValidation
+from pxr import Sdf, Tf, Usd, UsdValidation
 
 from rigspace.sdk import schema
 from rigspace.sdk.character_rules import (
@@ -231,10 +232,28 @@ def validate(stage: Usd.Stage, include_usd: bool = True) -> list[Finding]:
         ]
     _failures.clear()
     _blocks.clear()
-    errors = UsdValidation.ValidationContext(validators).Validate(stage)
+    findings = []
+    try:
+        errors = UsdValidation.ValidationContext(validators).Validate(stage)
+    except Tf.ErrorException as exc:  # a USD validator that trips over an unreadable layer
+        own = [v for v in validators if str(v.GetMetadata().name).startswith(PREFIX)]
+        _failures.clear()
+        _blocks.clear()
+        errors = UsdValidation.ValidationContext(own).Validate(stage)
+        first = next((line.strip() for line in str(exc).splitlines() if line.strip()), "")
+        first = re.sub(r"^Error in '.*?' at line \d+ in file \S+ : ", "", first).strip(" '")
+        findings.append(
+            Finding(
+                WARNING,
+                "usd",
+                "ValidatorsFailed",
+                "",
+                f"USD's own validators stopped on this stage ({first[:300]}); rigspace's rules "
+                "ran without them.",
+            )
+        )
     if _failures:
         raise _failures[0]
-    findings = []
     for e in errors:
         if e.HasNoError():
             continue

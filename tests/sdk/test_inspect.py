@@ -145,3 +145,30 @@ def test_the_readme_broken_fixture(capsys):
     assert code == 1
     ours = {e["code"] for e in report["errors"] if e["validator"].startswith("rigspace:")}
     assert ours == {"NotASkeleton", "ModelNotFound", "ResolutionNotPowerOfTwo", "BadUrl"}
+
+
+def test_an_unreadable_layer_is_named_by_inspect_and_refused_by_capture(tmp_path, capsys):
+    """A reference to a truncated, an empty and a missing layer: inspect names each (no
+    traceback from USD's validators) and capture refuses in the same words."""
+    from rigspace.sdk import validation
+    from rigspace.sdk.errors import SceneError
+    from rigspace.sdk.stage import open_stage
+
+    text = (REPO / "samples" / "scenes" / "cesium_man.usda").read_text()
+    (tmp_path / "trunc.usda").write_text(text[:300])
+    (tmp_path / "empty.usda").write_text("")
+    scene = tmp_path / "scene.usda"
+    scene.write_text(
+        '#usda 1.0\n(\n    defaultPrim = "World"\n    metersPerUnit = 1\n    upAxis = "Y"\n)\n'
+        'def Xform "World"\n{\n'
+        '    def "A" (prepend references = @./trunc.usda@) {}\n'
+        '    def "B" (prepend references = @./empty.usda@) {}\n'
+        '    def "C" (prepend references = @./gone.usda@) {}\n}\n'
+    )
+    assert main(["inspect", str(scene)]) == 1
+    out = capsys.readouterr().out
+    assert "@./trunc.usda@, which USD cannot read: a syntax error at line 7" in out
+    assert "@./empty.usda@, which USD cannot read" in out
+    assert "@./gone.usda@, which USD cannot read: it does not exist." in out
+    with pytest.raises(SceneError, match=r"trunc\.usda"):
+        validation.require_valid(open_stage(scene), "capture")
