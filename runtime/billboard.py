@@ -163,7 +163,15 @@ def place(
     p = camera.to_camera(np.asarray(joint_world, dtype=np.float64)[None])[0]
     side = view.side * scale
     if not -p[2] > camera.near * MIN_DEPTH_FACTOR:
-        return Billboard(p, np.eye(3), np.zeros((4, 2)), side, False, "behind or at the camera")
+        if -p[2] > 0:  # in front, but nearer than what the camera draws
+            why = (
+                f"nearer than the camera's near clipping plane ({camera.near:g} scene units; "
+                f"the look-at joint is {-p[2]:.3g} away): author a smaller clippingRange on "
+                "the camera (USD's fallback near plane is 1)"
+            )
+        else:
+            why = "behind the camera"
+        return Billboard(p, np.eye(3), np.zeros((4, 2)), side, False, why)
     if np.linalg.norm(p) < side / 2:
         # Within the character's extent: a flat image of it cannot stand in for it here.
         return Billboard(
@@ -183,7 +191,13 @@ def place(
         # The square reaches behind the near plane although the joint is more than half a side
         # away: seen edge-on, far off-centre (at 89 degrees off-axis, 1000 units away, say).
         return Billboard(
-            p, rotation, np.zeros((4, 2)), side, False, "the billboard crosses the near plane"
+            p,
+            rotation,
+            np.zeros((4, 2)),
+            side,
+            False,
+            f"the billboard crosses the camera's near clipping plane ({camera.near:g} scene "
+            "units): author a smaller clippingRange on the camera",
         )
     xy = np.stack(
         [camera.cx + camera.fx * corners_cam[:, 0] / -corners_cam[:, 2],

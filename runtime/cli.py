@@ -205,6 +205,9 @@ def run(args: argparse.Namespace) -> int:
         if video is not None:
             video.close()
     cv2.imwrite(str(out / "contact_sheet.png"), contact_sheet(thumbs))
+    warnings = never_drawn(reports, [c.path for c in engine.characters])
+    for warning in warnings:
+        print(f"rigspace render: warning: {warning}", file=sys.stderr)
     tmp = out / f".report.json.{os.getpid()}.tmp"
     tmp.write_text(
         json.dumps(
@@ -212,6 +215,7 @@ def run(args: argparse.Namespace) -> int:
                 "scene": str(args.scene),
                 "resolution": [width, height],
                 "predictors": sorted({c.model.runner.description for c in engine.characters}),
+                "warnings": warnings,
                 "frames": reports,
             },
             indent=2,
@@ -233,6 +237,23 @@ def run(args: argparse.Namespace) -> int:
         + ", ".join(f"{k} {v}" for k, v in counts.items() if v or k in ("evaluated", "reused"))
     )
     return 0
+
+
+def never_drawn(reports: list[dict], characters: list[str]) -> list[str]:
+    """A sentence per neural character (with a model) that no frame drew, with the reason
+    most frames gave: an empty shot is said, not left for the viewer to find."""
+    from collections import Counter
+
+    warnings = []
+    for path in characters:
+        entries = [e for r in reports for e in r["characters"] if e.get("path") == path]
+        if not entries or any(e.get("decision") in ("evaluated", "reused") for e in entries):
+            continue
+        reason, count = Counter(str(e.get("reason", "")) for e in entries).most_common(1)[0]
+        warnings.append(
+            f"{path} is in none of the {len(reports)} frames: {reason} ({count} of them)."
+        )
+    return warnings
 
 
 MAX_FRAMES = 1_000_000

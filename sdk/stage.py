@@ -50,6 +50,8 @@ def unreadable_layers(stage: Usd.Stage) -> list[tuple[str, str]]:
     while todo:
         layer = todo.pop()
         for asset in layer.GetCompositionAssetDependencies():
+            if not asset:  # an internal reference (</Prim>): no layer of its own
+                continue
             path = layer.ComputeAbsolutePath(asset)
             if path in seen:
                 continue
