@@ -15,6 +15,7 @@ import json
 import multiprocessing
 import os
 import shutil
+import signal
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -40,6 +41,7 @@ from rigspace.capture.settings import (
 )
 from rigspace.sdk.capsules import FILE_NAME as CAPSULES_FILE
 from rigspace.sdk.capsules import fit_capsules, write_capsules
+from rigspace.sdk.cli import sigterm_as_interrupt
 from rigspace.sdk.exr import write_exr
 from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.render import RenderSettings, choose_renderer
@@ -193,6 +195,9 @@ _worker: ItemWorker | None = None
 
 def _init_worker(settings_json: dict[str, Any], folder: str) -> None:
     global _worker
+    # Ctrl-C reaches the whole process group: the main process alone handles it (its pool
+    # then terminates the workers, quietly), so no worker prints a traceback of its own.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     _worker = ItemWorker(CaptureSettings.from_json(settings_json), Path(folder))
 
 
@@ -389,6 +394,7 @@ def capture(
     views: list[np.ndarray] = []
     seen_something = False
     start = time.perf_counter()
+    restore = sigterm_as_interrupt()
     try:
         with contextlib.ExitStack() as stack:
             stack.callback(bar.close)
@@ -406,6 +412,16 @@ def capture(
                 if not seen_something and done >= min(EARLY_SAMPLES, total):
                     best = float(np.concatenate(coverage).max())
                     raise nothing_in_view(settings, rig, done, best)
+    except KeyboardInterrupt:
+        # Ctrl-C or SIGTERM: the pool is gone, every committed item is kept; say how to go on.
+        kept = len(list((folder / "items").glob("*.npz")))
+        print(
+            f"rigspace capture: interrupted: {kept} work items are kept in {folder}; finish "
+            f"them with `rigspace capture {scene} --out {folder} --resume` (and the other "
+            "options you gave)",
+            file=sys.stderr,
+        )
+        raise
     except CaptureError as exc:
         # The pool is gone (the with block ended); a folder this run created holds nothing
         # worth keeping, and leaving it would make the fixed command fail as "different
@@ -417,6 +433,8 @@ def capture(
             exc.what += f" {folder} is kept as it was."
         exc.args = (f"{exc.what} Fix: {exc.fix}",)
         raise
+    finally:
+        restore()
     seconds = time.perf_counter() - start
     complete = all(ds.record_path(folder, i).is_file() for i in items)
     manifest = None

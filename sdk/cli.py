@@ -63,6 +63,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def sigterm_as_interrupt() -> Callable[[], object]:
+    """Make SIGTERM stop a command as Ctrl-C does (its KeyboardInterrupt path: what it keeps,
+    what it says): what a batch scheduler or `kill` sends, and the only way to stop a command
+    started in the background with `&`, which ignores SIGINT. Returns the function that
+    restores the previous handler; a no-op off the main thread (signals are the main
+    thread's)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    return lambda: signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:

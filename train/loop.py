@@ -37,6 +37,7 @@ import torch
 from tqdm import tqdm
 
 from rigspace.capture.dataset import DatasetError, read_manifest
+from rigspace.sdk.cli import sigterm_as_interrupt
 from rigspace.sdk.errors import RigspaceError
 from rigspace.train import distributed
 from rigspace.train.budget import Pace, apply_plan, plan_schedule
@@ -399,7 +400,7 @@ def train(
         pace = Pace(config, rates, deadline)
     trained = 0  # optimizer steps in this call (a slow run's pace skips some steps)
     reported_reach = False
-    terminate = _stop_on_sigterm()
+    terminate = sigterm_as_interrupt()
     try:
         while step < total or budgeted:
             now = time.monotonic()
@@ -509,24 +510,6 @@ def flush_denormal(on: bool) -> bool:
     before = bool((torch.tensor([1e-39], dtype=torch.float32) * 1.0).item() == 0.0)
     torch.set_flush_denormal(on)
     return before
-
-
-def _stop_on_sigterm():
-    """Make SIGTERM stop training as Ctrl-C does (checkpoint saved, "interrupted"): what a
-    batch scheduler or `kill` sends, and the only way to stop a run started in the
-    background with `&`, which ignores SIGINT. Returns the function that restores the
-    previous handler; a no-op off the main thread (signals are the main thread's)."""
-    import signal
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        return lambda: None
-
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, interrupt)
-    return lambda: signal.signal(signal.SIGTERM, previous)
 
 
 def build_model(

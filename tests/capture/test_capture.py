@@ -379,3 +379,27 @@ def test_nan_in_the_animation_is_refused_before_any_work(tmp_path):
             tmp_path / "nan.usda", CHARACTER, tmp_path / "out", SMALL, workers=1, progress=False
         )
     assert not (tmp_path / "out").exists()
+
+
+def test_sigterm_stops_quietly_keeps_the_items_and_says_how_to_resume(tmp_path, dataset):
+    """What a scheduler or `kill` sends: like Ctrl-C, no worker traceback, the committed
+    items kept, the resume command printed; --resume then finishes the same dataset."""
+    out = tmp_path / "termed"
+    cmd = [
+        sys.executable, "-m", "rigspace.sdk", "capture", str(SCENE), "--out", str(out),
+        "--views", "4", "--elevations", "0", "--resolution", "32", "--frames", "1:6",
+        "--frames-per-item", "1", "--workers", "2", "--renderer", dataset.settings.renderer,
+    ]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120  # a loaded machine spawns its workers slowly
+    while time.monotonic() < deadline and len(list((out / "items").glob("*.npz"))) < 2:
+        time.sleep(0.02)
+    os.kill(proc.pid, signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    done = len(list((out / "items").glob("*.npz")))
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "leaked" not in err, err
+    assert f"--out {out} --resume" in err and f"{done} work items are kept" in err
+    overrides = CaptureOverrides(**{**SMALL.__dict__, "frames_per_item": 1})
+    resumed = capture(SCENE, CHARACTER, out, overrides, resume=True, workers=1, progress=False)
+    assert resumed.complete
