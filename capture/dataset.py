@@ -40,6 +40,7 @@ from rigspace.capture.settings import CaptureSettings, Clip
 from rigspace.sdk.charts import ChartTable, parse_charts
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.exr import read_exr
+from rigspace.sdk.fields import DATASET_MANIFEST, problems
 from rigspace.sdk.render import Maps
 
 FORMAT = "rigspace.dataset"
@@ -96,6 +97,8 @@ def read_manifest(folder: str | Path) -> dict[str, Any]:
     """A finished dataset's manifest, checked: the one reader that training and eval share."""
     folder = Path(folder)
     fix = "point at a dataset folder written by `rigspace capture SCENE --out DIR`."
+    if folder.exists() and not folder.is_dir():
+        raise DatasetError(f"Dataset {folder} is a file, not a dataset folder.", fix)
     if not folder.is_dir():
         raise DatasetError(f"Dataset folder {folder} does not exist.", fix)
     for name in (MANIFEST_FILE, PARAMS_FILE):
@@ -121,6 +124,13 @@ def read_manifest(folder: str | Path) -> dict[str, Any]:
             f"{folder / MANIFEST_FILE} is not a {FORMAT} manifest of version {FORMAT_VERSION} "
             f"(found {found!r}).",
             "re-capture the dataset with this version of rigspace.",
+        )
+    wrong = problems(manifest, DATASET_MANIFEST)
+    if wrong:
+        raise DatasetError(
+            f"{folder / MANIFEST_FILE}: {'; '.join(wrong)}.",
+            f"restore the file, or re-capture the dataset (`{resume_command(folder)}` rewrites "
+            "it from the samples).",
         )
     return manifest
 

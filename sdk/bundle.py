@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.fields import BUNDLE_MANIFEST, problems
 
 FORMAT = "rigspace.bundle"
 FORMAT_VERSION = 2
@@ -99,6 +100,12 @@ def read_manifest(path: str | Path) -> ModelManifest:
         raise BundleError(
             f"{file}: rotation_encoding is {encoding!r}, expected one of {ENCODINGS}.",
             "re-export the bundle; the manifest is incomplete.",
+        )
+    wrong = problems(data, BUNDLE_MANIFEST)
+    if wrong:
+        raise BundleError(
+            f"Model bundle manifest {file}: {'; '.join(wrong)}.",
+            "re-export the bundle with `rigspace train` (or restore the file).",
         )
     camera = data.get("training_camera", {})
     return ModelManifest(

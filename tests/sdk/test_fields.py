@@ -1,0 +1,100 @@
+"""The malformed corpus: every field rigspace reads from a bundle or dataset manifest given a
+wrong type is one named error, from the reader and from the commands; never a traceback."""
+
+from __future__ import annotations
+
+import copy
+import json
+import shutil
+
+import pytest
+
+from rigspace.capture.dataset import DatasetError
+from rigspace.capture.dataset import read_manifest as read_dataset
+from rigspace.sdk.bundle import BundleError, read_manifest
+from rigspace.sdk.cli import main
+from rigspace.sdk.fields import BUNDLE_MANIFEST, DATASET_MANIFEST, Field
+from tests.conftest import REPO
+
+SAMPLE = REPO / "samples" / "models" / "sample"
+WRONG = {
+    "number": "far", "positive": "far", "count": "many", "size": "big", "text": 7,
+    "names": "pelvis", "object": 7, "list": 7, "numbers": ["x"], "flag": "yes",
+}  # fmt: skip
+
+
+def broken(data: dict, field: Field) -> dict:
+    """`data` with `field` (the first item of any list on its path) given a wrong type."""
+    out = copy.deepcopy(data)
+    parts = field.path.split(".")
+    at = out
+    for part in parts[:-1]:
+        at = at[part.removesuffix("[]")]
+        if part.endswith("[]"):
+            at = at[0]
+    last = parts[-1]
+    if last.endswith("[]"):
+        at[last.removesuffix("[]")][0] = WRONG[field.kind]
+    else:
+        at[last] = WRONG[field.kind]
+    return out
+
+
+def present(data: dict, field: Field) -> bool:
+    at = data
+    for part in field.path.split("."):
+        key = part.removesuffix("[]")
+        if not isinstance(at, dict) or key not in at:
+            return False
+        at = at[key][0] if part.endswith("[]") else at[key]
+    return True
+
+
+SAMPLE_MANIFEST = json.loads((SAMPLE / "manifest.json").read_text())
+BUNDLE_FIELDS = [f for f in BUNDLE_MANIFEST if present(SAMPLE_MANIFEST, f)]
+
+
+def test_the_sample_bundle_has_almost_every_field():
+    assert len(BUNDLE_FIELDS) >= len(BUNDLE_MANIFEST) - 2  # all but capsules' text etc.
+
+
+@pytest.mark.parametrize("field", BUNDLE_FIELDS, ids=lambda f: f.path)
+def test_a_wrong_type_in_a_bundle_manifest_is_a_named_error(tmp_path, field):
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    (bundle / "manifest.json").write_text(json.dumps(broken(SAMPLE_MANIFEST, field)))
+    with pytest.raises(BundleError) as info:
+        read_manifest(bundle)
+    shown = field.path.replace("[]", "[0]").removesuffix("[0]")
+    assert f"'{shown}" in str(info.value) and "Fix:" in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "path", ["training_camera.distance", "levels", "levels[].resolution", "depth.scale"]
+)
+def test_render_and_eval_name_the_field_and_leave_no_output(tmp_path, capsys, path):
+    field = next(f for f in BUNDLE_MANIFEST if f.path == path)
+    bundle = tmp_path / "bundle"
+    shutil.copytree(SAMPLE, bundle, ignore=shutil.ignore_patterns("training"))
+    (bundle / "manifest.json").write_text(json.dumps(broken(SAMPLE_MANIFEST, field)))
+    scene = REPO / "samples" / "scenes" / "previs.usda"
+    out = tmp_path / "frames"
+    code = main(["render", str(scene), "--model", str(bundle), "--out", str(out), "--frames",
+                 "300:300", "--resolution", "64x36"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err and path.split("[")[0].split(".")[0] in err
+    assert not out.exists()
+
+
+def test_a_wrong_type_in_a_dataset_manifest_is_a_named_error(tmp_path, tiny_dataset):
+    manifest = json.loads((tiny_dataset / "manifest.json").read_text())
+    fields = [f for f in DATASET_MANIFEST if present(manifest, f)]
+    assert len(fields) >= len(DATASET_MANIFEST) - 2
+    for field in fields:
+        folder = tmp_path / field.path.replace("[]", "")
+        folder.mkdir()
+        (folder / "manifest.json").write_text(json.dumps(broken(manifest, field)))
+        shutil.copy(tiny_dataset / "params.npz", folder / "params.npz")
+        with pytest.raises(DatasetError, match="Fix:") as info:
+            read_dataset(folder)
+        assert field.path.split("[")[0].split(".")[0] in str(info.value)
