@@ -156,13 +156,18 @@ def test_multiprocess_capture_matches(tmp_path, dataset):
     assert result.complete and checksum(result.folder) == checksum(dataset.folder)
 
 
-def test_kill_9_then_resume_gives_the_same_dataset(tmp_path, dataset):
-    out = tmp_path / "killed"
-    cmd = [
+def capture_command(out, workers: int, renderer: str) -> list[str]:
+    """The CLI capture of the fixture's settings in one-frame items (12 items of 4 samples)."""
+    return [
         sys.executable, "-m", "rigspace.sdk", "capture", str(SCENE), "--out", str(out),
         "--views", "4", "--elevations", "0", "--resolution", "32", "--frames", "1:6",
-        "--frames-per-item", "1", "--workers", "1", "--renderer", dataset.settings.renderer,
+        "--frames-per-item", "1", "--workers", str(workers), "--renderer", renderer,
     ]  # fmt: skip
+
+
+def test_kill_9_then_resume_gives_the_same_dataset(tmp_path, dataset):
+    out = tmp_path / "killed"
+    cmd = capture_command(out, 1, dataset.settings.renderer)
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and len(list((out / "items").glob("*.npz"))) < 3:
@@ -385,11 +390,7 @@ def test_sigterm_stops_quietly_keeps_the_items_and_says_how_to_resume(tmp_path, 
     """What a scheduler or `kill` sends: like Ctrl-C, no worker traceback, the committed
     items kept, the resume command printed; --resume then finishes the same dataset."""
     out = tmp_path / "termed"
-    cmd = [
-        sys.executable, "-m", "rigspace.sdk", "capture", str(SCENE), "--out", str(out),
-        "--views", "4", "--elevations", "0", "--resolution", "32", "--frames", "1:6",
-        "--frames-per-item", "1", "--workers", "2", "--renderer", dataset.settings.renderer,
-    ]  # fmt: skip
+    cmd = capture_command(out, 2, dataset.settings.renderer)
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120  # a loaded machine spawns its workers slowly
     while time.monotonic() < deadline and len(list((out / "items").glob("*.npz"))) < 2:

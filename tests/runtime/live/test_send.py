@@ -117,13 +117,9 @@ def test_humanoid_clip_is_a_humanoid(scene):
     assert dataclasses.is_dataclass(clip)
 
 
-def test_aligned_send_and_receive_point_the_bones_where_the_clip_does(scene):
-    """Sender on a T-posed humanoid, receiver aligned to the T-pose (open_binding's default):
-    the character's limbs point where the directly retargeted, rest-aligned clip's do."""
-    _stage, skel, skeleton, _, frame_time, rotations, roots = scene
-    joints, rest = target_skeleton(skel)
-    leaves = [j.rsplit("/", 1)[-1] for j in joints]
-    clip = humanoid_clip(skeleton, rotations[::200], roots[::200], frame_time)
+def two_paths(skel, skeleton, joints, rest) -> tuple[Retargeter, Retargeter]:
+    """The receiver of the humanoid over VMC (aligned to the T-pose, open_binding's default)
+    and the BVH retargeted straight onto the character (rest-aligned), in stage cm."""
     source = open_source("vmc://127.0.0.1:0", "suit")
     via_vmc = for_preset(source, skel, "unity", 0.01)
     via_vmc.align_rest(PRESETS["unity"].rest_positions_for(source.bones))
@@ -133,6 +129,17 @@ def test_aligned_send_and_receive_point_the_bones_where_the_clip_does(scene):
         p.meters_per_unit / 0.01,
     )  # fmt: skip
     direct.align_rest(skeleton.rest_positions())
+    return via_vmc, direct
+
+
+def test_aligned_send_and_receive_point_the_bones_where_the_clip_does(scene):
+    """Sender on a T-posed humanoid, receiver aligned to the T-pose (open_binding's default):
+    the character's limbs point where the directly retargeted, rest-aligned clip's do."""
+    _stage, skel, skeleton, _, frame_time, rotations, roots = scene
+    joints, rest = target_skeleton(skel)
+    leaves = [j.rsplit("/", 1)[-1] for j in joints]
+    clip = humanoid_clip(skeleton, rotations[::200], roots[::200], frame_time)
+    via_vmc, direct = two_paths(skel, skeleton, joints, rest)
     decoder = VmcDecoder()
     for f in range(len(clip.rotations)):
         received = np.tile([1.0, 0.0, 0.0, 0.0], (len(decoder.bones), 1))
@@ -208,15 +215,7 @@ def test_the_pelvis_is_the_same_sent_over_vmc_and_retargeted_directly(scene):
     leaves = [j.rsplit("/", 1)[-1] for j in joints]
     picks = list(range(0, len(rotations), 100))
     clip = humanoid_clip(skeleton, rotations[picks], roots[picks], frame_time)
-    source = open_source("vmc://127.0.0.1:0", "suit")
-    via_vmc = for_preset(source, skel, "unity", 0.01)
-    via_vmc.align_rest(PRESETS["unity"].rest_positions_for(source.bones))
-    p = PRESETS["cmu"]
-    direct = Retargeter(
-        skeleton.names, skeleton.parents, "local", joints, rest, p.bone_map, p.basis,
-        p.meters_per_unit / 0.01,
-    )  # fmt: skip
-    direct.align_rest(skeleton.rest_positions())
+    via_vmc, direct = two_paths(skel, skeleton, joints, rest)
     decoder = VmcDecoder()
     worst = np.zeros(len(joints))
     for f, k in enumerate(picks):
