@@ -5,7 +5,8 @@ animations, skinned meshes, cameras, lights and neural characters (every schema 
 and applied API), then the findings of USD's validators and rigspace's. Each rigspace
 error names the commands that refuse the scene for it (`blocks`: capture, render; they
 run the same rules through `validation.require_valid`); USD's own findings are
-compliance and stop no command. Exit code 0 without errors, 1 with errors; `--json`
+compliance and stop no command. Exit code 1 when an error stops a command (capture,
+render), else 0 (`--strict`: 1 on any error, USD's included); `--json`
 prints one object with keys stage, prims, errors, warnings.
 """
 
@@ -264,6 +265,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="run only rigspace's validators, not USD's built-in ones",
     )
+    parser.add_argument(
+        "--strict",
+        action="store_true",
+        help="exit 1 on any error, USD's own compliance findings included (by default only "
+        "errors that stop a rigspace command do)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -274,7 +281,8 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.write("\n")
     else:
         print(format_report(report, shown_path=args.scene))
-    return 1 if report["errors"] else 0
+    stopping = [e for e in report["errors"] if e["blocks"]]
+    return 1 if stopping or (args.strict and report["errors"]) else 0
 
 
 COMMAND = CommandSpec(

@@ -138,6 +138,15 @@ class BaselinePredictor:
                 f"in {self.table.folder} (a held-out clip is never captured from training views).",
                 f"evaluate the {self.kind} baseline on the heldout-views split.",
             )
+        # A training sample is not its own neighbour (on the train split the nearest view of
+        # its frame would be itself: a baseline at inf dB, measuring nothing).
+        candidates = candidates[candidates != index]
+        if len(candidates) == 0:
+            raise DatasetError(
+                f"Sample {self.table.column('path')[index]} is the only training view of its "
+                f"frame in {self.table.folder}: the {self.kind} baseline has nothing else to use.",
+                "capture more views per ring, or evaluate with --no-baselines.",
+            )
         angles = np.round(
             angles_between(self.directions[index], self.directions[candidates]), ANGLE_DECIMALS
         )
