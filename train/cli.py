@@ -369,10 +369,13 @@ def run_eval(args: argparse.Namespace) -> int:
     if args.display:
         return run_display(args)
     table = DatasetTable(Path(args.dataset))
-    top = model_top_level(Path(args.model))
+    top, stopped = model_top_level(Path(args.model))
+    if stopped:
+        print(f"note: {stopped}", file=sys.stderr)
     if top is not None and table.resolution > top and table.resolution % top == 0:
-        # A model designed below the capture's resolution: evaluate it at its top level
-        # against box-downsampled targets, the ones it was trained on.
+        # The bundle's top level is below the capture's resolution (a model designed so, or a
+        # run a budget stopped early): evaluate it there, as the runtime uses it, against
+        # box-downsampled targets.
         table = DatasetTable(Path(args.dataset), top)
         print(f"note: targets {targets_note(table)}", file=sys.stderr)
     predictors = [
@@ -408,17 +411,25 @@ def run_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def model_top_level(model: Path) -> int | None:
-    """The highest level a bundle's network has (planned, trained or not); None when its
-    manifest does not say (BundlePredictor then reports the bundle's own problem)."""
+def model_top_level(model: Path) -> tuple[int | None, str]:
+    """The highest level a bundle has (the runtime's top level), and a sentence when its run
+    stopped before the level it planned (a budget); (None, "") when the manifest does not
+    say (BundlePredictor then reports the bundle's own problem)."""
     try:
         raw = json.loads((model / "manifest.json").read_text())
-        planned = raw.get("training", {}).get("planned_levels") or [
-            level["resolution"] for level in raw["levels"]
-        ]
-        return int(max(planned))
+        top = int(max(level["resolution"] for level in raw["levels"]))
+        training = raw.get("training", {})
+        planned = max(training.get("planned_levels") or [top])
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        return None
+        return None, ""
+    if planned <= top:
+        return top, ""
+    return top, (
+        f"the run stopped at step {training.get('steps')} of {training.get('planned_steps')}, "
+        f"before level {planned} was trained: the model is measured at its top level {top}, "
+        f"as the runtime draws it (train the rest: `rigspace train DATASET --out {model} "
+        "--resume`, with the original options)"
+    )
 
 
 def record_metrics(

@@ -60,10 +60,11 @@ def test_a_run_stopped_early_exports_only_the_levels_it_trained(tmp_path, tiny_d
     assert not list(model.glob("*_32*.onnx"))
     runtime = BundleModel(model)
     assert runtime.resolutions == [8, 16] and runtime.level_for(999) == 16
-    # eval at the untrained level says why, and how to go on.
-    assert main(["eval", str(model), str(tiny_dataset), "--no-baselines"]) == 2
-    err = capsys.readouterr().err
-    assert "before level 32 (the dataset's resolution) was trained" in err and "--resume" in err
+    # eval measures it at its top level (as the runtime draws it), and says the run stopped.
+    assert main(["eval", str(model), str(tiny_dataset), "--no-baselines", "--json"]) == 0
+    captured = capsys.readouterr()
+    assert "before level 32 was trained: the model is measured at its top level 16" in captured.err
+    assert "--resume" in captured.err and json.loads(captured.out)["resolution"] == 16
 
 
 def test_the_plan_fits_every_level_into_the_budget():
