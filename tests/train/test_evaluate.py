@@ -232,14 +232,22 @@ def test_eval_above_the_top_level_uses_downsampled_targets_and_strict_json(
     assert "(targets box-downsampled 2x" in capsys.readouterr().out
 
 
-def test_eval_json_writes_null_where_a_metric_is_not_finite(fp32_model, tiny_dataset, capsys):
-    """On training rows the nearest captured view is the sample itself: PSNR +inf."""
-    from rigspace.sdk.cli import main
+def test_eval_json_writes_null_where_a_metric_is_not_finite(tiny_dataset):
+    """A predictor that returns the targets themselves scores PSNR +inf: strict JSON null."""
 
-    args = ["eval", str(fp32_model), str(tiny_dataset), "--split", "train", "--limit", "2"]
-    assert main([*args, "--json"]) == 0
-    result = json.loads(capsys.readouterr().out, parse_constant=_reject)
-    nearest = next(row for row in result["rows"] if row["predictor"] == "nearest")
-    assert nearest["albedo_psnr"] is None and nearest["mask_iou"] == 1.0
-    samples = result["reports"]["nearest"]["per_sample"]
+    class Truth:
+        name, footprint_bytes = "truth", 0
+
+        def __init__(self, table):
+            self.table = table
+
+        def predict(self, indices):
+            return [self.table.maps(int(i)) for i in indices]
+
+    table = ev.DatasetTable(tiny_dataset)
+    result = ev.compare([Truth(table)], table, "train", limit=2)
+    parsed = json.loads(ev.to_json(result), parse_constant=_reject)
+    (row,) = parsed["rows"]
+    assert row["albedo_psnr"] is None and row["mask_iou"] == 1.0
+    samples = parsed["reports"]["truth"]["per_sample"]
     assert all(sample["albedo_psnr"] is None for sample in samples)
