@@ -288,6 +288,38 @@ def fit_radius(reach: float, focal: float, aperture: float) -> float:
     return BOUNDS_MARGIN * reach / math.sin(half_fov)
 
 
+OFF_CENTRE = 0.35
+"""A look-at joint farther than this share of the character's reach from the centre of its
+skinned meshes frames the character off-centre (a rig rooted at its feet: its feet)."""
+
+
+def _warn_off_centre(rig: CharacterRig, joint: int, clips: tuple[Clip, ...], warn: Warn) -> None:
+    """Say when the ring would be aimed far from the character's middle, and which joint is
+    in the middle (what `rigspace init` picks)."""
+    from rigspace.sdk.scaffold import centre_joint
+
+    times = np.concatenate([c.times() for c in clips])
+    picks = times[np.linspace(0, len(times) - 1, min(4, len(times))).astype(int)]
+    found = centre_joint(rig, picks)
+    if found is None:
+        return
+    best, positions, points = found
+    reach = max(
+        float(np.linalg.norm(p - positions[k, joint], axis=1).max()) for k, p in enumerate(points)
+    )
+    centre = np.mean([(p.min(axis=0) + p.max(axis=0)) / 2 for p in points], axis=0)
+    offset = float(np.linalg.norm(positions[:, joint].mean(axis=0) - centre))
+    if best != joint and offset > OFF_CENTRE * reach:
+        name = rig.joints[best].rsplit("/", 1)[-1]
+        warn(
+            f"the look-at joint {rig.joints[joint].rsplit('/', 1)[-1]} is {offset:.3g} units "
+            f"from the middle of the character (which reaches {reach:.3g} from it): the ring "
+            "aims off-centre and the character fills a corner of every sample (a rig rooted "
+            f'at its feet shows its feet). Author rigspace:lookAtJoint = "{name}" (the joint '
+            "nearest the middle; rigspace:captureRing:lookAtJoint wins if set)."
+        )
+
+
 def derive_radius(
     rig: CharacterRig, joint: int, clips: tuple[Clip, ...], focal: float, aperture: float
 ) -> float:
@@ -347,6 +379,7 @@ def resolve_settings(
             f"Look-at joint: {exc.args[0]}.", "name a joint of the skeleton."
         ) from exc
     clips = _resolve_clips(ring, overrides, span, animation_time_samples(rig), warn)
+    _warn_off_centre(rig, joint, clips, warn)
     radius = overrides.radius or defaults.radius
     if not radius:
         radius = derive_radius(

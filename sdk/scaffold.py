@@ -192,21 +192,13 @@ def _author(
             "export the character with its animation: capture renders it in many poses.",
         )
     times = np.linspace(span[0], span[1], SAMPLES)
-    centres, joint_positions, points = [], [], []
-    for t in times:
-        meshes = rig.posed_meshes(float(t))
-        if not meshes:
-            raise SceneError(
-                f"No mesh of {asset} is skinned to {skeleton}.",
-                "bind the character's meshes to its skeleton (UsdSkelBindingAPI).",
-            )
-        p = np.concatenate([m.points for m in meshes])
-        points.append(p)
-        centres.append((p.min(axis=0) + p.max(axis=0)) / 2)
-        joint_positions.append(rig.world_transforms(float(t))[:, :3, 3])  # column vectors
-    centre = np.mean(centres, axis=0)
-    jp = np.array(joint_positions)  # (T, J, 3)
-    look = int(np.argmin(np.linalg.norm(jp.mean(axis=0) - centre, axis=1)))
+    found = centre_joint(rig, times)
+    if found is None:
+        raise SceneError(
+            f"No mesh of {asset} is skinned to {skeleton}.",
+            "bind the character's meshes to its skeleton (UsdSkelBindingAPI).",
+        )
+    look, jp, points = found
     extent = max(float(np.linalg.norm(p - jp[k, look], axis=1).max()) for k, p in enumerate(points))
     half_fov = math.atan(APERTURE / 2 / FOCAL_LENGTH)
     radius = MARGIN * extent / math.sin(half_fov)  # the whole sphere of that radius in view
@@ -252,6 +244,23 @@ def _author(
         clip=(clip_name, float(span[0]), float(span[1])),
         camera=camera,
     )
+
+
+def centre_joint(rig, times: np.ndarray) -> tuple[int, np.ndarray, list[np.ndarray]] | None:
+    """(the joint nearest the skinned meshes' bounding-box centre on average over `times`,
+    (T, J, 3) joint positions, the posed points per time); None without skinned meshes."""
+    centres, joints, points = [], [], []
+    for t in times:
+        meshes = rig.posed_meshes(float(t))
+        if not meshes:
+            return None
+        p = np.concatenate([m.points for m in meshes])
+        points.append(p)
+        centres.append((p.min(axis=0) + p.max(axis=0)) / 2)
+        joints.append(rig.world_transforms(float(t))[:, :3, 3])  # column vectors
+    positions = np.array(joints)
+    mean = np.mean(centres, axis=0)
+    return int(np.argmin(np.linalg.norm(positions.mean(axis=0) - mean, axis=1))), positions, points
 
 
 def _axes(up: str) -> tuple[Gf.Vec3d, Gf.Vec3d]:

@@ -136,3 +136,23 @@ def test_the_command_prints_what_it_found_and_the_next_commands(tmp_path, capsys
     assert "look-at joint   hips: nearest the skinned meshes' centre" in out
     assert f"rigspace render {scene} --model {tmp_path / 'shot_model'}" in out
     assert main(["inspect", str(scene)]) == 0
+
+
+def test_capture_warns_when_the_look_at_joint_is_far_from_the_characters_middle(tmp_path):
+    """A ring aimed at the root of a rig rooted at its feet frames the feet: capture says so
+    and names the joint in the middle (the one init picks)."""
+    from rigspace.capture.settings import resolve_settings
+
+    derived = init_scene(robot(tmp_path), tmp_path / "shot.usda")
+    feet = tmp_path / "feet.usda"
+    feet.write_text(
+        '#usda 1.0\n(\n    subLayers = [@./shot.usda@]\n)\nover "World"\n{\n'
+        '    over "robot"\n    {\n        uniform token rigspace:lookAtJoint = "root"\n    }\n}\n'
+    )
+    said: list[str] = []
+    resolve_settings(feet, derived.character, warn=said.append)
+    (warning,) = [w for w in said if "look-at joint" in w]
+    assert "look-at joint root is" in warning and 'rigspace:lookAtJoint = "hips"' in warning
+    said.clear()
+    resolve_settings(tmp_path / "shot.usda", derived.character, warn=said.append)
+    assert not [w for w in said if "look-at joint" in w]  # init's choice is the middle
