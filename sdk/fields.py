@@ -150,3 +150,38 @@ DATASET_MANIFEST = (
     Field("clips[].first", "number"),
 )
 """The fields of a dataset's manifest.json that rigspace reads (capture.dataset.read_manifest)."""
+
+TRAINING_RUN = (
+    Field("config", "object", required=True),
+    Field("dataset", "text", required=True),
+    Field("dataset_checksum", "text"),
+    Field("joints", "names", required=True),
+    Field("charts", "count"),
+    Field("plan", "object"),
+    Field("plan.steps_per_level", "size", required=True),
+    Field("plan.seconds_per_step", "object"),
+)
+"""The fields of a training run's run.json (train.loop.read_run)."""
+
+CAPTURE_SETTINGS = (
+    Field("scene", "text", required=True),
+    Field("character", "text", required=True),
+    Field("joints", "names", required=True),
+    Field("clips", "list", required=True),
+    Field("clips[].name", "text", required=True),
+    Field("clips[].first", "number", required=True),
+    Field("clips[].last", "number", required=True),
+    Field("views_per_ring", "size", required=True),
+    Field("elevations", "numbers", required=True),
+    Field("radius", "positive", required=True),
+    Field("focal_length", "positive", required=True),
+    Field("horizontal_aperture", "positive", required=True),
+    Field("resolution", "size", required=True),
+    Field("clipping_range", "numbers", required=True),
+    Field("renderer", "text", required=True),
+    Field("samples_per_axis", "size", required=True),
+    Field("frames_per_item", "size", required=True),
+    Field("every", "size"),
+)
+"""The fields of a dataset's capture.json (capture.pipeline.prepare_folder reads it to
+resume; capture.dataset.resume_command to say how)."""

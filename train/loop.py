@@ -39,6 +39,7 @@ from tqdm import tqdm
 from rigspace.capture.dataset import DatasetError, read_manifest
 from rigspace.sdk.cli import sigterm_as_interrupt
 from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.fields import TRAINING_RUN, problems
 from rigspace.train import distributed
 from rigspace.train.budget import Pace, apply_plan, plan_schedule
 from rigspace.train.conditioning import dataset_skeleton, parents_of
@@ -167,7 +168,7 @@ def prepare_run(
     run_file = out / RUN_FILE
     if not run_file.exists():
         return manifest, config, None
-    existing = json.loads(run_file.read_text())
+    existing = read_run(out)
     if not resume:
         raise TrainingError(
             f"{out} already holds a training run.",
@@ -185,6 +186,25 @@ def prepare_run(
             "resume with the original options, or choose a new --out.",
         )
     return manifest, config, existing
+
+
+def read_run(folder: Path) -> dict[str, Any]:
+    """A run folder's run.json, checked against its spec (sdk.fields.TRAINING_RUN): a damaged
+    or hand-edited file is a TrainingError naming the field, never a traceback."""
+    path = folder / RUN_FILE
+    try:
+        run = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise TrainingError(
+            f"{path} is not readable JSON ({exc}).",
+            "restore it, or start the run over in a new --out.",
+        ) from exc
+    wrong = problems(run, TRAINING_RUN) if isinstance(run, dict) else ["it is not an object"]
+    if wrong:
+        raise TrainingError(
+            f"{path}: {'; '.join(wrong)}.", "restore it, or start the run over in a new --out."
+        )
+    return run
 
 
 def run_record(dataset: Path, manifest: dict[str, Any], config: TrainConfig) -> dict[str, Any]:
@@ -517,7 +537,7 @@ def build_model(
 ) -> tuple[Rig2Image, dict[str, Any], int]:
     """The trained model of a run folder (or of another `checkpoint` of the run, one kept
     while it trained), its run.json, and the step it reached."""
-    run = json.loads((run_folder / RUN_FILE).read_text())
+    run = read_run(run_folder)
     config = TrainConfig.from_json(run["config"])
     shape = Shape(
         len(run["joints"]), parents=parents_of(run["joints"]), charts=int(run.get("charts", 0))

@@ -98,3 +98,38 @@ def test_a_wrong_type_in_a_dataset_manifest_is_a_named_error(tmp_path, tiny_data
         with pytest.raises(DatasetError, match="Fix:") as info:
             read_dataset(folder)
         assert field.path.split("[")[0].split(".")[0] in str(info.value)
+
+
+def test_a_wrong_type_in_run_json_or_capture_json_is_a_named_error(tmp_path, tiny_dataset):
+    from rigspace.capture.pipeline import CaptureError, prepare_folder
+    from rigspace.capture.settings import CaptureSettings
+    from rigspace.sdk.fields import CAPTURE_SETTINGS, TRAINING_RUN
+    from rigspace.train.loop import TrainingError, read_run
+
+    run = {
+        "config": {},
+        "dataset": "/d",
+        "joints": ["a"],
+        "charts": 2,
+        "plan": {"steps_per_level": 5},
+    }
+    for field in TRAINING_RUN:
+        if not present(run, field):
+            continue
+        folder = tmp_path / "run" / field.path
+        folder.mkdir(parents=True)
+        (folder / "run.json").write_text(json.dumps(broken(run, field)))
+        with pytest.raises(TrainingError, match="Fix:") as info:
+            read_run(folder)
+        assert f"'{field.path}'" in str(info.value)
+    (folder / "run.json").write_text("{not json")
+    with pytest.raises(TrainingError, match="not readable JSON"):
+        read_run(folder)
+    settings = json.loads((tiny_dataset / "capture.json").read_text())
+    for field in (f for f in CAPTURE_SETTINGS if present(settings, f)):
+        folder = tmp_path / "capture" / field.path.replace("[]", "")
+        folder.mkdir(parents=True)
+        (folder / "capture.json").write_text(json.dumps(broken(settings, field)))
+        with pytest.raises(CaptureError, match="Fix:") as info:
+            prepare_folder(folder, CaptureSettings.from_json(settings), True, False)
+        assert field.path.split("[")[0] in str(info.value)
