@@ -13,9 +13,10 @@ Render a neural character's training dataset: for every frame of its clips and e
 camera of its capture ring (RigspaceCaptureRingAPI), the character's maps as one EXR
 (R,G,B albedo, A mask, Z depth, N.X/N.Y/N.Z normals; uv.U, uv.V and chart, the textured
 surface's st and chart, when the character has textures) and its rig parameters
-(params.npz), with manifest.json, charts.json and contact_sheet.png. Flags override the capture ring's values; the
-resolved settings are saved. Resumable (--resume, also after kill -9) and shardable
-(--shard i/n: run n processes or machines on one folder, any order).
+(params.npz), with manifest.json, charts.json and contact_sheet.png. Flags override the
+capture ring's values; the resolved settings are saved. Resumable (--resume, also after
+kill -9 or SIGTERM) and shardable (--shard i/n: run n processes or machines on one folder,
+any order).
 """
 
 
