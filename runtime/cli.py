@@ -7,6 +7,7 @@ import json
 import math
 import os
 import sys
+import time as clock
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -180,7 +181,15 @@ def run(args: argparse.Namespace) -> int:
             np.linspace(0, len(times) - 1, min(CONTACT_FRAMES, len(times))).astype(int).tolist()
         )
         for k, t in enumerate(tqdm(times, unit="frame", file=sys.stderr, dynamic_ncols=True)):
+            began = clock.perf_counter()
             frame = engine.render(float(t))
+            if k == 0 and clock.perf_counter() - began > FIRST_FRAME_NOTE:
+                tqdm.write(
+                    f"rigspace render: the first frame took {clock.perf_counter() - began:.0f} s: "
+                    "numba compiled the shadow and texture kernels (cached on disk now; "
+                    ".ci/setup compiles them ahead), and the network sessions loaded",
+                    file=sys.stderr,
+                )
             stem = f"frame_{t:08.1f}"
             write_frame_exr(out / f"{stem}.exr", frame, aovs)
             rgb = (linear_to_srgb(frame.beauty) * 255 + 0.5).astype(np.uint8)
@@ -256,6 +265,8 @@ def never_drawn(reports: list[dict], characters: list[str]) -> list[str]:
     return warnings
 
 
+FIRST_FRAME_NOTE = 10.0
+"""Seconds a first frame may take before render says why it was slow (a first run)."""
 MAX_FRAMES = 1_000_000
 """The most frames one render may ask for: over nine hours at 30 fps. More is a typo in
 --frames or --step (a 1e12 or a 1e-9), which would otherwise exhaust memory before the

@@ -60,9 +60,15 @@ class Context:
         return DistributedDataParallel(model, device_ids=ids, find_unused_parameters=True)
 
     def to_device(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """The batch on this rank's device; to a GPU through page-locked memory, so the copy
+        runs asynchronously (non_blocking only overlaps from pinned memory)."""
         if self.device.type == "cpu":
             return batch
-        return {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
+        pin = self.device.type == "cuda"
+        return {
+            k: (v.pin_memory() if pin else v).to(self.device, non_blocking=True)
+            for k, v in batch.items()
+        }
 
     def on_cpu(self, model: torch.nn.Module) -> torch.nn.Module:
         """`model`, or a CPU copy of it (previews read numpy batches on the CPU)."""
