@@ -206,3 +206,17 @@ def test_live_binding_counters_rise_while_a_sender_streams(browser):
 @pytest.fixture(autouse=True)
 def _needs_browser(browser):
     """Every test here drives the session's Chromium (skipped where it is missing)."""
+
+
+@pytest.mark.parametrize("width", [1280, 1400, 1600])
+def test_every_column_fits_the_window(browser, previs_served, width):
+    """The three columns shrink to the window: at 1400 px the right one was clipped (issue 22)."""
+    _, url = previs_served
+    page = browser.new_page(viewport={"width": width, "height": 900})
+    page.goto(url)
+    page.wait_for_function("window.rigspaceView && window.rigspaceView.summary", timeout=30_000)
+    for column in ("#left", "#center", "#right"):
+        box = page.locator(column).bounding_box()
+        assert box is not None and box["width"] > 150, column
+        assert box["x"] >= 0 and box["x"] + box["width"] <= width + 0.5, (column, box)
+    page.close()
