@@ -48,6 +48,11 @@ class CaptureError(RigspaceError):
     """A capture request that cannot run as given."""
 
 
+OFF_GRID_SPACING = (0.5, 1.5)
+"""Authored samples about one time code apart (times the step) but mostly off the grid of
+integer steps are the clip's frames themselves; sparser keys keep the grid (interpolated)."""
+
+
 @dataclass(frozen=True)
 class Clip:
     name: str
@@ -59,10 +64,24 @@ class Clip:
 
     def times(self, step: float = 1.0, samples: Sequence[float] | np.ndarray = ()) -> np.ndarray:
         """The clip's time codes, each snapped to an authored sample within the tolerance
-        (sdk/timecodes.py), so a drifted export is posed at its own samples."""
+        (sdk/timecodes.py), so a drifted export is posed at its own samples. An animation
+        sampled about once per time code but off the integer grid (an export at 0.9867 time
+        codes per sample) is captured at its own samples, not between them."""
         span = (self.last - self.first + float(timecodes.tolerance(self.last))) / step
         count = math.floor(span) + 1
-        return timecodes.snap(self.first + step * np.arange(count), samples)
+        grid = timecodes.snap(self.first + step * np.arange(count), samples)
+        inside = np.asarray(samples, dtype=np.float64)
+        lo, hi = self.first, self.last
+        inside = inside[
+            (inside >= lo - timecodes.tolerance(lo)) & (inside <= hi + timecodes.tolerance(hi))
+        ]
+        if len(inside) < 2:
+            return grid
+        spacing = float(np.median(np.diff(np.unique(inside))))
+        on_samples = np.mean(timecodes.same_time(grid[:, None], inside[None]).any(axis=1))
+        if OFF_GRID_SPACING[0] * step < spacing < OFF_GRID_SPACING[1] * step and on_samples < 0.5:
+            return np.unique(inside)
+        return grid
 
 
 @dataclass(frozen=True)

@@ -54,3 +54,21 @@ def test_clamp_range():
     assert clamp_range(3023.0, 3023.0, lo, hi) == (hi, hi)
     with pytest.raises(ValueError, match="finite"):
         clamp_range(float("nan"), float("nan"), lo, hi)
+
+
+def test_a_clip_sampled_off_the_integer_grid_is_captured_at_its_own_samples():
+    """An export at 0.9867 time codes per sample: captured at its samples, not between them
+    (the issue 22 asset); integer, drifted, dense and sparse keys keep the grid."""
+    import numpy as np
+
+    from rigspace.capture.settings import Clip
+
+    clip = Clip("walk", 0.0, 40.0)
+    off_grid = np.arange(41) * 0.9867
+    np.testing.assert_array_equal(clip.times(samples=off_grid), off_grid[off_grid <= 40.0])
+    drifted = np.arange(41) + 1e-7
+    np.testing.assert_array_equal(clip.times(samples=drifted), drifted)
+    dense = np.arange(81) * 0.5  # twice the rate: the integer frames are samples
+    np.testing.assert_array_equal(clip.times(samples=dense), np.arange(41.0))
+    sparse = np.arange(0, 41, 10.0)  # keys every 10 frames: every frame, interpolated
+    np.testing.assert_array_equal(clip.times(samples=sparse), np.arange(41.0))
