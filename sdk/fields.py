@@ -134,7 +134,7 @@ BUNDLE_MANIFEST = (
 DATASET_MANIFEST = (
     Field("resolution", "size", required=True),
     Field("joints", "names", required=True),
-    Field("look_at_joint", "text", required=True),
+    Field("look_at_joint", "text"),
     Field("scene", "text"),
     Field("character", "text"),
     Field("checksum", "text"),
