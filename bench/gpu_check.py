@@ -27,9 +27,9 @@ on the GPU's EGL took 60 s for all 49,920 samples on an H200 with 16 workers), t
     rigspace capture samples/scenes/previs.usda --out /tmp/ds --workers 16
     python -m rigspace.bench.gpu_check --out gpu_check.json --dataset /tmp/ds
 
-With the defaults it runs for about 3 minutes on such a machine (the step part 30 s, the
-predictors 20 s, the train part's cache build and 300 steps about a minute, 16 frames at
-1080p), well inside 8.
+With the defaults it should take about 3 minutes on such a machine (estimated, not yet run on
+a GPU: the step part's 6 timings of 4 s, 6 predictor timings, the train part's cache build and
+300 steps, 16 frames at 1080p), inside the 8 minutes asked.
 """
 
 from __future__ import annotations
