@@ -43,7 +43,7 @@ from rigspace.sdk.capsules import FILE_NAME as CAPSULES_FILE
 from rigspace.sdk.capsules import fit_capsules, write_capsules
 from rigspace.sdk.cli import sigterm_as_interrupt
 from rigspace.sdk.exr import write_exr
-from rigspace.sdk.fields import CAPTURE_SETTINGS, problems
+from rigspace.sdk.fields import CAPTURE_SETTINGS, read_checked
 from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.render import RenderSettings, choose_renderer
 from rigspace.sdk.rotations import rig_parameters
@@ -232,23 +232,12 @@ def prepare_folder(folder: Path, settings: CaptureSettings, resume: bool, sharde
                 f"--out {folder} is not empty and is not a rigspace dataset.",
                 "choose a new or empty folder.",
             )
-        try:
-            existing = json.loads(settings_file.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise CaptureError(
-                f"{settings_file} is not readable JSON ({exc}).",
-                "restore it, or capture into a new folder.",
-            ) from exc
-        wrong = (
-            problems(existing, CAPTURE_SETTINGS)
-            if isinstance(existing, dict)
-            else ["it is not an object"]
+        existing = read_checked(
+            settings_file,
+            CAPTURE_SETTINGS,
+            CaptureError,
+            "restore it, or capture into a new folder.",
         )
-        if wrong:
-            raise CaptureError(
-                f"{settings_file}: {'; '.join(wrong)}.",
-                "restore it, or capture into a new folder.",
-            )
         wanted = json.loads(json.dumps(settings.to_json()))  # tuples become lists, as on disk
         differs = sorted(k for k in set(existing) | set(wanted) if existing.get(k) != wanted.get(k))
         if differs:

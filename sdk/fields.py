@@ -12,10 +12,14 @@ paths must be there.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
+
+from rigspace.sdk.errors import RigspaceError
 
 KINDS: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "number": ("a finite number", lambda v: _number(v)),
@@ -62,6 +66,20 @@ def problems(data: Any, spec: tuple[Field, ...]) -> list[str]:
                 shown = repr(value) if len(repr(value)) <= 40 else f"{type(value).__name__}"
                 found.append(f"'{where}' is {shown}, not {what}")
     return found
+
+
+def read_checked(path: Path, spec: tuple[Field, ...], error: type[RigspaceError], fix: str) -> dict:
+    """A JSON file read and checked against `spec`: unreadable JSON, something other than an
+    object, or a field of a wrong kind is an `error` naming the file (and the field), with
+    `fix`."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise error(f"{path} is not readable JSON ({exc}).", fix) from exc
+    wrong = problems(data, spec) if isinstance(data, dict) else ["it is not an object"]
+    if wrong:
+        raise error(f"{path}: {'; '.join(wrong)}.", fix)
+    return data
 
 
 def _values(data: Any, parts: list[str], where: str = ""):

@@ -39,7 +39,7 @@ from tqdm import tqdm
 from rigspace.capture.dataset import DatasetError, read_manifest
 from rigspace.sdk.cli import sigterm_as_interrupt
 from rigspace.sdk.errors import RigspaceError
-from rigspace.sdk.fields import TRAINING_RUN, problems
+from rigspace.sdk.fields import TRAINING_RUN, read_checked
 from rigspace.train import distributed
 from rigspace.train.budget import Pace, apply_plan, plan_schedule
 from rigspace.train.conditioning import dataset_skeleton, parents_of
@@ -191,20 +191,8 @@ def prepare_run(
 def read_run(folder: Path) -> dict[str, Any]:
     """A run folder's run.json, checked against its spec (sdk.fields.TRAINING_RUN): a damaged
     or hand-edited file is a TrainingError naming the field, never a traceback."""
-    path = folder / RUN_FILE
-    try:
-        run = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise TrainingError(
-            f"{path} is not readable JSON ({exc}).",
-            "restore it, or start the run over in a new --out.",
-        ) from exc
-    wrong = problems(run, TRAINING_RUN) if isinstance(run, dict) else ["it is not an object"]
-    if wrong:
-        raise TrainingError(
-            f"{path}: {'; '.join(wrong)}.", "restore it, or start the run over in a new --out."
-        )
-    return run
+    fix = "restore it, or start the run over in a new --out."
+    return read_checked(folder / RUN_FILE, TRAINING_RUN, TrainingError, fix)
 
 
 def run_record(dataset: Path, manifest: dict[str, Any], config: TrainConfig) -> dict[str, Any]:
