@@ -278,10 +278,25 @@ ONNXRUNTIME_CUDA = PredictorSpec(
 )
 
 
+def predictor_name(text: str) -> str:
+    """argparse type for --predictor: auto or an installed predictor's name (checked before
+    anything opens, so `view` fails at its flag and does not serve an error page)."""
+    found = discover(PREDICTORS)
+    if text == AUTO or text in found.specs:
+        return text
+    import argparse
+
+    raise argparse.ArgumentTypeError(
+        f"there is no predictor plugin called {text!r}; installed: "
+        f"{', '.join([AUTO, *sorted(found.specs)])}"
+    )
+
+
 def add_predictor_argument(parser) -> None:
     """`--predictor NAME` on a command that runs a bundle (render, live, view, eval, bench)."""
     parser.add_argument(
         "--predictor",
+        type=predictor_name,
         default=AUTO,
         metavar="NAME",
         help="what runs the network: auto (default: the fastest that can run the bundle here), "
