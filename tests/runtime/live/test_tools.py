@@ -11,23 +11,28 @@ from rigspace.runtime.live import probe, send
 from rigspace.runtime.live.buffer import LiveBuffer
 from rigspace.runtime.live.sources import open_source
 from tests.conftest import free_port
-from tests.runtime.live.conftest import CMU_CLIP, udp_port_bound, wait_for
+from tests.runtime.live.conftest import CMU_CLIP, wait_for
 
 
 def test_probe_reports_a_vmc_sender():
+    """The sender streams (looping) before and after the probe's window, so a busy machine
+    that starts either thread late cannot leave the window empty (a timed race before)."""
+    from rigspace.runtime.live.decoders.bvh import read_bvh
+
     port = free_port()
+    skeleton, motion, frame_time = read_bvh(CMU_CLIP)
+    clip = send.humanoid_clip(skeleton, *skeleton.pose(motion), frame_time)
+    stop = threading.Event()
+    sender = threading.Thread(
+        target=send.send_vmc, args=(f"vmc://127.0.0.1:{port}", clip, 4.0, True, stop), daemon=True
+    )
+    sender.start()
     out = io.StringIO()
-    result: dict = {}
-    listener = threading.Thread(
-        target=lambda: result.update(probe.probe(f"vmc://127.0.0.1:{port}", 1.0, 0.25, out))
-    )
-    listener.start()
-    assert wait_for(lambda: udp_port_bound(port))  # sending before it listens loses the clip
-    code = send.main(
-        [f"vmc://127.0.0.1:{port}", "--bvh", str(CMU_CLIP), "--speed", "4", "--seconds", "0.8"]
-    )
-    listener.join()
-    assert code == 0
+    try:
+        result = probe.probe(f"vmc://127.0.0.1:{port}", 2.0, 0.25, out)
+    finally:
+        stop.set()
+        sender.join()
     lines = [json.loads(line) for line in out.getvalue().splitlines()]
     assert len(lines) >= 4 and result == lines[-1]
     seen = max(lines, key=lambda r: r["bones_seen"])
