@@ -3,7 +3,8 @@
 The export writes the network's weights beside the ONNX graphs (`weights.safetensors`,
 rigspace.sdk.weights: no pickle) with what rebuilds it (manifest `torch`: the training
 config, the joints' parents, the charts), and checks this predictor against every fp32 graph
-(manifest `torch.check`). Each graph file maps to the module that was traced into it
+(manifest `torch.check`). A bundle whose `torch` section names no file (the committed sample
+model) reads the same weights back from its fp32 graphs (weights_from_graphs). Each graph file maps to the module that was traced into it
 (rigspace.train.graphs), so both compute one function. On a GPU the modules run in fp16,
 channels_last, each (graph, batch size) captured once as a CUDA graph and replayed (a
 frame's few small kernels cost more to launch than to run); on the CPU, fp32.
@@ -36,15 +37,56 @@ def network_section(manifest: dict[str, Any]) -> dict[str, Any] | None:
     return section if isinstance(section, dict) else None
 
 
-def build_network(folder, section: dict[str, Any]):
-    """The Rig2Image of a bundle, its weights loaded, in eval mode on the CPU (fp32)."""
+def weights_from_graphs(folder, manifest: dict[str, Any]) -> dict[str, np.ndarray]:
+    """The network's state dict read back from the bundle's own fp32 ONNX graphs: every
+    parameter is an initializer named after it, except each level's 1x1 head, which the
+    export slices by output (graphs.BranchAtLevel) and which is their concatenation, in the
+    order the graph's Conv nodes apply them. A bundle needs no second copy of its weights."""
+    import onnx
+    from onnx import numpy_helper
+
+    files = [(manifest["trunk"]["graphs"]["trunk"], "trunk", 0)]
+    for branch in ("albedo", "geometry"):
+        levels = sorted(manifest["levels"], key=lambda level: int(level["resolution"]))
+        files += [(level["graphs"][branch], branch, k) for k, level in enumerate(levels)]
+    state: dict[str, np.ndarray] = {}
+    for file, branch, index in files:
+        graph = onnx.load(str(folder / file)).graph
+        values = {i.name: numpy_helper.to_array(i) for i in graph.initializer}
+        state |= {k.removeprefix("model."): v for k, v in values.items() if k.startswith("model.")}
+        head = [
+            (values[node.input[1]], values[node.input[2]])
+            for node in graph.node
+            if node.op_type == "Conv" and not node.input[1].startswith("model.")
+        ]
+        if branch != "trunk" and head:
+            state[f"{branch}.heads.{index}.weight"] = np.concatenate([w for w, _ in head])
+            state[f"{branch}.heads.{index}.bias"] = np.concatenate([b for _, b in head])
+    return state
+
+
+def build_network(folder, manifest: dict[str, Any]):
+    """The Rig2Image of a bundle, its weights loaded, in eval mode on the CPU (fp32): from the
+    weights file its `torch` section names (what the export writes), else from its fp32 ONNX
+    graphs (weights_from_graphs)."""
     import torch
 
     from rigspace.train.config import TrainConfig
     from rigspace.train.network import Rig2Image, Shape
 
-    path = folder / str(section.get("file", WEIGHTS))
-    tensors, _ = read_safetensors(path)
+    section = manifest["torch"]
+    source = str(section["file"]) if section.get("file") else "fp32 graphs"
+    try:
+        if section.get("file"):
+            tensors, _ = read_safetensors(folder / source)
+        else:
+            tensors = weights_from_graphs(folder, manifest)
+    except (OSError, KeyError, TypeError, ValueError) as exc:  # not a WeightsError: graphs
+        raise BundleError(
+            f"Model bundle {folder}: the network's weights cannot be read from its {source} "
+            f"({type(exc).__name__}: {str(exc).splitlines()[0][:200]}).",
+            "re-export the bundle with `rigspace train`, or use --predictor onnxruntime.",
+        ) from exc
     try:
         config = TrainConfig.from_json(section["config"])
         shape = Shape(
@@ -53,10 +95,10 @@ def build_network(folder, section: dict[str, Any]):
             charts=int(section.get("charts", 0)),
         )
         model = Rig2Image(shape, config)
-        model.load_state_dict({k: torch.from_numpy(v) for k, v in tensors.items()})
+        model.load_state_dict({k: torch.from_numpy(v.copy()) for k, v in tensors.items()})
     except (KeyError, TypeError, ValueError, RuntimeError) as exc:
         raise BundleError(
-            f"Model bundle {folder}: its weights {path.name} do not fit the network its "
+            f"Model bundle {folder}: its weights ({source}) do not fit the network its "
             f"manifest describes ({type(exc).__name__}: {str(exc).splitlines()[0][:200]}).",
             "re-export the bundle with `rigspace train`, or use --predictor onnxruntime.",
         ) from exc
@@ -111,7 +153,7 @@ class TorchRunner:
         cuda = self.device.type == "cuda"
         self.dtype = torch.float16 if (cuda if half is None else half) else torch.float32
         self.cuda_graphs = cuda if cuda_graphs is None else cuda_graphs
-        model = build_network(graphs.folder, section).to(self.device, self.dtype)
+        model = build_network(graphs.folder, graphs.manifest.raw).to(self.device, self.dtype)
         if cuda:
             model = model.to(memory_format=torch.channels_last)
         self.model = model

@@ -87,7 +87,7 @@ def test_int8_is_onnxruntime_s(tmp_path):
 def test_a_bundle_without_weights_is_refused_by_torch_and_auto_passes_over_it(tmp_path):
     bundle = copy_sample(tmp_path)
     edit_manifest(bundle, lambda m: m.pop("torch"))
-    (bundle / WEIGHTS).unlink()
+    (bundle / WEIGHTS).unlink(missing_ok=True)  # the sample reads its weights from its graphs
     with pytest.raises(PredictorUnavailable) as info:
         BundleModel(bundle, predictor="torch")
     assert "no network weights" in str(info.value) and "--resume" in str(info.value)
@@ -101,8 +101,9 @@ def test_weights_that_failed_the_export_check_are_refused(tmp_path):
         BundleModel(bundle, predictor="torch")
 
 
-def test_damaged_or_mismatched_weights_name_the_file(tmp_path):
-    bundle = copy_sample(tmp_path)
+def test_damaged_or_mismatched_weights_name_the_file(tmp_path, tiny_run):
+    bundle = tmp_path / "bundle"
+    export_bundle(tiny_run, bundle, int8=False)  # an export writes its weights file
     data = (bundle / WEIGHTS).read_bytes()
     (bundle / WEIGHTS).write_bytes(data[: len(data) // 2])
     with pytest.raises(WeightsError, match=WEIGHTS):
@@ -135,3 +136,19 @@ def test_every_graph_module_runs_on_the_meta_device(half):
         given = {"features": features, "joints2d": torch.zeros(2, joints * 2, device="meta")}
         for out in runner.forward(graph, {k: given[k] for k in runner.inputs(graph)}):
             assert out.device.type == "meta", graph
+
+
+def test_the_weights_read_back_from_the_graphs_are_the_exported_ones(tmp_path, tiny_run):
+    """A bundle needs no second copy of its weights: the fp32 graphs hold every parameter (the
+    heads as their per-output slices); the sample bundle ships none."""
+    from rigspace.sdk.weights import read_safetensors
+    from rigspace.train.torch_predictor import weights_from_graphs
+
+    bundle = tmp_path / "bundle"
+    manifest = export_bundle(tiny_run, bundle, int8=False)
+    exported, _ = read_safetensors(bundle / WEIGHTS)
+    derived = weights_from_graphs(bundle, manifest)
+    assert sorted(derived) == sorted(exported)
+    for name, value in exported.items():
+        np.testing.assert_array_equal(derived[name], value, err_msg=name)
+    assert not (SAMPLE / WEIGHTS).exists() and "file" not in read_manifest(SAMPLE).raw["torch"]
