@@ -7,6 +7,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
+from itertools import islice
 
 import numpy as np
 
@@ -22,6 +23,9 @@ CONNECTED = "connected"
 STALE = "stale"
 LOST = "lost"
 
+RECENT = 256
+"""Snapshots a frame's delayed pose looks back through (all the buffer kept before takes could
+catch up; `history` keeps more for them): the per-frame cost stays what it was."""
 CLOCK_RESET_SECONDS = 1.0
 """A source timestamp this far behind the stream's last one is a restarted sender (a new clock),
 not a late packet: the stream starts over instead of dropping everything until it catches up."""
@@ -413,7 +417,7 @@ class LiveBuffer:
                 return LivePose(rest, np.zeros(n, bool), None, WAITING, 0.0, math.nan)
             newest = float(times[i])
             if self.settings.mode == DELAYED and len(times) >= 2:
-                rotations, root, sample_time = self._delayed(when)
+                rotations, root, sample_time = self._delayed(when, times)
             else:
                 (rotations, root), sample_time = self._snapshots[i], newest
             valid = self._valid.copy()
@@ -432,31 +436,38 @@ class LiveBuffer:
             sample_time,
         )
 
-    def _delayed(self, now: float) -> tuple[np.ndarray, np.ndarray | None, float]:
+    def _delayed(
+        self, now: float, times: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray | None, float]:
         """The pose `delay` seconds before `now`, slerped between the snapshots around it
-        (called with the lock held)."""
+        (called with the lock held). `times`: the local times of the newest snapshots (default:
+        of the last RECENT, all a frame looks back through; a recorder passes them all)."""
         s = self.settings
         delay = s.delay if s.delay is not None else self._sample_interval()
-        times = self._local_times()
+        times = self._local_times(RECENT) if times is None else times
+        first = len(self._snapshots) - len(times)  # snapshot index of times[0]
         target = now - delay
         i = int(np.searchsorted(times, target, side="right"))
         if i == 0:
-            (rotations, root), sample_time = self._snapshots[0], times[0]
+            (rotations, root), sample_time = self._snapshots[first], times[0]
         elif i == len(times):
             (rotations, root), sample_time = self._snapshots[-1], times[-1]
         else:
             t0, t1 = times[i - 1], times[i]
-            (r0, p0), (r1, p1) = self._snapshots[i - 1], self._snapshots[i]
+            (r0, p0), (r1, p1) = self._snapshots[first + i - 1], self._snapshots[first + i]
             u = (target - t0) / (t1 - t0) if t1 > t0 else 1.0
             rotations = quat_slerp(r0, r1, u)
             root = p0 if p0 is None or p1 is None else p0 + u * (p1 - p0)
             sample_time = target
         return rotations, root, float(sample_time)
 
-    def _local_times(self) -> np.ndarray:
-        """Snapshot times on the local clock, from each stream's current offset, non-decreasing."""
+    def _local_times(self, last: int | None = None) -> np.ndarray:
+        """Snapshot times on the local clock, from each stream's current offset, non-decreasing:
+        of every kept snapshot, or of the `last` newest."""
         offsets = {k: min(v.offsets) for k, v in self._streams.items() if v.offsets}
-        mapped = [ts + offsets.get(stream, 0.0) for stream, ts in self._source_times]
+        kept = self._source_times
+        skip = 0 if last is None else max(0, len(kept) - last)
+        mapped = [ts + offsets.get(stream, 0.0) for stream, ts in islice(kept, skip, None)]
         return np.maximum.accumulate(np.array(mapped))
 
     def _sample_interval(self) -> float:
