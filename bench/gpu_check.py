@@ -195,6 +195,7 @@ def synthetic_bundle(folder: Path, resolution: int) -> Path:
     manifest.pop("int8_check", None)
     manifest["torch"] = {k: v for k, v in manifest["torch"].items() if k != "check"}
     manifest["torch"]["config"] = config.to_json()
+    manifest["torch"]["file"] = "weights.safetensors"  # no ONNX graphs to read them from
     out = folder / f"synthetic_{resolution}"
     out.mkdir(parents=True, exist_ok=True)
     write_safetensors(
