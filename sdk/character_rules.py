@@ -6,12 +6,9 @@ what capture and the runtime refuse to pose, in the same words.
 
 from __future__ import annotations
 
-import functools
-import hashlib
 import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdSkel
@@ -310,7 +307,9 @@ def check_character_model(prim: Usd.Prim) -> Iterator[Issue]:
         yield error("BadModel", f"Neural character {path}: {exc}", exception=BundleError)
         return
     if "trunk" in manifest.raw or "levels" in manifest.raw:  # a manifest alone: nothing to load
-        problem = _graphs_problem(manifest.folder)
+        from rigspace.sdk.model import graphs_problem  # onnxruntime, only once a bundle resolves
+
+        problem = graphs_problem(manifest.folder)
         if problem:
             yield error("BadModel", f"Neural character {path}: {problem}", exception=BundleError)
     skeleton = character_skeleton(prim)
@@ -346,64 +345,6 @@ def check_character_model(prim: Usd.Prim) -> Iterator[Issue]:
             f"> 0 (distance {distance}, focal length {focal}); the billboard scale depends on "
             "them. Fix: author rigspace:trainingCamera:* or re-export the bundle.",
         )
-
-
-def _graphs_problem(folder: Path) -> str | None:
-    """Why the bundle's graphs cannot run, or None (cached per folder content)."""
-    stamp = tuple((p.name, p.stat().st_mtime_ns, p.stat().st_size) for p in folder.glob("*"))
-    return _check_graphs(folder.resolve(), stamp)
-
-
-@functools.lru_cache(maxsize=32)
-def _check_graphs(folder: Path, _stamp: tuple) -> str | None:
-    """Every graph the manifest lists is there with the size and sha256 it records; the trunk,
-    and any graph without a record or that differs from it, loads in onnxruntime (the
-    runtime's loader, so its words). Loading every graph would triple inspect's time."""
-    from rigspace.sdk.model import BundleModel  # onnxruntime, only once a bundle resolves
-
-    try:
-        model = BundleModel(folder, predictor="onnxruntime")  # checks the ONNX files
-        raw = model.manifest.raw
-        sets = [raw["trunk"], *raw["levels"]]
-        graphs = sorted(  # an fp32-only bundle (--no-int8) records its trunk's int8 as null
-            {g for s in sets for key in ("graphs", "int8") for g in s.get(key, {}).values() if g}
-        )
-        records = raw.get("files", {})
-        load = {raw["trunk"]["graphs"]["trunk"]}
-        changed = []
-        for name in graphs:
-            path = folder / name
-            if not path.is_file():
-                return (
-                    f"Model file {path} is missing from the bundle. Fix: re-export the bundle, "
-                    "or restore the file."
-                )
-            record = records.get(name)
-            if not record or _differs(path, record):
-                load.add(name)
-                changed += [name] if record else []
-        for name in sorted(load):
-            model.runner.load(name)  # the runtime loader: its errors, word for word
-    except BundleError as exc:
-        return str(exc)
-    except (KeyError, TypeError, AttributeError) as exc:  # a manifest that lacks what it lists
-        return (
-            f"Model bundle {folder}: manifest.json is incomplete ({type(exc).__name__}: {exc}). "
-            "Fix: re-export the bundle with `rigspace train`."
-        )
-    if changed:
-        return (
-            f"Model bundle {folder}: {', '.join(changed)} differ from the size and sha256 "
-            "manifest.json records (changed after export). Fix: re-export the bundle with "
-            "`rigspace train`, or restore the files."
-        )
-    return None
-
-
-def _differs(path: Path, record: dict) -> bool:
-    if path.stat().st_size != record.get("bytes"):
-        return True
-    return hashlib.sha256(path.read_bytes()).hexdigest() != record.get("sha256")
 
 
 STAGE_METADATA = ValidatorSpec(

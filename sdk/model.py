@@ -13,6 +13,8 @@ rigspace.sdk.conditioning (the function training used), so callers pass the rig 
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import json
 import warnings
 from pathlib import Path
@@ -229,3 +231,61 @@ class BundleModel:
     def footprint_bytes(self) -> int:
         files = {self._trunk_file, *(g for level in self.levels.values() for g in level.values())}
         return sum((self.manifest.folder / f).stat().st_size for f in files)
+
+
+def graphs_problem(folder: Path) -> str | None:
+    """Why a bundle's graphs cannot all run, or None: every graph the manifest lists, at every
+    level, including levels a run does not use (cached per folder content). inspect and the
+    character validator refuse on it; `rigspace eval`, which loads one level, warns with it."""
+    stamp = tuple((p.name, p.stat().st_mtime_ns, p.stat().st_size) for p in folder.glob("*"))
+    return _check_graphs(folder.resolve(), stamp)
+
+
+@functools.lru_cache(maxsize=32)
+def _check_graphs(folder: Path, _stamp: tuple) -> str | None:
+    """Every graph the manifest lists is there with the size and sha256 it records; the trunk,
+    and any graph without a record or that differs from it, loads in onnxruntime (the
+    runtime's loader, so its words). Loading every graph would triple inspect's time."""
+    try:
+        model = BundleModel(folder, predictor="onnxruntime")  # checks the ONNX files
+        raw = model.manifest.raw
+        sets = [raw["trunk"], *raw["levels"]]
+        graphs = sorted(  # an fp32-only bundle (--no-int8) records its trunk's int8 as null
+            {g for s in sets for key in ("graphs", "int8") for g in s.get(key, {}).values() if g}
+        )
+        records = raw.get("files", {})
+        load = {raw["trunk"]["graphs"]["trunk"]}
+        changed = []
+        for name in graphs:
+            path = folder / name
+            if not path.is_file():
+                return (
+                    f"Model file {path} is missing from the bundle. Fix: re-export the bundle, "
+                    "or restore the file."
+                )
+            record = records.get(name)
+            if not record or _differs(path, record):
+                load.add(name)
+                changed += [name] if record else []
+        for name in sorted(load):
+            model.runner.load(name)  # the runtime loader: its errors, word for word
+    except BundleError as exc:
+        return str(exc)
+    except (KeyError, TypeError, AttributeError) as exc:  # a manifest that lacks what it lists
+        return (
+            f"Model bundle {folder}: manifest.json is incomplete ({type(exc).__name__}: {exc}). "
+            "Fix: re-export the bundle with `rigspace train`."
+        )
+    if changed:
+        return (
+            f"Model bundle {folder}: {', '.join(changed)} differ from the size and sha256 "
+            "manifest.json records (changed after export). Fix: re-export the bundle with "
+            "`rigspace train`, or restore the files."
+        )
+    return None
+
+
+def _differs(path: Path, record: dict) -> bool:
+    if path.stat().st_size != record.get("bytes"):
+        return True
+    return hashlib.sha256(path.read_bytes()).hexdigest() != record.get("sha256")

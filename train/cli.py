@@ -366,6 +366,7 @@ def run_eval(args: argparse.Namespace) -> int:
 
     if args.errors:
         check_folder(Path(args.errors), "--errors")  # before the evaluation, not after it
+    warn_damaged_graphs(Path(args.model))
     if args.display:
         return run_display(args)
     table = DatasetTable(Path(args.dataset))
@@ -409,6 +410,22 @@ def run_eval(args: argparse.Namespace) -> int:
     else:
         print(format_table(result))
     return 0
+
+
+def warn_damaged_graphs(model: Path) -> None:
+    """eval loads one level; a missing or damaged graph of another one (which the runtime
+    loads when the character is drawn at that size) is said before the measurement, not left
+    for the next render to find. A bundle eval cannot read at all is left to its own error."""
+    from rigspace.sdk.model import graphs_problem
+
+    if (model / "manifest.json").is_file():
+        problem = graphs_problem(model)
+        if problem:
+            print(
+                f"rigspace eval: warning: {problem} (eval measures the levels it loads; "
+                "`rigspace render` and inspect refuse the bundle until it is fixed)",
+                file=sys.stderr,
+            )
 
 
 def model_top_level(model: Path) -> tuple[int | None, str]:

@@ -102,13 +102,22 @@ class Take:
 
 
 def read_take(path: str | Path) -> Take:
-    """Read a take written by TakeRecorder (any layer whose default prim is a SkelAnimation)."""
-    from pxr import Usd, UsdGeom, UsdSkel
+    """Read a take written by TakeRecorder (any layer whose default prim is a SkelAnimation),
+    checked the way the JSON files are (rigspace.sdk.fields): a damaged or hand-edited take (an
+    unreadable layer, a wrong attribute type, a sample with too few rotations, a zero or NaN
+    quaternion, a broken joint hierarchy) is one TakeError naming the attribute and time code,
+    never a traceback or a NaN pose in the replay."""
+    from pxr import Sdf, UsdGeom, UsdSkel
+
+    from rigspace.sdk.stage import SceneError, open_stage
 
     path = Path(path)
     if not path.is_file():
         raise TakeError(f"Take {path} does not exist.", "check the path.")
-    stage = Usd.Stage.Open(str(path))
+    try:
+        stage = open_stage(path)
+    except SceneError as exc:  # its sentence names the file as a scene: here it is a take
+        raise TakeError(exc.what.replace("Scene ", "Take ", 1), RECORD_AGAIN) from None
     prim = stage.GetDefaultPrim()
     if not prim or not prim.IsA(UsdSkel.Animation):
         raise TakeError(
@@ -116,24 +125,42 @@ def read_take(path: str | Path) -> Take:
             "replay a take written by TakeRecorder (rigspace live --record).",
         )
     anim = UsdSkel.Animation(prim)
-    joints = tuple(str(j) for j in anim.GetJointsAttr().Get() or ())
-    times = anim.GetRotationsAttr().GetTimeSamples()
+    names = Sdf.ValueTypeNames
+    joints_attr, rotations_attr, translations_attr = (
+        anim.GetJointsAttr(), anim.GetRotationsAttr(), anim.GetTranslationsAttr()
+    )  # fmt: skip
+    _check_type(path, joints_attr, (names.TokenArray,))
+    _check_type(path, rotations_attr, (names.QuatfArray, names.QuatdArray, names.QuathArray))
+    _check_type(path, translations_attr, (names.Float3Array, names.Double3Array, names.Half3Array))
+    joints = tuple(str(j) for j in joints_attr.Get() or ())
+    times = rotations_attr.GetTimeSamples()
     if not joints or not times:
+        raise TakeError(f"Take {path} has no joints or no rotation time samples.", RECORD_AGAIN)
+    ok, reason = UsdSkel.Topology(joints).Validate()
+    if not ok or len(set(joints)) != len(joints):
         raise TakeError(
-            f"Take {path} has no joints or no rotation time samples.", "record the take again."
+            f"Take {path}: its joints are not a skeleton hierarchy "
+            f"({reason or 'a joint is listed twice'}).",
+            RECORD_AGAIN,
         )
     index = {j: i for i, j in enumerate(joints)}
     parents = tuple(index.get(j.rsplit("/", 1)[0], -1) if "/" in j else -1 for j in joints)
+    root = parents.index(-1)
+    moves = translations_attr.GetTimeSamples()
     rotations = np.empty((len(times), len(joints), 4))
     roots = np.zeros((len(times), 3))
-    root = parents.index(-1)
     for k, t in enumerate(times):
-        q = anim.GetRotationsAttr().Get(t)
-        rotations[k, :, 0] = [r.GetReal() for r in q]
-        rotations[k, :, 1:] = [tuple(r.GetImaginary()) for r in q]
-        translations = anim.GetTranslationsAttr().Get(t)
-        if translations is not None and len(translations) == len(joints):
-            roots[k] = tuple(translations[root])
+        q = _sample(path, rotations_attr, t, len(joints), 4)
+        norms = np.linalg.norm(q, axis=1)
+        if not np.all(norms > 1e-6):
+            bad = joints[int(np.argmin(norms))]
+            raise TakeError(
+                f"Take {path}: 'rotations' at time code {t:g} has a zero quaternion (joint {bad}).",
+                RECORD_AGAIN,
+            )
+        rotations[k, :, 0], rotations[k, :, 1:] = q[:, 3], q[:, :3]  # Gf: (i, j, k, real)
+        if moves or translations_attr.HasAuthoredValue():
+            roots[k] = _sample(path, translations_attr, t, len(joints), 3)[root]
     rotations /= np.linalg.norm(rotations, axis=2, keepdims=True)
     tcps = stage.GetTimeCodesPerSecond()
     return Take(
@@ -145,3 +172,37 @@ def read_take(path: str | Path) -> Take:
         (np.array(times) - times[0]) / tcps,
         UsdGeom.GetStageMetersPerUnit(stage),
     )
+
+
+RECORD_AGAIN = "record the take again (rigspace live --record), or restore the file."
+
+
+def _check_type(path: Path, attr, allowed: tuple) -> None:
+    """Each layer's spec of `attr` has an allowed type (UsdSkel reports the schema's type
+    whatever a layer authors, and hands the authored values back as they are)."""
+    for spec in attr.GetPropertyStack():
+        kind = spec.typeName
+        if kind not in allowed:
+            raise TakeError(
+                f"Take {path}: '{attr.GetName()}' is authored as {kind}, not "
+                f"{' or '.join(str(a) for a in allowed)}.",
+                RECORD_AGAIN,
+            )
+
+
+def _sample(path: Path, attr, t: float, count: int, width: int) -> np.ndarray:
+    """`attr` at time code `t` as a (count, width) finite float array, or a TakeError."""
+    value = attr.Get(t)
+    array = np.array(value, dtype=np.float64) if value is not None else np.empty((0, width))
+    if array.shape != (count, width):
+        raise TakeError(
+            f"Take {path}: '{attr.GetName()}' at time code {t:g} has {len(array)} values for "
+            f"{count} joints.",
+            RECORD_AGAIN,
+        )
+    if not np.isfinite(array).all():
+        raise TakeError(
+            f"Take {path}: '{attr.GetName()}' at time code {t:g} is not finite (NaN or inf).",
+            RECORD_AGAIN,
+        )
+    return array

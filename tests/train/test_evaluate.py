@@ -251,3 +251,27 @@ def test_eval_json_writes_null_where_a_metric_is_not_finite(tiny_dataset):
     assert row["albedo_psnr"] is None and row["mask_iou"] == 1.0
     samples = parsed["reports"]["truth"]["per_sample"]
     assert all(sample["albedo_psnr"] is None for sample in samples)
+
+
+def test_eval_warns_of_a_damaged_graph_at_a_level_it_does_not_use(
+    bundle_at_16, tiny_dataset, tmp_path, capsys
+):
+    """eval loads the top level only; a truncated level-8 graph (which the runtime loads for a
+    distant character) is named before the measurement, and the measurement still runs."""
+    from rigspace.sdk.cli import main
+
+    bundle = tmp_path / "bundle"
+    shutil.copytree(bundle_at_16, bundle)
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    (level8,) = [lv for lv in manifest["levels"] if lv["resolution"] == 8]
+    graph = bundle / level8["graphs"]["albedo"]
+    graph.write_bytes(graph.read_bytes()[:500])
+    args = ["eval", str(bundle), str(tiny_dataset), "--limit", "2", "--no-baselines"]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert f"warning: Model file {graph} cannot be loaded" in err
+    assert "render` and inspect refuse the bundle" in err
+    assert (
+        main(["eval", str(bundle_at_16), str(tiny_dataset), "--limit", "2", "--no-baselines"]) == 0
+    )
+    assert "warning" not in capsys.readouterr().err

@@ -113,3 +113,118 @@ def test_replay_of_something_that_is_not_a_take(tmp_path):
         open_source(f"replay://{tmp_path}/missing.usda", "take")
     with pytest.raises(LiveSourceError, match="default prim must be a SkelAnimation"):
         open_source(f"replay://{SAMPLE_CHARACTER}", "take")
+
+
+def _take(tmp_path, times=(10, 11, 12)):
+    joints = ["hips", "hips/spine", "hips/spine/head"]
+    recorder = TakeRecorder(joints)
+    for t in times:
+        local = np.tile(np.eye(4), (3, 1, 1))
+        local[0, 3, :3] = (0, 90 + t, 0)
+        recorder.add(t, local)
+    return recorder.write(tmp_path / "take.usda", 30.0)
+
+
+def _edit(path, change):
+    """The take's layer with `change(anim_prim_spec)` applied, saved in place."""
+    from pxr import Sdf
+
+    layer = Sdf.Layer.FindOrOpen(str(path))
+    change(layer.GetPrimAtPath("/Take"), layer)
+    layer.Save()
+    Sdf.Layer.Reload(layer, force=True)
+
+
+def _retype(name, type_name, value):
+    def change(prim, layer):
+        from pxr import Sdf
+
+        del prim.properties[name]
+        attr = Sdf.AttributeSpec(prim, name, getattr(Sdf.ValueTypeNames, type_name))
+        if name == "joints":
+            attr.default = value
+        else:
+            layer.SetTimeSample(attr.path, 11, value)
+
+    return change
+
+
+def _set_sample(name, t, value):
+    from pxr import Gf, Vt
+
+    if name == "rotations":
+        value = Vt.QuatfArray([Gf.Quatf(*q) for q in value])
+    else:
+        value = Vt.Vec3fArray([Gf.Vec3f(*v) for v in value])
+
+    def change(prim, layer):
+        layer.SetTimeSample(prim.properties[name].path, t, value)
+
+    return change
+
+
+CORPUS = {
+    "empty file": (lambda p: p.write_text(""), "USD cannot read it|not a|empty"),
+    "truncated": (lambda p: p.write_text(p.read_text()[:400]), "could not parse"),
+    "not USD": (lambda p: p.write_bytes(b"\x00\x01garbage" * 40), "USD cannot read|not"),
+    "rotations as float3[]": (
+        lambda p: _edit(p, _retype("rotations", "Float3Array", [(0, 0, 0)] * 3)),
+        r"'rotations' is authored as float3\[\]",
+    ),
+    "joints as string[]": (
+        lambda p: _edit(p, _retype("joints", "StringArray", ["a", "b", "c"])),
+        r"'joints' is authored as string\[\]",
+    ),
+    "a sample with too few rotations": (
+        lambda p: _edit(p, _set_sample("rotations", 11, [(1, 0, 0, 0)] * 2)),
+        r"'rotations' at time code 11 has 2 values for 3 joints",
+    ),
+    "a NaN quaternion": (
+        lambda p: _edit(p, _set_sample("rotations", 12, [(float("nan"), 0, 0, 0)] + [(1, 0, 0, 0)] * 2)),
+        r"'rotations' at time code 12 is not finite",
+    ),
+    "a zero quaternion": (
+        lambda p: _edit(p, _set_sample("rotations", 10, [(1, 0, 0, 0), (0, 0, 0, 0), (1, 0, 0, 0)])),
+        r"at time code 10 has a zero quaternion \(joint hips/spine\)",
+    ),
+    "translations of the wrong length": (
+        lambda p: _edit(p, _set_sample("translations", 11, [(0, 0, 0)])),
+        r"'translations' at time code 11 has 1 values for 3 joints",
+    ),
+    "an infinite root translation": (
+        lambda p: _edit(p, _set_sample("translations", 12, [(0, float("inf"), 0)] * 3)),
+        r"'translations' at time code 12 is not finite",
+    ),
+    "mis-ordered joints": (
+        lambda p: _edit(p, lambda prim, layer: prim.properties["joints"].__setattr__(
+            "default", ["hips/spine", "hips", "hips/spine/head"])),
+        r"not a skeleton hierarchy \(Joint 0 has mis-ordered parent",
+    ),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", sorted(CORPUS))
+def test_a_damaged_take_is_one_named_error_from_the_reader_and_the_replay_source(tmp_path, case):
+    from rigspace.runtime.live.record import read_take
+    from rigspace.runtime.live.sources import open_source
+    from rigspace.runtime.live.transports import LiveSourceError
+
+    path = _take(tmp_path)
+    assert read_take(path).rotations.shape == (3, 3, 4)  # sound before the damage
+    damage, words = CORPUS[case]
+    damage(path)
+    with pytest.raises(TakeError, match=words) as info:
+        read_take(path)
+    assert str(path) in str(info.value) and "Fix:" in str(info.value)
+    with pytest.raises(LiveSourceError, match=words):
+        open_source(f"replay://{path}", "take")
+
+
+def test_a_sound_take_reads_back_its_root_motion_and_times(tmp_path):
+    from rigspace.runtime.live.record import read_take
+
+    take = read_take(_take(tmp_path))
+    np.testing.assert_allclose(take.root_positions[:, 1], [100, 101, 102])
+    np.testing.assert_allclose(take.times, [0, 1 / 30, 2 / 30])
+    np.testing.assert_allclose(take.rotations[..., 0], 1.0)
+    assert take.parents == (-1, 0, 1) and take.bones == ("hips", "spine", "head")
