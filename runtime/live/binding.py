@@ -216,7 +216,8 @@ def open_binding(
     - Basis: the source's native one (VMC) or the binding's up axis and handedness.
     - Rest: restPose when authored (parallel to the map's source bones); else the character's
       rest aligned onto the source's (`Retargeter.align_rest`): a BVH's own, or the preset's
-      canonical T-pose (VMC).
+      canonical T-pose (VMC); with a preset's map, through the canonical T-posed humanoid, so
+      that a BVH and the same clip sent over VMC pose every joint alike.
     - Units: sourceMetersPerUnit, or the preset's when the preset supplies the map and the
       binding leaves the default 1.
     - A recorded take (replay:// of a .usd file) plays back onto its own skeleton exactly: same
@@ -290,7 +291,9 @@ def open_binding(
     elif not binding.rest_pose and (positions := _rest_positions(source, chosen)) is not None:
         # The source's rest (this CMU conversion: arms hanging; VMC: a T-pose) is not the
         # character's (an A-pose): turn the character's rest onto the source's.
-        retargeter.align_rest(positions)
+        # Through the canonical humanoid when the preset's map is the one in use (issue 21).
+        through = chosen if chosen is not None and bone_map is chosen.bone_map else None
+        retargeter.align_rest(positions, through)
     elif binding.rest_pose:
         full = np.tile([1.0, 0.0, 0.0, 0.0], (len(source.bones), 1))
         index = {b: i for i, b in enumerate(source.bones)}

@@ -321,7 +321,8 @@ class Retargeter:
         n = len(self.target_joints)
         # Roots take their parent from a padded identity slot, so each level is one matmul.
         self._parent_slot = np.where(self.target_parents < 0, n, self.target_parents)
-        self._rest_world = self._compose_target(_rotations(rest_local))
+        self._rest_local_rotations = _rotations(rest_local)
+        self._rest_world = self._compose_target(self._rest_local_rotations)
         self._rest_positions = _world_positions(rest_local, self.target_levels, self._parent_slot)
         self._rest_t = rest_local[:, 3, :3]
         self.target_root = int(np.flatnonzero(self.target_parents < 0)[0])
@@ -352,7 +353,9 @@ class Retargeter:
         self._structure: dict[bytes, tuple] = {}
         """Received-bones mask -> the index arrays of `apply` for it (usually one entry)."""
 
-    def align_rest(self, source_rest_positions: np.ndarray) -> np.ndarray:
+    def align_rest(
+        self, source_rest_positions: np.ndarray, preset: Preset | None = None
+    ) -> dict[int, np.ndarray]:
         """Make the source's rest pose the target's: turn each mapped joint's rest so its bone
         points where the source bone points in the source's rest pose (this CMU conversion rests
         with the arms hanging, the sample character is bound in an A-pose).
@@ -361,11 +364,28 @@ class Retargeter:
         with one mapped child turns by the smallest rotation taking its bone onto the source's;
         a joint with several (the pelvis: spine and thighs; the chest: neck and clavicles) by
         the rotation that best takes all their directions onto the source's (`_fit_turn`), which
-        leaves no twist free: aligning a clip onto a T-posed humanoid and the humanoid onto the
-        character then gives the character what aligning the clip onto it directly gives (the
-        pelvis differed by 15 deg with the smallest turn to one child: issue 21). Joints
-        without a mapped child turn with their parent. Returns the (M, 3, 3) turns applied
-        (rest world rotations are turned in place)."""
+        leaves no twist free. Joints without a mapped child turn with their parent.
+
+        With a `preset` whose map drives the same joints as the humanoid's (cmu, mixamo), the
+        rest is aligned *through* the canonical T-posed humanoid (`humanoid_turns`): the source
+        onto the humanoid, the humanoid onto the target, as `live send` and a VMC receiver do
+        it. A least-squares fit does not compose, so aligning directly gave the pelvis 2.7 deg
+        and the clavicles 2.3 deg more than the route through the humanoid (issue 21); through
+        the one canonical rest, every path gives every joint the same rotation. Returns the
+        turns applied, target joint -> (3, 3)."""
+        turns = None
+        if preset is not None and preset.name != UNITY.name:
+            turns = self.humanoid_turns(source_rest_positions)
+        if turns is None:
+            turns = self.rest_turns(source_rest_positions)
+        order = list(turns)
+        self._rest_world[order] = np.array([turns[j] for j in order]) @ self._rest_world[order]
+        self._right = None
+        return turns
+
+    def rest_turns(self, source_rest_positions: np.ndarray) -> dict[int, np.ndarray]:
+        """The turn per mapped target joint that takes its rest bones onto the source's (see
+        `align_rest`), without applying it."""
         src = (self.basis @ np.asarray(source_rest_positions, dtype=np.float64).T).T
         target_of = dict(zip(self.map_target.tolist(), self.map_source.tolist(), strict=True))
         mapped = set(target_of)
@@ -387,11 +407,47 @@ class Retargeter:
                 # The root (the pelvis) by all its children; the others by their nearest bone.
                 turn = _fit_turn(pairs if nearest[j] < 0 else _nearest_pair(pairs))
                 turns[j] = turn if turn is not None else turns.get(nearest[j], np.eye(3))
-        order = list(turns)
-        applied = np.array([turns[j] for j in order])
-        self._rest_world[order] = applied @ self._rest_world[order]
-        self._right = None
-        return applied
+        return turns
+
+    def humanoid_turns(self, source_rest_positions: np.ndarray) -> dict[int, np.ndarray] | None:
+        """The rest turns of the route source -> T-posed humanoid -> target, or None when this
+        map does not drive exactly the joints the humanoid's (UNITY) map drives.
+
+        With A1 the source-to-humanoid basis, A2 the humanoid's (VMC's) and t1, t2 the two fits,
+        the humanoid bone's world rotation is A1 W R^-1 A1^T t1 and the joint's
+        A2 (that) A2^T t2 R_rest; with A = A2 A1 this is A W R^-1 A^T (A2 t1 A2^T t2) R_rest,
+        so the joint's turn is A2 t1 A2^T t2."""
+        joint_of = {s: j for s, j in zip(self.map_source, self.map_target, strict=True)}
+        leaf = [j.rsplit("/", 1)[-1] for j in self.target_joints]
+        humanoid = humanoid_rig()
+        bone_of = {joint: bone for bone, joint in UNITY.bone_map.items()}
+        wanted = {leaf[j] for j in joint_of.values()}
+        if wanted != set(UNITY.bone_map.values()) or len(wanted) != len(joint_of):
+            return None
+        to_humanoid = {
+            self.source_bones[s]: bone_of[leaf[j]] for s, j in joint_of.items()
+        }  # source bone -> humanoid bone
+        first = Retargeter(
+            self.source_bones, self.source_parents, "local", humanoid.paths, humanoid.rest,
+            to_humanoid, UNITY.basis.T @ self.basis,
+        )  # fmt: skip
+        t1 = first.rest_turns(source_rest_positions)
+        bones = list(UNITY.bone_map)
+        rest_local = np.tile(np.eye(4), (len(self.target_joints), 1, 1))
+        rest_local[:, :3, :3] = np.swapaxes(self._rest_local_rotations, 1, 2)
+        rest_local[:, 3, :3] = self._rest_t
+        second = Retargeter(
+            bones, UNITY.parents, "local", self.target_joints, rest_local, UNITY.bone_map,
+            UNITY.basis,
+        )  # fmt: skip
+        t2 = second.rest_turns(np.array([UNITY.rest_positions[b] for b in bones]))
+        a2 = second._a
+        index = {path.rsplit("/", 1)[-1]: k for k, path in enumerate(humanoid.paths)}
+        turns = {}
+        for j in joint_of.values():
+            t_h = t1.get(index[bone_of[leaf[j]]], np.eye(3))
+            turns[j] = a2 @ t_h @ a2.T @ t2.get(j, np.eye(3))
+        return turns
 
     def _compose_target(self, local: np.ndarray) -> np.ndarray:
         world = np.empty((len(local) + 1, 3, 3))
@@ -671,3 +727,36 @@ def for_preset(
         preset.meters_per_unit / stage_meters_per_unit,
         rest_pose,
     )
+
+
+@dataclass(frozen=True)
+class HumanoidRig:
+    """The canonical T-posed humanoid: the HumanBodyBones that the unity preset maps, rest
+    locals identity (VRM's normalised rest, what VMC receivers assume), in VmcDecoder's frame."""
+
+    paths: tuple[str, ...]
+    """Joint paths ("Hips/Spine/..."), parents before children."""
+    rest: np.ndarray
+    """(H, 4, 4) row-vector rest locals: identity rotations, the T-pose's bone offsets."""
+
+
+def humanoid_rig() -> HumanoidRig:
+    """The humanoid `live send` streams and every preset's rest is aligned through."""
+    mapped = set(UNITY.bone_map)
+    humanoid = [b for b in HUMAN_BODY_BONES if b in mapped]
+    paths = {}
+    for bone in humanoid:  # parents are in the map too (the 22 mapped bones form one tree)
+        chain, b = [bone], UNITY.parents.get(bone)
+        while b is not None and b in UNITY.parents:
+            if b in humanoid:
+                chain.append(b)
+            b = UNITY.parents.get(b)
+        paths[bone] = "/".join(reversed(chain))
+    order = sorted(humanoid, key=lambda b: paths[b].count("/"))
+    tpose = UNITY.rest_positions
+    rest = np.tile(np.eye(4), (len(order), 1, 1))
+    for k, bone in enumerate(order):
+        parent = paths[bone].rsplit("/", 2)[-2] if "/" in paths[bone] else None
+        origin = np.array(tpose[parent]) if parent else np.zeros(3)
+        rest[k, 3, :3] = np.array(tpose[bone]) - origin
+    return HumanoidRig(tuple(paths[b] for b in order), rest)

@@ -11,8 +11,8 @@ from urllib.parse import urlsplit
 import numpy as np
 
 from rigspace.runtime.live.decoders.bvh import BvhSkeleton
-from rigspace.runtime.live.decoders.vmc import HUMAN_BODY_BONES, encode_frame
-from rigspace.runtime.live.retarget import CMU, UNITY, Preset, Retargeter
+from rigspace.runtime.live.decoders.vmc import encode_frame
+from rigspace.runtime.live.retarget import CMU, UNITY, Preset, Retargeter, humanoid_rig
 from rigspace.sdk.rotations import quat_from_matrix
 
 
@@ -51,29 +51,12 @@ def humanoid_clip(
     """
     by_joint = {joint: bone for bone, joint in UNITY.bone_map.items()}
     bone_map = {src: by_joint[joint] for src, joint in preset.bone_map.items()}
-    humanoid = [b for b in HUMAN_BODY_BONES if b in by_joint.values()]
-    paths = {}
-    for bone in humanoid:  # parents are in the map too (the 22 mapped bones form one tree)
-        chain, b = [bone], UNITY.parents.get(bone)
-        while b is not None and b in UNITY.parents:
-            if b in humanoid:
-                chain.append(b)
-            b = UNITY.parents.get(b)
-        paths[bone] = "/".join(reversed(chain))
-    order = sorted(humanoid, key=lambda b: paths[b].count("/"))
-    # The humanoid rests in UNITY's T-pose with identity rotations (VRM's normalised rest, what
-    # VMC receivers assume): its rest translations are the T-pose's bone offsets.
-    tpose = UNITY.rest_positions
-    rest = np.tile(np.eye(4), (len(order), 1, 1))
-    for k, bone in enumerate(order):
-        parent = paths[bone].rsplit("/", 2)[-2] if "/" in paths[bone] else None
-        origin = np.array(tpose[parent]) if parent else np.zeros(3)
-        rest[k, 3, :3] = np.array(tpose[bone]) - origin
+    humanoid = humanoid_rig()
+    order = [path.rsplit("/", 1)[-1] for path in humanoid.paths]
+    rest = humanoid.rest
     # Humanoid frame = VMC-decoded frame; A maps the BVH frame into it (the inverse of unity's).
     basis = UNITY.basis.T @ preset.basis
-    r = Retargeter(
-        skeleton.names, skeleton.parents, "local", [paths[b] for b in order], rest, bone_map, basis
-    )
+    r = Retargeter(skeleton.names, skeleton.parents, "local", humanoid.paths, rest, bone_map, basis)
     if align:
         r.align_rest(skeleton.rest_positions())  # the clip's rest onto the T-posed humanoid
     frames = np.empty((len(rotations), len(order), 4))

@@ -286,3 +286,40 @@ def test_connect_reconnect_and_loss_move_no_joint_more_than_10_degrees_a_tick(sk
     assert jumps.max() < 0.25 * 100  # stage units (cm): under 25 cm a tick, even at reconnect
     lost = [r for r, k in zip(roots, range(len(roots)), strict=True) if 2.6 < k * step < 4.0]
     np.testing.assert_allclose(lost, [roots[int(2.0 / step)]] * len(lost), atol=1e-6)  # in place
+
+
+def test_a_bvh_binding_and_a_vmc_binding_pose_the_character_alike(skel):
+    """Issue 21's pelvis rule through open_binding itself: the clip replayed as BVH (the cmu
+    preset, the clip's own rest) and the same clip as `live send` puts it on the humanoid,
+    received by a VMC binding (the T-pose rest): every joint, the pelvis included, lands on the
+    same world rotation, because both bindings align their rest through the one humanoid."""
+    from rigspace.runtime.live.buffer import LivePose
+    from rigspace.runtime.live.decoders.bvh import read_bvh
+    from rigspace.runtime.live.decoders.vmc import VmcDecoder
+    from rigspace.runtime.live.send import humanoid_clip
+
+    _, skel_prim, local = skel
+    skeleton, motion, frame_time = read_bvh(CMU_CLIP)
+    rotations, roots = skeleton.pose(motion[::150])
+    clip = humanoid_clip(skeleton, rotations, roots, frame_time)
+    bvh = open_binding(binding(f"replay://{CMU_CLIP}"), skel_prim, 0.01).retargeter
+    vmc = open_binding(binding("vmc://127.0.0.1:0"), skel_prim, 0.01).retargeter
+    decoder = VmcDecoder()
+    parents = bvh.target_parents
+    worst = 0.0
+    for f in range(len(rotations)):
+        received = np.tile([1.0, 0.0, 0.0, 0.0], (len(decoder.bones), 1))
+        for d in encode_frame(clip.bones, clip.rotations[f], None, None, float(f)):
+            for frame in decoder.feed(d, 0.0):
+                received[frame.indices] = frame.rotations
+        a = vmc.apply(local, LivePose(received, np.ones(len(received), bool), None, "", 1, 0))
+        b = bvh.apply(local, LivePose(rotations[f], np.ones(31, bool), None, "", 1, 0))
+        world = []
+        for out in (a, b):
+            m = np.swapaxes(out[:, :3, :3], 1, 2).copy()
+            for j in range(len(m)):  # parents come first in a UsdSkel joint order
+                if parents[j] >= 0:
+                    m[j] = m[parents[j]] @ m[j]
+            world.append(quat_from_matrix(m))
+        worst = max(worst, float(np.degrees(quat_angle(*world)).max()))
+    assert worst < 1e-3  # float32 on the wire (was 2.7 deg at the pelvis: issue 21)
