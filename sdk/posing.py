@@ -30,6 +30,31 @@ class _SkinnedMesh:
     query: UsdSkel.SkinningQuery
     parts: list[MeshSource]
     """The mesh by material (sdk.geometry.read_mesh_parts), skinned once for all of them."""
+    shapes: _BlendShapes | None = None
+    """Its blend shapes (skel:blendShapes), when it has any."""
+
+
+@dataclass
+class _BlendShapes:
+    """A mesh's UsdSkel blend shapes, read once: UsdSkel.BlendShapeQuery's point indices and
+    sub-shape offsets (each shape and its inbetweens), and where each of the mesh's shapes
+    sits in the character's weight vector."""
+
+    query: UsdSkel.BlendShapeQuery
+    point_indices: list
+    sub_offsets: list
+    order: np.ndarray
+    """(S,) index into CharacterRig.blend_shapes per shape of this mesh (its skel:blendShapes
+    order)."""
+
+    def apply(self, weights: np.ndarray, points: Vt.Vec3fArray) -> bool:
+        """Deform `points` in place by the character-order `weights`, exactly as UsdSkel
+        specifies (inbetweens included), before skinning."""
+        mesh_weights = Vt.FloatArray.FromNumpy(weights[self.order].astype(np.float32))
+        sub_weights, shape_indices, sub_indices = self.query.ComputeSubShapeWeights(mesh_weights)
+        return self.query.ComputeDeformedPoints(
+            sub_weights, shape_indices, sub_indices, self.point_indices, self.sub_offsets, points
+        )
 
 
 class CharacterRig:
@@ -59,7 +84,44 @@ class CharacterRig:
         self._meshes = [
             _SkinnedMesh(query, read_mesh_parts(query.GetPrim())) for query in found.skel.skinning
         ]
+        self.blend_shapes: tuple[str, ...] = self._read_blend_shapes()
+        """The character's blend shapes: every name its skinned meshes' skel:blendShapes list,
+        in the order first met (meshes in skinning order). The weight vector's order."""
+        animated = list(self._anim_query.GetBlendShapeOrder() or ())
+        index = {name: k for k, name in enumerate(animated)}
+        self._animated = np.array([index.get(n, -1) for n in self.blend_shapes], dtype=np.int64)
+        """Per character blend shape, its index in the animation's blendShapes (-1: not
+        animated, weight 0 as UsdSkel says)."""
         self._charts: ChartTable | None = None
+
+    def _read_blend_shapes(self) -> tuple[str, ...]:
+        names: list[str] = []
+        for mesh in self._meshes:
+            if mesh.query.HasBlendShapes():
+                names += [str(n) for n in mesh.query.GetBlendShapeOrder() if str(n) not in names]
+        for mesh in self._meshes:
+            if mesh.query.HasBlendShapes():
+                query = UsdSkel.BlendShapeQuery(UsdSkel.BindingAPI(mesh.query.GetPrim()))
+                order = [names.index(str(n)) for n in mesh.query.GetBlendShapeOrder()]
+                mesh.shapes = _BlendShapes(
+                    query,
+                    query.ComputeBlendShapePointIndices(),
+                    query.ComputeSubShapePointOffsets(),
+                    np.array(order, dtype=np.int64),
+                )
+        return tuple(names)
+
+    def blend_weights(self, time: float) -> np.ndarray:
+        """(B,) the animation's blend shape weights at `time`, in `blend_shapes` order (0 for a
+        shape the animation does not name)."""
+        out = np.zeros(len(self.blend_shapes), dtype=np.float32)
+        if not len(out):
+            return out
+        weights = self._anim_query.ComputeBlendShapeWeights(Usd.TimeCode(time))
+        values = np.asarray(weights if weights is not None else (), dtype=np.float32)
+        have = (self._animated >= 0) & (self._animated < len(values))
+        out[have] = values[self._animated[have]]
+        return out
 
     # -- texture charts -----------------------------------------------------------------
 
@@ -136,10 +198,16 @@ class CharacterRig:
     # -- skinned meshes -----------------------------------------------------------------
 
     def posed_meshes(
-        self, time: float, local: Vt.Matrix4dArray | None = None, charts: bool = False
+        self,
+        time: float,
+        local: Vt.Matrix4dArray | None = None,
+        charts: bool = False,
+        weights: np.ndarray | None = None,
     ) -> list[DrawMesh]:
-        """The character's meshes skinned by UsdSkel at `time`, in world space; with `charts`,
-        textured meshes carry their texture charts (renderers then give uv and chart maps)."""
+        """The character's meshes at `time`, in world space: blend shapes applied (`weights`, in
+        `blend_shapes` order; default the animation's at `time`), then skinned by UsdSkel. With
+        `charts`, textured meshes carry their texture charts (renderers then give uv and chart
+        maps)."""
         charted = {}
         if charts:
             charted = {m.mesh: m.triangle_chart for m in self.texture_charts().meshes}
@@ -147,9 +215,19 @@ class CharacterRig:
         # UsdSkel skinning transforms: inverse(bind) * skel-space joint (row-vector order).
         skinning = Vt.Matrix4dArray([b * s for b, s in zip(self._bind_inverse, skel, strict=True)])
         to_world = self.skeleton_to_world(time)
+        if self.blend_shapes and weights is None:
+            weights = self.blend_weights(time)
         meshes = []
         for mesh in self._meshes:
             points = Vt.Vec3fArray.FromNumpy(mesh.parts[0].rest_points)
+            if mesh.shapes is not None and weights is not None:
+                if not mesh.shapes.apply(np.asarray(weights, dtype=np.float32), points):
+                    raise SceneError(
+                        f"UsdSkel could not apply the blend shapes of "
+                        f"{mesh.query.GetPrim().GetPath()} at time {time}.",
+                        "check its skel:blendShapes, skel:blendShapeTargets and each "
+                        "BlendShape's offsets and pointIndices (rigspace inspect names them).",
+                    )
             if not mesh.query.ComputeSkinnedPoints(skinning, points, Usd.TimeCode(time)):
                 raise SceneError(
                     f"UsdSkel could not skin {mesh.query.GetPrim().GetPath()} at time {time}.",

@@ -1,0 +1,168 @@
+"""A small skinned character with UsdSkel blend shapes, written on the fly with usd-core.
+
+A cylinder 'head' (2 units tall) skinned to a 2-joint neck chain, with three blend shapes on
+it and one on a second mesh:
+
+- `smile`: every point of the lower half pushed out, with an inbetween `half` at weight 0.5
+  that bulges the other way (so an inbetween that were ignored would show);
+- `blink`: a few points (sparse `pointIndices`) pulled in;
+- `jawOpen`: the lowest ring dropped;
+- `brow` on the second mesh (`Brow`, a small quad strip), which has its own blend shape list.
+
+The SkelAnimation names its weights in another order than the meshes (`blendShapes` =
+brow, jawOpen, smile, blink) and animates them over time codes 0-12, together with a neck bend;
+`extra` names a weight no mesh has (harmless, as UsdSkel says). A RigspaceNeuralCharacter with
+a capture ring frames it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
+
+import rigspace.sdk  # noqa: F401  (schemas registered before the stage is made)
+
+SEGMENTS, RINGS, HEIGHT, RADIUS = 16, 8, 2.0, 0.5
+JOINTS = ["neck", "neck/head"]
+CHARACTER = "/World/Hero"
+ANIMATED = ["brow", "jawOpen", "smile", "blink", "extra"]
+
+
+def weights_at(t: float) -> list[float]:
+    """The animation's weights (ANIMATED order) at time code t: each sweeps its own range."""
+    s = t / 12.0
+    return [s, 1.0 - s, 1.2 * s, 0.5 + 0.5 * np.sin(2 * t), 0.3]
+
+
+def _cylinder() -> tuple[np.ndarray, np.ndarray]:
+    angle = np.linspace(0, 2 * np.pi, SEGMENTS, endpoint=False)
+    height = np.linspace(0, HEIGHT, RINGS + 1)
+    points = np.array(
+        [(RADIUS * np.sin(a), h, RADIUS * np.cos(a)) for h in height for a in angle], np.float32
+    )
+    faces = []
+    for r in range(RINGS):
+        for k in range(SEGMENTS):
+            a, b = r * SEGMENTS + k, r * SEGMENTS + (k + 1) % SEGMENTS
+            faces.append((a, b, b + SEGMENTS, a + SEGMENTS))
+    return points, np.array(faces)
+
+
+def _shape(stage, path, offsets, indices=None, inbetweens=()):
+    shape = UsdSkel.BlendShape.Define(stage, path)
+    shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(offsets, np.float32)))
+    if indices is not None:
+        shape.CreatePointIndicesAttr(Vt.IntArray([int(i) for i in indices]))
+    for name, weight, values in inbetweens:
+        inbetween = shape.CreateInbetween(name)
+        inbetween.SetWeight(weight)
+        inbetween.SetOffsets(Vt.Vec3fArray.FromNumpy(np.asarray(values, np.float32)))
+    return shape
+
+
+def _skin(stage, mesh, skeleton, points, split: float) -> None:
+    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
+    upper = np.clip((points[:, 1] - split + 0.4) / 0.8, 0, 1)
+    weights = np.stack([1 - upper, upper], 1).astype(np.float32)
+    binding.CreateJointIndicesPrimvar(False, 2).Set(Vt.IntArray([0, 1] * len(points)))
+    binding.CreateJointWeightsPrimvar(False, 2).Set(Vt.FloatArray(weights.reshape(-1).tolist()))
+    binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1))
+
+
+def write_blendshape_character(folder: Path) -> Path:
+    """The scene (see the module doc) in `folder`; returns its path."""
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "face.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(12)
+    stage.SetTimeCodesPerSecond(24)
+    world = UsdGeom.Xform.Define(stage, "/World")
+    stage.SetDefaultPrim(world.GetPrim())
+    UsdSkel.Root.Define(stage, "/World/Asset")
+    skeleton = UsdSkel.Skeleton.Define(stage, "/World/Asset/Skel")
+    skeleton.CreateJointsAttr(JOINTS)
+    bind = [Gf.Matrix4d(1).SetTranslate(Gf.Vec3d(0, y, 0)) for y in (0.0, 1.0)]
+    rest = [Gf.Matrix4d(1).SetTranslate(Gf.Vec3d(0, y, 0)) for y in (0.0, 1.0)]
+    skeleton.CreateBindTransformsAttr(Vt.Matrix4dArray(bind))
+    skeleton.CreateRestTransformsAttr(Vt.Matrix4dArray(rest))
+    animation = UsdSkel.Animation.Define(stage, "/World/Asset/Skel/Anim")
+    animation.CreateJointsAttr(JOINTS)
+    animation.CreateTranslationsAttr(Vt.Vec3fArray([(0, 0, 0), (0, 1.0, 0)]))
+    animation.CreateScalesAttr(Vt.Vec3hArray([(1, 1, 1)] * 2))
+    animation.CreateBlendShapesAttr(ANIMATED)
+    rotations = animation.CreateRotationsAttr()
+    weights = animation.CreateBlendShapeWeightsAttr()
+    for t in range(13):
+        bend = Gf.Quatf(Gf.Rotation(Gf.Vec3d(1, 0, 0), 3.0 * t).GetQuat())
+        rotations.Set(Vt.QuatfArray([Gf.Quatf(1), bend]), Usd.TimeCode(t))
+        weights.Set(Vt.FloatArray(weights_at(t)), Usd.TimeCode(t))
+    UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets(
+        [animation.GetPath()]
+    )
+
+    points, faces = _cylinder()
+    mesh = UsdGeom.Mesh.Define(stage, "/World/Asset/Head")
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(points))
+    mesh.CreateFaceVertexCountsAttr([4] * len(faces))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(faces.reshape(-1).tolist()))
+    mesh.CreateSubdivisionSchemeAttr("none")
+    mesh.CreateDisplayColorAttr([Gf.Vec3f(0.8, 0.6, 0.5)])
+    _skin(stage, mesh, skeleton, points, 1.0)
+    radial = points * np.array([1, 0, 1], np.float32) / RADIUS
+    lower = (points[:, 1] < HEIGHT / 2).astype(np.float32)[:, None]
+    eyes = np.flatnonzero((np.abs(points[:, 1] - 1.5) < 0.2) & (points[:, 2] > 0.2))
+    jaw = np.arange(SEGMENTS)
+    base = "/World/Asset/Head"
+    _shape(
+        stage, f"{base}/smile", 0.3 * radial * lower,
+        inbetweens=[("half", 0.5, -0.2 * radial * lower)],
+    )  # fmt: skip
+    _shape(stage, f"{base}/blink", np.tile([0.0, -0.1, -0.15], (len(eyes), 1)), eyes)
+    _shape(stage, f"{base}/jawOpen", np.tile([0.0, -0.4, 0.1], (len(jaw), 1)), jaw)
+    binding = UsdSkel.BindingAPI(mesh.GetPrim())
+    binding.CreateBlendShapesAttr(["smile", "blink", "jawOpen"])
+    binding.CreateBlendShapeTargetsRel().SetTargets(
+        [Sdf.Path(f"{base}/{n}") for n in ("smile", "blink", "jawOpen")]
+    )
+
+    brow_points = np.array(
+        [(x, 1.8, 0.55) for x in (-0.3, 0.3)] + [(x, 1.9, 0.55) for x in (-0.3, 0.3)], np.float32
+    )
+    brow = UsdGeom.Mesh.Define(stage, "/World/Asset/Brow")
+    brow.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(brow_points))
+    brow.CreateFaceVertexCountsAttr([4])
+    brow.CreateFaceVertexIndicesAttr([0, 1, 3, 2])
+    brow.CreateSubdivisionSchemeAttr("none")
+    _skin(stage, brow, skeleton, brow_points, 1.0)
+    _shape(stage, "/World/Asset/Brow/brow", np.tile([0.0, 0.15, 0.0], (4, 1)))
+    binding = UsdSkel.BindingAPI(brow.GetPrim())
+    binding.CreateBlendShapesAttr(["brow"])
+    binding.CreateBlendShapeTargetsRel().SetTargets([Sdf.Path("/World/Asset/Brow/brow")])
+
+    character = stage.DefinePrim(CHARACTER, "RigspaceNeuralCharacter")
+    character.ApplyAPI("RigspaceCaptureRingAPI")
+    character.CreateRelationship("rigspace:skeleton").SetTargets([skeleton.GetPath()])
+    character.CreateAttribute("rigspace:lookAtJoint", Sdf.ValueTypeNames.Token).Set("neck/head")
+    ring = {
+        "viewsPerRing": (Sdf.ValueTypeNames.Int, 8),
+        "elevations": (Sdf.ValueTypeNames.FloatArray, [0.0]),
+        "radius": (Sdf.ValueTypeNames.Float, 5.0),
+        "resolution": (Sdf.ValueTypeNames.Int, 32),
+        "clipNames": (Sdf.ValueTypeNames.TokenArray, ["talk"]),
+        "clipRanges": (Sdf.ValueTypeNames.Float2Array, [(0.0, 12.0)]),
+        "heldOutViewsPerRing": (Sdf.ValueTypeNames.Int, 4),
+    }
+    for name, (kind, value) in ring.items():
+        character.CreateAttribute(f"rigspace:captureRing:{name}", kind).Set(value)
+    camera = UsdGeom.Camera.Define(stage, "/World/Camera")
+    camera.CreateFocalLengthAttr(35.0)
+    camera.CreateClippingRangeAttr(Gf.Vec2f(0.1, 100.0))
+    UsdGeom.XformCommonAPI(camera).SetTranslate(Gf.Vec3d(0, 1.0, 5.0))
+    stage.GetRootLayer().Save()
+    return path
