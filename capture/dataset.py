@@ -367,6 +367,7 @@ def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> 
         "character": settings.character,
         "skeleton": settings.skeleton,
         "joints": list(settings.joints),
+        **({"blend_shapes": list(settings.blend_shapes)} if settings.blend_shapes else {}),
         "look_at_joint": settings.look_at_joint,
         "rotation_encoding": "rot6d",
         "up_axis": settings.up_axis,
@@ -420,6 +421,11 @@ def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> 
             "(first two matrix columns)",
             "coverage": f"pixels the mask covers (sum of A); below {EMPTY_PIXELS:g} the sample "
             "shows nothing",
+            **(
+                {"blend": "per blend shape (blend_shapes order) the frame's weight"}
+                if settings.blend_shapes
+                else {}
+            ),
             "columns": sorted(table),
         },
         "counts": {"samples": len(table["path"]), "items": len(items), **split_counts},

@@ -134,13 +134,15 @@ class ItemWorker:
             k: []
             for k in (
                 "path", "sha256", "rig", "joint_camera", "camera_to_world", "intrinsics",
-                "clip", "time", "view", "elevation", "azimuth", "split", "coverage",
+                "clip", "time", "view", "elevation", "azimuth", "split", "coverage", "blend",
             )
         }  # fmt: skip
         for t in item.times:
             start = time.perf_counter()
             world = self.rig.world_transforms(t)
-            meshes = self.rig.posed_meshes(t, charts=True)  # texture AOVs (sdk/charts.py)
+            weights = self.settings.frame_weights(self.rig, item.clip.name, t)
+            # Blend shapes, then skinning; texture AOVs (sdk/charts.py).
+            meshes = self.rig.posed_meshes(t, charts=True, weights=weights)
             joint_position = world[self.joint][:3, 3]
             timings["pose"] += time.perf_counter() - start
             for view in item.views:
@@ -169,6 +171,7 @@ class ItemWorker:
                 rows["azimuth"].append(view.azimuth)
                 rows["split"].append(ds.SPLITS.index(ds.split_of(item.clip, view)))
                 rows["coverage"].append(ds.mask_coverage(maps.mask))
+                rows["blend"].append(weights)
         columns = {
             "path": np.array(rows["path"]),
             "sha256": np.array(rows["sha256"]),
@@ -184,6 +187,8 @@ class ItemWorker:
             "split": np.array(rows["split"], dtype=np.int8),
             "coverage": np.array(rows["coverage"], dtype=np.float32),
         }
+        if self.rig.blend_shapes:  # a rig without blend shapes writes the columns it always did
+            columns["blend"] = np.array(rows["blend"], dtype=np.float32)
         ds.save_record(self.folder, item, columns)
         return ItemDone(item.samples, timings, columns["coverage"], columns["view"])
 

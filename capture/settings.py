@@ -140,6 +140,11 @@ class CaptureSettings:
     frames_per_item: int = 16
     every: int = 1
     """Every Nth frame of each clip is captured (1: all)."""
+    blend_shapes: tuple[str, ...] = ()
+    """The character's blend shapes (CharacterRig.blend_shapes): the weight vector's order."""
+    blend_draws: tuple[tuple[str, str, float, float], ...] = ()
+    """(clip, shape, low, high): a shape whose weight the clip does not move, drawn per frame
+    within the ring's blendShapeRanges (`frame_weights`)."""
 
     @property
     def lens(self) -> Lens:
@@ -166,6 +171,9 @@ class CaptureSettings:
         data["clips"] = [asdict(c) for c in self.clips]
         if self.every == 1:  # as captures before the option recorded it (resume compares)
             del data["every"]
+        for key in ("blend_shapes", "blend_draws"):  # likewise, for a rig without blend shapes
+            if not data[key]:
+                del data[key]
         return data
 
     def clip_times(self, clip: Clip, samples: Sequence[float] | np.ndarray = ()) -> np.ndarray:
@@ -179,7 +187,22 @@ class CaptureSettings:
         values["clips"] = tuple(Clip(**c) for c in data["clips"])
         for key in ("joints", "elevations", "held_out_elevations", "clipping_range"):
             values[key] = tuple(values[key])
+        values["blend_shapes"] = tuple(values.get("blend_shapes", ()))
+        values["blend_draws"] = tuple(tuple(d) for d in values.get("blend_draws", ()))
         return cls(**values)
+
+    def frame_weights(self, rig: CharacterRig, clip: str, time: float) -> np.ndarray:
+        """(B,) the blend shape weights of a captured frame: the animation's, except the shapes
+        `blend_draws` names for this clip, drawn uniformly in their range from a hash of
+        (clip, time, shape), so every view of the frame, a resumed capture and another worker
+        all draw the same weight."""
+        weights = rig.blend_weights(time)
+        for name, shape, low, high in self.blend_draws:
+            if name == clip:
+                key = f"{clip}|{time:.6f}|{shape}".encode()
+                u = int.from_bytes(hashlib.sha256(key).digest()[:8], "little") / 2.0**64
+                weights[self.blend_shapes.index(shape)] = low + (high - low) * u
+        return weights
 
 
 def scene_fingerprint(stage: Usd.Stage) -> str:
@@ -442,6 +465,7 @@ def resolve_settings(
             "cannot use it; capture a training clip too (another --clips or --frames) unless "
             "this dataset is for evaluation only."
         )
+    draws = _blend_draws(rig, ring, clips, every=overrides.every)
     settings = CaptureSettings(
         scene=str(Path(scene).resolve()),
         scene_fingerprint=scene_fingerprint(stage),
@@ -466,5 +490,34 @@ def resolve_settings(
         samples_per_axis=overrides.samples_per_axis,
         frames_per_item=overrides.frames_per_item,
         every=overrides.every,
+        blend_shapes=rig.blend_shapes,
+        blend_draws=draws,
     )
     return settings, rig
+
+
+STILL_WEIGHT = 1e-6
+"""A shape whose animated weight varies less than this over a clip's captured frames is one the
+clip does not move."""
+
+
+def _blend_draws(
+    rig: CharacterRig,
+    ring: schema.CaptureRing | None,
+    clips: tuple[Clip, ...],
+    every: int = 1,
+) -> tuple[tuple[str, str, float, float], ...]:
+    """(clip, shape, low, high) for each shape with an authored range (blendShapeNames /
+    blendShapeRanges, validated by inspect's rules) that the clip leaves still."""
+    if ring is None or not ring.blend_shape_names or not rig.blend_shapes:
+        return ()
+    samples = animation_time_samples(rig)
+    draws = []
+    for clip in clips:
+        times = clip.times(samples=samples)[::every]
+        weights = np.array([rig.blend_weights(float(t)) for t in times])
+        still = np.ptp(weights, axis=0) <= STILL_WEIGHT
+        for name, (low, high) in zip(ring.blend_shape_names, ring.blend_shape_ranges, strict=True):
+            if still[rig.blend_shapes.index(name)]:
+                draws.append((clip.name, name, float(low), float(high)))
+    return tuple(draws)

@@ -40,6 +40,22 @@ def character_animation(prim: Usd.Prim) -> Usd.Prim | None:
     return found.animation if found else None
 
 
+def blend_shape_names(skinning: Iterable[UsdSkel.SkinningQuery]) -> tuple[str, ...]:
+    """A character's blend shapes: every name its skinned meshes' skel:blendShapes list, in
+    the order first met (meshes in skinning order). The order of its weight vector."""
+    names: list[str] = []
+    for query in skinning:
+        if query.HasBlendShapes():
+            names += [str(n) for n in query.GetBlendShapeOrder() if str(n) not in names]
+    return tuple(names)
+
+
+def character_blend_shapes(prim: Usd.Prim) -> tuple[str, ...]:
+    """The blend shapes of a neural character's skinned meshes (() when it does not resolve)."""
+    found, _ = resolve_character(prim)
+    return blend_shape_names(found.skel.skinning) if found else ()
+
+
 def animation_time_range(anim: Usd.Prim) -> tuple[float, float] | None:
     """First and last time sample over the animation's rotations and translations."""
     samples: list[float] = []

@@ -152,6 +152,7 @@ BUNDLE_MANIFEST = (
 DATASET_MANIFEST = (
     Field("resolution", "size", required=True),
     Field("joints", "names", required=True),
+    Field("blend_shapes", "names"),
     Field("look_at_joint", "text"),
     Field("scene", "text"),
     Field("character", "text"),

@@ -18,7 +18,7 @@ import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdSkel, Vt
 
 from rigspace.sdk.camera import from_gf
-from rigspace.sdk.character_rules import resolve_character
+from rigspace.sdk.character_rules import blend_shape_names, resolve_character
 from rigspace.sdk.charts import ChartTable, chart_table
 from rigspace.sdk.errors import SceneError
 from rigspace.sdk.geometry import MeshSource, read_mesh_parts
@@ -85,8 +85,8 @@ class CharacterRig:
             _SkinnedMesh(query, read_mesh_parts(query.GetPrim())) for query in found.skel.skinning
         ]
         self.blend_shapes: tuple[str, ...] = self._read_blend_shapes()
-        """The character's blend shapes: every name its skinned meshes' skel:blendShapes list,
-        in the order first met (meshes in skinning order). The weight vector's order."""
+        """The character's blend shapes (character_rules.blend_shape_names): the weight
+        vector's order."""
         animated = list(self._anim_query.GetBlendShapeOrder() or ())
         index = {name: k for k, name in enumerate(animated)}
         self._animated = np.array([index.get(n, -1) for n in self.blend_shapes], dtype=np.int64)
@@ -95,10 +95,7 @@ class CharacterRig:
         self._charts: ChartTable | None = None
 
     def _read_blend_shapes(self) -> tuple[str, ...]:
-        names: list[str] = []
-        for mesh in self._meshes:
-            if mesh.query.HasBlendShapes():
-                names += [str(n) for n in mesh.query.GetBlendShapeOrder() if str(n) not in names]
+        names = list(blend_shape_names(m.query for m in self._meshes))
         for mesh in self._meshes:
             if mesh.query.HasBlendShapes():
                 query = UsdSkel.BlendShapeQuery(UsdSkel.BindingAPI(mesh.query.GetPrim()))

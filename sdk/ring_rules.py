@@ -15,6 +15,7 @@ from rigspace.sdk.character_rules import (
     _owner_is_character,
     animation_time_range,
     character_animation,
+    character_blend_shapes,
     character_skeleton,
 )
 from rigspace.sdk.input_codes import CONTROL_CODES
@@ -114,6 +115,49 @@ def check_capture_ring(prim: Usd.Prim) -> Iterator[Issue]:
         ),
     )
     yield from _check_clips(prim, ring)
+    yield from _check_blend_ranges(prim, ring)
+
+
+def _check_blend_ranges(prim: Usd.Prim, ring: schema.CaptureRing) -> Iterator[Issue]:
+    """blendShapeNames/blendShapeRanges: parallel, finite low <= high, unique names that the
+    character's skinned meshes list in skel:blendShapes."""
+    path = prim.GetPath()
+    names, ranges = ring.blend_shape_names, ring.blend_shape_ranges
+    if len(names) != len(ranges):
+        yield error(
+            "BlendRangesDisagree",
+            f"Capture ring on {path}: {len(names)} blendShapeNames but {len(ranges)} "
+            "blendShapeRanges. Fix: author one (low, high) weight range per name.",
+        )
+        return
+    bad = [
+        f"{n} ({a:g}, {b:g})"
+        for n, (a, b) in zip(names, ranges, strict=True)
+        if not (math.isfinite(a) and math.isfinite(b) and a <= b)
+    ]
+    if bad:
+        yield error(
+            "BlendRangeInvalid",
+            f"Capture ring on {path}: blendShapeRanges {', '.join(bad)} are not finite "
+            "(low, high) pairs with low <= high. Fix: author finite ranges, low first.",
+        )
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        yield error(
+            "BlendShapeRepeated",
+            f"Capture ring on {path}: blendShapeNames repeats {', '.join(repeated)}. Fix: name "
+            "each shape once.",
+        )
+    if names and schema.is_neural_character(prim):
+        known = character_blend_shapes(prim)
+        unknown = [n for n in names if n not in known]
+        if unknown:
+            yield error(
+                "BlendShapeUnknown",
+                f"Capture ring on {path}: blendShapeNames {', '.join(unknown)} are not blend "
+                f"shapes of the character's meshes ({', '.join(known) or 'it has none'}). Fix: "
+                "name shapes from the meshes' skel:blendShapes.",
+            )
 
 
 def _check_clips(prim: Usd.Prim, ring: schema.CaptureRing) -> Iterator[Issue]:

@@ -106,6 +106,8 @@ class CaptureRing:
     held_out_clips: tuple[str, ...]
     held_out_views_per_ring: int
     held_out_elevations: tuple[float, ...]
+    blend_shape_names: tuple[str, ...] = ()
+    blend_shape_ranges: tuple[tuple[float, float], ...] = ()
 
 
 def has_capture_ring(prim: Usd.Prim) -> bool:
@@ -131,6 +133,8 @@ def read_capture_ring(prim: Usd.Prim) -> CaptureRing:
         held_out_clips=tuple(str(n) for n in get("heldOutClips", ())),
         held_out_views_per_ring=int(get("heldOutViewsPerRing", 0)),
         held_out_elevations=tuple(float(e) for e in get("heldOutElevations", ())),
+        blend_shape_names=tuple(str(n) for n in get("blendShapeNames", ())),
+        blend_shape_ranges=tuple((float(r[0]), float(r[1])) for r in get("blendShapeRanges", ())),
     )
 
 

@@ -7,6 +7,8 @@ it and one on a second mesh:
   that bulges the other way (so an inbetween that were ignored would show);
 - `blink`: a few points (sparse `pointIndices`) pulled in;
 - `jawOpen`: the lowest ring dropped;
+- `frown`: the mouth ring pulled down; the animation never names it (weight 0), so the
+  capture ring draws it within its authored range (blendShapeNames/blendShapeRanges);
 - `brow` on the second mesh (`Brow`, a small quad strip), which has its own blend shape list.
 
 The SkelAnimation names its weights in another order than the meshes (`blendShapes` =
@@ -125,11 +127,12 @@ def write_blendshape_character(folder: Path) -> Path:
     )  # fmt: skip
     _shape(stage, f"{base}/blink", np.tile([0.0, -0.1, -0.15], (len(eyes), 1)), eyes)
     _shape(stage, f"{base}/jawOpen", np.tile([0.0, -0.4, 0.1], (len(jaw), 1)), jaw)
+    mouth = np.arange(SEGMENTS, 2 * SEGMENTS)
+    _shape(stage, f"{base}/frown", np.tile([0.0, -0.25, 0.0], (len(mouth), 1)), mouth)
     binding = UsdSkel.BindingAPI(mesh.GetPrim())
-    binding.CreateBlendShapesAttr(["smile", "blink", "jawOpen"])
-    binding.CreateBlendShapeTargetsRel().SetTargets(
-        [Sdf.Path(f"{base}/{n}") for n in ("smile", "blink", "jawOpen")]
-    )
+    on_head = ["smile", "blink", "jawOpen", "frown"]
+    binding.CreateBlendShapesAttr(on_head)
+    binding.CreateBlendShapeTargetsRel().SetTargets([Sdf.Path(f"{base}/{n}") for n in on_head])
 
     brow_points = np.array(
         [(x, 1.8, 0.55) for x in (-0.3, 0.3)] + [(x, 1.9, 0.55) for x in (-0.3, 0.3)], np.float32
@@ -157,6 +160,8 @@ def write_blendshape_character(folder: Path) -> Path:
         "clipNames": (Sdf.ValueTypeNames.TokenArray, ["talk"]),
         "clipRanges": (Sdf.ValueTypeNames.Float2Array, [(0.0, 12.0)]),
         "heldOutViewsPerRing": (Sdf.ValueTypeNames.Int, 4),
+        "blendShapeNames": (Sdf.ValueTypeNames.TokenArray, ["frown", "smile"]),
+        "blendShapeRanges": (Sdf.ValueTypeNames.Float2Array, [(0.2, 0.9), (0.0, 1.0)]),
     }
     for name, (kind, value) in ring.items():
         character.CreateAttribute(f"rigspace:captureRing:{name}", kind).Set(value)

@@ -26,9 +26,9 @@ def rig(stage):
 
 
 def test_the_character_lists_its_meshes_blend_shapes_and_reads_the_animations_weights(rig):
-    assert rig.blend_shapes == ("smile", "blink", "jawOpen", "brow")  # meshes' order
+    assert rig.blend_shapes == ("smile", "blink", "jawOpen", "frown", "brow")  # meshes' order
     for t in (0, 5, 12):
-        animated = dict(zip(ANIMATED, weights_at(t), strict=True))
+        animated = dict(zip(ANIMATED, weights_at(t), strict=True)) | {"frown": 0.0}
         want = [animated[name] for name in rig.blend_shapes]  # "extra" drives no mesh
         np.testing.assert_allclose(rig.blend_weights(t), want, rtol=1e-6)
 
