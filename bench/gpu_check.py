@@ -82,7 +82,10 @@ def sample_recipe() -> tuple[Any, Any]:
     section = json.loads((SAMPLE / "manifest.json").read_text())["torch"]
     config = TrainConfig.from_json(section["config"])
     shape = Shape(
-        int(section["joints"]), parents=tuple(section["parents"]), charts=int(section["charts"])
+        int(section["joints"]),
+        parents=tuple(section["parents"]),
+        charts=int(section["charts"]),
+        blend_shapes=int(section.get("blend_shapes", 0)),
     )
     return config, shape
 

@@ -35,7 +35,7 @@ from rigspace.sdk.capsules import CapsuleError, read_capsules
 from rigspace.sdk.errors import SceneError
 from rigspace.sdk.model import BundleModel
 from rigspace.sdk.posing import CharacterRig
-from rigspace.sdk.rotations import rig_parameters
+from rigspace.sdk.rotations import rig_inputs, rig_parameters
 from rigspace.sdk.texturing import (
     ChartTextures,
     TextureMismatch,
@@ -85,6 +85,21 @@ def joint_order(model_joints: list[str], skeleton_joints: list[str], where: str)
     return np.asarray(order)
 
 
+def blend_order(model_shapes: tuple[str, ...], shapes: tuple[str, ...], where: str) -> np.ndarray:
+    """Indices into the character's blend shapes of the model's, or a SceneError naming the
+    missing. A character's shapes the model does not read are left out (they do not change
+    what it draws)."""
+    missing = [name for name in model_shapes if name not in shapes]
+    if missing:
+        raise SceneError(
+            f"{where}: the model reads blend shapes the character's meshes lack: "
+            f"{', '.join(missing)}.",
+            "bind the meshes the model was trained on (their skel:blendShapes), or retrain on "
+            "this character.",
+        )
+    return np.array([shapes.index(name) for name in model_shapes], dtype=np.int64)
+
+
 class NeuralCharacter:
     """A RigspaceNeuralCharacter prim with its loaded model, evaluated per frame."""
 
@@ -95,6 +110,10 @@ class NeuralCharacter:
         self.rig = CharacterRig(prim)
         raw = model.manifest.raw
         self.order = joint_order(model.joints, self.rig.joints, f"Neural character {self.path}")
+        self.blend_order = blend_order(
+            model.blend_shapes, self.rig.blend_shapes, f"Neural character {self.path}"
+        )
+        """Indices into the character's blend shapes of the model's (its input order)."""
         self.look_at = schema.find_joint(
             raw.get("look_at_joint") or self.rig.joints[0], self.rig.joints
         )
@@ -170,15 +189,40 @@ class NeuralCharacter:
             )
         return world
 
+    def weights(self, time: float, live: np.ndarray | None = None) -> np.ndarray:
+        """(B,) the blend shape weights the model reads at `time`, in its order: the
+        animation's, or `live` (the character's order, from a live source) where given."""
+        if not len(self.blend_order):
+            return np.zeros(0, dtype=np.float32)
+        weights = self.rig.blend_weights(time) if live is None else np.asarray(live, np.float32)
+        weights = weights[self.blend_order]
+        if not np.all(np.isfinite(weights)):
+            bad = self.model.blend_shapes[int(np.argmax(~np.isfinite(weights)))]
+            raise SceneError(
+                f"Neural character {self.path}: blend shape {bad} has a NaN or Inf weight at "
+                f"time {time:g}.",
+                "fix the SkelAnimation's blendShapeWeights at that time (or the live source's).",
+            )
+        return weights
+
     def place(self, world: np.ndarray, camera: Camera) -> Billboard:
         scale = float(np.cbrt(abs(np.linalg.det(world[self.look_at][:3, :3]))))
         # Joint scale is the character's own world scale (the rig has no joint scaling).
         return place(world[self.look_at][:3, 3], camera, self.view, scale, self.up)
 
-    def parameters(self, world: np.ndarray, billboard: Billboard, camera: Camera) -> np.ndarray:
+    def parameters(
+        self,
+        world: np.ndarray,
+        billboard: Billboard,
+        camera: Camera,
+        weights: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """(1, J*6 + B) the network's input: the joints' rotations in the virtual camera, then
+        the blend shape weights (`weights`, model order) when the model reads any."""
         virtual = np.eye(4)
         virtual[:3, :3] = billboard.virtual_camera_to_world(camera)
-        return rig_parameters(world[self.order], virtual).reshape(1, -1)
+        rotations = rig_parameters(world[self.order], virtual)[None]
+        return rig_inputs(rotations, None if weights is None else np.asarray(weights)[None])
 
     def evaluate(
         self,
@@ -187,10 +231,12 @@ class NeuralCharacter:
         camera: Camera,
         branches: tuple[str, ...],
         level: int | None = None,
+        weights: np.ndarray | None = None,
     ) -> Layer:
-        """The character's maps in the frame, for a visible billboard."""
+        """The character's maps in the frame, for a visible billboard (`weights`: its blend
+        shape weights, model order, when the model reads any)."""
         level = level or self.model.level_for(billboard.size_px)
-        rig = self.parameters(world, billboard, camera)
+        rig = self.parameters(world, billboard, camera, weights)
         out = self.model.predict(rig, level, branches)
         return self.resample(out, billboard, camera, level, branches)
 

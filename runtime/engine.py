@@ -99,8 +99,13 @@ class _CachedLayer:
     serial: int = field(default_factory=lambda: next(_serials))
     """Identifies this evaluation in the frame cache's key."""
 
-    def matches(self, pose: np.ndarray, view: bytes, side: float) -> bool:
+    weights: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    """(B,) the blend shape weights it was evaluated for (model order)."""
+
+    def matches(self, pose: np.ndarray, view: bytes, side: float, weights: np.ndarray) -> bool:
         if view != self.view:
+            return False
+        if len(weights) and np.abs(weights - self.weights).max() >= POSE_TOLERANCE:
             return False
         rotation = np.abs(pose[:, :3, :3] - self.pose[:, :3, :3]).max()
         translation = np.abs(pose[:, :3, 3] - self.pose[:, :3, 3]).max() / side
@@ -573,6 +578,7 @@ class Engine:
             t = clock.perf_counter()
             try:
                 world = character.pose(time, self.live.local(character, time, entry))
+                weights = character.weights(time)
             except SceneError as exc:
                 # One bad frame of animation must not end a sequence, nor draw a wrong image:
                 # the character is left out of this frame, loudly.
@@ -592,7 +598,9 @@ class Engine:
             view = billboard.corners.round(3).tobytes() + camera_key
             timings["rig"] += clock.perf_counter() - t
             candidates.append(
-                _Candidate(character, entry, billboard, world, view, billboard.region(camera))
+                _Candidate(
+                    character, entry, billboard, world, view, billboard.region(camera), weights
+                )
             )
         pending: dict[tuple[int, int, tuple[str, ...]], list[_Candidate]] = {}
         for c in candidates:
@@ -602,7 +610,7 @@ class Engine:
             c.entry["mode_reason"] = why
             if (
                 cached is not None
-                and cached.matches(c.world[c.character.order], c.view, c.billboard.side)
+                and cached.matches(c.world[c.character.order], c.view, c.billboard.side, c.weights)
                 and set(branches) <= set(cached.layer.branches)
             ):
                 c.entry.update(decision="reused", reason="same pose and camera as the last frame")
@@ -611,7 +619,7 @@ class Engine:
             pending.setdefault((id(c.character.model), level, branches), []).append(c)
         t = clock.perf_counter()
         for c in (c for group in pending.values() for c in group):
-            c.rig = c.character.parameters(c.world, c.billboard, camera)
+            c.rig = c.character.parameters(c.world, c.billboard, camera, c.weights)
         timings["rig"] += clock.perf_counter() - t
         # One network call per (model, level, branches): characters sharing a bundle batch.
         t = clock.perf_counter()
@@ -622,7 +630,7 @@ class Engine:
                 mine = {name: value[k : k + 1] for name, value in out.items()}
                 layer = c.character.resample(mine, c.billboard, camera, level, branches)
                 self._layers[c.character.path] = _CachedLayer(
-                    c.world[c.character.order], c.view, layer
+                    c.world[c.character.order], c.view, layer, weights=c.weights
                 )
                 c.entry.update(decision="evaluated", batch=len(group))
         timings["network"] += clock.perf_counter() - t
@@ -819,6 +827,8 @@ class _Candidate:
     view: bytes
     region: tuple[int, int, int, int]
     """(x0, y0, w, h) of the billboard in the frame."""
+    weights: np.ndarray
+    """(B,) blend shape weights in the model's order (empty: it reads none)."""
     rig: np.ndarray | None = None
     """Rig parameters, computed only for the characters evaluated this frame."""
 

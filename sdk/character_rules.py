@@ -328,6 +328,18 @@ def check_character_model(prim: Usd.Prim) -> Iterator[Issue]:
         problem = graphs_problem(manifest.folder)
         if problem:
             yield error("BadModel", f"Neural character {path}: {problem}", exception=BundleError)
+    wanted = manifest.raw.get("blend_shapes") or []
+    if wanted:
+        have = character_blend_shapes(prim)
+        lacking = [name for name in wanted if name not in have]
+        if lacking:
+            yield error(
+                "ModelBlendShapesMissing",
+                f"Neural character {path}: the model {manifest.path} reads blend shapes its "
+                f"meshes lack: {', '.join(lacking)} (they have "
+                f"{', '.join(have) or 'none'}). Fix: bind the meshes the model was trained on "
+                "(their skel:blendShapes), or retrain on this character.",
+            )
     skeleton = character_skeleton(prim)
     if skeleton is not None:
         missing = _missing_joints(manifest.joints, schema.skeleton_joints(skeleton))

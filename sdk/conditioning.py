@@ -109,10 +109,12 @@ class Skeleton2D:
 def joints2d(rig: np.ndarray, skeleton: Skeleton2D) -> np.ndarray:
     """Rig parameters (N, J*6) or (N, J, 6) -> (N, J*2) float32 normalised image coordinates
     (u, v per joint, manifest order) in a camera at the training distance from the look-at joint.
+    Network input rows (N, J*6 + B) work too: blend shape weights do not move joints.
     """
     rig = np.asarray(rig, dtype=np.float64)
     count = len(skeleton.parents)
-    rot = matrix_from_rot6d(rig.reshape(len(rig), count, 6))  # (N, J, 3, 3), camera frame
+    rows = rig.reshape(len(rig), -1)[:, : count * 6]
+    rot = matrix_from_rot6d(rows.reshape(len(rig), count, 6))  # (N, J, 3, 3), camera frame
     pos = np.zeros((len(rig), count, 3))
     # Forward kinematics down the skeleton (parents come first): a loop over joints, each
     # step vectorised over the samples.

@@ -109,6 +109,7 @@ def _values(data: Any, parts: list[str], where: str = ""):
 
 BUNDLE_MANIFEST = (
     Field("joints", "names", required=True),
+    Field("blend_shapes", "names"),
     Field("maps", "names"),
     Field("look_at_joint", "text"),
     Field("training_camera", "object"),
@@ -143,6 +144,7 @@ BUNDLE_MANIFEST = (
     Field("torch.file", "text"),
     Field("torch.joints", "size", required=True),
     Field("torch.charts", "count"),
+    Field("torch.blend_shapes", "count"),
     Field("torch.config", "object", required=True),
     Field("files", "object"),
     Field("capsules", "text"),
@@ -175,6 +177,7 @@ TRAINING_RUN = (
     Field("dataset", "text", required=True),
     Field("dataset_checksum", "text"),
     Field("joints", "names", required=True),
+    Field("blend_shapes", "names"),
     Field("charts", "count"),
     Field("plan", "object"),
     Field("plan.steps_per_level", "size", required=True),
@@ -186,6 +189,8 @@ CAPTURE_SETTINGS = (
     Field("scene", "text", required=True),
     Field("character", "text", required=True),
     Field("joints", "names", required=True),
+    Field("blend_shapes", "names"),
+    Field("blend_draws", "list"),
     Field("clips", "list", required=True),
     Field("clips[].name", "text", required=True),
     Field("clips[].first", "number", required=True),

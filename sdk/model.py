@@ -92,6 +92,8 @@ class BundleModel:
         self.albedo_has_alpha = self.manifest.format_version >= 2
         """Whether the albedo branch alone gives coverage (lets unlit frames skip geometry)."""
         self.joints = list(self.manifest.joints)
+        self.blend_shapes: tuple[str, ...] = tuple(raw.get("blend_shapes", ()))
+        """Blend shapes whose weights follow the rotations in the rig input (manifest order)."""
         texture = raw.get("texture") or {}
         self.charts = int(texture.get("charts", 0))
         """K texture charts the texture head predicts (0: no texture head)."""
@@ -154,18 +156,27 @@ class BundleModel:
 
     def check_rig(self, rig: np.ndarray) -> np.ndarray:
         rig = np.ascontiguousarray(rig, dtype=np.float32)
-        expected = len(self.joints) * 6
+        rotations = len(self.joints) * 6
+        expected = rotations + len(self.blend_shapes)
         if rig.ndim != 2 or rig.shape[1] != expected:
+            weights = (
+                f" + {len(self.blend_shapes)} blend shape weights" if self.blend_shapes else ""
+            )
             raise BundleError(
                 f"Rig parameters have shape {rig.shape}; the model reads (N, {expected}) "
-                f"({len(self.joints)} joints x 6).",
-                "map the skeleton's joints to the manifest's joint order first.",
+                f"({len(self.joints)} joints x 6{weights}).",
+                "map the skeleton's joints (and blend shapes) to the manifest's order first.",
             )
         if not np.all(np.isfinite(rig)):
             bad = np.argwhere(~np.isfinite(rig))[0]
+            column = int(bad[1])
+            what = (
+                f"joint {self.joints[column // 6]}"
+                if column < rotations
+                else f"blend shape {self.blend_shapes[column - rotations]}"
+            )
             raise BundleError(
-                f"Rig parameters hold NaN or Inf (sample {bad[0]}, joint "
-                f"{self.joints[bad[1] // 6]}).",
+                f"Rig parameters hold NaN or Inf (sample {bad[0]}, {what}).",
                 "check the animation or live source feeding this character.",
             )
         return rig

@@ -330,7 +330,7 @@ def run_variant(
         report = evaluate(predictor, table, split, limit=limit)
         metrics[split] = {k: v["mean"] for k, v in report["metrics"].items()}
         metrics[split]["samples"] = report["samples"]
-    rig = table.column("rig")[table.indices("heldout-views")[:1]].reshape(1, -1)
+    rig = table.rig_inputs(table.indices("heldout-views")[:1])
     record = {
         "variant": name,
         "description": description,
@@ -499,7 +499,7 @@ def retime(out: Path, dataset: Path, rounds: int = 5) -> dict[str, float]:
         for name in VARIANTS
         if (out / name / "result.json").is_file()
     }
-    rig = DatasetTable(dataset).column("rig")[:1].reshape(1, -1)
+    rig = DatasetTable(dataset).rig_inputs(np.arange(1))
     best = dict.fromkeys(records, math.inf)
     for _ in range(rounds):
         for name, record in records.items():
@@ -622,7 +622,7 @@ def breakdown(out: Path, dataset: Path, names: list[str], rounds: int = 12) -> s
     """ms per graph (trunk, each branch at the top level) and per predict of finished variants,
     one onnxruntime thread, best of `rounds` x 20 with the variants interleaved: where a
     variant's time goes, steadier under load than the default-threads `retime`."""
-    rig = DatasetTable(dataset).column("rig")[:1].reshape(1, -1)
+    rig = DatasetTable(dataset).rig_inputs(np.arange(1))
     found = [n for n in names if (out / n / "bundle").is_dir()]
     models = {n: BundleModel(out / n / "bundle", "fp32", threads=1) for n in found}
     best = {n: dict.fromkeys(GRAPH_COLUMNS, math.inf) for n in found}

@@ -70,7 +70,7 @@ class TorchPredictor:
         self.footprint_bytes = sum(p.numel() * 4 for p in model.parameters())
 
     def predict(self, indices: np.ndarray) -> list[Maps]:
-        rig = self.table.column("rig")[indices].reshape(len(indices), -1).astype(np.float32)
+        rig = self.table.rig_inputs(indices)
         j2d = None
         if self.skeleton is not None:
             j2d = torch.from_numpy(joints2d(rig, self.skeleton)).to(self.device)

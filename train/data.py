@@ -22,7 +22,7 @@ from rigspace.capture.dataset import DatasetError, read_charts, read_manifest, r
 from rigspace.capture.ring import stage_axes
 from rigspace.sdk.conditioning import Skeleton2D, joints2d
 from rigspace.sdk.render import Maps
-from rigspace.sdk.rotations import matrix_from_rot6d, rot6d_from_matrix
+from rigspace.sdk.rotations import matrix_from_rot6d, rig_inputs, rot6d_from_matrix
 from rigspace.train.config import check_oversample
 
 SPLITS = ("train", "heldout-views", "heldout-clips")
@@ -128,6 +128,9 @@ def chart_targets(
 
 ITEM_COLUMNS = ["rig", "joint_camera"]
 """The params.npz columns a training item is made from (a shard sample's .npz holds them all)."""
+BLEND_COLUMN = "blend"
+"""The blend shape weights of a character that has blend shapes (absent otherwise): they
+follow the rig parameters in the network's input (rigspace.sdk.rotations.rig_inputs)."""
 POSE_COLUMNS = ("clip", "time", "camera_to_world")
 """The params.npz columns pose rarity needs besides the rig: which frame a row shows (its
 views share one pose) and the camera, to take the rig out of the camera's frame."""
@@ -175,8 +178,9 @@ class SplitInfo:
         """Set (chart_boxes) to add each item's `chart` and `uv` (the texture head's targets)."""
 
     def make_item(self, maps: Maps, row: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """A sample's item from its maps and its params row (ITEM_COLUMNS): rig (J*6,),
-        albedo (3,R,R), mask (1,R,R), normal (3,R,R), depth (1,R,R)."""
+        """A sample's item from its maps and its params row (ITEM_COLUMNS, and BLEND_COLUMN
+        when there is one): rig (J*6 + B,), albedo (3,R,R), mask (1,R,R), normal (3,R,R),
+        depth (1,R,R)."""
         joint_depth = -np.float32(row["joint_camera"][2])
         mask = maps.mask[None]
         hit = mask > 0
@@ -189,7 +193,7 @@ class SplitInfo:
             self.dataset_resolution // self.resolution,
         )
         item = {
-            "rig": np.asarray(row["rig"]).reshape(-1).astype(np.float32),
+            "rig": rig_inputs(np.asarray(row["rig"])[None], row.get(BLEND_COLUMN))[0],
             "albedo": albedo.astype(np.float32),
             "mask": mask.astype(np.float32),
             "normal": normal.astype(np.float32),
@@ -249,10 +253,14 @@ class SampleSet(SplitInfo):
         manifest = read_manifest(self.folder)
         with np.load(self.folder / "params.npz", allow_pickle=False) as table:
             self.rows = np.flatnonzero(table["split"] == SPLITS.index(split))
-            self.rig = table["rig"].reshape(len(table["rig"]), -1).astype(np.float32)
+            blend = table[BLEND_COLUMN] if BLEND_COLUMN in table.files else None
+            self.rig = rig_inputs(table["rig"], blend)
+            """The network's input rows (rig parameters, then blend shape weights)."""
             self.paths = table["path"]
             self.joint_depth = -table["joint_camera"][:, 2].astype(np.float32)
             self.columns = {c: table[c] for c in ITEM_COLUMNS}
+            if blend is not None:
+                self.columns[BLEND_COLUMN] = blend
         super().__init__(manifest, split, resolution)
         self.cache = open_cache(self.folder, manifest)
         self._rarity: np.ndarray | None = None
@@ -291,7 +299,10 @@ class SampleSet(SplitInfo):
             _, first, frame_of = np.unique(keys, axis=0, return_index=True, return_inverse=True)
             up = stage_axes(str(self.manifest.get("up_axis", "Y")))[0]
             rows = self.rows[first]
-            features = pose_features(self.rig[rows], columns["camera_to_world"][first], up)
+            rotations = self.rig[rows][:, : 6 * len(self.joints)]
+            features = pose_features(rotations, columns["camera_to_world"][first], up)
+            # An expression is part of the pose: a rare one is drawn more often too.
+            features = np.concatenate([features, self.rig[rows][:, 6 * len(self.joints) :]], 1)
             self._rarity = pose_rarity(features)[frame_of.reshape(-1)]
         return self._rarity
 

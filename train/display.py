@@ -74,7 +74,7 @@ class DisplayPredictor:
         )
 
     def predict(self, indices: np.ndarray) -> list[Maps]:
-        rig = self.table.column("rig")[indices].reshape(len(indices), -1)
+        rig = self.table.rig_inputs(indices)
         joint_depth = -self.table.column("joint_camera")[indices][:, 2].astype(np.float32)
         out = self.model.predict(rig, self.level)
         size = self.table.resolution

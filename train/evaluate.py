@@ -16,6 +16,7 @@ import numpy as np
 from rigspace.capture.dataset import PARAMS_FILE, DatasetError, read_manifest
 from rigspace.capture.ring import SPLITS, TRAIN
 from rigspace.sdk.render import Maps
+from rigspace.sdk.rotations import rig_inputs
 from rigspace.train.data import read_sample, targets_at
 from rigspace.train.metrics import MASK_THRESHOLD, METRICS, map_metrics
 from rigspace.train.stream import ShardSet, is_shards
@@ -92,6 +93,12 @@ class DatasetTable:
                 )
             self._columns[name] = self._params[name]
         return self._columns[name]
+
+    def rig_inputs(self, indices: np.ndarray) -> np.ndarray:
+        """The network's input rows of samples `indices`: rig parameters, then blend shape
+        weights when the dataset has them (rigspace.sdk.rotations.rig_inputs)."""
+        blend = self.column("blend")[indices] if "blend" in self._params.files else None
+        return rig_inputs(self.column("rig")[indices], blend)
 
     def __len__(self) -> int:
         return len(self.column("path"))

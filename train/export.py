@@ -231,14 +231,17 @@ def export_bundle(
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
         "joints": list(run["joints"]),
+        **({"blend_shapes": list(run["blend_shapes"])} if run.get("blend_shapes") else {}),
         "rotation_encoding": "rot6d",
         "look_at_joint": data_manifest["look_at_joint"],
         "maps": ["albedo", "normal", "depth", "mask"],
         "trunk": {"graphs": {"trunk": trunk["fp32"]}, "int8": {"trunk": trunk.get("int8")}},
         "levels": levels,
         "inputs": {
-            "rig": "float32 (N, joints*6): per joint the world rotation in the camera frame, "
-            "first two matrix columns (r00 r10 r20 r01 r11 r21); input of the trunk graph",
+            "rig": "float32 (N, joints*6 + blend_shapes): per joint the world rotation in the "
+            "camera frame, first two matrix columns (r00 r10 r20 r01 r11 r21), then each blend "
+            "shape's weight (manifest blend_shapes order, when there are any); input of the "
+            "trunk graph",
             "features": "float32 (N, C, 8, 8): the trunk's output, input of every branch graph",
         },
         "outputs": {
@@ -365,6 +368,7 @@ def add_weights(
         "joints": model.shape.joints,
         "parents": list(model.shape.parents),
         "charts": model.shape.charts,
+        **({"blend_shapes": model.shape.blend_shapes} if model.shape.blend_shapes else {}),
     }
     manifest["torch"]["check"] = {"split": split, **check_weights(out, manifest, rows, skeleton)}
     return WEIGHTS

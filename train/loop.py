@@ -203,6 +203,8 @@ def run_record(dataset: Path, manifest: dict[str, Any], config: TrainConfig) -> 
         "dataset_checksum": manifest["checksum"],
         "joints": manifest["joints"],
     }
+    if manifest.get("blend_shapes"):  # the input's weights (runs without any record nothing)
+        record["blend_shapes"] = list(manifest["blend_shapes"])
     boxes = chart_boxes(dataset) if config.texture else None
     if boxes is not None:  # the texture head's size (runs without one record nothing, as before)
         record["charts"] = len(boxes[0]) - 1
@@ -344,7 +346,12 @@ def train(
         )
     boxes = chart_boxes(dataset) if config.texture else None
     charts = 0 if boxes is None else len(boxes[0]) - 1
-    shape = Shape(len(samples.joints), parents=parents_of(samples.joints), charts=charts)
+    shape = Shape(
+        len(samples.joints),
+        parents=parents_of(samples.joints),
+        charts=charts,
+        blend_shapes=len(manifest.get("blend_shapes", ())),
+    )
     model = Rig2Image(shape, config)
     if model.conditioned:  # every item gets joints2d (train.conditioning)
         samples.skeleton = held_out.skeleton = dataset_skeleton(dataset, manifest)
@@ -528,7 +535,10 @@ def build_model(
     run = read_run(run_folder)
     config = TrainConfig.from_json(run["config"])
     shape = Shape(
-        len(run["joints"]), parents=parents_of(run["joints"]), charts=int(run.get("charts", 0))
+        len(run["joints"]),
+        parents=parents_of(run["joints"]),
+        charts=int(run.get("charts", 0)),
+        blend_shapes=len(run.get("blend_shapes", ())),
     )
     model = Rig2Image(shape, replace(config, channels_last=False))
     state = load_checkpoint(checkpoint or run_folder / CHECKPOINT)

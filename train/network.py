@@ -56,10 +56,12 @@ class Shape:
     """Each joint's parent index (-1 for a root); needed by bones2d conditioning only."""
     charts: int = 0
     """Texture charts K of the character (rigspace.sdk.charts); 0: no texture head."""
+    blend_shapes: int = 0
+    """Blend shape weights B that follow the joints' rotations in the input (0: none)."""
 
     @property
     def inputs(self) -> int:
-        return self.joints * self.encoding
+        return self.joints * self.encoding + self.blend_shapes
 
 
 def width(config: TrainConfig, resolution: int) -> int:

@@ -70,7 +70,7 @@ class BundlePredictor:
             )
 
     def predict(self, indices: np.ndarray) -> list[Maps]:
-        rig = self.table.column("rig")[indices].reshape(len(indices), -1)
+        rig = self.table.rig_inputs(indices)
         joint_depth = -self.table.column("joint_camera")[indices][:, 2]
         out = self.model.predict(rig, self.table.resolution)
         return to_maps(out, joint_depth, self.model.depth_scale)

@@ -414,7 +414,7 @@ def level_table(bundle: Path, dataset: Path, split: str = "heldout-views", limit
         predictors = [BundlePredictor(bundle, table), BundlePredictor(bundle, table, int8=True)]
         result = compare(predictors, table, split, limit=limit)
         rows = result["indices"]
-        rig = table.column("rig")[rows].reshape(len(rows), -1)
+        rig = table.rig_inputs(rows)
         alpha = {}
         for key, model in (("fp32", fp32_model), ("int8", int8_model)):
             out = model.predict(rig, resolution, ("albedo",))["alpha"][:, 0]

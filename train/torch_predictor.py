@@ -93,6 +93,7 @@ def build_network(folder, manifest: dict[str, Any]):
             int(section["joints"]),
             parents=tuple(int(p) for p in section.get("parents", ())),
             charts=int(section.get("charts", 0)),
+            blend_shapes=int(section.get("blend_shapes", 0)),
         )
         model = Rig2Image(shape, config)
         model.load_state_dict({k: torch.from_numpy(v.copy()) for k, v in tensors.items()})

@@ -73,7 +73,9 @@ def upgrade(
             f"pass the dataset it names: {run['dataset']}.",
         )
     torch.manual_seed(config.seed)
-    model = Rig2Image(Shape(len(run["joints"])), config)
+    model = Rig2Image(
+        Shape(len(run["joints"]), blend_shapes=len(run.get("blend_shapes", ()))), config
+    )
     model.load_state_dict(checkpoint["model"])
     heads = list(model.albedo.heads)
     for parameter in model.parameters():

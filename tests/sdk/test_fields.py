@@ -54,8 +54,27 @@ SAMPLE_MANIFEST = json.loads((SAMPLE / "manifest.json").read_text())
 BUNDLE_FIELDS = [f for f in BUNDLE_MANIFEST if present(SAMPLE_MANIFEST, f)]
 
 
+BLEND_FIELDS = ("blend_shapes", "torch.blend_shapes")
+"""What a bundle of a character with blend shapes adds (the sample character has none)."""
+
+
 def test_the_sample_bundle_has_almost_every_field():
-    assert len(BUNDLE_FIELDS) >= len(BUNDLE_MANIFEST) - 2  # all but capsules' text etc.
+    others = [f for f in BUNDLE_MANIFEST if f.path not in BLEND_FIELDS]
+    assert len(BUNDLE_FIELDS) >= len(others) - 2  # all but capsules' text etc.
+
+
+@pytest.mark.parametrize(("path", "value"), [("blend_shapes", "smile"), ("torch.blend_shapes", -1)])
+def test_a_wrong_type_in_a_blend_shape_field_is_a_named_error(tmp_path, path, value):
+    data = copy.deepcopy(SAMPLE_MANIFEST)
+    if "." in path:
+        data["torch"]["blend_shapes"] = value
+    else:
+        data[path] = value
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    (bundle / "manifest.json").write_text(json.dumps(data))
+    with pytest.raises(BundleError, match=f"'{path}' is {value!r}"):
+        read_manifest(bundle)
 
 
 @pytest.mark.parametrize("field", BUNDLE_FIELDS, ids=lambda f: f.path)
