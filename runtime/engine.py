@@ -578,7 +578,7 @@ class Engine:
             t = clock.perf_counter()
             try:
                 world = character.pose(time, self.live.local(character, time, entry))
-                weights = character.weights(time)
+                weights = character.weights(time, self.live.weights(character, time))
             except SceneError as exc:
                 # One bad frame of animation must not end a sequence, nor draw a wrong image:
                 # the character is left out of this frame, loudly.

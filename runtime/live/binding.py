@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import sys
 import time
 from collections.abc import Callable
@@ -72,6 +73,8 @@ class LiveBindingRuntime:
     _fade: tuple[float, float, np.ndarray | None] | None = None
     """(start, seconds, held from-transforms or None: from the stage animation as it plays)
     of the transition in progress."""
+    _blend_cache: tuple[tuple[str, ...], dict[str, list[int]]] | None = None
+    """(the character's shapes, source name -> indices of the shapes it drives)."""
     _anchor: np.ndarray | None = None
     """While lost: the root translation where the performer left the character, minus the
     stage's root then; the stage animation plays from there ("in place")."""
@@ -186,6 +189,26 @@ class LiveBindingRuntime:
             out = blend_transforms(out, np.asarray(sample(at), dtype=np.float64), float(weight))
         return out
 
+    def blend_weights(
+        self, pose: LivePose, shapes: tuple[str, ...]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(indices into `shapes`, weights) of the pose's blend shape weights that name one of
+        the character's shapes (`blend_targets`); empty when the source sent none that do."""
+        if not pose.weights or not shapes:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.float32)
+        if self._blend_cache is None or self._blend_cache[0] != shapes:
+            self._blend_cache = (shapes, {})
+        cache = self._blend_cache[1]
+        sums: dict[int, list[float]] = {}
+        for name, value in pose.weights.items():
+            if name not in cache:
+                cache[name] = blend_targets(name, shapes)
+            for index in cache[name]:
+                sums.setdefault(index, []).append(value)
+        indices = np.array(sorted(sums), dtype=np.int64)
+        values = np.array([np.mean(sums[i]) for i in indices], dtype=np.float32)
+        return indices, values
+
     def counters(self, now: float | None = None) -> BindingCounters:
         return self.source.counters(now)
 
@@ -195,6 +218,54 @@ class LiveBindingRuntime:
         r = self.retargeter
         bones = [r.source_bones[i] for i in r.map_source]
         return bones, r.rest_pose[r.map_source]
+
+
+VRM_TO_ARKIT: dict[str, tuple[str, ...]] = {
+    "a": ("jawOpen",),
+    "i": ("mouthStretchLeft", "mouthStretchRight"),
+    "u": ("mouthPucker",),
+    "e": ("mouthShrugLower",),
+    "o": ("mouthFunnel",),
+    "blink": ("eyeBlinkLeft", "eyeBlinkRight"),
+    "blinkl": ("eyeBlinkLeft",),
+    "blinkr": ("eyeBlinkRight",),
+    "joy": ("mouthSmileLeft", "mouthSmileRight"),
+    "fun": ("mouthSmileLeft", "mouthSmileRight", "cheekSquintLeft", "cheekSquintRight"),
+    "angry": ("browDownLeft", "browDownRight"),
+    "sorrow": ("browInnerUp", "mouthFrownLeft", "mouthFrownRight"),
+    "lookup": ("eyeLookUpLeft", "eyeLookUpRight"),
+    "lookdown": ("eyeLookDownLeft", "eyeLookDownRight"),
+}
+"""VRM 0.x preset expressions (what VMC senders send without Perfect Sync) -> the ARKit-style
+names a face rig usually carries (Perfect Sync senders send the ARKit names themselves)."""
+
+
+def _plain(name: str) -> str:
+    """A blend shape name compared loosely: lower case, letters and digits only (JawOpen,
+    jaw_open and jawOpen are one name; a namespace before ':' or '.' is dropped)."""
+    name = re.split(r"[:.]", name)[-1]
+    return re.sub(r"[^a-z0-9]", "", name.lower())
+
+
+def blend_targets(name: str, shapes: tuple[str, ...]) -> list[int]:
+    """Which of the character's blend shapes a source's weight named `name` drives: the shape
+    of that name (exactly, else compared loosely: `_plain`); else a VRM preset's ARKit shapes
+    (`VRM_TO_ARKIT`: "Blink" drives eyeBlinkLeft and eyeBlinkRight); else, for an ARKit sided
+    name (eyeBlinkLeft), the character's unsided shape (eyeBlink), which then takes the mean
+    of both sides. [] when none (the weight is ignored)."""
+    if name in shapes:
+        return [shapes.index(name)]
+    plain = {_plain(s): k for k, s in enumerate(shapes)}
+    key = _plain(name)
+    if key in plain:
+        return [plain[key]]
+    preset = [plain[_plain(n)] for n in VRM_TO_ARKIT.get(key, ()) if _plain(n) in plain]
+    if preset:
+        return preset
+    for side in ("left", "right", "l", "r"):
+        if key.endswith(side) and key[: -len(side)] in plain:
+            return [plain[key[: -len(side)]]]
+    return []
 
 
 def open_binding(

@@ -6,7 +6,7 @@ import math
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import islice
 
 import numpy as np
@@ -139,6 +139,8 @@ class LivePose:
     """1 while connected or stale; falls to 0 over `blend` seconds once lost; 0 while waiting."""
     sample_time: float
     """Local monotonic time of the newest sample in this pose (nan while waiting)."""
+    weights: dict[str, float] = field(default_factory=dict)
+    """The source's blend shape weights by its names, the latest of each (empty: none sent)."""
 
 
 @dataclass
@@ -239,6 +241,7 @@ class _Published:
     root: np.ndarray | None
     sample_time: float
     last_seen: float
+    weights: dict[str, float] = field(default_factory=dict)
 
 
 class LiveBuffer:
@@ -259,6 +262,9 @@ class LiveBuffer:
         self._current[:, 0] = 1.0
         self._valid = np.zeros(n, dtype=bool)
         self._root: np.ndarray | None = None
+        self._weights: dict[str, float] = {}
+        """The latest weight of each blend shape the source named (not delayed: a face
+        stream's weights are taken as they come)."""
         self._times: deque[float] = deque(maxlen=s.history)
         """Local time of each snapshot when it was pushed (orders snapshots across streams)."""
         self._source_times: deque[tuple[int, float]] = deque(maxlen=s.history)
@@ -309,6 +315,8 @@ class LiveBuffer:
             self._valid[idx] = True
             if frame.root_position is not None:
                 self._root = frame.root_position
+            if frame.weights:
+                self._weights = {**self._weights, **frame.weights}  # replaced whole: shared
             if self._times and local <= self._times[-1]:
                 # Another stream's sample at or before the last snapshot: update that snapshot
                 # (snapshot times stay strictly increasing for the delayed lookup).
@@ -321,7 +329,12 @@ class LiveBuffer:
             self.samples += len(idx)
             # The frame thread reads this without the lock: one reference, replaced whole.
             self._published = _Published(
-                self._snapshots[-1][0], self._valid.copy(), self._root, self._times[-1], received
+                self._snapshots[-1][0],
+                self._valid.copy(),
+                self._root,
+                self._times[-1],
+                received,
+                self._weights,
             )
             return True
 
@@ -400,6 +413,7 @@ class LiveBuffer:
             status,
             weight,
             sample_time,
+            dict(published.weights),
         )
 
     def pose_at(self, when: float) -> LivePose:
@@ -434,6 +448,7 @@ class LiveBuffer:
             status,
             weight,
             sample_time,
+            dict(self._weights),  # the latest: weights are not kept per snapshot
         )
 
     def _delayed(

@@ -30,6 +30,8 @@ class LiveCharacter:
     last: dict[str, Any] = field(default_factory=dict)
     """binding name -> {status, weight, sample_time} of the last frame's pose."""
     last_local: np.ndarray | None = None
+    last_poses: list = field(default_factory=list)
+    """(binding runtime, LivePose) of the last frame, for its blend shape weights."""
     """(J, 4, 4) the last frame's merged local transforms."""
 
 
@@ -213,7 +215,24 @@ class LiveInput:
             live.last[runtime.name] = {**state, "sample_time": pose.sample_time}
             entry["live"].append({"binding": runtime.name, **state})
         live.last_local = local
+        live.last_poses = poses
         return Vt.Matrix4dArray.FromNumpy(local)
+
+    def weights(self, character: NeuralCharacter, time_code: float) -> np.ndarray | None:
+        """(B,) the character's blend shape weights (its order) with the last frame's live
+        weights merged in by each binding's weight (a lost source lets go as its bones do);
+        None when no binding sent a weight for one of its shapes (the animation's apply)."""
+        live = self.characters.get(character.path)
+        shapes = character.rig.blend_shapes
+        if live is None or not live.last_poses or not shapes:
+            return None
+        out = None
+        for runtime, pose in live.last_poses:
+            indices, values = runtime.blend_weights(pose, shapes)
+            if len(indices):
+                out = character.rig.blend_weights(time_code) if out is None else out
+                out[indices] += (values - out[indices]) * float(pose.weight)
+        return out
 
     def sample_times(self) -> dict[str, float]:
         """binding name -> local monotonic time of the newest sample in the last frame's pose,

@@ -44,6 +44,10 @@ class Frame:
     """(k, 4) float64 unit quaternions (w, x, y, z)."""
     root_position: np.ndarray | None = None
     """(3,) float64 root position in source units, or None when the frame carries none."""
+    weights: dict[str, float] | None = None
+    """Blend shape weights the frame applies, by the source's names (VMC /VMC/Ext/Blend/Val,
+    applied by /VMC/Ext/Blend/Apply); None when it carries none. A weight holds until the
+    source sends another value for that name."""
 
 
 @dataclass

@@ -125,3 +125,69 @@ def test_a_model_whose_blend_shapes_the_character_lacks_is_named(face, bundle, t
         if "ModelBlendShapesMissing" in f.code
     ]
     assert found and "sneer" in found[0].message and "render" in found[0].blocks
+
+
+def _live_face(face, bundle, tmp_path, port):
+    """The face with its model and a VMC binding (the neck and head by name: a face stream)."""
+    from pxr import Sdf
+
+    stage = Usd.Stage.Open(str(face))
+    prim = stage.GetPrimAtPath(CHARACTER)
+    prim.GetAttribute("rigspace:model").Set(str(bundle))
+    prim.ApplyAPI("RigspaceLiveBindingAPI", "face")
+    for name, kind, value in (
+        ("url", Sdf.ValueTypeNames.String, f"vmc://127.0.0.1:{port}"),
+        ("sourceBones", Sdf.ValueTypeNames.TokenArray, ["Neck", "Head"]),
+        ("targetJoints", Sdf.ValueTypeNames.TokenArray, ["neck", "head"]),
+        ("timeoutSeconds", Sdf.ValueTypeNames.Float, 30.0),
+    ):
+        prim.CreateAttribute(f"rigspace:live:face:{name}", kind).Set(value)
+    path = tmp_path / "live_face.usda"
+    stage.GetRootLayer().Export(str(path))
+    return path
+
+
+def _send_face(port: int, weights: dict[str, float], t: float) -> None:
+    """A VMC face frame as a sender written from the protocol sends it, with python-osc alone:
+    the neck and head bones (Unity's frame: x, y, z then quaternion x, y, z, w), each blend
+    shape's /VMC/Ext/Blend/Val, one /VMC/Ext/Blend/Apply, then /VMC/Ext/OK and /VMC/Ext/T."""
+    from pythonosc.udp_client import SimpleUDPClient
+
+    client = SimpleUDPClient("127.0.0.1", port)
+    for bone in ("Neck", "Head"):
+        client.send_message("/VMC/Ext/Bone/Pos", [bone, 0.0, 0.1, 0.0, 0.0, 0.0, 0.0, 1.0])
+    for name, value in weights.items():
+        client.send_message("/VMC/Ext/Blend/Val", [name, float(value)])
+    client.send_message("/VMC/Ext/Blend/Apply", [])
+    client.send_message("/VMC/Ext/OK", [1])
+    client.send_message("/VMC/Ext/T", [float(t)])
+
+
+def test_a_live_vmc_face_stream_moves_the_rendered_face(face, bundle, tmp_path):
+    """An independent sender's weights reach the network: by exact name (jawOpen), by a VRM
+    preset ("Blink" drives the character's blink), loosely (Frown_ -> frown); the rendered
+    face changes with them; a name the face lacks is ignored."""
+    from rigspace.runtime.engine import Engine
+    from tests.conftest import free_port
+    from tests.runtime.live.conftest import wait_for
+
+    port = free_port()
+    scene = _live_face(face, bundle, tmp_path, port)
+    with Engine(scene, camera="/World/Camera", width=96, height=64, renderer="gl") as engine:
+        engine.render(6.0)  # opens the source
+        runtime = engine.live.characters[CHARACTER].runtimes[0]
+        frames = {}
+        for k, jaw in enumerate((0.0, 1.0)):
+            sent = {"jawOpen": jaw, "Blink": 1.0, "Frown_": 0.25, "tongueOut": 1.0}
+            _send_face(port, sent, 0.1 * (k + 1))
+            assert wait_for(lambda j=jaw: runtime.buffer.pose().weights.get("jawOpen") == j)
+            assert wait_for(lambda: engine.render(6.0) is not None and not runtime.fading)
+            frame = engine.render(6.0)
+            frames[jaw] = frame.beauty.copy()
+            weights = engine.live.weights(engine.characters[0], 6.0)
+            shapes = engine.characters[0].rig.blend_shapes
+            got = dict(zip(shapes, weights.round(4).tolist(), strict=True))
+            assert got["jawOpen"] == jaw and got["blink"] == 1.0 and got["frown"] == 0.25
+            assert got["smile"] == pytest.approx(0.6)  # not sent: the animation's at 6
+        assert runtime.counters().malformed == 0
+    assert np.abs(frames[0.0] - frames[1.0]).max() > 1e-3

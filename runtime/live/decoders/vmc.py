@@ -36,6 +36,11 @@ ROOT = "Root"
 ROOT_POS = "/VMC/Ext/Root/Pos"
 BONE_POS = "/VMC/Ext/Bone/Pos"
 OK = "/VMC/Ext/OK"
+BLEND_VAL = "/VMC/Ext/Blend/Val"
+BLEND_APPLY = "/VMC/Ext/Blend/Apply"
+MAX_BLEND_NAMES = 256
+"""Distinct blend shape names a sender may name (ARKit has 52, VRM presets 18): a flood of
+invented names is counted as malformed instead of growing memory."""
 TIME = "/VMC/Ext/T"
 
 _NUMBER = (float, int)
@@ -93,6 +98,11 @@ class VmcDecoder:
         """The last good Root/Pos (position, (w, x, y, z)), right-handed."""
         self._hips_offset: np.ndarray | None = None
         """The last good Hips Bone/Pos position (its local offset), right-handed."""
+        self._blend_pending: dict[str, float] = {}
+        """Blend/Val values waiting for Blend/Apply."""
+        self._blend_applied: dict[str, float] = {}
+        """Values applied since the last frame closed: the next frame carries them."""
+        self._blend_names: set[str] = set()
 
     @property
     def buffered(self) -> int:
@@ -156,6 +166,23 @@ class VmcDecoder:
                     c.unknown_bones += 1
                     return
             self._pending[index] = params[1:8]
+        elif address == BLEND_VAL:
+            if (
+                len(params) < 2
+                or type(params[0]) is not str
+                or type(params[1]) not in _NUMBER
+                or not math.isfinite(params[1])
+                or (
+                    params[0] not in self._blend_names and len(self._blend_names) >= MAX_BLEND_NAMES
+                )
+            ):
+                c.malformed += 1
+                return
+            self._blend_names.add(params[0])
+            self._blend_pending[params[0]] = float(params[1])
+        elif address == BLEND_APPLY:
+            self._blend_applied.update(self._blend_pending)
+            self._blend_pending.clear()
         elif address == OK:
             if not self._sender_time:
                 frame = self._close(received)
@@ -175,8 +202,14 @@ class VmcDecoder:
     def _close(self, timestamp: float) -> Frame | None:
         """The frame of the bone values collected so far, or None if there are none valid."""
         c = self.counters
+        weights, self._blend_applied = self._blend_applied or None, {}
         if not self._pending:
-            return None
+            if weights is None:
+                return None
+            c.frames += 1  # a face stream's frame: weights, no bones
+            stream = 1 if self._sender_time else 0
+            empty = np.zeros(0, dtype=np.int64)
+            return Frame(stream, timestamp, empty, np.zeros((0, 4)), None, weights)
         indices = np.fromiter(self._pending, dtype=np.int64, count=len(self._pending))
         values = np.array(list(self._pending.values()), dtype=np.float64)  # (k, 7)
         self._pending.clear()
@@ -187,14 +220,18 @@ class VmcDecoder:
         ok &= finite_pos
         c.malformed += int(np.count_nonzero(~ok))
         if not ok.any():
-            return None
+            if weights is None:
+                return None
+            stream = 1 if self._sender_time else 0
+            c.frames += 1
+            return Frame(stream, timestamp, indices[:0], quats[:0], None, weights)
         root_position = self._root_motion(indices, positions, quats, ok)
         c.frames += 1
         c.samples += int(np.count_nonzero(ok))
         # T's clock and the receive clock are different streams (the first frames of a sender
         # that sends T close on OK with receive times): no false clock reset between them.
         stream = 1 if self._sender_time else 0
-        return Frame(stream, timestamp, indices[ok], quats[ok], root_position)
+        return Frame(stream, timestamp, indices[ok], quats[ok], root_position, weights)
 
     def _root_motion(
         self, indices: np.ndarray, positions: np.ndarray, quats: np.ndarray, ok: np.ndarray

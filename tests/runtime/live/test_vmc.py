@@ -348,3 +348,44 @@ def test_a_large_bundle_decodes_the_same_on_the_fast_path_as_through_python_osc(
     (slow,) = slow_decoder.feed(nested.build().dgram, 0.0)
     np.testing.assert_array_equal(fast.indices, slow.indices)
     np.testing.assert_array_equal(fast.rotations, slow.rotations)
+
+
+def _osc(address: str, *args) -> bytes:
+    from pythonosc.osc_message_builder import build_msg
+
+    return build_msg(address, list(args)).dgram
+
+
+def test_blend_shape_values_apply_on_blend_apply_and_travel_with_the_frame():
+    """VMC's face messages (the protocol's spec: Blend/Val name value, repeated, then one
+    Blend/Apply): values wait for Apply, the frame that closes next carries them, a frame with
+    weights and no bones is still a frame, bad values are malformed."""
+    decoder = VmcDecoder()
+    assert decoder.feed(_osc("/VMC/Ext/Blend/Val", "jawOpen", 0.7), 1.0) == []
+    (frame,) = decoder.feed(_osc("/VMC/Ext/OK", 1), 1.0) or [None]  # not applied yet: none
+    assert frame is None
+    for d in (_osc("/VMC/Ext/Blend/Val", "Blink", 1.0), _osc("/VMC/Ext/Blend/Apply")):
+        assert decoder.feed(d, 1.0) == []
+    (frame,) = decoder.feed(_osc("/VMC/Ext/OK", 1), 1.0)
+    assert frame.weights == {"jawOpen": pytest.approx(0.7), "Blink": 1.0}  # float32 on the wire
+    assert len(frame.indices) == 0
+    # Bones and weights in one frame; the weights are only the ones applied since.
+    for d in (
+        _osc("/VMC/Ext/Bone/Pos", "Head", 0.0, 0.1, 0.0, 0.0, 0.0, 0.0, 1.0),
+        _osc("/VMC/Ext/Blend/Val", "jawOpen", 0.2),
+        _osc("/VMC/Ext/Blend/Apply"),
+    ):
+        decoder.feed(d, 2.0)
+    (frame,) = decoder.feed(_osc("/VMC/Ext/OK", 1), 2.0)
+    assert frame.weights == {"jawOpen": pytest.approx(0.2)} and len(frame.indices) == 1
+    before = decoder.counters.malformed
+    for bad in (
+        _osc("/VMC/Ext/Blend/Val", "jawOpen", float("nan")),
+        _osc("/VMC/Ext/Blend/Val", "jawOpen"),
+        _osc("/VMC/Ext/Blend/Val", 3, 0.5),
+    ):
+        decoder.feed(bad, 3.0)
+    assert decoder.counters.malformed == before + 3
+    for k in range(300):  # invented names: bounded
+        decoder.feed(_osc("/VMC/Ext/Blend/Val", f"shape{k}", 0.5), 4.0)
+    assert decoder.counters.malformed == before + 3 + (300 - (256 - 2))  # 2 names known
