@@ -152,7 +152,7 @@ class _TakeThread(threading.Thread):
             engine, start_code, fps, t0, ticks,
         )  # fmt: skip
         self.takes = {
-            path: TakeRecorder(live.character.rig.joints)
+            path: TakeRecorder(live.character.rig.joints, live.character.rig.blend_shapes)
             for path, live in engine.live.characters.items()
         }
         self.halt = threading.Event()
@@ -176,9 +176,12 @@ class _TakeThread(threading.Thread):
                     return
                 code = self.start_code + k
                 for path, live in self.engine.live.characters.items():
-                    local, _ = self.engine.live.merged(live.character, code, due, past=True)
+                    local, poses = self.engine.live.merged(live.character, code, due, True)
                     if local is not None:
-                        self.takes[path].add(code, local)
+                        weights = self.engine.live.weights(live.character, code, poses)
+                        if weights is None and live.character.rig.blend_shapes:
+                            weights = live.character.rig.blend_weights(code)  # the animation's
+                        self.takes[path].add(code, local, weights)
         except BaseException as exc:  # reported by the main thread, which owns the exit
             self.error = exc
 

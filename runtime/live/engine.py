@@ -218,16 +218,19 @@ class LiveInput:
         live.last_poses = poses
         return Vt.Matrix4dArray.FromNumpy(local)
 
-    def weights(self, character: NeuralCharacter, time_code: float) -> np.ndarray | None:
-        """(B,) the character's blend shape weights (its order) with the last frame's live
-        weights merged in by each binding's weight (a lost source lets go as its bones do);
-        None when no binding sent a weight for one of its shapes (the animation's apply)."""
+    def weights(
+        self, character: NeuralCharacter, time_code: float, poses: list | None = None
+    ) -> np.ndarray | None:
+        """(B,) the character's blend shape weights (its order) with the live weights of
+        `poses` ((runtime, LivePose) pairs; default the last frame's) merged in by each
+        binding's weight (a lost source lets go as its bones do); None when no binding sent a
+        weight for one of its shapes (the animation's apply)."""
         live = self.characters.get(character.path)
         shapes = character.rig.blend_shapes
-        if live is None or not live.last_poses or not shapes:
+        if live is None or not shapes:
             return None
         out = None
-        for runtime, pose in live.last_poses:
+        for runtime, pose in live.last_poses if poses is None else poses:
             indices, values = runtime.blend_weights(pose, shapes)
             if len(indices):
                 out = character.rig.blend_weights(time_code) if out is None else out

@@ -24,22 +24,35 @@ class TakeRecorder:
     keeps the later pose. Memory: 128 bytes a joint a frame (22 joints at 30 fps: 5 MB an hour).
     """
 
-    def __init__(self, joints: Sequence[str]) -> None:
+    def __init__(self, joints: Sequence[str], blend_shapes: Sequence[str] = ()) -> None:
         if not joints:
             raise TakeError("A take needs the skeleton's joints.", "pass Skeleton.joints.")
         self.joints = tuple(joints)
+        self.blend_shapes = tuple(blend_shapes)
+        """The character's blend shapes: a take of a face records their weights too."""
         self._frames: dict[float, np.ndarray] = {}
+        self._weights: dict[float, np.ndarray] = {}
 
     def __len__(self) -> int:
         return len(self._frames)
 
-    def add(self, time_code: float, local: np.ndarray) -> None:
+    def add(self, time_code: float, local: np.ndarray, weights: np.ndarray | None = None) -> None:
+        """Record the pose at `time_code` (and the blend shape weights, `blend_shapes` order)."""
         local = np.asarray(local, dtype=np.float64)
         if local.shape != (len(self.joints), 4, 4):
             raise TakeError(
                 f"A take frame has shape {local.shape}, expected ({len(self.joints)}, 4, 4).",
                 "record the skeleton's local transforms (one 4x4 per joint).",
             )
+        if self.blend_shapes:  # checked before anything is kept: a refused frame leaves no trace
+            w = np.zeros(len(self.blend_shapes)) if weights is None else np.asarray(weights, float)
+            if w.shape != (len(self.blend_shapes),) or not np.isfinite(w).all():
+                raise TakeError(
+                    f"A take frame's blend shape weights have shape {w.shape} or are not "
+                    f"finite; expected {len(self.blend_shapes)} finite weights.",
+                    "record one weight per blend shape (CharacterRig.blend_shapes order).",
+                )
+            self._weights[float(time_code)] = w.astype(np.float32)
         self._frames[float(time_code)] = local.copy()
 
     def write(
@@ -72,6 +85,11 @@ class TakeRecorder:
         anim = UsdSkel.Animation.Define(stage, Sdf.Path(prim_path))
         stage.SetDefaultPrim(anim.GetPrim())
         anim.GetJointsAttr().Set(Vt.TokenArray(list(self.joints)))
+        if self.blend_shapes:
+            anim.CreateBlendShapesAttr(Vt.TokenArray(list(self.blend_shapes)))
+            weights = anim.CreateBlendShapeWeightsAttr()
+            for t in times:
+                weights.Set(Vt.FloatArray.FromNumpy(self._weights[t]), t)
         for t in times:
             translations, rotations, scales = UsdSkel.DecomposeTransforms(
                 Vt.Matrix4dArray.FromNumpy(self._frames[t])
@@ -99,6 +117,9 @@ class Take:
     times: np.ndarray
     """(F,) seconds from the take's first sample."""
     meters_per_unit: float
+    blend_shapes: tuple[str, ...] = ()
+    blend_weights: np.ndarray | None = None
+    """(F, S) the blend shape weights at each rotation sample (None: the take has none)."""
 
 
 def read_take(path: str | Path) -> Take:
@@ -162,6 +183,7 @@ def read_take(path: str | Path) -> Take:
         if moves or translations_attr.HasAuthoredValue():
             roots[k] = _sample(path, translations_attr, t, len(joints), 3)[root]
     rotations /= np.linalg.norm(rotations, axis=2, keepdims=True)
+    shapes, weights = _blend_channels(path, anim, times)
     tcps = stage.GetTimeCodesPerSecond()
     return Take(
         joints,
@@ -171,7 +193,24 @@ def read_take(path: str | Path) -> Take:
         roots,
         (np.array(times) - times[0]) / tcps,
         UsdGeom.GetStageMetersPerUnit(stage),
+        shapes,
+        weights,
     )
+
+
+def _blend_channels(path: Path, anim, times) -> tuple[tuple[str, ...], np.ndarray | None]:
+    """A take's blendShapes and its blendShapeWeights at each rotation sample (held between
+    samples, as UsdSkel interpolates them), checked like the rotations."""
+    from pxr import Sdf
+
+    names_attr, weights_attr = anim.GetBlendShapesAttr(), anim.GetBlendShapeWeightsAttr()
+    _check_type(path, names_attr, (Sdf.ValueTypeNames.TokenArray,))
+    _check_type(path, weights_attr, (Sdf.ValueTypeNames.FloatArray,))
+    shapes = tuple(str(n) for n in names_attr.Get() or ())
+    if not shapes or not (weights_attr.GetTimeSamples() or weights_attr.HasAuthoredValue()):
+        return (), None
+    weights = np.array([_sample(path, weights_attr, t, len(shapes), 1)[:, 0] for t in times])
+    return shapes, weights
 
 
 RECORD_AGAIN = "record the take again (rigspace live --record), or restore the file."
@@ -194,10 +233,12 @@ def _sample(path: Path, attr, t: float, count: int, width: int) -> np.ndarray:
     """`attr` at time code `t` as a (count, width) finite float array, or a TakeError."""
     value = attr.Get(t)
     array = np.array(value, dtype=np.float64) if value is not None else np.empty((0, width))
+    array = array.reshape(len(array), -1) if array.ndim == 1 else array
     if array.shape != (count, width):
+        what = "joints" if width > 1 else "blend shapes"
         raise TakeError(
             f"Take {path}: '{attr.GetName()}' at time code {t:g} has {len(array)} values for "
-            f"{count} joints.",
+            f"{count} {what}.",
             RECORD_AGAIN,
         )
     if not np.isfinite(array).all():

@@ -179,9 +179,10 @@ def open_replay(url: str, name: str = "") -> Source:
             take = read_take(path)
         except TakeError as exc:
             raise LiveSourceError(f"{_label(url, name)}: {exc.what}", exc.fix) from None
+        blend = None if take.blend_weights is None else (take.blend_shapes, take.blend_weights)
         return ReplaySource(
             name, url, take.bones, take.rotations, take.root_positions, take.times, speed, loop,
-            take.parents, take.meters_per_unit, native=True,
+            take.parents, take.meters_per_unit, native=True, blend=blend,
         )  # fmt: skip
     if suffix != ".bvh":
         raise LiveSourceError(

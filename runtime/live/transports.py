@@ -339,8 +339,11 @@ class ReplaySource(Source):
         meters_per_unit: float | None = None,
         native: bool = False,
         rest_positions: np.ndarray | None = None,
+        blend: tuple[tuple[str, ...], np.ndarray] | None = None,
     ) -> None:
         super().__init__(name, url, ClipPlayer(bones, "local"))
+        self.blend = blend
+        """(names, (F, S) weights): a recorded take's blend shape weights, sent with each frame."""
         self.parents = parents
         """The clip's hierarchy (parent index per bone, -1 for roots), for retargeting."""
         self.rotations, self.root_positions = rotations, root_positions
@@ -379,7 +382,10 @@ class ReplaySource(Source):
                 break
             root = None if self.root_positions is None else self.root_positions[i]
             received = time.monotonic()
-            buffer.push(Frame(0, due, indices, self.rotations[i], root), received)
+            weights = None
+            if self.blend is not None:
+                weights = dict(zip(self.blend[0], map(float, self.blend[1][i]), strict=True))
+            buffer.push(Frame(0, due, indices, self.rotations[i], root, weights), received)
             buffer.note_latency(time.monotonic() - received)
             counters.packets += 1
             counters.frames += 1

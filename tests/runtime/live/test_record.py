@@ -228,3 +228,39 @@ def test_a_sound_take_reads_back_its_root_motion_and_times(tmp_path):
     np.testing.assert_allclose(take.times, [0, 1 / 30, 2 / 30])
     np.testing.assert_allclose(take.rotations[..., 0], 1.0)
     assert take.parents == (-1, 0, 1) and take.bones == ("hips", "spine", "head")
+
+
+def test_a_take_of_a_face_records_its_blend_shape_weights_and_replays_them(tmp_path):
+    from rigspace.runtime.live.buffer import LiveBuffer
+    from rigspace.runtime.live.record import read_take
+    from rigspace.runtime.live.sources import open_source
+    from tests.runtime.live.conftest import wait_for
+
+    joints, shapes = ["neck", "neck/head"], ["jawOpen", "blink"]
+    recorder = TakeRecorder(joints, shapes)
+    for t in range(5):
+        recorder.add(t, np.tile(np.eye(4), (2, 1, 1)), np.array([t / 4, 1 - t / 4]))
+    with pytest.raises(TakeError, match="expected 2 finite weights"):
+        recorder.add(9, np.tile(np.eye(4), (2, 1, 1)), np.array([np.nan, 0.0]))
+    path = recorder.write(tmp_path / "face.usda", 30.0)
+    take = read_take(path)
+    assert take.blend_shapes == tuple(shapes)
+    np.testing.assert_allclose(take.blend_weights[:, 0], [0, 0.25, 0.5, 0.75, 1.0])
+    # A take whose weights lost a value at one time code is named, like its rotations.
+    _edit(path, lambda prim, layer: layer.SetTimeSample(
+        prim.properties["blendShapeWeights"].path, 3, __import__("pxr").Vt.FloatArray([0.5])
+    ))  # fmt: skip
+    with pytest.raises(
+        TakeError, match="'blendShapeWeights' at time code 3 has 1 values for 2 blend"
+    ):
+        read_take(path)
+    recorder.write(path, 30.0)
+    source = open_source(f"replay://{path}?speed=8&loop=0", "take")
+    buffer = LiveBuffer(source.bones)
+    source.start(buffer)
+    try:
+        assert source.finished.wait(10)  # type: ignore[attr-defined]
+        assert wait_for(lambda: buffer.pose().weights.get("jawOpen") == 1.0)
+        assert buffer.pose().weights == {"jawOpen": 1.0, "blink": 0.0}
+    finally:
+        source.stop()
