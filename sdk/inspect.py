@@ -129,6 +129,9 @@ def describe_prim(prim: Usd.Prim) -> dict[str, Any] | None:
     elif prim.IsA(UsdSkel.Animation):
         entry["kind"] = "skelAnimation"
         entry["joints"] = len(UsdSkel.Animation(prim).GetJointsAttr().Get() or [])
+        shapes = UsdSkel.Animation(prim).GetBlendShapesAttr().Get() or []
+        if shapes:
+            entry["blendShapes"] = [str(s) for s in shapes]
         span = validation.animation_time_range(prim)
         entry["timeRange"] = list(span) if span else None
         clips = prim.GetCustomDataByKey("rigspace:clips")
@@ -143,6 +146,9 @@ def describe_prim(prim: Usd.Prim) -> dict[str, Any] | None:
         entry["triangles"] = _triangles(mesh)
         if skinned:
             entry["influences"] = binding.GetJointIndicesPrimvar().GetElementSize()
+            shapes = binding.GetBlendShapesAttr().Get() or []
+            if shapes:
+                entry["blendShapes"] = [str(s) for s in shapes]
     elif prim.IsA(UsdGeom.Gprim):
         entry["kind"] = "geometry"
         entry["animated"] = UsdGeom.Xformable(prim).TransformMightBeTimeVarying()
@@ -180,6 +186,8 @@ def _details(info: dict[str, Any]) -> str:
     if kind == "skelAnimation":
         span = info["timeRange"]
         text = f"{info['joints']} joints, "
+        if info.get("blendShapes"):
+            text += f"{len(info['blendShapes'])} blend shape weights, "
         text += f"time {span[0]:g}-{span[1]:g}" if span else "no time samples"
         if "clips" in info:
             text += ", clips " + ", ".join(
@@ -189,7 +197,9 @@ def _details(info: dict[str, Any]) -> str:
         return text
     if kind in ("skinnedMesh", "mesh"):
         text = f"{info['points']} points, {info['triangles']} triangles"
-        return text + (f", {info['influences']} influences" if kind == "skinnedMesh" else "")
+        text += f", {info['influences']} influences" if kind == "skinnedMesh" else ""
+        shapes = info.get("blendShapes")
+        return text + (f", blend shapes {', '.join(shapes)}" if shapes else "")
     if kind == "geometry":
         return info["type"] + (", animated" if info["animated"] else "")
     if kind == "camera":

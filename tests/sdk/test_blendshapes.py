@@ -66,3 +66,12 @@ def test_weights_given_replace_the_animations(rig):
     changed = np.flatnonzero(np.abs(jaw - rest).max(axis=1) > 1e-6)
     np.testing.assert_array_equal(changed, np.arange(16))  # the lowest ring only
     np.testing.assert_allclose(jaw[:16] - rest[:16], np.tile([0, -0.4, 0.1], (16, 1)), atol=1e-6)
+
+
+def test_inspect_lists_each_meshs_blend_shapes_and_the_animations_weights(face, capsys):
+    from rigspace.sdk.cli import main
+
+    assert main(["inspect", str(face)]) == 0
+    out = capsys.readouterr().out
+    assert "5 blend shape weights" in out  # the SkelAnimation's (one drives no mesh)
+    assert "blend shapes smile, blink, jawOpen, frown" in out and "blend shapes brow" in out
