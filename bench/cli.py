@@ -59,6 +59,8 @@ class Plan:
     stability_steps: int
     display_sizes: tuple[tuple[int, int], ...] = ((640, 360), (1920, 1080))
     display_frames: int = 17
+    premise_steps: tuple[int, ...] = (0, 1, 2, 3, 4)
+    """Subdivision steps of the premise part (23k to 5.9M triangles)."""
     predictor: str = "auto"
     """--predictor: what runs the fp32 networks in the frame and pareto parts."""
     device: str = "auto"
@@ -70,6 +72,7 @@ QUICK = Plan(
     levels=(32, 128), capture_resolutions=(128,), capture_frames=(0.0, 7.0), capture_views=4,
     presets=("tiny", "small"), training_steps=3, memory_frames=2, stress_rigs=2_000,
     drift_rigs=32, stability_steps=0, display_sizes=((640, 360),), display_frames=2,
+    premise_steps=(0, 1),
 )  # fmt: skip
 FULL = Plan(
     per_split=48, repeats=20, frames=12, accuracy_samples=24, frame_sizes=(256, 512),
@@ -195,6 +198,10 @@ def _plot(part: str, value: Any, out: Path) -> None:
         from rigspace.bench import pareto
 
         pareto.plot(value, out / "pareto.png")
+    elif part == "premise":
+        from rigspace.bench import premise
+
+        premise.plot(value, out / "premise.png")
     elif part == "skips":
         from rigspace.bench import skips
 
@@ -324,6 +331,13 @@ def _texture(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]
     return texture.measure(plan.display_sizes, plan.display_frames)
 
 
+def _premise(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
+    from rigspace.bench import premise
+
+    rows = premise.measure(plan.premise_steps)
+    return {"rows": rows, "crossover": premise.crossover(rows)}
+
+
 def _predictors(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
     from rigspace.bench import predictors
     from rigspace.bench.scenes import ROOT
@@ -377,6 +391,7 @@ MEASURE = {
     "accuracy": _accuracy,
     "frames": _frames,
     "texture": _texture,
+    "premise": _premise,
     "skips": _skips,
     "efficiency": _efficiency,
     "predictors": _predictors,

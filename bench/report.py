@@ -116,6 +116,34 @@ def _texture(rows: list[dict[str, Any]]) -> list[str]:
     ]
 
 
+def _premise(r: dict[str, Any]) -> list[str]:
+    cross = r.get("crossover")
+    where = (
+        f"The mesh path costs as much as the network at about {cross / 1e3:,.0f}k triangles."
+        if cross
+        else "The measured rows do not cross."
+    )
+    lines = [
+        "## The premise: the mesh path against the network, by triangles",
+        "",
+        "The sample character subdivided (1 -> 4 triangles a step), in the previs shot at "
+        "640x360: per frame the skinned mesh drawn by the renderer (`--reference`: blend shapes, "
+        "skinning, normals, raster and shading) against the network's maps (albedo branch); "
+        f"medians over 4 frames, ms. {where} ![premise](premise.png)",
+        "",
+        "| triangles | mesh path ms | of which posing + raster (scene stage) | network path ms "
+        "| of which network | mesh MiB | network MiB |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for row in r["rows"]:
+        lines.append(
+            f"| {row['triangles']:,} | {row['mesh_ms']:.1f} | {row['mesh_scene_ms']:.1f} | "
+            f"{row['network_ms']:.1f} | {row['network_stage_ms']:.1f} | "
+            f"{row['mesh_mib']:.1f} | {row['network_mib']:.1f} |"
+        )
+    return lines
+
+
 def _skips(r: dict[str, Any]) -> list[str]:
     lines = [
         "## What each skip costs",
@@ -271,6 +299,7 @@ SECTIONS: dict[str, Callable[[Any], list[str]]] = {
     "accuracy": _accuracy,
     "frames": _frames,
     "texture": _texture,
+    "premise": _premise,
     "skips": _skips,
     "efficiency": _efficiency,
     "predictors": _predictors,

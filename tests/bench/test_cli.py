@@ -31,6 +31,12 @@ def test_quick_bench_writes_json_markdown_and_plots(tmp_path):
     for heading in ("Run time against error", "What each skip costs", "Numerical stability"):
         assert heading in text
     assert (out / "pareto.png").stat().st_size > 10_000 and (out / "skips.png").is_file()
+    rows = result["premise"]["rows"]
+    assert [r["triangles"] for r in rows] == [22_956, 4 * 22_956]
+    assert all(r["mesh_ms"] > 0 and r["network_ms"] > 0 for r in rows)
+    assert rows[1]["mesh_mib"] > 3 * rows[0]["mesh_mib"]  # the mesh path's memory grows
+    assert rows[1]["network_mib"] == rows[0]["network_mib"]  # the network's does not
+    assert "The premise" in text and (out / "premise.png").is_file()
 
 
 def test_an_unknown_part_is_refused(tmp_path, capsys):
