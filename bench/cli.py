@@ -173,9 +173,16 @@ def run(args: argparse.Namespace) -> int:
     }
     previous = out / "results.json"
     if args.only and previous.is_file():
-        # Re-running some parts: the others keep their numbers, each part its own date.
+        # Re-running some parts: the others keep their numbers, each part its own date, and
+        # its own machine where it was measured on another one (never dropped: a part re-run
+        # on a new machine once wiped every other part of the folder).
         kept = json.loads(previous.read_text())
-        if kept.get("mode") == mode and kept.get("machine") == result["machine"]:
+        if kept.get("mode") == mode:
+            if kept.get("machine") != result["machine"]:
+                for part in (p for p in PARTS if p in kept):
+                    kept.setdefault("parts", {}).setdefault(part, {}).setdefault(
+                        "machine", kept.get("machine")
+                    )
             result = kept
             result.setdefault("parts", {})
     with tempfile.TemporaryDirectory() as tmp:
@@ -185,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
             start = time.monotonic()
             result[part] = MEASURE[part](plan, Path(tmp), dataset)
             result["seconds"][part] = round(time.monotonic() - start, 1)
-            result["parts"][part] = {"command": command, "date": now}
+            result["parts"][part] = {"command": command, "date": now, "machine": machine()}
             _plot(part, result[part], out)
             _write(out, result)  # every part is kept even if a later one fails
     _write(out, result)

@@ -27,45 +27,13 @@ from typing import Any
 import numpy as np
 
 from rigspace.bench.scenes import PREVIS
+from rigspace.sdk.geometry import subdivide_triangles as subdivide
 
 CHARACTER = PREVIS.parent.parent / "character" / "sample_character.usda"
 MESH = "/Character/Body"
 INFLUENCES = 4
 TIMES = (100.0, 500.0, 900.0, 1300.0)
 """Frames of the shot (walk, stretch, roll, yoga): the character near the middle of the frame."""
-
-
-def subdivide(
-    points: np.ndarray,
-    triangles: np.ndarray,
-    corner_uv: np.ndarray,
-    vertex: dict[str, np.ndarray],
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-    """One midpoint step: (P, 3) points, (T, 3) triangles, (3T, 2) face-varying uvs and
-    per-vertex arrays (P, k) -> 4T triangles; each edge's midpoint gets the mean of its ends'
-    vertex values. Triangle t becomes 4t..4t+3 (corners first, the middle one last)."""
-    edges = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    unique, inverse = np.unique(edges, axis=0, return_inverse=True)
-    mid = len(points) + inverse.reshape(-1, 3)  # (T, 3): midpoints of edges ab, bc, ca
-    new_points = np.concatenate([points, points[unique].mean(axis=1)])
-    a, b, c = triangles.T
-    ab, bc, ca = mid.T
-    tris = np.stack(
-        [np.stack(t, axis=1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))],
-        axis=1,
-    ).reshape(-1, 3)
-    uv = corner_uv.reshape(-1, 3, 2)
-    ua, ub, uc = uv[:, 0], uv[:, 1], uv[:, 2]
-    uab, ubc, uca = (ua + ub) / 2, (ub + uc) / 2, (uc + ua) / 2
-    new_uv = np.stack(
-        [
-            np.stack(t, axis=1)
-            for t in ((ua, uab, uca), (uab, ub, ubc), (uca, ubc, uc), (uab, ubc, uca))
-        ],
-        axis=1,
-    ).reshape(-1, 2)
-    values = {k: np.concatenate([v, v[unique].mean(axis=1)]) for k, v in vertex.items()}
-    return new_points, tris, new_uv, values
 
 
 def _dense_weights(indices: np.ndarray, weights: np.ndarray, joints: int) -> np.ndarray:

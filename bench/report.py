@@ -38,8 +38,14 @@ def markdown(result: dict[str, Any]) -> str:
         if part in result:
             lines += ["", *section(result[part])]
             run = result.get("parts", {}).get(part)
-            if run and run["command"] != result["command"]:
+            if run and run.get("command", result["command"]) != result["command"]:
                 lines += ["", f"(This part: `{run['command']}`, {run['date']}.)"]
+            there = (run or {}).get("machine")
+            if there and there != m:
+                lines += [
+                    "",
+                    f"(Measured on another machine: {there['cpu']}, {there['cores']} cores.)",
+                ]
     return "\n".join(lines) + "\n"
 
 

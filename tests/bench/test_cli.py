@@ -42,3 +42,22 @@ def test_quick_bench_writes_json_markdown_and_plots(tmp_path):
 def test_an_unknown_part_is_refused(tmp_path, capsys):
     assert main(["bench", "--quick", "--out", str(tmp_path), "--only", "speed"]) != 0
     assert "Unknown bench part speed" in capsys.readouterr().err
+
+
+def test_re_running_a_part_on_another_machine_keeps_the_other_parts(tmp_path):
+    """`--only` into a folder measured on another machine: the other parts stay, each says
+    the machine it was measured on (a re-run once wiped them all)."""
+    out = tmp_path / "bench"
+    assert main(["bench", "--quick", "--out", str(out), "--only", "efficiency"]) == 0
+    path = out / "results.json"
+    kept = json.loads(path.read_text())
+    kept["machine"] = dict(kept["machine"], cpu="An older CPU")
+    del kept["parts"]["efficiency"]["machine"]  # as results written before parts had one
+    path.write_text(json.dumps(kept))
+    assert main(["bench", "--quick", "--out", str(out), "--only", "predictors"]) == 0
+    result = json.loads(path.read_text())
+    assert {"efficiency", "predictors"} <= set(result)
+    assert result["parts"]["efficiency"]["machine"]["cpu"] == "An older CPU"
+    assert result["parts"]["predictors"]["machine"]["cpu"] != "An older CPU"
+    text = (out / "README.md").read_text()
+    assert "(Measured on another machine:" in text
