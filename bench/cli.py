@@ -29,8 +29,9 @@ Measure the whole pipeline side by side in one run and write the results: run ti
 against error for every model variant (levels of detail, fp32 and int8), the
 ground-truth renderers and (with --dataset) the captured-view baselines; the runtime
 against the model (per map, three framings); per-frame time by stage for 1 and 4
-characters; what each skip costs; the network's FLOPs against this machine's measured
-peak; capture and training throughput; peak memory with 1 and 8 characters; and
+characters; the character at its size on screen; the premise (the mesh path against the
+network as the character grows from 23k to 5.9M triangles); what each skip costs; the
+network's FLOPs against this machine's measured peak; capture and training throughput; peak memory with 1 and 8 characters; and
 numerical stability (adversarial rigs through the network, fp32 against int8). Every
 timing is a median after a warm-up, with min and max. --quick takes about two minutes;
 the full run about 7 minutes on 2 cores (with --dataset, longer).
