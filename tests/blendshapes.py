@@ -25,10 +25,11 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 
 import rigspace.sdk  # noqa: F401  (schemas registered before the stage is made)
+from tests.materials import CHARACTER as CHARACTER  # the character prim (re-exported)
+from tests.materials import add_character
 
 SEGMENTS, RINGS, HEIGHT, RADIUS = 16, 8, 2.0, 0.5
 JOINTS = ["neck", "neck/head"]
-CHARACTER = "/World/Hero"
 ANIMATED = ["brow", "jawOpen", "smile", "blink", "extra"]
 
 
@@ -148,26 +149,10 @@ def write_blendshape_character(folder: Path) -> Path:
     binding.CreateBlendShapesAttr(["brow"])
     binding.CreateBlendShapeTargetsRel().SetTargets([Sdf.Path("/World/Asset/Brow/brow")])
 
-    character = stage.DefinePrim(CHARACTER, "RigspaceNeuralCharacter")
-    character.ApplyAPI("RigspaceCaptureRingAPI")
-    character.CreateRelationship("rigspace:skeleton").SetTargets([skeleton.GetPath()])
-    character.CreateAttribute("rigspace:lookAtJoint", Sdf.ValueTypeNames.Token).Set("neck/head")
-    ring = {
-        "viewsPerRing": (Sdf.ValueTypeNames.Int, 8),
-        "elevations": (Sdf.ValueTypeNames.FloatArray, [0.0]),
-        "radius": (Sdf.ValueTypeNames.Float, 5.0),
-        "resolution": (Sdf.ValueTypeNames.Int, 32),
-        "clipNames": (Sdf.ValueTypeNames.TokenArray, ["talk"]),
-        "clipRanges": (Sdf.ValueTypeNames.Float2Array, [(0.0, 12.0)]),
-        "heldOutViewsPerRing": (Sdf.ValueTypeNames.Int, 4),
+    ranges = {
         "blendShapeNames": (Sdf.ValueTypeNames.TokenArray, ["frown", "smile"]),
         "blendShapeRanges": (Sdf.ValueTypeNames.Float2Array, [(0.2, 0.9), (0.0, 1.0)]),
     }
-    for name, (kind, value) in ring.items():
-        character.CreateAttribute(f"rigspace:captureRing:{name}", kind).Set(value)
-    camera = UsdGeom.Camera.Define(stage, "/World/Camera")
-    camera.CreateFocalLengthAttr(35.0)
-    camera.CreateClippingRangeAttr(Gf.Vec2f(0.1, 100.0))
-    UsdGeom.XformCommonAPI(camera).SetTranslate(Gf.Vec3d(0, 1.0, 5.0))
+    add_character(stage, skeleton, "neck/head", "talk", ranges, camera_distance=5.0)
     stage.GetRootLayer().Save()
     return path

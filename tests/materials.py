@@ -83,6 +83,40 @@ def _cylinder():
     return points, np.array(faces), np.array(st, np.float32), np.array(ring_of)
 
 
+def add_character(
+    stage: Usd.Stage,
+    skeleton: UsdSkel.Skeleton,
+    look_at: str,
+    clip: str,
+    ring: dict | None = None,
+    camera_distance: float = 4.0,
+) -> Usd.Prim:
+    """A RigspaceNeuralCharacter at CHARACTER on `skeleton` with a small capture ring (8 views,
+    32x32, one clip over time codes 0-12, 4 held-out views; `ring` adds or overrides ring
+    attributes: name -> (type, value)) and a camera /World/Camera in front of it."""
+    character = stage.DefinePrim(CHARACTER, "RigspaceNeuralCharacter")
+    character.ApplyAPI("RigspaceCaptureRingAPI")
+    character.CreateRelationship("rigspace:skeleton").SetTargets([skeleton.GetPath()])
+    character.CreateAttribute("rigspace:lookAtJoint", Sdf.ValueTypeNames.Token).Set(look_at)
+    attributes = {
+        "viewsPerRing": (Sdf.ValueTypeNames.Int, 8),
+        "elevations": (Sdf.ValueTypeNames.FloatArray, [0.0]),
+        "radius": (Sdf.ValueTypeNames.Float, 5.0),
+        "resolution": (Sdf.ValueTypeNames.Int, 32),
+        "clipNames": (Sdf.ValueTypeNames.TokenArray, [clip]),
+        "clipRanges": (Sdf.ValueTypeNames.Float2Array, [(0.0, 12.0)]),
+        "heldOutViewsPerRing": (Sdf.ValueTypeNames.Int, 4),
+        **(ring or {}),
+    }
+    for name, (kind, value) in attributes.items():
+        character.CreateAttribute(f"rigspace:captureRing:{name}", kind).Set(value)
+    camera = UsdGeom.Camera.Define(stage, "/World/Camera")
+    camera.CreateFocalLengthAttr(35.0)
+    camera.CreateClippingRangeAttr(Gf.Vec2f(0.1, 100.0))
+    UsdGeom.XformCommonAPI(camera).SetTranslate(Gf.Vec3d(0, 1.0, camera_distance))
+    return character
+
+
 def write_material_character(folder: Path, textured: bool = True) -> Path:
     """The scene (see the module doc) in `folder`; returns its path. `textured` False gives
     every part a constant colour instead (a character with no texture at all)."""
@@ -157,25 +191,7 @@ def write_material_character(folder: Path, textured: bool = True) -> Path:
             Vt.IntArray(np.flatnonzero((ring_of >= first) & (ring_of < last)).tolist()),
         )
         UsdShade.MaterialBindingAPI.Apply(subset.GetPrim()).Bind(looks[name])
-    character = stage.DefinePrim(CHARACTER, "RigspaceNeuralCharacter")
-    character.ApplyAPI("RigspaceCaptureRingAPI")
-    character.CreateRelationship("rigspace:skeleton").SetTargets([skeleton.GetPath()])
-    character.CreateAttribute("rigspace:lookAtJoint", Sdf.ValueTypeNames.Token).Set("root/mid")
-    ring = {
-        "viewsPerRing": (Sdf.ValueTypeNames.Int, 8),
-        "elevations": (Sdf.ValueTypeNames.FloatArray, [0.0]),
-        "radius": (Sdf.ValueTypeNames.Float, 5.0),
-        "resolution": (Sdf.ValueTypeNames.Int, 32),
-        "clipNames": (Sdf.ValueTypeNames.TokenArray, ["bend"]),
-        "clipRanges": (Sdf.ValueTypeNames.Float2Array, [(0.0, 12.0)]),
-        "heldOutViewsPerRing": (Sdf.ValueTypeNames.Int, 4),
-    }
-    for name, (kind, value) in ring.items():
-        character.CreateAttribute(f"rigspace:captureRing:{name}", kind).Set(value)
-    camera = UsdGeom.Camera.Define(stage, "/World/Camera")
-    camera.CreateFocalLengthAttr(35.0)
-    camera.CreateClippingRangeAttr(Gf.Vec2f(0.1, 100.0))
-    UsdGeom.XformCommonAPI(camera).SetTranslate(Gf.Vec3d(0, 1.0, 4.0))
+    add_character(stage, skeleton, "root/mid", "bend", camera_distance=4.0)
     del root
     stage.GetRootLayer().Save()
     return path
