@@ -26,7 +26,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 
 import rigspace.sdk  # noqa: F401  (schemas registered before the stage is made)
 from tests.materials import CHARACTER as CHARACTER  # the character prim (re-exported)
-from tests.materials import add_character
+from tests.materials import add_character, new_asset_stage
 
 SEGMENTS, RINGS, HEIGHT, RADIUS = 16, 8, 2.0, 0.5
 JOINTS = ["neck", "neck/head"]
@@ -79,16 +79,7 @@ def write_blendshape_character(folder: Path) -> Path:
     """The scene (see the module doc) in `folder`; returns its path."""
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "face.usda"
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    stage.SetStartTimeCode(0)
-    stage.SetEndTimeCode(12)
-    stage.SetTimeCodesPerSecond(24)
-    world = UsdGeom.Xform.Define(stage, "/World")
-    stage.SetDefaultPrim(world.GetPrim())
-    UsdSkel.Root.Define(stage, "/World/Asset")
-    skeleton = UsdSkel.Skeleton.Define(stage, "/World/Asset/Skel")
+    stage, skeleton = new_asset_stage(path)
     skeleton.CreateJointsAttr(JOINTS)
     bind = [Gf.Matrix4d(1).SetTranslate(Gf.Vec3d(0, y, 0)) for y in (0.0, 1.0)]
     rest = [Gf.Matrix4d(1).SetTranslate(Gf.Vec3d(0, y, 0)) for y in (0.0, 1.0)]

@@ -83,6 +83,21 @@ def _cylinder():
     return points, np.array(faces), np.array(st, np.float32), np.array(ring_of)
 
 
+def new_asset_stage(path: Path) -> tuple[Usd.Stage, UsdSkel.Skeleton]:
+    """A new Y-up, metre stage at `path` (time codes 0-12 at 24/s, default prim /World) with
+    an empty SkelRoot /World/Asset and Skeleton /World/Asset/Skel."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(12)
+    stage.SetTimeCodesPerSecond(24)
+    world = UsdGeom.Xform.Define(stage, "/World")
+    stage.SetDefaultPrim(world.GetPrim())
+    UsdSkel.Root.Define(stage, "/World/Asset")
+    return stage, UsdSkel.Skeleton.Define(stage, "/World/Asset/Skel")
+
+
 def add_character(
     stage: Usd.Stage,
     skeleton: UsdSkel.Skeleton,
@@ -125,16 +140,7 @@ def write_material_character(folder: Path, textured: bool = True) -> Path:
     _texture(folder / "trousers.1002.png", (160, 40, 40), 2)
     _texture(folder / "shirt.png", (30, 140, 60), 3)
     path = folder / "characters.usda"
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    stage.SetStartTimeCode(0)
-    stage.SetEndTimeCode(12)
-    stage.SetTimeCodesPerSecond(24)
-    world = UsdGeom.Xform.Define(stage, "/World")
-    stage.SetDefaultPrim(world.GetPrim())
-    root = UsdSkel.Root.Define(stage, "/World/Asset")
-    skeleton = UsdSkel.Skeleton.Define(stage, "/World/Asset/Skel")
+    stage, skeleton = new_asset_stage(path)
     skeleton.CreateJointsAttr(JOINTS)
     bind = [Gf.Matrix4d(1).SetTranslate(Gf.Vec3d(0, y, 0)) for y in (0.0, 0.7, 1.4)]
     rest = [Gf.Matrix4d(1).SetTranslate(Gf.Vec3d(0, y, 0)) for y in (0.0, 0.7, 0.7)]
@@ -192,6 +198,5 @@ def write_material_character(folder: Path, textured: bool = True) -> Path:
         )
         UsdShade.MaterialBindingAPI.Apply(subset.GetPrim()).Bind(looks[name])
     add_character(stage, skeleton, "root/mid", "bend", camera_distance=4.0)
-    del root
     stage.GetRootLayer().Save()
     return path
