@@ -321,6 +321,7 @@ def _bundle(prim: Usd.Prim) -> dict[str, Any] | None:
         "manifest": str(manifest),
         "format": f"{data.get('format')} v{data.get('format_version')}",
         "joints": len(data.get("joints", [])),
+        "blend_shapes": list(data.get("blend_shapes", [])),
         "levels": levels,
         "maps": data.get("maps"),
         "training": {

@@ -109,6 +109,7 @@ export class PropertiesPanel {
       el("tr", {}, el("td", { class: "name" }, "manifest"), el("td", { class: "value" }, b.manifest)),
       el("tr", {}, el("td", { class: "name" }, "format"), el("td", { class: "value" }, b.format)),
       el("tr", {}, el("td", { class: "name" }, "joints"), el("td", { class: "value" }, b.joints)),
+      el("tr", {}, el("td", { class: "name" }, "blend shapes"), el("td", { class: "value" }, (b.blend_shapes || []).join(", ") || "none")),
       el("tr", {}, el("td", { class: "name" }, "levels"), el("td", { class: "value" }, b.levels.join(", "))),
       el("tr", {}, el("td", { class: "name" }, "maps"), el("td", { class: "value" }, (b.maps || []).join(", "))),
       el("tr", {}, el("td", { class: "name" }, "training"), el("td", { class: "value" }, `${b.training.preset || "?"}, ${b.training.steps ?? "?"} steps`)),
