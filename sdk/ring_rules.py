@@ -348,12 +348,12 @@ def _preset_and_gamepad(
             f"{where}: {ns}bonePreset {b.bone_preset!r} is not a preset. Fix: author one of "
             f"{', '.join(BONE_PRESETS)}.",
         )
-    if not (b.gamepad_offsets or b.gamepad_clips):
+    if not (b.gamepad_offsets or b.gamepad_clips or b.gamepad_shapes):
         return
     if not b.url.lower().startswith("gamepad://"):
         yield warning(
             "GamepadMapUnused",
-            f"{where}: gamepadOffsets/gamepadClips are authored but the url {b.url!r} is not a "
+            f"{where}: gamepadOffsets/Clips/Shapes are authored but the url {b.url!r} is not a "
             "gamepad:// source, so they are ignored. Fix: remove them or bind a gamepad://.",
         )
     joints = schema.skeleton_joints(skeleton) if skeleton is not None else None
@@ -365,6 +365,7 @@ def _preset_and_gamepad(
             "CONTROL:JOINT:AXIS:DEGREES[:MIN:MAX]",
         ),
         ("gamepadClips", b.gamepad_clips, GAMEPAD_CLIP, "CONTROL:CLIP[:MIN:MAX]"),
+        ("gamepadShapes", b.gamepad_shapes, GAMEPAD_CLIP, "CONTROL:SHAPE[:MIN:MAX]"),
     ):
         for item in items:
             code = item.split(":", 1)[0]
@@ -373,7 +374,10 @@ def _preset_and_gamepad(
                     "BadGamepadMap",
                     f"{where}: {ns}{prop} entry {item!r} is not {form} with a known evdev "
                     "control. Fix: write it like "
-                    + ("'ABS_RX:head:Y:-60'" if prop == "gamepadOffsets" else "'ABS_RZ:wave'")
+                    + {
+                        "gamepadOffsets": "'ABS_RX:head:Y:-60'",
+                        "gamepadClips": "'ABS_RZ:wave'",
+                    }.get(prop, "'ABS_Z:jawOpen'")
                     + " (controls: ABS_X, ABS_Y, ABS_Z, ABS_RX, ABS_RY, ABS_RZ, ABS_HAT0X, "
                     "ABS_HAT0Y, ABS_GAS, ABS_BRAKE, BTN_SOUTH, BTN_EAST, ...).",
                 )
@@ -386,6 +390,15 @@ def _preset_and_gamepad(
                     f"{where}: {ns}gamepadOffsets entry {item!r} names joint {name!r}, which "
                     f"skeleton {skeleton.GetPath()} lacks. Fix: use a name from its joint list.",
                 )
+            if prop == "gamepadShapes" and schema.is_neural_character(prim):
+                shapes = character_blend_shapes(prim)
+                if name not in shapes:
+                    yield error(
+                        "BlendShapeUnknown",
+                        f"{where}: {ns}gamepadShapes entry {item!r} names blend shape "
+                        f"{name!r}, which the character's meshes lack "
+                        f"({', '.join(shapes) or 'they have none'}). Fix: name one of them.",
+                    )
             if prop == "gamepadClips":
                 clips = (
                     schema.read_capture_ring(prim).clip_names

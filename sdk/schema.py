@@ -164,6 +164,7 @@ class LiveBinding:
     bone_preset: str = "auto"
     gamepad_offsets: tuple[str, ...] = ()
     gamepad_clips: tuple[str, ...] = ()
+    gamepad_shapes: tuple[str, ...] = ()
     buffering_authored: str = ""
     """The buffering token as authored when it was a deprecated one (validation warns)."""
     extra: dict = field(default_factory=dict)
@@ -238,6 +239,7 @@ def read_live_bindings(prim: Usd.Prim) -> list[LiveBinding]:
                 bone_preset=str(get("bonePreset", "auto")),
                 gamepad_offsets=tuple(str(v) for v in get("gamepadOffsets", ())),
                 gamepad_clips=tuple(str(v) for v in get("gamepadClips", ())),
+                gamepad_shapes=tuple(str(v) for v in get("gamepadShapes", ())),
                 buffering_authored=authored,
             )
         )

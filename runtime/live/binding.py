@@ -389,7 +389,7 @@ def _turn_degrees(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _with_gamepad_map(binding: Any, scheme: str) -> str:
-    """The binding's URL with its gamepadOffsets/gamepadClips as axes=/clips= options (the
+    """The binding's URL with its gamepadOffsets/Clips/Shapes as axes=/clips=/shapes= options (the
     URL's own options win: `--source pad=gamepad://...?axes=...` overrides the stage)."""
     url = binding.url
     if scheme != "gamepad":
@@ -400,6 +400,7 @@ def _with_gamepad_map(binding: Any, scheme: str) -> str:
         for key, items in (
             ("axes", getattr(binding, "gamepad_offsets", ())),
             ("clips", getattr(binding, "gamepad_clips", ())),
+            ("shapes", getattr(binding, "gamepad_shapes", ())),
         )
         if items and key not in query
     ]

@@ -202,15 +202,18 @@ def open_replay(url: str, name: str = "") -> Source:
 
 
 def open_gamepad(url: str, name: str = "") -> Source:
-    """gamepad://[DEVICE]?axes=CONTROL:JOINT:AXIS:DEGREES[:MIN:MAX],...&clips=CONTROL:CLIP,...:
-    a Linux evdev game controller whose axes and buttons turn joints on top of the stage
-    animation (default: right stick head yaw/pitch, left stick spine lean) and blend towards
-    the stage's clips (the binding's gamepadOffsets/gamepadClips arrive as these options).
+    """gamepad://[DEVICE]?axes=CONTROL:JOINT:AXIS:DEGREES[:MIN:MAX],...&clips=CONTROL:CLIP,...
+    &shapes=CONTROL:SHAPE,...: a Linux evdev game controller whose axes and buttons turn joints
+    on top of the stage animation (default: right stick head yaw/pitch, left stick spine lean),
+    blend towards the stage's clips and set blend shape weights (the binding's
+    gamepadOffsets/gamepadClips/gamepadShapes arrive as these options).
     No DEVICE: the first /dev/input/by-id joystick."""
     import glob
 
     target, query = _after_scheme(url)
-    options = _options(url, name, query, {"axes": parse_axes, "clips": parse_clips})
+    options = _options(
+        url, name, query, {"axes": parse_axes, "clips": parse_clips, "shapes": parse_clips}
+    )
     device = target
     if not device:
         found = sorted(glob.glob("/dev/input/by-id/*-event-joystick"))
@@ -221,7 +224,9 @@ def open_gamepad(url: str, name: str = "") -> Source:
                 "gamepad:///dev/input/eventN.",
             )
         device = found[0]
-    decoder = EvdevDecoder(options.get("axes", DEFAULT_AXES), options.get("clips", ()))
+    decoder = EvdevDecoder(
+        options.get("axes", DEFAULT_AXES), options.get("clips", ()), options.get("shapes", ())
+    )
     return DeviceFileSource(name, url, decoder, device)
 
 

@@ -75,3 +75,22 @@ def test_inspect_lists_each_meshs_blend_shapes_and_the_animations_weights(face, 
     out = capsys.readouterr().out
     assert "5 blend shape weights" in out  # the SkelAnimation's (one drives no mesh)
     assert "blend shapes smile, blink, jawOpen, frown" in out and "blend shapes brow" in out
+
+
+def test_a_gamepad_binding_names_only_the_characters_shapes(face, tmp_path):
+    from pxr import Sdf
+
+    from rigspace.sdk.validation import validate
+
+    stage = Usd.Stage.Open(str(face))
+    prim = stage.GetPrimAtPath(CHARACTER)
+    prim.ApplyAPI("RigspaceLiveBindingAPI", "pad")
+    prim.CreateAttribute("rigspace:live:pad:url", Sdf.ValueTypeNames.String).Set("gamepad://")
+    prim.CreateAttribute("rigspace:live:pad:gamepadShapes", Sdf.ValueTypeNames.StringArray).Set(
+        ["ABS_Z:jawOpen", "ABS_RZ:pout", "jawOpen"]
+    )
+    found = {(f.code.rsplit(".", 1)[-1], f.message) for f in validate(stage, include_usd=False)}
+    codes = [c for c, _ in found]
+    assert "BlendShapeUnknown" in codes and "BadGamepadMap" in codes
+    assert any("'pout'" in m for c, m in found if c == "BlendShapeUnknown")
+    assert not any("jawOpen'" in m for c, m in found if c == "BlendShapeUnknown")

@@ -82,10 +82,20 @@ class EvdevDecoder:
     space = "additive"
 
     def __init__(
-        self, axes: tuple[AxisMap, ...] = DEFAULT_AXES, clips: tuple[ClipControl, ...] = ()
+        self,
+        axes: tuple[AxisMap, ...] = DEFAULT_AXES,
+        clips: tuple[ClipControl, ...] = (),
+        shapes: tuple[ClipControl, ...] = (),
     ) -> None:
+        """`shapes`: controls that set blend shape weights (a ClipControl's `clip` names the
+        shape): each report's frame carries every shape's weight, the strongest control's."""
         self.axes = axes
         self.clips = clips
+        self.shapes = shapes
+        self._shape_value = np.zeros(len(shapes))
+        self._shape_by_code: dict[tuple[int, int], list[int]] = {}
+        for i, s in enumerate(shapes):
+            self._shape_by_code.setdefault((s.kind, s.code), []).append(i)
         self.bones: tuple[str, ...] = tuple(dict.fromkeys(a.joint for a in axes))
         self.clip_names: tuple[str, ...] = tuple(dict.fromkeys(c.clip for c in clips))
         self.clip_weights = np.zeros(len(self.clip_names))
@@ -135,7 +145,11 @@ class EvdevDecoder:
                     frames.append(self._frame(sec + usec * 1e-6))
             elif self._dropping:
                 continue
-            elif (kind, code) in self._by_code or (kind, code) in self._clip_by_code:
+            elif (
+                (kind, code) in self._by_code
+                or (kind, code) in self._clip_by_code
+                or (kind, code) in self._shape_by_code
+            ):
                 for i in self._by_code.get((kind, code), ()):
                     a = self.axes[i]
                     self._value[i] = (
@@ -143,6 +157,8 @@ class EvdevDecoder:
                     )
                 for i in self._clip_by_code.get((kind, code), ()):
                     self._clip_value[i] = self._position(self.clips[i], kind, value)
+                for i in self._shape_by_code.get((kind, code), ()):
+                    self._shape_value[i] = self._position(self.shapes[i], kind, value)
                 self._changed = True
             elif kind > EV_MAX or not (0 <= usec < 1_000_000):
                 c.malformed += 1  # not an event the kernel can send
@@ -177,9 +193,15 @@ class EvdevDecoder:
             weights = np.zeros(len(self.clip_names))
             np.maximum.at(weights, self._clip_column, self._clip_value)
             self.clip_weights = weights
+        shapes: dict[str, float] | None = None
+        if self.shapes:
+            shapes = {}
+            for control, value in zip(self.shapes, self._shape_value, strict=True):
+                shapes[control.clip] = max(shapes.get(control.clip, 0.0), float(value))
         self.counters.frames += 1
         self.counters.samples += len(self.bones)
-        return Frame(0, timestamp, np.arange(len(self.bones), dtype=np.int64), rotations)
+        indices = np.arange(len(self.bones), dtype=np.int64)
+        return Frame(0, timestamp, indices, rotations, None, shapes)
 
 
 def _range(name: str, parts: list[str]) -> tuple[int, int]:

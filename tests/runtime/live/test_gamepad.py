@@ -128,3 +128,22 @@ def test_gamepad_errors_name_the_fix(monkeypatch):
         open_source("gamepad://", "pad")
     with pytest.raises(LiveSourceError, match=r"axes=.*CONTROL:JOINT:AXIS:DEGREES"):
         open_source("gamepad:///dev/input/event0?axes=ABS_Q:head:Y:10", "pad")
+
+
+def test_triggers_and_buttons_set_blend_shape_weights():
+    """shapes=CONTROL:SHAPE[:MIN:MAX] (the binding's gamepadShapes): a trigger's position, a
+    button while held; two controls of one shape: the stronger wins."""
+    from rigspace.runtime.live.decoders.evdev import parse_clips
+
+    shapes = parse_clips("ABS_Z:jawOpen,BTN_SOUTH:eyeBlinkLeft,ABS_RZ:jawOpen")
+    decoder = EvdevDecoder(shapes=shapes)
+    data = axis("ABS_Z", 256) + axis("ABS_RZ", 768) + ev(EV_KEY, 304, 1)
+    (frame,) = decoder.feed(data + ev(EV_SYN, SYN_REPORT, 0, 5.5), 0.0)
+    assert frame.weights == {"jawOpen": pytest.approx(768 / 1023), "eyeBlinkLeft": 1.0}
+    (frame,) = decoder.feed(ev(EV_KEY, 304, 0) + ev(EV_SYN, SYN_REPORT, 0, 5.6), 0.0)
+    assert frame.weights["eyeBlinkLeft"] == 0.0
+    url = "gamepad:///dev/null?shapes=ABS_Z:jawOpen:0:255"
+    source = open_source(url, "pad")
+    assert source.decoder.shapes[0].maximum == 255  # type: ignore[attr-defined]
+    with pytest.raises(LiveSourceError, match="shapes"):
+        open_source("gamepad:///dev/null?shapes=ABS_Q:jawOpen", "pad")
