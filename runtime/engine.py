@@ -186,6 +186,9 @@ class Engine:
                 character.no_texture = "textures are turned off (--no-textures)"
             self.characters.append(character)
         self.reference = reference
+        self.weight_overrides: dict[str, dict[str, float]] = {}
+        """character path -> blend shape name -> weight that replaces the animation's (and a
+        live source's) in every frame: `rigspace view`'s sliders (`set_weights`)."""
         self.live = LiveInput(self.stage, self.characters, sources or {}, live and not reference)
         """The characters' live bindings (runtime/live/engine.py)."""
         self.scene = SceneGeometry(self.stage)
@@ -534,7 +537,9 @@ class Engine:
         scene_meshes = meshes = self.scene.meshes(time)
         if self.reference:  # the meshes with their charts: the texture AOVs to compare with
             meshes = meshes + [
-                m for c in self.characters for m in c.rig.posed_meshes(time, charts=True)
+                m
+                for c in self.characters
+                for m in c.rig.posed_meshes(time, charts=True, weights=self._weights_of(c, time))
             ]
         prims, reused = self._scene_maps(meshes, camera, camera_key)
         timings["scene"] = clock.perf_counter() - start
@@ -578,7 +583,7 @@ class Engine:
             t = clock.perf_counter()
             try:
                 world = character.pose(time, self.live.local(character, time, entry))
-                weights = character.weights(time, self.live.weights(character, time))
+                weights = character.weights(time, self._weights_of(character, time))
             except SceneError as exc:
                 # One bad frame of animation must not end a sequence, nor draw a wrong image:
                 # the character is left out of this frame, loudly.
@@ -786,6 +791,38 @@ class Engine:
         report["counts"] = _counts(report["characters"])
         report["seconds"] = _seconds(dict.fromkeys(STAGES, 0.0), start)
         return Frame(last.beauty, last.maps, report, last.opaque)
+
+    def set_weights(self, path: str, weights: dict[str, float]) -> None:
+        """Override blend shape weights of the character at `path` from the next frame on (an
+        empty dict clears them). A name the character's meshes lack, or a weight that is not a
+        finite number, is a ValueError naming it."""
+        character = next((c for c in self.characters if c.path == path), None)
+        if character is None:
+            raise ValueError(f"{path} is not a neural character of this stage")
+        for name, value in weights.items():
+            if name not in character.rig.blend_shapes:
+                raise ValueError(f"{path} has no blend shape {name!r}")
+            if not isinstance(value, int | float) or not np.isfinite(value):
+                raise ValueError(f"the weight of {name!r} must be a finite number")
+        before = self.weight_overrides.get(path)
+        if weights:
+            self.weight_overrides[path] = {k: float(v) for k, v in weights.items()}
+        else:
+            self.weight_overrides.pop(path, None)
+        if self.weight_overrides.get(path) != before:
+            self._frame_at = None  # the same time code is not the same frame any more
+
+    def _weights_of(self, character: NeuralCharacter, time: float) -> np.ndarray | None:
+        """The character's blend shape weights (its order) with live sources' and then the
+        overrides' merged in; None when neither applies (the animation's)."""
+        weights = self.live.weights(character, time)
+        override = self.weight_overrides.get(character.path)
+        if override:
+            if weights is None:
+                weights = character.rig.blend_weights(time)
+            for name, value in override.items():
+                weights[character.rig.blend_shapes.index(name)] = value
+        return weights
 
     def _describe(self, c: _Candidate, layer: Layer) -> None:
         top = max(c.character.model.resolutions)

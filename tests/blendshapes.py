@@ -147,3 +147,31 @@ def write_blendshape_character(folder: Path) -> Path:
     add_character(stage, skeleton, "neck/head", "talk", ranges, camera_distance=5.0)
     stage.GetRootLayer().Save()
     return path
+
+
+_trained: dict[str, Path] = {}
+
+
+def trained_face(tmp_path_factory) -> tuple[Path, Path]:
+    """(scene, bundle): the face captured small (4 views, 32x32) and trained with the tiny
+    preset (about 20 s), once per test session; the scene's character uses the bundle."""
+    if "face" not in _trained:
+        from rigspace.capture.pipeline import capture
+        from rigspace.capture.settings import CaptureOverrides
+        from rigspace.train import loop
+        from rigspace.train.config import preset
+        from rigspace.train.export import export_bundle
+
+        root = tmp_path_factory.mktemp("face_model")
+        face = write_blendshape_character(root / "scene")
+        small = CaptureOverrides(views=4, elevations=(0.0,), resolution=32, frames_per_item=4)
+        capture(face, CHARACTER, root / "ds", small, workers=1, progress=False, warn=lambda _: None)
+        result = loop.train(root / "ds", root / "run", preset("tiny"), progress=False)
+        assert result.stopped == "done"
+        export_bundle(root / "run", root / "bundle", int8=False)
+        stage = Usd.Stage.Open(str(face))
+        stage.GetPrimAtPath(CHARACTER).GetAttribute("rigspace:model").Set(str(root / "bundle"))
+        stage.GetRootLayer().Save()
+        _trained["face"] = face
+    face = _trained["face"]
+    return face, face.parent.parent / "bundle"

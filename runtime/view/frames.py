@@ -218,20 +218,36 @@ class FrameService:
     # -- frames ----------------------------------------------------------------------------
 
     def frame(
-        self, time: float, map_name: str, view: str, quality: str
+        self,
+        time: float,
+        map_name: str,
+        view: str,
+        quality: str,
+        weights: dict[str, dict[str, float]] | None = None,
     ) -> tuple[dict[str, Any], bytes]:
-        """The header (report, size, timings) and JPEG of one viewport frame."""
+        """The header (report, size, timings) and JPEG of one viewport frame; `weights`:
+        character path -> blend shape -> weight, the inspector's sliders (every engine draws
+        them, the reference's mesh too)."""
         start = clock.perf_counter()
         # No lock: frames and reloads run on the server's one worker thread, one at a time.
         engines = self.engines
         if engines is None:
             return {"error": self.error or "no engine"}, b""
+        weights = weights or {}
+        try:
+            for each in (engines.full, engines.preview, engines.reference):
+                if each is not None:
+                    for path in {*each.weight_overrides, *weights}:
+                        each.set_weights(path, weights.get(path, {}))
+        except ValueError as exc:
+            return {"error": f"blend shape weights: {exc}"}, b""
+        shaped = tuple(sorted((p, tuple(sorted(w.items()))) for p, w in weights.items()))
         if view != "neural" and engines.reference is None:
             view = "neural"
         preview = quality == "preview" and view == "neural" and engines.preview is not None
         quality = "preview" if preview else "full"
         live = engines.full.live.active
-        key = (self.version, self.camera, time, map_name, view, quality)
+        key = (self.version, self.camera, time, map_name, view, shaped, quality)
         better = (*key[:-1], "full")
         if not live and better in self._cache:  # the refined frame is known: no preview
             key = better

@@ -266,7 +266,32 @@ def parse_request(text: str, cameras: list[str]) -> dict[str, Any]:
         raise ValueError("id must be a whole number")
     return {"id": request_id, "time": float(time), "map": message.get("map", "beauty"),
             "view": message.get("view", "neural"), "quality": message.get("quality", "auto"),
-            "camera": camera}  # fmt: skip
+            "camera": camera, "weights": _weights(message.get("weights", {}))}  # fmt: skip
+
+
+MAX_WEIGHTS = 256
+"""Blend shape weights a request may set (per request, over all characters)."""
+
+
+def _weights(value: Any) -> dict[str, dict[str, float]]:
+    """The sliders' weights: {character path: {shape: number in [-2, 2]}}, at most MAX_WEIGHTS
+    numbers (ValueError: malformed; the names are checked by the engine)."""
+    if not isinstance(value, dict) or not all(isinstance(w, dict) for w in value.values()):
+        raise ValueError("weights must be {character path: {blend shape: number}}")
+    if sum(len(w) for w in value.values()) > MAX_WEIGHTS:
+        raise ValueError(f"at most {MAX_WEIGHTS} weights")
+    out: dict[str, dict[str, float]] = {}
+    for path, shapes in value.items():
+        for name, number in shapes.items():
+            if (
+                not isinstance(number, int | float)
+                or isinstance(number, bool)
+                or not math.isfinite(number)
+                or abs(number) > 2
+            ):
+                raise ValueError("a blend shape weight must be a number in [-2, 2]")
+            out.setdefault(str(path), {})[str(name)] = float(number)
+    return out
 
 
 def _packet(header: dict[str, Any], data: bytes) -> bytes:
@@ -296,7 +321,7 @@ async def _socket(viewer: Viewer, ws: WebSocket) -> None:
                     break  # a newer request waits: refining this one would only delay it
                 header, data = await viewer.run(
                     viewer.frames.frame, request["time"], request["map"], request["view"],
-                    quality,
+                    quality, request["weights"],
                 )  # fmt: skip
                 header["id"] = request["id"]
                 await ws.send_bytes(_packet(header, data))

@@ -11,11 +11,10 @@ import numpy as np
 import pytest
 from pxr import Usd
 
-from rigspace.capture.pipeline import capture
 from rigspace.capture.settings import CaptureOverrides
 from rigspace.sdk.bundle import BundleError
 from rigspace.sdk.model import BundleModel
-from tests.blendshapes import CHARACTER, write_blendshape_character
+from tests.blendshapes import CHARACTER, trained_face, write_blendshape_character
 
 pytest.importorskip("torch", reason="training needs the train extra (torch)")
 
@@ -29,17 +28,8 @@ def face(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def bundle(face, tmp_path_factory):
-    from rigspace.train import loop
-    from rigspace.train.config import preset
-    from rigspace.train.export import export_bundle
-
-    root = tmp_path_factory.mktemp("bs")
-    capture(face, CHARACTER, root / "ds", SMALL, workers=1, progress=False, warn=lambda _: None)
-    result = loop.train(root / "ds", root / "run", preset("tiny"), progress=False)
-    assert result.stopped == "done"
-    export_bundle(root / "run", root / "bundle", int8=False)
-    return root / "bundle"
+def bundle(tmp_path_factory):
+    return trained_face(tmp_path_factory)[1]
 
 
 def test_the_bundle_names_its_blend_shapes_and_its_graph_reads_them(bundle):
@@ -48,7 +38,7 @@ def test_the_bundle_names_its_blend_shapes_and_its_graph_reads_them(bundle):
     manifest = json.loads((bundle / "manifest.json").read_text())
     assert manifest["blend_shapes"] == SHAPES
     assert manifest["torch"]["blend_shapes"] == len(SHAPES)
-    run = json.loads((bundle.parent / "run" / "run.json").read_text())
+    run = json.loads((bundle.parent / "run" / "run.json").read_text())  # trained_face's
     assert run["blend_shapes"] == SHAPES
     trunk = ort.InferenceSession(str(bundle / manifest["trunk"]["graphs"]["trunk"]))
     (rig,) = trunk.get_inputs()

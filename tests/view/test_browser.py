@@ -220,3 +220,51 @@ def test_every_column_fits_the_window(browser, previs_served, width):
         assert box is not None and box["width"] > 150, column
         assert box["x"] >= 0 and box["x"] + box["width"] <= width + 0.5, (column, box)
     page.close()
+
+
+def test_blend_shape_sliders_override_the_animations_weights(browser, tmp_path_factory):
+    """A character whose model reads blend shapes gets a slider per shape in the inspector:
+    dragging jawOpen shut (the animation has it fully open at the first frame) re-renders the
+    face with it (the server's engines hold the override), reset gives the animation back."""
+    from tests.blendshapes import trained_face
+
+    scene, _ = trained_face(tmp_path_factory)
+    with served(scene) as (viewer, url):
+        page, errors = open_page(browser, url)
+        wait_frame(page, "h.quality === 'full'")
+        page.click('.node[data-path="/World/Hero"]')
+        page.locator("#blend-sliders").wait_for()
+        names = page.locator("#blend-sliders input").evaluate_all(
+            "nodes => nodes.map(n => n.dataset.shape)"
+        )
+        assert names == ["smile", "blink", "jawOpen", "frown", "brow"]
+        keep = (
+            "() => { const c = document.getElementById('viewport');"
+            " window.kept = c.getContext('2d').getImageData(0, 0, c.width, c.height).data; }"
+        )
+        changed = (
+            "() => { const c = document.getElementById('viewport');"
+            " const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;"
+            " let n = 0; for (let i = 0; i < d.length; i += 4)"
+            " if (Math.abs(d[i] - window.kept[i]) + Math.abs(d[i + 1] - window.kept[i + 1]) > 24) n++;"
+            " return n; }"
+        )
+        page.evaluate(keep)
+        seen = page.evaluate("window.rigspaceView.frames")
+        page.evaluate(
+            "() => { const s = document.querySelector('input[data-shape=\"jawOpen\"]');"
+            " s.value = 0; s.dispatchEvent(new Event('input')); }"
+        )
+        wait_frame(page, f"window.rigspaceView.frames > {seen} && h.quality === 'full'")
+        assert viewer.frames.engines.full.weight_overrides == {"/World/Hero": {"jawOpen": 0.0}}
+        assert page.evaluate(changed) > 20  # the jaw's pixels moved
+        page.locator("#blend-sliders").scroll_into_view_if_needed()
+        shot(page, "#props-panel", "blend_sliders")
+        seen = page.evaluate("window.rigspaceView.frames")
+        page.click("#weights-reset")
+        wait_frame(page, f"window.rigspaceView.frames > {seen} && h.quality === 'full'")
+        assert not page.evaluate("window.rigspaceView.state.weights['/World/Hero']")
+        assert page.evaluate(changed) < 5  # the animation's face again
+        assert viewer.frames.engines.full.weight_overrides == {}
+        assert not errors, errors
+        page.close()

@@ -99,7 +99,31 @@ export class PropertiesPanel {
       el("table", { class: "props" }, el("colgroup", {}, el("col", { class: "c1" }), el("col", {}), el("col", { class: "c3" })), ...meta),
     ];
     if (data.bundle) parts.push(...this.bundle(data.bundle));
+    if (data.bundle && (data.bundle.blend_shapes || []).length) parts.push(...this.sliders(path, data.bundle.blend_shapes));
     this.box.replaceChildren(...parts);
+  }
+  sliders(path, shapes) {
+    // Blend shape weights to try on the character: a slider moved overrides the animation's
+    // (and a live source's) weight of that shape in every frame until reset.
+    const app = this.app;
+    const mine = () => app.state.weights[path] || {};
+    const set = (name, value) => {
+      const next = { ...mine() };
+      if (value === null) delete next[name]; else next[name] = value;
+      if (Object.keys(next).length) app.state.weights[path] = next; else delete app.state.weights[path];
+      app.request("auto");
+    };
+    const rows = shapes.map((name) => {
+      const value = mine()[name];
+      const label = el("td", { class: "value num" }, value === undefined ? "animation" : value.toFixed(2));
+      const input = el("input", { type: "range", min: "0", max: "1", step: "0.01", value: String(value ?? 0), "data-shape": name });
+      input.addEventListener("input", () => { label.textContent = Number(input.value).toFixed(2); set(name, Number(input.value)); });
+      return el("tr", {}, el("td", { class: "name" }, name), el("td", {}, input), label);
+    });
+    const reset = el("button", { id: "weights-reset" }, "reset to the animation");
+    reset.addEventListener("click", () => { delete app.state.weights[path]; app.request("auto"); this.load(path, app.state.time); });
+    return [el("div", { class: "section" }, "blend shapes (drag to override the animation)"),
+      el("table", { id: "blend-sliders", class: "props" }, ...rows), reset];
   }
   bundle(b) {
     const out = [el("div", { class: "section" }, "model bundle")];
