@@ -205,3 +205,23 @@ def test_raw_websocket_frames_and_refusals_on_a_real_server(previs_served):
     )
     assert raw.recv(64).startswith(b"HTTP/1.1 403")
     raw.close()
+
+
+@pytest.mark.parametrize(
+    "weights",
+    [
+        [1, 2],
+        {"/World/Hero": [0.5]},
+        {"/World/Hero": {"jawOpen": "open"}},
+        {"/World/Hero": {"jawOpen": True}},
+        {"/World/Hero": {"jawOpen": 3.0}},
+        {"/World/Hero": {f"s{k}": 0.1 for k in range(300)}},
+    ],
+)
+def test_a_request_with_malformed_blend_shape_weights_is_refused(weights):
+    with pytest.raises(ValueError, match="weight"):
+        parse_request(json.dumps({"op": "frame", "time": 1, "weights": weights}), [])
+    good = parse_request(
+        json.dumps({"op": "frame", "time": 1, "weights": {"/World/Hero": {"jawOpen": 0.25}}}), []
+    )
+    assert good["weights"] == {"/World/Hero": {"jawOpen": 0.25}}
