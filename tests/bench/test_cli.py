@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from rigspace.bench.cli import PARTS
 from rigspace.sdk.cli import main
 
 
+@pytest.mark.slow
 def test_quick_bench_writes_json_markdown_and_plots(tmp_path):
     out = tmp_path / "bench"
     assert main(["bench", "--quick", "--out", str(out)]) == 0
@@ -44,6 +47,7 @@ def test_an_unknown_part_is_refused(tmp_path, capsys):
     assert "Unknown bench part speed" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_re_running_a_part_on_another_machine_keeps_the_other_parts(tmp_path):
     """`--only` into a folder measured on another machine: the other parts stay, each says
     the machine it was measured on (a re-run once wiped them all)."""

@@ -25,6 +25,7 @@ runpy.run_module("rigspace.bench.gpu_check", run_name="__main__")
 """
 
 
+@pytest.mark.slow
 def test_the_gpu_check_runs_without_usd_and_openimageio(tmp_path):
     script = tmp_path / "blocked.py"
     script.write_text(BLOCKED_RUN)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from rigspace.bench.memory import peak_rss
 
 MIB = 1024
@@ -11,6 +13,7 @@ PER_CHARACTER_KIB = 32 * MIB
 MiB each at 64x64 when measured), far below a bundle's own load."""
 
 
+@pytest.mark.slow
 def test_peak_rss_grows_mildly_with_characters():
     one = peak_rss(1, size=64, frames=2)
     eight = peak_rss(8, size=64, frames=2)

@@ -12,6 +12,8 @@ from rigspace.capture import cli
 from rigspace.capture.ray_capture import DIE_ONCE, capture_on_ray
 from tests.capture.conftest import CHARACTER, SCENE, SMALL
 
+pytestmark = pytest.mark.slow  # starts a Ray cluster
+
 ray = pytest.importorskip("ray", reason="capture on Ray needs the scale extra (ray)")
 
 

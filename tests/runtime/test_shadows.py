@@ -816,6 +816,7 @@ def test_the_compiled_map_lookup_matches_numpy():
     assert np.abs(fast - slow).max() < KERNEL_TOLERANCE
 
 
+@pytest.mark.slow
 def test_the_kernels_compile_once_and_later_processes_load_them():
     """numba's cache=True: a second process finds every kernel compiled on disk."""
     import subprocess

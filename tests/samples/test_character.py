@@ -131,6 +131,7 @@ def skinning(stage, mesh):
     return skin
 
 
+@pytest.mark.slow
 def test_same_seed_gives_the_same_bytes(builds):
     first, second = builds
     for name in OUTPUTS:
@@ -146,6 +147,7 @@ def test_committed_sample_matches_a_fresh_build(builds):
         )
 
 
+@pytest.mark.slow
 def test_another_seed_changes_the_details(builds, tmp_path):
     load_builder().build(tmp_path, seed=1)
     for name in OUTPUTS:

@@ -7,6 +7,7 @@ import sys
 
 import cv2
 import numpy as np
+import pytest
 
 from rigspace.sdk import validation
 from rigspace.sdk.stage import open_stage
@@ -24,6 +25,7 @@ def run(script: str, *args: str) -> list[str]:
     return done.stdout.strip().splitlines()
 
 
+@pytest.mark.slow
 def test_live_hook_renders_what_the_stream_sends(tmp_path):
     port = free_port()
     lines = run(

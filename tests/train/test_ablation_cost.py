@@ -18,6 +18,7 @@ def _rows(table: str) -> dict[str, list[str]]:
     return rows
 
 
+@pytest.mark.slow
 def test_cost_groups_variants_with_the_same_graphs_and_times_both_precisions(tiny_dataset, capsys):
     # 64 on a 32x32 capture: cost reads rig rows only; width32 differs from paper at 64x64.
     names = ["paper", "mask-bce", "paper-seed1", "bones2d-add32+bce", "width32"]

@@ -107,6 +107,7 @@ def test_a_run_slower_than_planned_ends_a_level_early_to_reach_the_final_one():
     assert stuck.out_of_reach
 
 
+@pytest.mark.slow
 def test_a_time_budget_plans_the_schedule_before_training(tmp_path, tiny_dataset, capsys):
     # Far more steps than 6 seconds hold. Whether the plan reaches 32x32 depends on the
     # machine's load (the plan's arithmetic is tested above); the run must plan, say so, and
@@ -142,6 +143,7 @@ def test_a_time_budget_plans_the_schedule_before_training(tmp_path, tiny_dataset
     assert again.step == result.step
 
 
+@pytest.mark.slow
 def test_a_budget_left_over_trains_the_final_level_on(tmp_path, tiny_dataset, capsys):
     """The tiny preset's 40 steps take a second or two; a 24-second budget (room for a busy
     CI machine) is not left unused: the final level trains on (fade 1) until it ends, and so

@@ -32,6 +32,7 @@ def losses(run: Path) -> list[float]:
     return [json.loads(line)["loss"] for line in (run / "log.jsonl").read_text().splitlines()]
 
 
+@pytest.mark.slow
 def test_two_gloo_ranks_match_one_process_and_resume_on_one(tiny_dataset, tmp_path):
     one = tmp_path / "one"
     loop.train(tiny_dataset, one, TINY, steps=8, progress=False)

@@ -148,6 +148,7 @@ def test_the_check_names_a_missing_joints2d(bundle, tiny_dataset):
         check_int8(bundle, trunk, manifest["levels"], rows, timing=False)
 
 
+@pytest.mark.slow
 def test_requantize_gives_an_fp32_only_conditioned_bundle_its_int8_graphs(
     run, tiny_dataset, tmp_path
 ):

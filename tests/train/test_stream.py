@@ -181,6 +181,7 @@ print(steps * 16, (kib("VmHWM:") - base) * 1024)
 """
 
 
+@pytest.mark.slow
 def test_streaming_memory_stays_under_the_cap_on_a_dataset_five_times_larger(tmp_path):
     """Real format (EXRs, params.npz, manifest) of noise images, so nothing compresses away;
     1200 samples reuse 16 image files, packed into 64-sample shards (each sample whole)."""

@@ -267,6 +267,7 @@ def test_presets_are_consistent():
 
 
 @pytest.mark.parametrize("signum", ["SIGINT", "SIGTERM"])
+@pytest.mark.slow
 def test_ctrl_c_or_sigterm_stops_with_a_usable_checkpoint(tmp_path, tiny_dataset, signum):
     import os
     import signal

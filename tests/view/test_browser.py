@@ -18,6 +18,8 @@ from rigspace.runtime.live.send import humanoid_clip, send_vmc
 from tests.conftest import REPO, free_port
 from tests.view.conftest import BROKEN, LIVE, served
 
+pytestmark = pytest.mark.slow  # a real Chromium: the quick subset leaves it out
+
 SHOTS = os.environ.get("RIGSPACE_VIEW_SCREENSHOTS")
 WINDOW = {"width": 1600, "height": 950}
 PIXELS = """() => {

@@ -114,6 +114,7 @@ def test_exponential_and_one_euro_smoothing_reduce_noise():
     assert errors["oneEuro"] < 0.6 * errors["none"]
 
 
+@pytest.mark.slow
 def test_history_is_bounded_and_pose_does_not_wait_for_a_flood():
     b = LiveBuffer(tuple(f"j{i}" for i in range(55)), BufferSettings(mode="delayed", history=64))
     quats = np.tile(IDENTITY, (55, 1))

@@ -94,6 +94,7 @@ def angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 2 * np.arccos(np.clip(dot, 0.0, 1.0))
 
 
+@pytest.mark.slow
 def test_live_records_the_clip_sent_over_vmc_and_render_replays_the_take(tmp_path, clip, capsys):
     port = free_port()
     url = f"vmc://127.0.0.1:{port}"
@@ -149,6 +150,7 @@ def test_live_records_the_clip_sent_over_vmc_and_render_replays_the_take(tmp_pat
     assert "live" not in rendered["frames"][0]  # the take, not a live source, drives it
 
 
+@pytest.mark.slow
 def test_sender_stopping_goes_stale_then_lost_frames_keep_coming_and_it_reconnects(tmp_path, clip):
     port = free_port()
     url = f"vmc://127.0.0.1:{port}"
@@ -257,6 +259,7 @@ def test_calibrate_stores_the_sources_rest_pose(tmp_path, clip, capsys):
     assert scene.read_text() == before
 
 
+@pytest.mark.slow
 def test_a_take_holds_every_tick_even_when_the_recorder_stalls(tmp_path, clip, monkeypatch):
     """A recorder that falls behind (here: stalled 0.5 s on one tick, as a compile holding the
     GIL does) records the ticks it missed with the poses the binding held then."""

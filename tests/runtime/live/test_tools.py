@@ -7,6 +7,8 @@ import json
 import threading
 import time
 
+import pytest
+
 from rigspace.runtime.live import probe, send
 from rigspace.runtime.live.buffer import LiveBuffer
 from rigspace.runtime.live.sources import open_source
@@ -14,6 +16,7 @@ from tests.conftest import free_port
 from tests.runtime.live.conftest import CMU_CLIP, wait_for
 
 
+@pytest.mark.slow
 def test_probe_reports_a_vmc_sender():
     """The sender streams (looping) before and after the probe's window, so a busy machine
     that starts either thread late cannot leave the window empty (a timed race before)."""
