@@ -50,3 +50,48 @@ def test_runtime_never_imports_torch():
                 else ([node.module] if isinstance(node, ast.ImportFrom) and node.module else [])
             )
             assert not any(n == "torch" or n.startswith("torch.") for n in names), path
+
+
+def _module_imports() -> dict[str, set[str]]:
+    """rigspace module -> the rigspace modules it imports anywhere in its body (lazy ones too)."""
+    modules = {}
+    for package in ALLOWED:
+        for path in (REPO / package).rglob("*.py"):
+            name = "rigspace." + ".".join(path.relative_to(REPO).with_suffix("").parts)
+            modules[name.removesuffix(".__init__")] = path
+    graph = {}
+    for name, path in modules.items():
+        found = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("rigspace."):
+                for alias in node.names:
+                    full = f"{node.module}.{alias.name}"
+                    found.add(full if full in modules else node.module)
+            elif isinstance(node, ast.Import):
+                found |= {a.name for a in node.names if a.name.startswith("rigspace.")}
+        graph[name] = {m for m in found if m in modules and m != name}
+    return graph
+
+
+KNOWN_CYCLES = [{"rigspace.runtime.shadows", "rigspace.runtime.shadow_pass"}]
+"""shadows.py dispatches to the numba passes of shadow_pass.py, which reuses its types (issue
+24: shadow backends as a strategy removes it)."""
+
+
+def test_no_module_imports_itself_round_a_cycle():
+    """No import cycle among rigspace modules, lazy imports counted (view's cli and server had
+    one: the server took a constant from its command)."""
+    graph = _module_imports()
+    cycles = []
+    for start in graph:
+        stack, seen = [(start, [start])], set()
+        while stack:
+            node, path = stack.pop()
+            for nxt in graph[node]:
+                if nxt == start:
+                    cycles.append(set(path))
+                elif nxt not in seen:
+                    seen.add(nxt)
+                    stack.append((nxt, [*path, nxt]))
+    unknown = [c for c in cycles if c not in KNOWN_CYCLES]
+    assert not unknown, sorted(sorted(c) for c in unknown)

@@ -21,7 +21,6 @@ if TYPE_CHECKING:  # the Engine, USD and uvicorn load when the command runs, not
 
     from rigspace.runtime.view.server import Viewer
 
-LOOPBACK = ("127.0.0.1", "localhost", "::1", "[::1]")
 
 DESCRIPTION = """\
 A usdview-style inspector in the browser: the prim tree, the selected prim's properties at
@@ -127,6 +126,8 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.port <= 65535:
         raise RigspaceError(f"--port {args.port} is not a port.", "give 0 to 65535.")
     _check_port(args.host, args.port)
+    from rigspace.runtime.view.server import LOOPBACK  # starlette: only once it serves
+
     if args.host not in LOOPBACK:
         print(
             f"rigspace view: warning: --host {args.host} makes the viewer reachable from other "

@@ -27,10 +27,11 @@ from starlette.routing import Route, WebSocketRoute
 from starlette.types import ASGIApp, Receive, Scope, Send
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
-from rigspace.runtime.view.cli import LOOPBACK
 from rigspace.runtime.view.frames import MAPS, VIEWS, FrameService
 from rigspace.runtime.view.scene import SceneModel
 
+LOOPBACK = ("127.0.0.1", "localhost", "::1", "[::1]")
+"""Host names the server binds without --allow-remote (the server's, the command's check too)."""
 STATIC = Path(__file__).parent / "static"
 MAX_URL = 2048
 MAX_MESSAGE = 4096
