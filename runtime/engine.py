@@ -19,6 +19,8 @@ from __future__ import annotations
 import itertools
 import sys
 import time as clock
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -519,45 +521,83 @@ class Engine:
 
     def render(self, time: float) -> Frame:
         """The frame at stage time `time`. Its arrays may be shared with later frames that
-        change nothing (the frame cache): they are read-only; copy them to edit."""
-        start = clock.perf_counter()
+        change nothing (the frame cache): they are read-only; copy them to edit.
+
+        The frame is a sequence of named stages over one per-frame context (`_FrameState`):
+        the scene's prims and lights (`_scene_stage`), the characters' poses and billboards
+        (`_pose_stage`), their network evaluations (`_evaluate_stage`), the prims' shadows and
+        lighting (`_light_prims_stage`), the characters' lighting and compositing
+        (`_composite_stage`). Each stage's time is added to the report's seconds by `timed`."""
+        f = _FrameState(time, clock.perf_counter())
         self.live.open()
         if self._frame is not None and self._frame_at == time and not self.live.active:
             # The same time code and no edit to the stage since (the listener clears _frame):
             # every value read at this time is the same, so is the frame (a viewer redrawing).
-            return self._repeat(self._frame[1], start)
+            return self._repeat(self._frame[1], f.start)
+        self._refresh_if_edited()
+        self._scene_stage(f)
+        self._pose_stage(f)
+        self._evaluate_stage(f)
+        f.report["counts"] = _counts(f.report["characters"])
+        if self.live.active:
+            f.report["live"] = self.live.report()
+        f.report["shadows"]["casters"] = len(f.casters)
+        # Nothing changed since the last frame: the same prims, lights, shadows and layers.
+        frame_key = (
+            self._prims_key,
+            f.light_key,
+            self.shadows.key,
+            tuple((path, posed.key) for path, posed in f.casters),
+            tuple((c.character.path, self._layers[c.character.path].serial) for c in f.candidates),
+        )
+        if self._frame is not None and self._frame[0] == frame_key:
+            return self._reused_composite(f)
+        f.report["composite_reused"] = False
+        beauty = self._light_prims_stage(f)
+        frame = self._composite_stage(f, beauty)
+        self._frame = (frame_key, frame)
+        self._frame_at = time
+        f.report["seconds"] = _seconds(f.timings, f.start)
+        return frame
+
+    def _refresh_if_edited(self) -> None:
         if self._edited:
             self._edited = False
             self.scene = SceneGeometry(self.stage)
             self.light_prims = light_prims(self.stage)
             # The G-buffer is keyed on its meshes' identities, which new meshes may reuse.
             self._prims, self._lit_prims = None, None
-        timings = dict.fromkeys(STAGES, 0.0)
-        camera, camera_key = self._camera_at(time)
-        scene_meshes = meshes = self.scene.meshes(time)
+
+    def _scene_stage(self, f: _FrameState) -> None:
+        """The camera, the prims' G-buffer (with the characters' meshes in the reference
+        mode), the lights, the report's start and the shadow maps."""
+        f.camera, f.camera_key = self._camera_at(f.time)
+        f.scene_meshes = meshes = self.scene.meshes(f.time)
         if self.reference:  # the meshes with their charts: the texture AOVs to compare with
             meshes = meshes + [
                 m
                 for c in self.characters
-                for m in c.rig.posed_meshes(time, charts=True, weights=self._weights_of(c, time))
+                for m in c.rig.posed_meshes(
+                    f.time, charts=True, weights=self._weights_of(c, f.time)
+                )
             ]
-        prims, reused = self._scene_maps(meshes, camera, camera_key)
-        timings["scene"] = clock.perf_counter() - start
-        lights = self._lights_at(time)
-        report: dict[str, Any] = {
-            "time": time,
+        f.prims, f.reused = self._scene_maps(meshes, f.camera, f.camera_key)
+        f.timings["scene"] = clock.perf_counter() - f.start
+        f.lights = lights = self._lights_at(f.time)
+        f.report = {
+            "time": f.time,
             "camera": str(self.camera_prim.GetPath()),
-            "scene_prims": {"meshes": len(meshes), "reused": reused},
+            "scene_prims": {"meshes": len(meshes), "reused": f.reused},
             "lights": len(lights),
             "characters": [],
         }
         if self._light_problems:
-            report["lights_left_out"] = self._light_problems
-        report["characters"] += [
+            f.report["lights_left_out"] = self._light_problems
+        f.report["characters"] += [
             {"path": p, "decision": "skipped", "reason": "no model bundle (rigspace:model)"}
             for p in self.without_model
         ]
-        light_key = b"".join(
+        f.light_key = b"".join(
             light.radiance.tobytes()
             + light.direction.tobytes()
             + light.position.tobytes()
@@ -565,51 +605,58 @@ class Engine:
             + light.orientation.tobytes()
             for light in lights
         )
-        t = clock.perf_counter()
-        self._update_shadow_maps(scene_meshes, lights)
-        timings["shadows"] += clock.perf_counter() - t
-        report["shadows"] = {"maps_drawn": self.shadows.drawn, "casters": 0}
+        with f.timed("shadows"):
+            self._update_shadow_maps(f.scene_meshes, lights)
+        f.report["shadows"] = {"maps_drawn": self.shadows.drawn, "casters": 0}
         if self._no_shadow:
-            report["shadows"]["without_capsules"] = [p for p, _ in self._no_shadow]
+            f.report["shadows"]["without_capsules"] = [p for p, _ in self._no_shadow]
             self._no_shadow = []
-        casters: list[tuple[str, PosedCapsules]] = []
-        candidates: list[_Candidate] = []
+
+    def _pose_stage(self, f: _FrameState) -> None:
+        """Each character posed (its live pose and weights merged), its shadow capsules, its
+        billboard; those in view become the frame's candidates."""
         for character in self.characters:
             entry: dict[str, Any] = {"path": character.path}
-            report["characters"].append(entry)
+            f.report["characters"].append(entry)
             if self.reference:
                 entry.update(decision="reference", reason="the skinned mesh, drawn by the renderer")
                 continue
-            t = clock.perf_counter()
-            try:
-                world = character.pose(time, self.live.local(character, time, entry))
-                weights = character.weights(time, self._weights_of(character, time))
-            except SceneError as exc:
-                # One bad frame of animation must not end a sequence, nor draw a wrong image:
-                # the character is left out of this frame, loudly.
-                entry.update(decision="skipped", reason=exc.what)
-                print(f"rigspace render: warning: {exc}", file=sys.stderr)
-                continue
-            posed = character.posed_capsules(world) if self._shadowing(lights) else None
-            if posed is not None:  # casts a shadow wherever its billboard is, in view or not
-                casters.append((character.path, posed))
-            billboard = character.place(world, camera)
-            if not billboard.visible:
-                timings["rig"] += clock.perf_counter() - t
-                entry.update(decision="skipped", reason=billboard.reason)
-                continue
-            # The joints' world transforms and the camera determine the rig parameters and
-            # the billboard, so they decide the reuse without computing the parameters.
-            view = billboard.corners.round(3).tobytes() + camera_key
-            timings["rig"] += clock.perf_counter() - t
-            candidates.append(
-                _Candidate(
-                    character, entry, billboard, world, view, billboard.region(camera), weights
-                )
-            )
+            with f.timed("rig"):
+                candidate = self._pose_one(f, character, entry)
+            if candidate is not None:
+                f.candidates.append(candidate)
+
+    def _pose_one(
+        self, f: _FrameState, character: NeuralCharacter, entry: dict[str, Any]
+    ) -> _Candidate | None:
+        try:
+            world = character.pose(f.time, self.live.local(character, f.time, entry))
+            weights = character.weights(f.time, self._weights_of(character, f.time))
+        except SceneError as exc:
+            # One bad frame of animation must not end a sequence, nor draw a wrong image:
+            # the character is left out of this frame, loudly.
+            entry.update(decision="skipped", reason=exc.what)
+            print(f"rigspace render: warning: {exc}", file=sys.stderr)
+            return None
+        posed = character.posed_capsules(world) if self._shadowing(f.lights) else None
+        if posed is not None:  # casts a shadow wherever its billboard is, in view or not
+            f.casters.append((character.path, posed))
+        billboard = character.place(world, f.camera)
+        if not billboard.visible:
+            entry.update(decision="skipped", reason=billboard.reason)
+            return None
+        # The joints' world transforms and the camera determine the rig parameters and the
+        # billboard, so they decide the reuse without computing the parameters.
+        view = billboard.corners.round(3).tobytes() + f.camera_key
+        region = billboard.region(f.camera)
+        return _Candidate(character, entry, billboard, world, view, region, weights)
+
+    def _evaluate_stage(self, f: _FrameState) -> None:
+        """Each candidate's branches, its reuse of the last layer when pose, weights and view
+        hold, and one network call per (model, level, branches) for the rest."""
         pending: dict[tuple[int, int, tuple[str, ...]], list[_Candidate]] = {}
-        for c in candidates:
-            branches, why = self._branches(c, candidates, prims.mask, bool(lights))
+        for c in f.candidates:
+            branches, why = self._branches(c, f.candidates, f.prims.mask, bool(f.lights))
             cached = self._layers.get(c.character.path)
             c.entry["mode"] = "lit" if "geometry" in branches else "unlit"
             c.entry["mode_reason"] = why
@@ -622,139 +669,133 @@ class Engine:
                 continue
             level = c.character.model.level_for(c.billboard.size_px, self.max_level)
             pending.setdefault((id(c.character.model), level, branches), []).append(c)
-        t = clock.perf_counter()
-        for c in (c for group in pending.values() for c in group):
-            c.rig = c.character.parameters(c.world, c.billboard, camera, c.weights)
-        timings["rig"] += clock.perf_counter() - t
+        with f.timed("rig"):
+            for c in (c for group in pending.values() for c in group):
+                c.rig = c.character.parameters(c.world, c.billboard, f.camera, c.weights)
         # One network call per (model, level, branches): characters sharing a bundle batch.
-        t = clock.perf_counter()
-        for (_, level, branches), group in pending.items():
-            model = group[0].character.model
-            out = model.predict(np.concatenate([c.rig for c in group]), level, branches)
-            for k, c in enumerate(group):
-                mine = {name: value[k : k + 1] for name, value in out.items()}
-                layer = c.character.resample(mine, c.billboard, camera, level, branches)
-                self._layers[c.character.path] = _CachedLayer(
-                    c.world[c.character.order], c.view, layer, weights=c.weights
-                )
-                c.entry.update(decision="evaluated", batch=len(group))
-        timings["network"] += clock.perf_counter() - t
-        for c in candidates:
+        with f.timed("network"):
+            for (_, level, branches), group in pending.items():
+                model = group[0].character.model
+                out = model.predict(np.concatenate([c.rig for c in group]), level, branches)
+                for k, c in enumerate(group):
+                    mine = {name: value[k : k + 1] for name, value in out.items()}
+                    layer = c.character.resample(mine, c.billboard, f.camera, level, branches)
+                    self._layers[c.character.path] = _CachedLayer(
+                        c.world[c.character.order], c.view, layer, weights=c.weights
+                    )
+                    c.entry.update(decision="evaluated", batch=len(group))
+        for c in f.candidates:
             self._describe(c, self._layers[c.character.path].layer)
-        report["counts"] = _counts(report["characters"])
-        if self.live.active:
-            report["live"] = self.live.report()
-        report["shadows"]["casters"] = len(casters)
-        # Nothing changed since the last frame: the same prims, lights, shadows and layers.
-        frame_key = (
-            self._prims_key,
-            light_key,
-            self.shadows.key,
-            tuple((path, posed.key) for path, posed in casters),
-            tuple((c.character.path, self._layers[c.character.path].serial) for c in candidates),
-        )
-        if self._frame is not None and self._frame[0] == frame_key:
-            report["composite_reused"] = True
-            report["scene_prims"]["lit_reused"] = True
-            report["seconds"] = _seconds(timings, start)
-            self._frame_at = time
-            last = self._frame[1]
-            report["background"] = last.report.get("background")
-            return Frame(last.beauty, last.maps, report, last.opaque)
-        report["composite_reused"] = False
-        t = clock.perf_counter()
-        lit_key = light_key + self.shadows.key
-        lit_reused = reused and self._lit_prims is not None and self._lit_prims[0] == lit_key
+
+    def _reused_composite(self, f: _FrameState) -> Frame:
+        """The last frame's images with this frame's report: nothing it shows has changed."""
+        assert self._frame is not None
+        f.report["composite_reused"] = True
+        f.report["scene_prims"]["lit_reused"] = True
+        f.report["seconds"] = _seconds(f.timings, f.start)
+        self._frame_at = f.time
+        last = self._frame[1]
+        f.report["background"] = last.report.get("background")
+        return Frame(last.beauty, last.maps, f.report, last.opaque)
+
+    def _light_prims_stage(self, f: _FrameState) -> np.ndarray:
+        """The prims lit and shadowed (the maps' and the capsules' shadows): the beauty the
+        characters are composited over. Still prims and lights reuse their lighting and only
+        find the capsules' shadows again."""
+        prims, camera, lights = f.prims, f.camera, f.lights
+        lit_key = f.light_key + self.shadows.key
+        lit_reused = f.reused and self._lit_prims is not None and self._lit_prims[0] == lit_key
         if lit_reused and self._lit_prims is not None:
-            # The prims and lights are still: only the capsules' shadows are found again.
-            _, hidden = self._prim_shadows(prims, camera, lights, scene_meshes, casters, False)
-            timings["shadows"] += clock.perf_counter() - t
-            t = clock.perf_counter()
-            _, lit, visibility = self._lit_prims
-            if lit is None:  # last shaded with the capsules' shadows in: once without them
-                lit = self._shade_prims(prims, camera, lights, visibility)
-                self._lit_prims = (lit_key, lit, visibility)
-            beauty = lit.copy()  # the characters are composited over this copy
-            timings["lighting"] += clock.perf_counter() - t
-            t = clock.perf_counter()
-            self._capsule_reshade(beauty, prims, camera, lights, hidden, visibility)
-            timings["shadows"] += clock.perf_counter() - t
+            with f.timed("shadows"):
+                _, hidden = self._prim_shadows(
+                    prims, camera, lights, f.scene_meshes, f.casters, False
+                )
+            with f.timed("lighting"):
+                _, lit, visibility = self._lit_prims
+                if lit is None:  # last shaded with the capsules' shadows in: once without them
+                    lit = self._shade_prims(prims, camera, lights, visibility)
+                    self._lit_prims = (lit_key, lit, visibility)
+                beauty = lit.copy()  # the characters are composited over this copy
+            with f.timed("shadows"):
+                self._capsule_reshade(beauty, prims, camera, lights, hidden, visibility)
         else:
             # One pass finds the maps' and the capsules' shadows; one shading applies both.
-            visibility, hidden = None, []
-            if self._shadowing(lights):
-                visibility, hidden = self._prim_shadows(
-                    prims, camera, lights, scene_meshes, casters, True
-                )
-            timings["shadows"] += clock.perf_counter() - t
-            t = clock.perf_counter()
-            both = visibility
-            if any(v is not None for v in hidden) and visibility is not None:
-                both = [
-                    m if c is None else c if m is None else m * c
-                    for m, c in zip(visibility, hidden, strict=True)
-                ]
-            beauty = self._shade_prims(prims, camera, lights, both)
-            # Kept for a still next frame; without the capsules' shadows it is made then.
-            lit = beauty.copy() if both is visibility else None
-            self._lit_prims = (lit_key, lit, visibility)
-            timings["lighting"] += clock.perf_counter() - t
-        report["scene_prims"]["lit_reused"] = lit_reused
+            with f.timed("shadows"):
+                visibility, hidden = None, []
+                if self._shadowing(lights):
+                    visibility, hidden = self._prim_shadows(
+                        prims, camera, lights, f.scene_meshes, f.casters, True
+                    )
+            with f.timed("lighting"):
+                both = visibility
+                if any(v is not None for v in hidden) and visibility is not None:
+                    both = [
+                        m if c is None else c if m is None else m * c
+                        for m, c in zip(visibility, hidden, strict=True)
+                    ]
+                beauty = self._shade_prims(prims, camera, lights, both)
+                # Kept for a still next frame; without the capsules' shadows it is made then.
+                lit = beauty.copy() if both is visibility else None
+                self._lit_prims = (lit_key, lit, visibility)
+        f.report["scene_prims"]["lit_reused"] = lit_reused
+        return beauty
+
+    def _composite_stage(self, f: _FrameState, beauty: np.ndarray) -> Frame:
+        """Each character's layer lit (cached while its lights and the other casters hold)
+        and composited into the beauty and the AOVs by depth; the DomeLight behind all."""
+        prims, camera, lights = f.prims, f.camera, f.lights
         albedo, normal = prims.albedo.copy(), prims.normal.copy()
         depth, mask = prims.depth.copy(), prims.mask.copy()
         # Texture AOVs (uv, chart) when anything has them: the reference mode's meshes, or a
         # character coloured from its textures.
-        layers = [self._layers[c.character.path].layer for c in candidates]
+        layers = [self._layers[c.character.path].layer for c in f.candidates]
         uv = chart = None
         if prims.chart is not None or any(layer.chart is not None for layer in layers):
             shape = prims.mask.shape
             uv = prims.uv.copy() if prims.uv is not None else np.zeros((*shape, 2), np.float32)
             chart = prims.chart.copy() if prims.chart is not None else np.zeros(shape, np.int32)
-        for c in candidates:
+        for c in f.candidates:
             cached = self._layers[c.character.path]
             layer = cached.layer
-            t = clock.perf_counter()
-            others = [(p, posed) for p, posed in casters if p != c.character.path]
-            key = light_key + self.shadows.key + b"".join(posed.key for _, posed in others)
+            others = [(p, posed) for p, posed in f.casters if p != c.character.path]
+            key = f.light_key + self.shadows.key + b"".join(posed.key for _, posed in others)
             if cached.lit is None or cached.lit_key != key:
                 cached.lit_key = key
-                visibility = self._layer_visibility(layer, camera, lights, others, scene_meshes)
-                timings["shadows"] += clock.perf_counter() - t
-                t = clock.perf_counter()
-                cached.lit = (
-                    shade(
-                        layer.albedo,
-                        layer.normal,
-                        layer.depth,
-                        layer.mask,
-                        camera,
-                        lights,
-                        origin=(layer.x0, layer.y0),
-                        visibility=visibility,
+                with f.timed("shadows"):
+                    visibility = self._layer_visibility(
+                        layer, camera, lights, others, f.scene_meshes
                     )
-                    if lights
-                    else layer.albedo
+                with f.timed("lighting"):
+                    cached.lit = (
+                        shade(
+                            layer.albedo,
+                            layer.normal,
+                            layer.depth,
+                            layer.mask,
+                            camera,
+                            lights,
+                            origin=(layer.x0, layer.y0),
+                            visibility=visibility,
+                        )
+                        if lights
+                        else layer.albedo
+                    )
+            with f.timed("composite"):
+                _composite(layer, cached.lit, beauty, albedo, normal, depth, mask, uv, chart)
+        with f.timed("composite"):
+            dome = next((light for light in lights if light.kind == AMBIENT), None)
+            f.report["background"] = dome.path if dome is not None else None
+            if dome is not None:  # behind everything: over it goes the premultiplied frame
+                beauty += (1.0 - mask)[..., None] * self._dome_background(
+                    dome, camera, f.camera_key
                 )
-            timings["lighting"] += clock.perf_counter() - t
-            t = clock.perf_counter()
-            _composite(layer, cached.lit, beauty, albedo, normal, depth, mask, uv, chart)
-            timings["composite"] += clock.perf_counter() - t
-        t = clock.perf_counter()
-        dome = next((light for light in lights if light.kind == AMBIENT), None)
-        report["background"] = dome.path if dome is not None else None
-        if dome is not None:  # behind everything: over it goes the premultiplied frame
-            beauty += (1.0 - mask)[..., None] * self._dome_background(dome, camera, camera_key)
-        timings["composite"] += clock.perf_counter() - t
-        report["shadows"]["maps_drawn"] = self.shadows.drawn  # maps are drawn when first needed
+        f.report["shadows"]["maps_drawn"] = self.shadows.drawn  # drawn when first needed
         for array in (beauty, albedo, normal, depth, mask, uv, chart):
             if array is not None:
                 array.flags.writeable = False  # shared with the frame cache
-        maps = Maps(albedo, normal, depth, mask, uv, chart)
-        frame = Frame(beauty, maps, report, dome is not None)
-        self._frame = (frame_key, frame)
-        self._frame_at = time
-        report["seconds"] = _seconds(timings, start)
-        return frame
+        return Frame(
+            beauty, Maps(albedo, normal, depth, mask, uv, chart), f.report, dome is not None
+        )
 
     def coverage_of(self, path: str, time: float) -> np.ndarray | None:
         """(H, W) a character's own coverage at `time`, before any depth test: its layer's in
@@ -850,6 +891,37 @@ class Engine:
             region=[int(layer.x0), int(layer.y0), *map(int, layer.mask.shape[::-1])],
             **({"texture_ms": layer.info["texture_ms"]} if "texture_ms" in layer.info else {}),
         )
+
+
+@dataclass
+class _FrameState:
+    """One frame's context, filled stage by stage (Engine.render)."""
+
+    time: float
+    start: float
+    """perf_counter() when the frame began (the report's total)."""
+    timings: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
+    camera: Camera = field(init=False)
+    camera_key: bytes = b""
+    scene_meshes: list = field(default_factory=list)
+    """The set's meshes (the shadow casters), without the reference mode's characters."""
+    prims: Maps = field(init=False)
+    reused: bool = False
+    """Whether the prims' G-buffer is the last frame's."""
+    lights: list = field(default_factory=list)
+    light_key: bytes = b""
+    report: dict[str, Any] = field(default_factory=dict)
+    casters: list[tuple[str, PosedCapsules]] = field(default_factory=list)
+    candidates: list[_Candidate] = field(default_factory=list)
+
+    @contextmanager
+    def timed(self, stage: str) -> Iterator[None]:
+        """Add the time the block takes to the report's seconds of `stage`."""
+        began = clock.perf_counter()
+        try:
+            yield
+        finally:
+            self.timings[stage] += clock.perf_counter() - began
 
 
 @dataclass
