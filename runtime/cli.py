@@ -11,6 +11,7 @@ import time as clock
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from rigspace.runtime.options import add_view_arguments, positive
 from rigspace.sdk.cli import CommandSpec, time_range
 from rigspace.sdk.errors import RigspaceError, SceneError
 from rigspace.sdk.predictors import add_predictor_argument
@@ -28,24 +29,6 @@ is created only once the scene and flags are valid.
 """
 CONTACT_FRAMES = 9
 """Evenly spaced frames on contact_sheet.png, three to a row (a 16:9 sheet of 16:9 frames)."""
-
-
-def _resolution(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(x) for x in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not WxH, e.g. 640x360") from None
-    return w, h
-
-
-def _positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a positive whole number")
-    return value
 
 
 def _aovs(text: str) -> tuple[str, ...]:
@@ -73,16 +56,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--out", required=True, help="folder for frames, report.json, contact sheet"
     )
-    parser.add_argument("--camera", help="Camera prim path (default: the stage's first camera)")
+    add_view_arguments(parser)
     parser.add_argument(
         "--frames", type=time_range, metavar="A:B", help="time codes (default: the stage's range)"
     )
     parser.add_argument("--step", type=float, default=1.0, help="time codes between frames")
-    parser.add_argument("--resolution", type=_resolution, default=(640, 360), metavar="WxH")
     parser.add_argument("--video", help="also write this mp4 (H.264, yuv420p)")
-    parser.add_argument(
-        "--renderer", default="auto", help="renderer for the scene prims: gl, embree, auto"
-    )
     parser.add_argument("--int8", action="store_true", help="evaluate the int8 graphs")
     add_predictor_argument(parser)
     parser.add_argument(
@@ -97,14 +76,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--prim-samples",
-        type=_positive,
+        type=positive,
         default=2,
         metavar="N",
         help="N x N samples per pixel for the scene prims (default 2; 1: no anti-aliasing, faster)",
     )
     parser.add_argument(
         "--max-level",
-        type=_positive,
+        type=positive,
         metavar="R",
         help="cap the characters' level of detail at R x R (faster, less detail)",
     )

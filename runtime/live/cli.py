@@ -67,27 +67,13 @@ def run(args: argparse.Namespace) -> int:
     return live(_live_parser().parse_args(argv))
 
 
-def _source(text: str) -> tuple[str, str]:
-    name, sep, url = text.partition("=")
-    if not sep or not name or "://" not in url:
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not NAME=URL, e.g. suit=vmc://127.0.0.1:39539"
-        )
-    return name, url
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
-    return value
-
-
 def _live_parser() -> argparse.ArgumentParser:
-    from rigspace.runtime.cli import _positive, _resolution
+    from rigspace.runtime.options import (
+        add_source_argument,
+        add_view_arguments,
+        positive,
+        positive_seconds,
+    )
 
     parser = argparse.ArgumentParser(
         prog="rigspace live",
@@ -95,29 +81,22 @@ def _live_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("scene", help="the .usd* stage (its enabled live bindings drive it)")
     parser.add_argument("--out", required=True, help="folder for frames and report.json")
-    parser.add_argument("--seconds", type=_positive_float, default=10.0, help="how long to run")
+    parser.add_argument("--seconds", type=positive_seconds, default=10.0, help="how long to run")
     parser.add_argument("--record", metavar="TAKE.usda", help="record the live poses as a take")
-    parser.add_argument(
-        "--source",
-        type=_source,
-        action="append",
-        default=[],
-        metavar="NAME=URL",
-        help="give binding NAME this source URL (and enable it); repeatable",
-    )
+    add_source_argument(parser, "give binding NAME this source URL (and enable it); repeatable")
     parser.add_argument("--video", help="also write this mp4 (H.264), in real time")
-    parser.add_argument("--camera", help="Camera prim path (default: the stage's first camera)")
-    parser.add_argument("--resolution", type=_resolution, default=(640, 360), metavar="WxH")
+    add_view_arguments(parser)
     parser.add_argument("--start", type=float, help="first time code (default: the stage's start)")
-    parser.add_argument("--renderer", default="auto", help="renderer for the scene prims")
     add_predictor_argument(parser)
-    parser.add_argument("--prim-samples", type=_positive, default=1, metavar="N",
+    parser.add_argument("--prim-samples", type=positive, default=1, metavar="N",
                         help="N x N samples per pixel for the prims (default 1: real time first)")  # fmt: skip
-    parser.add_argument("--max-level", type=_positive, metavar="R", help="cap the level of detail")
+    parser.add_argument("--max-level", type=positive, metavar="R", help="cap the level of detail")
     return parser
 
 
 def _calibrate_parser() -> argparse.ArgumentParser:
+    from rigspace.runtime.options import positive_seconds
+
     parser = argparse.ArgumentParser(
         prog="rigspace live calibrate",
         description="Store a live binding's rest pose: the performer holds the character's rest "
@@ -127,7 +106,7 @@ def _calibrate_parser() -> argparse.ArgumentParser:
         "scene", help="the stage whose binding to calibrate (its root layer is saved)"
     )
     parser.add_argument("--binding", required=True, help="the RigspaceLiveBindingAPI instance name")
-    parser.add_argument("--seconds", type=_positive_float, default=3.0,
+    parser.add_argument("--seconds", type=positive_seconds, default=3.0,
                         help="how long to wait before taking the pose (default 3)")  # fmt: skip
     parser.add_argument("--source", help="listen on this URL instead of the binding's")
     return parser

@@ -10,8 +10,7 @@ import time
 import webbrowser
 from typing import TYPE_CHECKING
 
-from rigspace.runtime.cli import _resolution
-from rigspace.runtime.live.cli import _source
+from rigspace.runtime.options import add_source_argument, add_view_arguments
 from rigspace.sdk.cli import CommandSpec
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.predictors import add_predictor_argument
@@ -38,22 +37,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="address to serve on (loopback)")
     parser.add_argument("--port", type=int, default=8765, help="port (default 8765; 0: any)")
     parser.add_argument("--open", action="store_true", help="open the page in a browser")
-    parser.add_argument("--camera", help="Camera prim path (default: the stage's first)")
-    parser.add_argument("--resolution", type=_resolution, default=(640, 360), metavar="WxH")
-    parser.add_argument("--renderer", default="auto", help="gl, embree or auto")
+    add_view_arguments(parser)
     add_predictor_argument(parser)
     parser.add_argument(
         "--reference",
         action="store_true",
         help="also render the skinned mesh: reference, side by side and error views",
     )
-    parser.add_argument(
-        "--source",
-        type=_source,
-        action="append",
-        default=[],
-        metavar="NAME=URL",
-        help="drive the live binding NAME from URL instead of its authored source",
+    add_source_argument(
+        parser, "drive the live binding NAME from URL instead of its authored source"
     )
 
 
