@@ -44,8 +44,10 @@ from rigspace.runtime.live.engine import LiveInput
 from rigspace.runtime.scene import SceneGeometry
 from rigspace.runtime.shading import pixel_positions, shade, shade_pixels
 from rigspace.runtime.shadows import (
+    CompiledPasses,
     PosedCapsules,
     PrimShadows,
+    ShadowBackend,
     region_mask,
     shadow_regions,
     sparse_visibility,
@@ -135,6 +137,7 @@ class Engine:
         sources: dict[str, str] | None = None,
         predictor: str = "auto",
         models: dict[str, str] | None = None,
+        shadow_backend: ShadowBackend | None = None,
     ) -> None:
         """`reference=True` draws each character's real skinned mesh with the renderer instead
         of its network (the ground truth that `rigspace render --reference` compares with).
@@ -150,7 +153,9 @@ class Engine:
         `sources` maps binding names to URLs that replace theirs and enable them. `predictor`
         runs the networks (rigspace.sdk.predictors; "auto": the fastest that can). `models`
         maps neural character paths ("" for the stage's only one) to model bundles drawn
-        instead of their rigspace:model, in the session layer: the scene file is not edited."""
+        instead of their rigspace:model, in the session layer: the scene file is not edited.
+        `shadow_backend` says what computes the shadows (rigspace.runtime.shadows.ShadowBackend:
+        the compiled kernels and, on a GPU, the fragment shader by default)."""
         unknown = sorted(set(aovs) - set(AOVS))
         if unknown:
             raise SceneError(
@@ -205,6 +210,9 @@ class Engine:
         )
         """The lit prims, keyed by lights and shadow maps, with each light's shadow factor."""
         self.shadows = PrimShadows(spec)
+        self._compiled: CompiledPasses | None = None
+        """The kernels' passes when the backend computes with numba, else None (numpy)."""
+        self.use_shadow_backend(shadow_backend or ShadowBackend())
         self._box: tuple[tuple, np.ndarray] | None = None
         self._background: tuple[bytes, np.ndarray] | None = None
         self._no_shadow = [(c.path, c.no_shadow) for c in self.characters if c.no_shadow]
@@ -370,9 +378,9 @@ class Engine:
         (sparse_visibility) in the window of its own screen regions. (One pass for both, on
         the union of their windows, measured slower: the capsules' small window grew to the
         maps' and more pixels were evaluated.) The same passes run compiled in shadow_pass.py
-        unless the capsules go to the fragment shader or SHADOW_KERNEL is "numpy"."""
+        unless the capsules go to the fragment shader or the backend's kernel is "numpy"."""
         box = self._scene_box(meshes)
-        if shadow_pass.wanted() and self.shadows.capsule_backend == "numpy":
+        if self._compiled is not None and self.shadows.capsule_backend == "numpy":
             return shadow_pass.prim_shadows(self.shadows, prims, camera, lights, box, casters, maps)
         bounds = [(posed, [part.bounds() for part in posed.parts()]) for _, posed in casters]
         jobs: list[tuple[int, int, list, Any]] = []  # (light, pass, regions, map or capsules)
@@ -389,7 +397,8 @@ class Engine:
             for posed, spheres in bounds:
                 centres = np.array([c for c, _ in spheres])
                 reach = np.array([r for _, r in spheres])[:, None]
-                rects = shadow_regions(centres - reach, centres + reach, light, box, camera)
+                find = self._compiled.shadow_regions if self._compiled else shadow_regions
+                rects = find(centres - reach, centres + reach, light, box, camera)
                 rects = [r for r in rects if r is not None]
                 if rects:
                     number = passes.setdefault((index, "capsules"), len(passes))
@@ -480,7 +489,7 @@ class Engine:
         other characters' capsules (its own capsules would shadow its own surface)."""
         if not self._shadowing(lights) or layer.depth is None or layer.normal is None:
             return None
-        if shadow_pass.wanted() and self.shadows.capsule_backend == "numpy":
+        if self._compiled is not None and self.shadows.capsule_backend == "numpy":
             box = self._scene_box(meshes)
             return shadow_pass.layer_visibility(self.shadows, layer, camera, lights, box, others)
         h, w = layer.mask.shape
@@ -832,6 +841,12 @@ class Engine:
         report["counts"] = _counts(report["characters"])
         report["seconds"] = _seconds(dict.fromkeys(STAGES, 0.0), start)
         return Frame(last.beauty, last.maps, report, last.opaque)
+
+    def use_shadow_backend(self, backend: ShadowBackend) -> None:
+        """Compute the shadows with `backend` from the next call on (the shadow maps drawn so
+        far are kept: the shadow bench times both kernels on the same inputs)."""
+        self._compiled = shadow_pass.COMPILED if backend.kernel == "numba" else None
+        self.shadows.use(backend, self._compiled)
 
     def set_weights(self, path: str, weights: dict[str, float]) -> None:
         """Override blend shape weights of the character at `path` from the next frame on (an

@@ -1,7 +1,7 @@
 """Measure the shadow stage on the previs scene: compiled kernels against numpy, split by sub-step.
 
 `python -m rigspace.runtime.shadow_bench [--frames N] [--sizes 256x256 640x360] [--kernels
-numba numpy]`: per size, two engines (SHADOW_KERNEL "numba" and "numpy", or those named)
+numba numpy]`: per size, two engines (ShadowBackend kernel "numba" and "numpy", or those named)
 render the same frames of
 samples/scenes/previs.usda with the sample character, one frame each in turn in one
 process (so that load on a shared machine falls on both alike); printed per engine: the
@@ -29,6 +29,7 @@ import numpy as np
 from rigspace.runtime import engine as engine_module
 from rigspace.runtime import shadow_kernels, shadow_pass, shadows
 from rigspace.runtime.engine import STAGES, Engine
+from rigspace.runtime.shadows import ShadowBackend
 
 KERNELS = ("numba", "numpy")
 SCENE = Path(__file__).resolve().parents[1] / "samples" / "scenes" / "previs.usda"
@@ -116,14 +117,15 @@ def measure(
         runs: dict[str, tuple[Engine, list[dict], float, _Timers]] = {}
         try:
             for kernel in kernels:
-                shadows.SHADOW_KERNEL = kernel
-                engine = Engine(SCENE, width=width, height=height, prim_samples=1)
+                engine = Engine(
+                    SCENE, width=width, height=height, prim_samples=1,
+                    shadow_backend=ShadowBackend(kernel),
+                )  # fmt: skip
                 start = clock.perf_counter()
                 engine.render(float(times[0]))  # warm-up (numba: load or compile the kernels)
                 runs[kernel] = (engine, [], clock.perf_counter() - start, _Timers())
             for t in times[1:]:
-                for kernel, (engine, reports, _, timers) in runs.items():
-                    shadows.SHADOW_KERNEL = kernel
+                for _kernel, (engine, reports, _, timers) in runs.items():
                     timers.wrap()
                     cpu = _cpu_wrap(engine)
                     start = clock.process_time()
@@ -137,7 +139,6 @@ def measure(
                     seconds["cpu shadows"] = cpu[0]
                     reports.append(seconds)
         finally:
-            shadows.SHADOW_KERNEL = "numba"
             for engine, _, _, _ in runs.values():
                 engine.close()
         for kernel, (_, reports, first, timers) in runs.items():
@@ -192,7 +193,7 @@ def passes(
             engine.render(600.0)
             for name, args in recorded.items():
                 for kernel in kernels:
-                    shadows.SHADOW_KERNEL = kernel
+                    engine.use_shadow_backend(ShadowBackend(kernel))
                     spent = []
                     for _ in range(repeats):
                         start = clock.thread_time()
@@ -200,7 +201,6 @@ def passes(
                         spent.append(clock.thread_time() - start)
                     found[name, kernel] = (1e3 * min(spent), 1e3 * statistics.median(spent))
         finally:
-            shadows.SHADOW_KERNEL = "numba"
             engine.close()
         for name, what in (("_prim_shadows", "prims' passes"), ("_layer_visibility", "layer")):
             mine = {k: found[name, k] for k in kernels if (name, k) in found}

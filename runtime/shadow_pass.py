@@ -31,11 +31,6 @@ _NO_SETS = (
 )  # fmt: skip
 
 
-def wanted() -> bool:
-    """Whether the kernels compute the shadows (shadows.SHADOW_KERNEL)."""
-    return sh.SHADOW_KERNEL == "numba"
-
-
 def map_row(shadow_map: sh.ShadowMap, start: int, buffer: int) -> np.ndarray:
     """A map's MAP_FIELDS row, its padded depth starting at `start` in flat buffer `buffer`."""
     base = shadow_map.__dict__.get("_row")  # kept with the map: the still one lasts
@@ -245,7 +240,7 @@ def _capsule_jobs(light: Light, limbs, box: np.ndarray, camera: Camera) -> list[
     for posed, spheres in limbs:
         centres = np.array([c for c, _ in spheres])
         reach = np.array([r for _, r in spheres])[:, None]
-        found = sh.shadow_regions(centres - reach, centres + reach, light, box, camera)
+        found = shadow_regions(centres - reach, centres + reach, light, box, camera)
         rects = [r for r in found if r is not None]
         if rects:
             jobs.append((rects, posed))
@@ -352,3 +347,7 @@ def _pass(jobs, data, gbuffer, frame, area, step: int) -> np.ndarray:
         full, *gbuffer, frame, y1 - y0, x1 - x0, rects, rect_job, *data, CONSTANTS, step
     )
     return full
+
+
+COMPILED = sh.CompiledPasses(points_visibility, shadow_regions)
+"""The kernels' entry points, for a PrimShadows whose backend computes with numba."""

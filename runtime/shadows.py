@@ -22,14 +22,14 @@
   the screen rectangles of the limbs' shadow volumes are visited, and only the (pixel,
   capsule) pairs that lie close in the light's 2-D view (a capsule's shadow is a 2-D
   capsule there, widened by each pixel's penumbra) are computed. With a GPU behind the gl
-  renderer the same maths runs in a fragment shader instead (gl_shadows.py, GL_CAPSULES).
+  renderer the same maths runs in a fragment shader instead (gl_shadows.py, ShadowBackend).
 
 Shadowing multiplies each light's contribution (diffuse and specular), never the ambient.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -69,16 +69,43 @@ BEND_TOLERANCE = 0.1
 """A cell where the shadow factor's second difference at a sample exceeds this (the factor
 does not change linearly there: a shadow's edge, its end, a thin shadow) is evaluated, and
 so are its neighbours; elsewhere a blend errs by about an eighth of it."""
-GL_CAPSULES = "hardware"
-"""Where capsule occlusion runs in a fragment shader (gl_shadows.py) rather than numpy:
-"hardware" with the gl renderer on a GPU, "always" with the gl renderer (Mesa's llvmpipe
-too), "never". On llvmpipe, 2 shared cores, the shader measured no faster than numpy per
-frame (each draw hands its pixels to llvmpipe's threads and waits for them), so numpy
-stays there; the numpy pairs are also the reference and the fallback (embree, no EGL)."""
-SHADOW_KERNEL = "numba"
-"""What computes the shadows where the fragment shader does not: "numba", the compiled
-kernels of shadow_kernels.py (one call per pass, shadow_pass.py), or "numpy", the engine's
-passes over this module's functions (the reference the kernels are tested against)."""
+GL_CAPSULE_CHOICES = ("hardware", "always", "never")
+KERNELS = ("numba", "numpy")
+
+
+@dataclass(frozen=True)
+class ShadowBackend:
+    """How an Engine computes shadows, chosen once per engine (no module state: a test or the
+    shadow bench picks one by argument)."""
+
+    kernel: str = "numba"
+    """What computes the shadows where the fragment shader does not: "numba", the compiled
+    kernels of shadow_kernels.py (one call per pass, shadow_pass.py), or "numpy", the engine's
+    passes over this module's functions (the reference the kernels are tested against)."""
+    gl_capsules: str = "hardware"
+    """Where capsule occlusion runs in a fragment shader (gl_shadows.py) rather than on the
+    CPU: "hardware" with the gl renderer on a GPU, "always" with the gl renderer (Mesa's
+    llvmpipe too), "never". On llvmpipe, 2 shared cores, the shader measured no faster than
+    numpy per frame (each draw hands its pixels to llvmpipe's threads and waits for them), so
+    the CPU keeps it there; the numpy pairs are also the reference and the fallback (embree,
+    no EGL)."""
+
+    def __post_init__(self) -> None:
+        if self.kernel not in KERNELS:
+            raise ValueError(f"shadow kernel {self.kernel!r} is not one of {KERNELS}")
+        if self.gl_capsules not in GL_CAPSULE_CHOICES:
+            raise ValueError(f"gl_capsules {self.gl_capsules!r} is not one of {GL_CAPSULE_CHOICES}")
+
+
+@dataclass(frozen=True)
+class CompiledPasses:
+    """The compiled kernels' entry points a PrimShadows calls instead of numpy (shadow_pass
+    gives them: this module does not import it, which imports this one)."""
+
+    points_visibility: Callable[..., np.ndarray]
+    shadow_regions: Callable[..., list]
+
+
 SOFTWARE_GL = ("llvmpipe", "softpipe", "swrast", "software")
 """GL_RENDERER strings (lower case) of a rasteriser on the CPU."""
 SURFACE_TOLERANCE = 0.01
@@ -207,8 +234,17 @@ class PrimShadows:
     """Shadow maps of the scene prims per light, drawn when first needed in a frame and
     kept while their casters and light are still."""
 
-    def __init__(self, spec: RendererSpec) -> None:
+    def __init__(
+        self,
+        spec: RendererSpec,
+        backend: ShadowBackend | None = None,
+        compiled: CompiledPasses | None = None,
+    ) -> None:
+        """`compiled`: the kernels' passes (shadow_pass.COMPILED) when `backend.kernel` is
+        "numba"; None computes with this module's numpy functions."""
         self._spec = spec
+        self.backend = backend or ShadowBackend()
+        self._compiled = compiled
         self._renderer: Renderer | None = None
         """Its own renderer, made on the first map: one sample per texel, and the frame's
         renderer keeps its meshes uploaded (a renderer releases what a call does not draw)."""
@@ -224,6 +260,15 @@ class PrimShadows:
         self.drawn = 0
         """Maps drawn since the last update (the report's)."""
         self._gl: GLCapsuleShadows | None = None
+        self._gl_tried = False
+
+    def use(self, backend: ShadowBackend, compiled: CompiledPasses | None) -> None:
+        """Compute with `backend` (and the kernels' `compiled` passes, or numpy without) from
+        now on; where capsule occlusion runs is decided again on its next use."""
+        self.backend, self._compiled = backend, compiled
+        if self._gl is not None:
+            self._gl.close()
+            self._gl = None
         self._gl_tried = False
 
     def update(
@@ -285,13 +330,11 @@ class PrimShadows:
     def capsule_visibility(
         self, points: np.ndarray, capsules: PosedCapsules, light: Light
     ) -> np.ndarray:
-        """capsule_visibility, in the fragment shader where GL_CAPSULES says so, else compiled
-        (SHADOW_KERNEL)."""
+        """capsule_visibility, in the fragment shader where the backend's gl_capsules says so,
+        else compiled where it has the kernels, else numpy."""
         shader = self._capsule_shader()
-        if shader is None and SHADOW_KERNEL == "numba":
-            from rigspace.runtime import shadow_pass  # it imports this module
-
-            return shadow_pass.points_visibility(points, None, light, capsules)
+        if shader is None and self._compiled is not None:
+            return self._compiled.points_visibility(points, None, light, capsules)
         return capsule_visibility(points, capsules, light, shader)
 
     @property
@@ -302,11 +345,12 @@ class PrimShadows:
     def _capsule_shader(self) -> GLCapsuleShadows | None:
         if not self._gl_tried:
             self._gl_tried = True
-            wanted = GL_CAPSULES != "never" and self._spec.name == "gl"
+            where = self.backend.gl_capsules
+            wanted = where != "never" and self._spec.name == "gl"
             if wanted and self._spec.unavailable() is None:
                 self._gl = GLCapsuleShadows(MIN_VISIBILITY)
                 software = any(name in self._gl.renderer.lower() for name in SOFTWARE_GL)
-                if software and GL_CAPSULES != "always":
+                if software and where != "always":
                     self._gl.close()
                     self._gl = None
         return self._gl
@@ -331,7 +375,8 @@ class PrimShadows:
         if casters:  # one call for every map's casters: its cost is mostly per call
             lo = np.array([self._bounds[id(m)][0] for m in casters])
             hi = np.array([self._bounds[id(m)][1] for m in casters])
-            found = iter(shadow_regions(lo, hi, self._lights[index], box, camera))
+            find = self._compiled.shadow_regions if self._compiled else shadow_regions
+            found = iter(find(lo, hi, self._lights[index], box, camera))
             for name, key, meshes in groups:
                 rects = [r for r in (next(found) for _ in meshes) if r]
                 if rects:
@@ -344,10 +389,8 @@ class PrimShadows:
         shadow_map = self._map(*handle)
         if shadow_map is None:
             return np.ones(points.shape[1], np.float32)
-        if SHADOW_KERNEL == "numba":
-            from rigspace.runtime import shadow_pass  # it imports this module
-
-            return shadow_pass.points_visibility(points, normals, shadow_map=shadow_map)
+        if self._compiled is not None:
+            return self._compiled.points_visibility(points, normals, shadow_map=shadow_map)
         return shadow_map.visibility(points, normals)
 
     def shadow_map(self, handle: tuple) -> ShadowMap | None:
@@ -668,11 +711,7 @@ def shadow_regions(
     None. Its box is swept away from `light` until it leaves the scene's bounds `box`,
     widened along the way by the shadow's softness (light_softness). None: it casts onto
     nothing in view (a flat caster on the scene's boundary, the ground, onto nothing).
-    Compiled (shadow_kernels.shadow_regions) where SHADOW_KERNEL says so."""
-    if SHADOW_KERNEL == "numba":
-        from rigspace.runtime import shadow_pass  # it imports this module
-
-        return shadow_pass.shadow_regions(lo, hi, light, box, camera)
+    The numpy reference; shadow_pass.shadow_regions is its compiled twin (CompiledPasses)."""
     m = len(lo)
     bounds = np.stack([lo, hi], axis=1)  # (M, 2, 3)
     corners = bounds[:, _CORNER_PICK, np.arange(3)]  # (M, 8, 3)

@@ -10,10 +10,15 @@ import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
-from rigspace.runtime import shadows
+from rigspace.runtime import shadow_pass, shadows
 from rigspace.runtime.engine import Engine
 from rigspace.runtime.lights import DISTANT, POINT, Light
-from rigspace.runtime.shadows import PosedCapsules, capsule_visibility, cone_occlusion
+from rigspace.runtime.shadows import (
+    PosedCapsules,
+    ShadowBackend,
+    capsule_visibility,
+    cone_occlusion,
+)
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.capsules import (
     CapsuleError,
@@ -527,13 +532,15 @@ def test_the_previs_frame_blended_matches_every_pixel_evaluated(monkeypatch):
     from rigspace.runtime import engine as engine_module
 
     def frame():
-        engine = Engine(PREVIS, width=320, height=180, precision="int8", prim_samples=1)
+        engine = Engine(
+            PREVIS, width=320, height=180, precision="int8", prim_samples=1,
+            shadow_backend=ShadowBackend("numpy"),  # the engine's numpy passes
+        )  # fmt: skip
         try:
             return np.array(engine.render(600.0).beauty)
         finally:
             engine.close()
 
-    monkeypatch.setattr(shadows, "SHADOW_KERNEL", "numpy")  # the engine's numpy passes
     blended = frame()
     monkeypatch.setattr(engine_module, "sparse_visibility", _full_visibility)
     full = frame()
@@ -649,9 +656,8 @@ def test_the_previs_frame_through_the_shader_matches_numpy(monkeypatch):
         pytest.skip(f"the gl renderer cannot run here: {gl_module.unavailable()}")
 
     def frame(where: str) -> tuple[np.ndarray, str]:
-        monkeypatch.setattr(shadows, "GL_CAPSULES", where)
         engine = Engine(PREVIS, width=320, height=180, precision="int8", prim_samples=1,
-                        renderer="gl")  # fmt: skip
+                        renderer="gl", shadow_backend=ShadowBackend(gl_capsules=where))  # fmt: skip
         try:
             return np.array(engine.render(600.0).beauty), engine.shadows.capsule_backend
         finally:
@@ -688,8 +694,8 @@ def test_the_shader_runs_only_with_the_gl_renderer_on_a_gpu(name, monkeypatch):
         assert backend == ("numpy" if software else "gl")
     finally:
         prim_shadows.close()
-    monkeypatch.setattr(shadows, "GL_CAPSULES", "always")
-    assert prim_shadows.capsule_backend == "gl"  # decided again after close
+    prim_shadows.use(ShadowBackend(gl_capsules="always"), None)
+    assert prim_shadows.capsule_backend == "gl"  # decided again for the new backend
     prim_shadows.close()
 
 
@@ -712,7 +718,6 @@ def _shadow_terms(monkeypatch, kernel: str, times, size=(320, 180)):
     the engine shaded with, through the numba kernels or the numpy passes."""
     from rigspace.runtime import engine as engine_module
 
-    monkeypatch.setattr(shadows, "SHADOW_KERNEL", kernel)
     terms = []
 
     def recording(self, *args):
@@ -721,7 +726,10 @@ def _shadow_terms(monkeypatch, kernel: str, times, size=(320, 180)):
         return out
 
     monkeypatch.setattr(engine_module.Engine, "_prim_shadows", recording)
-    engine = Engine(PREVIS, width=size[0], height=size[1], precision="int8", prim_samples=1)
+    engine = Engine(
+        PREVIS, width=size[0], height=size[1], precision="int8", prim_samples=1,
+        shadow_backend=ShadowBackend(kernel),
+    )  # fmt: skip
     try:
         frames = [np.array(engine.render(float(t)).beauty) for t in times]
     finally:
@@ -753,12 +761,9 @@ def test_the_compiled_shadow_passes_match_numpy_on_previs_frames(monkeypatch):
 
 def test_the_compiled_blend_matches_every_pixel_evaluated(monkeypatch):
     """The kernels' coarse-to-fine blend against every candidate evaluated by them."""
-    from rigspace.runtime import shadow_pass
-
     blended, _ = _shadow_terms(monkeypatch, "numba", (600.0,))
     monkeypatch.setattr(shadows, "SPARSE_STEP", 1)
     full, _ = _shadow_terms(monkeypatch, "numba", (600.0,))
-    assert shadow_pass.wanted()
     gap = np.abs(blended[0] - full[0]).max(axis=-1)
     # As the numpy blend (test_the_previs_frame_blended_matches_every_pixel_evaluated).
     assert (gap > 2 / 255).sum() <= 20
@@ -857,9 +862,8 @@ def test_the_compiled_screen_regions_match_numpy(kind, monkeypatch):
     world = np.eye(4)
     world[:3, 3] = (0.0, 100.0, 900.0)
     camera = Camera(world, 320, 180, 35.0, 36.0, 20.25, near=1.0, far=1e5)
-    fast = shadows.shadow_regions(lo, hi, light, box, camera)
-    monkeypatch.setattr(shadows, "SHADOW_KERNEL", "numpy")
-    slow = shadows.shadow_regions(lo, hi, light, box, camera)
+    fast = shadow_pass.shadow_regions(lo, hi, light, box, camera)  # compiled
+    slow = shadows.shadow_regions(lo, hi, light, box, camera)  # numpy
     assert fast == slow
     kinds = {None if r is None else r == (0, 0, 320, 180) for r in slow}
     assert kinds == {None, True, False}  # nothing, the whole frame and rectangles compared
@@ -873,8 +877,10 @@ def test_the_compiled_passes_match_numpy_with_several_characters(tmp_path, monke
     scene = crowd_scene(tmp_path, 3)
     frames = {}
     for kernel in ("numba", "numpy"):
-        monkeypatch.setattr(shadows, "SHADOW_KERNEL", kernel)
-        engine = Engine(scene, width=240, height=135, precision="int8", prim_samples=1)
+        engine = Engine(
+            scene, width=240, height=135, precision="int8", prim_samples=1,
+            shadow_backend=ShadowBackend(kernel),
+        )  # fmt: skip
         try:
             frame = engine.render(700.0)
         finally:
@@ -910,7 +916,7 @@ def test_the_character_layer_blended_matches_every_pixel_evaluated_by_numpy(tmp_
     half_roof = _stage(tmp_path, "half_roof", build)
 
     def factors(kernel: str) -> list:
-        monkeypatch.setattr(shadows, "SHADOW_KERNEL", kernel)
+        backend = ShadowBackend(kernel)
         found = []
 
         def recording(self, layer, camera, *args):
@@ -947,13 +953,18 @@ def test_the_character_layer_blended_matches_every_pixel_evaluated_by_numpy(tmp_
             return out
 
         monkeypatch.setattr(engine_module.Engine, "_layer_visibility", recording)
-        engine = Engine(PREVIS, width=320, height=180, precision="int8", prim_samples=1)
+        engine = Engine(
+            PREVIS, width=320, height=180, precision="int8", prim_samples=1,
+            shadow_backend=backend,
+        )  # fmt: skip
         try:
             for t in (250.0, 750.0, 850.0):
                 engine.render(t)
         finally:
             engine.close()
-        engine = Engine(half_roof, camera="/World/Test/Cam", width=320, height=180)
+        engine = Engine(
+            half_roof, camera="/World/Test/Cam", width=320, height=180, shadow_backend=backend
+        )
         try:
             engine.render(0.0)
         finally:
