@@ -16,11 +16,13 @@ import platform
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from rigspace.bench import report
 from rigspace.sdk.cli import CommandSpec
 from rigspace.sdk.predictors import add_device_argument, add_predictor_argument
 
@@ -191,29 +193,16 @@ def run(args: argparse.Namespace) -> int:
         for part in bar:
             bar.set_postfix_str(part)
             start = time.monotonic()
-            result[part] = MEASURE[part](plan, Path(tmp), dataset)
+            spec = BY_NAME[part]
+            result[part] = spec.measure(plan, Path(tmp), dataset)
             result["seconds"][part] = round(time.monotonic() - start, 1)
             result["parts"][part] = {"command": command, "date": now, "machine": machine()}
-            _plot(part, result[part], out)
+            if spec.plot is not None:
+                spec.plot(result[part], out)
             _write(out, result)  # every part is kept even if a later one fails
     _write(out, result)
     print(f"bench results in {out}: results.json, README.md" + _pngs(out))
     return 0
-
-
-def _plot(part: str, value: Any, out: Path) -> None:
-    if part == "pareto":
-        from rigspace.bench import pareto
-
-        pareto.plot(value, out / "pareto.png")
-    elif part == "premise":
-        from rigspace.bench import premise
-
-        premise.plot(value, out / "premise.png")
-    elif part == "skips":
-        from rigspace.bench import skips
-
-        skips.plot(value["int8"], out / "skips.png")
 
 
 def _pngs(out: Path) -> str:
@@ -227,7 +216,7 @@ def _write(out: Path, result: dict[str, Any]) -> None:
     tmp = out / f".results.json.{os.getpid()}.tmp"
     tmp.write_text(json.dumps(result, indent=1, default=_plain) + "\n")
     os.replace(tmp, out / "results.json")
-    (out / "README.md").write_text(markdown(result))
+    (out / "README.md").write_text(markdown(result, SECTIONS))
 
 
 def _plain(value: Any) -> Any:
@@ -394,25 +383,55 @@ def _stability(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
     return result
 
 
-MEASURE = {
-    "pareto": _pareto,
-    "accuracy": _accuracy,
-    "frames": _frames,
-    "texture": _texture,
-    "premise": _premise,
-    "skips": _skips,
-    "efficiency": _efficiency,
-    "predictors": _predictors,
-    "capture": _capture,
-    "training": _training,
-    "data": _data,
-    "memory": _memory,
-    "stability": _stability,
-}
+@dataclass(frozen=True)
+class BenchPart:
+    """One part of the bench: how it measures, its README section, and its plot (if any)."""
+
+    name: str
+    measure: Callable[[Plan, Path, Path | None], Any]
+    section: Callable[[Any], list[str]]
+    plot: Callable[[Any, Path], None] | None = None
+    """Writes the part's PNG into the output folder."""
 
 
-PARTS = tuple(MEASURE)
-"""The bench's parts, in the order they run (and report)."""
+def _plot_pareto(value: Any, out: Path) -> None:
+    from rigspace.bench import pareto
+
+    pareto.plot(value, out / "pareto.png")
+
+
+def _plot_premise(value: Any, out: Path) -> None:
+    from rigspace.bench import premise
+
+    premise.plot(value, out / "premise.png")
+
+
+def _plot_skips(value: Any, out: Path) -> None:
+    from rigspace.bench import skips
+
+    skips.plot(value["int8"], out / "skips.png")
+
+
+BENCH_PARTS = (
+    BenchPart("pareto", _pareto, report._pareto, _plot_pareto),
+    BenchPart("accuracy", _accuracy, report._accuracy),
+    BenchPart("frames", _frames, report._frames),
+    BenchPart("texture", _texture, report._texture),
+    BenchPart("premise", _premise, report._premise, _plot_premise),
+    BenchPart("skips", _skips, report._skips, _plot_skips),
+    BenchPart("efficiency", _efficiency, report._efficiency),
+    BenchPart("predictors", _predictors, report._predictors),
+    BenchPart("capture", _capture, report._capture),
+    BenchPart("training", _training, report._training),
+    BenchPart("data", _data, report._data),
+    BenchPart("memory", _memory, report._memory),
+    BenchPart("stability", _stability, report._stability),
+)
+"""The bench's parts, in the order they run and report: one spec per part (what used to be
+parallel dicts of measurements and sections, and a chain of ifs for the plots)."""
+BY_NAME = {p.name: p for p in BENCH_PARTS}
+PARTS = tuple(BY_NAME)
+SECTIONS = [(p.name, p.section) for p in BENCH_PARTS]
 
 
 COMMAND = CommandSpec(

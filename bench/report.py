@@ -21,7 +21,12 @@ def _ms(timing: dict[str, float] | None) -> str:
     return f"{timing['median_ms']:.2f} ({timing['min_ms']:.2f}-{timing['max_ms']:.2f})"
 
 
-def markdown(result: dict[str, Any]) -> str:
+Section = Callable[[Any], list[str]]
+
+
+def markdown(result: dict[str, Any], sections: list[tuple[str, Section]]) -> str:
+    """The bench's README: the machine, then each measured part's section (`sections`: part
+    name and its Markdown, in the order the parts run: bench.cli.BENCH_PARTS)."""
     m = result["machine"]
     lines = [
         "# rigspace bench results",
@@ -34,7 +39,7 @@ def markdown(result: dict[str, Any]) -> str:
         + ", ".join(f"{k} {v}" for k, v in result["seconds"].items())
         + ".",
     ]
-    for part, section in SECTIONS.items():
+    for part, section in sections:
         if part in result:
             lines += ["", *section(result[part])]
             run = result.get("parts", {}).get(part)
@@ -298,20 +303,3 @@ def _compact(value: Any) -> str:
     import json
 
     return json.dumps(value, default=str)[:1500]
-
-
-SECTIONS: dict[str, Callable[[Any], list[str]]] = {
-    "pareto": _pareto,
-    "accuracy": _accuracy,
-    "frames": _frames,
-    "texture": _texture,
-    "premise": _premise,
-    "skips": _skips,
-    "efficiency": _efficiency,
-    "predictors": _predictors,
-    "capture": _capture,
-    "training": _training,
-    "data": _data,
-    "memory": _memory,
-    "stability": _stability,
-}
