@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from importlib import metadata
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, Protocol, TypeVar
 
 from rigspace.sdk.errors import PluginError
 
@@ -95,6 +95,32 @@ def discover(kind: Kind[S], extra: dict[str, Callable[[], Any]] | None = None) -
     return found
 
 
+class LiveSource(Protocol):
+    """What a live-source plugin's factory returns: rigspace.runtime.live.transports.Source,
+    the base of every built-in source, has these (docs/live.md, "Sources")."""
+
+    name: str
+    """The binding's name."""
+    url: str
+    bones: tuple[str, ...]
+    """The names of the bones its frames index (a frame's `indices` point into these)."""
+    space: str
+    """"local", "world" or "additive": how its rotations are meant."""
+
+    def start(self, buffer: Any) -> None:
+        """Open what it needs on the caller's thread (a port in use fails here), then push
+        frames into `buffer` (rigspace.runtime.live.buffer.LiveBuffer) from its own thread."""
+        ...
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Stop receiving and release the port, device or file."""
+        ...
+
+    def counters(self, now: float | None = None) -> Any:
+        """Its health for the frame's report (rigspace.runtime.live.buffer.BindingCounters)."""
+        ...
+
+
 @dataclass(frozen=True)
 class SourceSpec:
     """What a live-source plugin exports (entry-point group `rigspace.sources`).
@@ -105,8 +131,8 @@ class SourceSpec:
 
     scheme: str
     """The URL scheme this plugin handles, e.g. "vmc" or "bvh+tcp"."""
-    factory: Callable[[str, str], Any]
-    """(url, binding name) -> a source object with start(sink), stop() and counters."""
+    factory: Callable[[str, str], LiveSource]
+    """(url, binding name) -> the source (a LiveSource: start(buffer), stop(), counters())."""
     doc: str
     """One line for `rigspace live --help` and error messages: the URL form and what it reads."""
 
