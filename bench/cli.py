@@ -41,7 +41,7 @@ the full run about 7 minutes on 2 cores (with --dataset, longer).
 
 
 @dataclass(frozen=True)
-class Plan:
+class BenchPlan:
     """How much of each measurement a run does."""
 
     per_split: int
@@ -70,14 +70,14 @@ class Plan:
     """--device: where the predictors part (and the predictor of `predictor`) runs."""
 
 
-QUICK = Plan(
+QUICK = BenchPlan(
     per_split=6, repeats=5, frames=4, accuracy_samples=6, frame_sizes=(256,), skip_frames=8,
     levels=(32, 128), capture_resolutions=(128,), capture_frames=(0.0, 7.0), capture_views=4,
     presets=("tiny", "small"), training_steps=3, memory_frames=2, stress_rigs=2_000,
     drift_rigs=32, stability_steps=0, display_sizes=((640, 360),), display_frames=2,
     premise_steps=(0, 1),
 )  # fmt: skip
-FULL = Plan(
+FULL = BenchPlan(
     per_split=48, repeats=20, frames=12, accuracy_samples=24, frame_sizes=(256, 512),
     skip_frames=24, levels=(8, 16, 32, 64, 128), capture_resolutions=(64, 128, 256),
     capture_frames=(0.0, 31.0), capture_views=12, presets=("tiny", "small", "paper"),
@@ -234,7 +234,7 @@ def _plain(value: Any) -> Any:
 # -- the parts ------------------------------------------------------------------------------
 
 
-def _pareto(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
+def _pareto(plan: BenchPlan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
     from rigspace.bench import pareto
 
     result = pareto.measure(
@@ -243,19 +243,19 @@ def _pareto(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
     return result
 
 
-def _accuracy(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
+def _accuracy(plan: BenchPlan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
     from rigspace.bench import accuracy
 
     return accuracy.measure(samples=plan.accuracy_samples)
 
 
-def _frames(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
+def _frames(plan: BenchPlan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
     from rigspace.bench import frames
 
     return frames.measure(tmp, plan.frame_sizes, (1, 4), plan.frames, predictor=plan.predictor)
 
 
-def _skips(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
+def _skips(plan: BenchPlan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
     from rigspace.bench import skips
 
     return {
@@ -264,7 +264,7 @@ def _skips(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
     }
 
 
-def _efficiency(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
+def _efficiency(plan: BenchPlan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
     from rigspace.bench import flops
     from rigspace.bench.scenes import ROOT
 
@@ -278,7 +278,7 @@ def _efficiency(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
     return {"peak": flops.peak_flops(repeats=plan.repeats), "rows": rows}
 
 
-def _capture(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
+def _capture(plan: BenchPlan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
     from rigspace.bench import throughput
 
     return throughput.capture_throughput(
@@ -286,7 +286,7 @@ def _capture(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]
     )
 
 
-def _training(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
+def _training(plan: BenchPlan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
     from rigspace.bench import throughput
 
     rows = throughput.training_throughput(plan.presets, plan.training_steps, device=plan.device)
@@ -322,20 +322,20 @@ def training_stability(dataset: Path, tmp: Path, steps: int) -> dict[str, Any]:
     }
 
 
-def _texture(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
+def _texture(plan: BenchPlan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
     from rigspace.bench import texture
 
     return texture.measure(plan.display_sizes, plan.display_frames)
 
 
-def _premise(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
+def _premise(plan: BenchPlan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
     from rigspace.bench import premise
 
     rows = premise.measure(plan.premise_steps)
     return {"rows": rows, "crossover": premise.crossover(rows)}
 
 
-def _predictors(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
+def _predictors(plan: BenchPlan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
     from rigspace.bench import predictors
     from rigspace.bench.scenes import ROOT
 
@@ -343,19 +343,19 @@ def _predictors(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, A
     return predictors.measure(bundle, plan.repeats, plan.levels, plan.device)
 
 
-def _data(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
+def _data(plan: BenchPlan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
     from rigspace.bench import data
 
     return data.measure(dataset, 8 * plan.per_split)
 
 
-def _memory(plan: Plan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
+def _memory(plan: BenchPlan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
     from rigspace.bench import memory
 
     return [memory.peak_rss(n, 256, "fp32", plan.memory_frames) for n in (1, 8)]
 
 
-def _stability(plan: Plan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
+def _stability(plan: BenchPlan, tmp: Path, dataset: Path | None) -> dict[str, Any]:
     import numpy as np
 
     from rigspace.bench import stability
@@ -388,7 +388,7 @@ class BenchPart:
     """One part of the bench: how it measures, its README section, and its plot (if any)."""
 
     name: str
-    measure: Callable[[Plan, Path, Path | None], Any]
+    measure: Callable[[BenchPlan, Path, Path | None], Any]
     section: Callable[[Any], list[str]]
     plot: Callable[[Any, Path], None] | None = None
     """Writes the part's PNG into the output folder."""

@@ -46,8 +46,9 @@ def neural_characters(stage: Usd.Stage) -> list[Usd.Prim]:
 
 
 @dataclass(frozen=True)
-class NeuralCharacter:
-    """The values of a RigspaceNeuralCharacter prim."""
+class CharacterAttributes:
+    """The values a RigspaceNeuralCharacter prim authors (read_neural_character); the
+    runtime's character, with its loaded model, is rigspace.runtime.character.NeuralCharacter."""
 
     path: str
     skeleton_targets: tuple[str, ...]
@@ -70,9 +71,9 @@ class NeuralCharacter:
         return self.skeleton_targets[0] if len(self.skeleton_targets) == 1 else None
 
 
-def read_neural_character(prim: Usd.Prim) -> NeuralCharacter:
+def read_neural_character(prim: Usd.Prim) -> CharacterAttributes:
     model = _get(prim, "rigspace:model")
-    return NeuralCharacter(
+    return CharacterAttributes(
         path=str(prim.GetPath()),
         skeleton_targets=_targets(prim, "rigspace:skeleton"),
         animation_targets=_targets(prim, "rigspace:animationSource"),
@@ -271,7 +272,7 @@ def find_joint(name: str, joints: list[str]) -> int:
     raise JointLookupError(f"joint {name!r} is not in the skeleton")
 
 
-def resolve_model_path(character: NeuralCharacter) -> Path | None:
+def resolve_model_path(character: CharacterAttributes) -> Path | None:
     """The manifest.json of the character's model bundle, or None when it does not resolve."""
     if not character.model_resolved:
         return None
