@@ -16,7 +16,7 @@ from rigspace.runtime.live.buffer import BufferSettings, LiveBuffer
 from rigspace.runtime.live.decoders.bvh import BvhStreamDecoder, read_bvh
 from rigspace.runtime.live.decoders.vmc import HUMAN_BODY_BONES, VmcDecoder, encode_frame
 from rigspace.runtime.live.decoders.ximu3 import Ximu3Decoder
-from rigspace.runtime.live.frames import Frame, quat_angle, quat_slerp
+from rigspace.runtime.live.frames import SourceFrame, quat_angle, quat_slerp
 from rigspace.runtime.live.sources import open_source
 
 REPO = Path(__file__).resolve().parents[2]
@@ -83,7 +83,7 @@ def receive_to_pose(frames: int) -> dict:
             b = buffer if mode == "latest" else LiveBuffer(source.bones, BufferSettings("delayed"))
             if mode == "delayed":
                 for k in range(100):
-                    b.push(Frame(0, k / 120, np.arange(56), np.tile(q[0], (56, 1))), k / 120)
+                    b.push(SourceFrame(0, k / 120, np.arange(56), np.tile(q[0], (56, 1))), k / 120)
             t = []
             for _ in range(2000):
                 start = time.perf_counter()
@@ -176,7 +176,7 @@ def jitter_error(jitter_ms: float = 10.0, latency_ms: float = 20.0, delay_ms: fl
         for now in nows:
             while pushed < len(order) and arrival[order[pushed]] <= now:
                 k = order[pushed]
-                b.push(Frame(0, ts[k], idx, rotations[k]), arrival[k])
+                b.push(SourceFrame(0, ts[k], idx, rotations[k]), arrival[k])
                 pushed += 1
             collected.append(b.pose(now).rotations)
         poses = np.array(collected)

@@ -11,7 +11,7 @@ from itertools import islice
 
 import numpy as np
 
-from rigspace.runtime.live.frames import DecodeCounters, Frame, quat_slerp
+from rigspace.runtime.live.frames import DecodeCounters, SourceFrame, quat_slerp
 from rigspace.sdk.schema import LOST_FACTOR
 
 LATEST = "latest"
@@ -287,7 +287,7 @@ class LiveBuffer:
             self._filter = OneEuroFilter(n, 4, cutoff, ONE_EURO_BETA, ONE_EURO_D_CUTOFF)
 
     # -- receiver side -------------------------------------------------------------------
-    def push(self, frame: Frame, received: float) -> bool:
+    def push(self, frame: SourceFrame, received: float) -> bool:
         """Add a frame received at local monotonic time `received`; False if it was dropped."""
         with self._lock:
             stream = self._streams.get(frame.stream)
@@ -338,7 +338,7 @@ class LiveBuffer:
             )
             return True
 
-    def _smooth(self, frame: Frame, ts: float) -> np.ndarray:
+    def _smooth(self, frame: SourceFrame, ts: float) -> np.ndarray:
         q = frame.rotations
         idx = frame.indices
         prev = self._current[idx]

@@ -24,8 +24,9 @@ still pass; beyond is garbage)."""
 
 
 @dataclass(frozen=True, slots=True)
-class Frame:
-    """Joint samples of one source instant: some bones' rotations and maybe the root position.
+class SourceFrame:
+    """Joint samples of one source instant: some bones' rotations and maybe the root position
+    (a source's frame; the engine's rendered frame is rigspace.runtime.engine.Frame).
 
     Rotations are unit quaternions (w, x, y, z) in the source's right-handed frame (decoders
     convert handedness at the edge); `space` on the decoder says whether they are local (relative
@@ -81,7 +82,7 @@ class Decoder(Protocol):
     """"local" (rotations relative to the parent bone) or "world" (orientation sensors)."""
     counters: DecodeCounters
 
-    def feed(self, data: bytes, received: float) -> list[Frame]:
+    def feed(self, data: bytes, received: float) -> list[SourceFrame]:
         """Frames completed by `data`, received at local monotonic time `received`."""
         ...
 

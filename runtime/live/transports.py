@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from rigspace.runtime.live.buffer import BindingCounters, LiveBuffer
-from rigspace.runtime.live.frames import DecodeCounters, Frame
+from rigspace.runtime.live.frames import DecodeCounters, SourceFrame
 from rigspace.sdk.errors import RigspaceError
 
 POLL_SECONDS = 0.1
@@ -385,7 +385,7 @@ class ReplaySource(Source):
             weights = None
             if self.blend is not None:
                 weights = dict(zip(self.blend[0], map(float, self.blend[1][i]), strict=True))
-            buffer.push(Frame(0, due, indices, self.rotations[i], root, weights), received)
+            buffer.push(SourceFrame(0, due, indices, self.rotations[i], root, weights), received)
             buffer.note_latency(time.monotonic() - received)
             counters.packets += 1
             counters.frames += 1

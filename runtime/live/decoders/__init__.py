@@ -1,1 +1,1 @@
-"""Sans-IO decoders: bytes in, timestamped joint samples (`Frame`) out; no sockets, never raise."""
+"""Sans-IO decoders: bytes in, timestamped joint samples (`SourceFrame`) out; no sockets, never raise."""

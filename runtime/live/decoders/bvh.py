@@ -11,7 +11,7 @@ from rigspace.runtime.live.frames import (
     MAX_ANGLE_DEGREES,
     MAX_POSITION,
     DecodeCounters,
-    Frame,
+    SourceFrame,
     quat_from_euler,
 )
 from rigspace.sdk.errors import RigspaceError
@@ -236,10 +236,10 @@ class BvhStreamDecoder:
         self._buffer.clear()
         self._skip = False
 
-    def feed(self, data: bytes, received: float) -> list[Frame]:
+    def feed(self, data: bytes, received: float) -> list[SourceFrame]:
         self.counters.packets += 1
         self._buffer += data
-        frames: list[Frame] = []
+        frames: list[SourceFrame] = []
         while True:
             end = self._buffer.find(b"\n")
             if end < 0:
@@ -259,7 +259,7 @@ class BvhStreamDecoder:
             self._skip = True
         return frames
 
-    def decode_line(self, line: bytes, timestamp: float) -> Frame | None:
+    def decode_line(self, line: bytes, timestamp: float) -> SourceFrame | None:
         """One line of channel values -> a frame, or None (blank, or counted as malformed)."""
         c = self.counters
         tokens = line.replace(b"||", b" ").split()
@@ -284,7 +284,7 @@ class BvhStreamDecoder:
         rotations, root = self.skeleton.pose(values[None])
         c.frames += 1
         c.samples += len(self.bones)
-        return Frame(0, timestamp, self._indices, rotations[0], root[0])
+        return SourceFrame(0, timestamp, self._indices, rotations[0], root[0])
 
 
 def _is_number(token: bytes) -> bool:

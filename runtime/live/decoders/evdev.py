@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rigspace.runtime.live.frames import DecodeCounters, Frame, quat_from_euler
+from rigspace.runtime.live.frames import DecodeCounters, SourceFrame, quat_from_euler
 from rigspace.sdk.input_codes import (  # noqa: F401  (re-exported for the fuzzer and tests)
     ABS_CODES,
     BTN_CODES,
@@ -128,7 +128,7 @@ class EvdevDecoder:
         self._buffer.clear()
         self._dropping = False
 
-    def feed(self, data: bytes, received: float) -> list[Frame]:
+    def feed(self, data: bytes, received: float) -> list[SourceFrame]:
         c = self.counters
         c.packets += 1
         self._buffer += data
@@ -184,7 +184,7 @@ class EvdevDecoder:
         span = c.maximum - c.minimum
         return float(np.clip((value - c.minimum) / span, 0.0, 1.0)) if span > 0 else 0.0
 
-    def _frame(self, timestamp: float) -> Frame:
+    def _frame(self, timestamp: float) -> SourceFrame:
         self._changed = False
         angles = np.zeros((len(self.bones), 3))
         np.add.at(angles, (self._row, self._col), self._degrees * self._value)
@@ -201,7 +201,7 @@ class EvdevDecoder:
         self.counters.frames += 1
         self.counters.samples += len(self.bones)
         indices = np.arange(len(self.bones), dtype=np.int64)
-        return Frame(0, timestamp, indices, rotations, None, shapes)
+        return SourceFrame(0, timestamp, indices, rotations, None, shapes)
 
 
 def _range(name: str, parts: list[str]) -> tuple[int, int]:

@@ -9,7 +9,7 @@ import struct
 import numpy as np
 from pythonosc.osc_packet import OscPacket
 
-from rigspace.runtime.live.frames import MAX_POSITION, DecodeCounters, Frame, unit_quaternions
+from rigspace.runtime.live.frames import MAX_POSITION, DecodeCounters, SourceFrame, unit_quaternions
 
 HUMAN_BODY_BONES = (
     "Hips", "LeftUpperLeg", "RightUpperLeg", "LeftLowerLeg", "RightLowerLeg", "LeftFoot",
@@ -112,13 +112,13 @@ class VmcDecoder:
     def reset(self) -> None:
         self._pending.clear()
 
-    def feed(self, data: bytes, received: float) -> list[Frame]:
+    def feed(self, data: bytes, received: float) -> list[SourceFrame]:
         c = self.counters
         c.packets += 1
         if not bundle_sizes_fit(data):
             c.malformed += 1  # python-osc would take the element's claimed size on trust
             return []
-        frames: list[Frame] = []
+        frames: list[SourceFrame] = []
         flat = _flat_messages(data)
         if flat is None:  # nested bundles (python-osc orders them by time tag) or not OSC
             try:
@@ -143,7 +143,9 @@ class VmcDecoder:
                 self._message(timed.message.address, timed.message.params, received, frames)
         return frames
 
-    def _message(self, address: str, params: list, received: float, frames: list[Frame]) -> None:
+    def _message(
+        self, address: str, params: list, received: float, frames: list[SourceFrame]
+    ) -> None:
         """One OSC message: a bone value collected, a frame closed, or a count."""
         c = self.counters
         c.messages += 1
@@ -199,7 +201,7 @@ class VmcDecoder:
         else:
             c.ignored += 1
 
-    def _close(self, timestamp: float) -> Frame | None:
+    def _close(self, timestamp: float) -> SourceFrame | None:
         """The frame of the bone values collected so far, or None if there are none valid."""
         c = self.counters
         weights, self._blend_applied = self._blend_applied or None, {}
@@ -209,7 +211,7 @@ class VmcDecoder:
             c.frames += 1  # a face stream's frame: weights, no bones
             stream = 1 if self._sender_time else 0
             empty = np.zeros(0, dtype=np.int64)
-            return Frame(stream, timestamp, empty, np.zeros((0, 4)), None, weights)
+            return SourceFrame(stream, timestamp, empty, np.zeros((0, 4)), None, weights)
         indices = np.fromiter(self._pending, dtype=np.int64, count=len(self._pending))
         values = np.array(list(self._pending.values()), dtype=np.float64)  # (k, 7)
         self._pending.clear()
@@ -224,14 +226,14 @@ class VmcDecoder:
                 return None
             stream = 1 if self._sender_time else 0
             c.frames += 1
-            return Frame(stream, timestamp, indices[:0], quats[:0], None, weights)
+            return SourceFrame(stream, timestamp, indices[:0], quats[:0], None, weights)
         root_position = self._root_motion(indices, positions, quats, ok)
         c.frames += 1
         c.samples += int(np.count_nonzero(ok))
         # T's clock and the receive clock are different streams (the first frames of a sender
         # that sends T close on OK with receive times): no false clock reset between them.
         stream = 1 if self._sender_time else 0
-        return Frame(stream, timestamp, indices[ok], quats[ok], root_position, weights)
+        return SourceFrame(stream, timestamp, indices[ok], quats[ok], root_position, weights)
 
     def _root_motion(
         self, indices: np.ndarray, positions: np.ndarray, quats: np.ndarray, ok: np.ndarray

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rigspace.runtime.live.frames import DecodeCounters, Frame, unit_quaternions
+from rigspace.runtime.live.frames import DecodeCounters, SourceFrame, unit_quaternions
 
 QUATERNION = b"Q"
 MICROSECONDS = 1e-6
@@ -42,11 +42,11 @@ class Ximu3Decoder:
             b.clear()
         self._skip = [False] * len(self.bones)
 
-    def feed(self, data: bytes, received: float, channel: int = 0) -> list[Frame]:
+    def feed(self, data: bytes, received: float, channel: int = 0) -> list[SourceFrame]:
         self.counters.packets += 1
         buffer = self._buffers[channel]
         buffer += data
-        frames: list[Frame] = []
+        frames: list[SourceFrame] = []
         while True:
             end = buffer.find(b"\n")
             if end < 0:
@@ -65,7 +65,7 @@ class Ximu3Decoder:
             self._skip[channel] = True
         return frames
 
-    def decode_line(self, line: bytes, channel: int = 0) -> Frame | None:
+    def decode_line(self, line: bytes, channel: int = 0) -> SourceFrame | None:
         """One message line -> a frame, or None (blank, ignored, or counted as malformed)."""
         c = self.counters
         fields = line.strip().split(b",")
@@ -94,4 +94,4 @@ class Ximu3Decoder:
             return None
         c.frames += 1
         c.samples += 1
-        return Frame(channel, ticks * MICROSECONDS, np.array([channel], dtype=np.int64), quat)
+        return SourceFrame(channel, ticks * MICROSECONDS, np.array([channel], dtype=np.int64), quat)

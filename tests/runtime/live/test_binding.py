@@ -256,16 +256,16 @@ def test_connect_reconnect_and_loss_move_no_joint_more_than_10_degrees_a_tick(sk
     """30 fps ticks through a connect (the stage pose to a pose 120 deg away), a loss (held,
     then the stage animation in place: the root stays where the performer left it) and a
     reconnect to another far pose: no joint turns more than 10 deg in one tick, no root jump."""
-    from rigspace.runtime.live.frames import Frame
+    from rigspace.runtime.live.frames import SourceFrame
 
     _, skel_prim, local = skel
     runtime = open_binding(binding("vmc://127.0.0.1:1"), skel_prim, 0.01)  # never started
     bones = runtime.source.bones
     arm = [bones.index("LeftUpperArm"), bones.index("RightUpperArm"), bones.index("Hips")]
 
-    def frame(t: float, angle: float, x: float) -> Frame:
+    def frame(t: float, angle: float, x: float) -> SourceFrame:
         q = np.tile([np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)], (3, 1))
-        return Frame(0, t, np.array(arm), q, np.array([x, 0.95, 0.0]))
+        return SourceFrame(0, t, np.array(arm), q, np.array([x, 0.95, 0.0]))
 
     shown, roots, step, t = [], [], 1 / 30, 0.0
     for phase, (until, angle, x) in enumerate(

@@ -16,7 +16,7 @@ from rigspace.runtime.live.buffer import (
     OneEuroFilter,
     one_euro_alpha,
 )
-from rigspace.runtime.live.frames import Frame, quat_angle, quat_slerp
+from rigspace.runtime.live.frames import SourceFrame, quat_angle, quat_slerp
 from tests.runtime.live.conftest import wait_for
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
@@ -27,8 +27,8 @@ def yaw(degrees: float) -> np.ndarray:
     return np.array([np.cos(h), 0.0, np.sin(h), 0.0])
 
 
-def frame(ts: float, q: np.ndarray, stream: int = 0, bone: int = 0, root=None) -> Frame:
-    return Frame(stream, ts, np.array([bone]), q[None], root)
+def frame(ts: float, q: np.ndarray, stream: int = 0, bone: int = 0, root=None) -> SourceFrame:
+    return SourceFrame(stream, ts, np.array([bone]), q[None], root)
 
 
 def test_one_euro_alpha_and_filter_match_hand_computed_values():
@@ -123,7 +123,7 @@ def test_history_is_bounded_and_pose_does_not_wait_for_a_flood():
     def flood():
         k = 0
         while not stop.is_set():
-            b.push(Frame(0, k * 1e-4, np.arange(55), quats), time.monotonic())
+            b.push(SourceFrame(0, k * 1e-4, np.arange(55), quats), time.monotonic())
             k += 1
 
     thread = threading.Thread(target=flood)
@@ -166,7 +166,7 @@ def test_settings_from_the_binding_tokens():
 
 def test_lost_seconds_sets_the_lost_threshold():
     b = LiveBuffer(("a",), BufferSettings(timeout=0.1, lost=0.3, blend=0.5))
-    b.push(Frame(0, 1.0, np.array([0]), np.array([[1.0, 0, 0, 0]])), received=10.0)
+    b.push(SourceFrame(0, 1.0, np.array([0]), np.array([[1.0, 0, 0, 0]])), received=10.0)
     assert b.pose(10.05).status == "connected"
     assert b.pose(10.2).status == "stale"  # past timeoutSeconds, before lostSeconds: held
     assert b.pose(10.29).weight == 1.0
@@ -240,7 +240,7 @@ def test_pose_never_waits_for_a_push_in_progress(mode):
     q = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]])
     now = time.monotonic()
     for k in range(3):
-        b.push(Frame(0, 0.01 * k, np.array([0, 1]), q), now + 0.01 * k)
+        b.push(SourceFrame(0, 0.01 * k, np.array([0, 1]), q), now + 0.01 * k)
     before = b.pose(now + 0.05)
     with b._lock:  # a receiver mid-push (it can lose the GIL while holding the lock)
         start = time.perf_counter()
