@@ -28,8 +28,10 @@ class App {
     await this.comp.load(null);
     await this.live.load();
     this.connect();
+    // The default prim, unless the user picked one while the panels were loading (a
+    // finding's link, a tree row): their choice stands.
     const first = this.summary.defaultPrim || (this.tree.rows[0] || {}).path;
-    if (first) this.select(first);
+    if (first && !this.state.selected) this.select(first);
   }
 
   async loadSummary() {
