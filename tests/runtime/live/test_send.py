@@ -53,12 +53,15 @@ def test_cmu_over_vmc_matches_the_clip_retargeted_directly(scene):
     source.start(buffer)
     try:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            for n, f in enumerate((0, 250, 500, 750, 993)):
+            for f in (0, 250, 500, 750, 993):
+                before = buffer.samples
                 for dgram in encode_frame(
                     clip.bones, clip.rotations[f], clip.root_positions[f], None, f * frame_time
                 ):
                     s.sendto(dgram, source.address)
-                assert wait_for(lambda n=n: source.decoder.counters.frames == n + 1)
+                # In the buffer, not only decoded: the receiver pushes after the decoder counts
+                # (reading between the two, on a busy machine, saw the waiting pose).
+                assert wait_for(lambda before=before: buffer.samples > before)
                 received = via_vmc.apply(rest, buffer.pose())
                 expected = direct.apply(
                     rest, LivePose(rotations[f], np.ones(31, bool), roots[f], "", 1, 0)
