@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from rigspace.bench.scenes import PREVIS
+from rigspace.sdk.geometry import dense_skin_weights, sparse_skin_weights
 from rigspace.sdk.geometry import subdivide_triangles as subdivide
 
 CHARACTER = PREVIS.parent.parent / "character" / "sample_character.usda"
@@ -34,19 +35,6 @@ MESH = "/Character/Body"
 INFLUENCES = 4
 TIMES = (100.0, 500.0, 900.0, 1300.0)
 """Frames of the shot (walk, stretch, roll, yoga): the character near the middle of the frame."""
-
-
-def _dense_weights(indices: np.ndarray, weights: np.ndarray, joints: int) -> np.ndarray:
-    dense = np.zeros((len(indices), joints), dtype=np.float32)
-    np.add.at(dense, (np.arange(len(indices))[:, None], indices), weights)
-    return dense
-
-
-def _sparse_weights(dense: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    top = np.argsort(-dense, axis=1)[:, :INFLUENCES]
-    weights = np.take_along_axis(dense, top, axis=1)
-    weights /= np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
-    return top.astype(np.int32), weights.astype(np.float32)
 
 
 def heavy_scene(folder: Path, steps: int) -> tuple[Path, int]:
@@ -73,10 +61,10 @@ def heavy_scene(folder: Path, steps: int) -> tuple[Path, int]:
     joints = len(UsdSkel.Skeleton(stage.GetPrimAtPath("/Character/Skel")).GetJointsAttr().Get())
     indices = np.array(binding.GetJointIndicesPrimvar().Get()).reshape(-1, INFLUENCES)
     weights = np.array(binding.GetJointWeightsPrimvar().Get()).reshape(-1, INFLUENCES)
-    vertex = {"skin": _dense_weights(indices, weights, joints), "colour": colour}
+    vertex = {"skin": dense_skin_weights(indices, weights, joints), "colour": colour}
     for _ in range(steps):
         points, triangles, uv, vertex = subdivide(points, triangles, uv, vertex)
-    indices, weights = _sparse_weights(vertex["skin"])
+    indices, weights = sparse_skin_weights(vertex["skin"], INFLUENCES)
     mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(points.astype(np.float32)))
     mesh.GetFaceVertexCountsAttr().Set(Vt.IntArray.FromNumpy(np.full(len(triangles), 3, np.int32)))
     mesh.GetFaceVertexIndicesAttr().Set(

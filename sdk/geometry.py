@@ -77,6 +77,23 @@ def subdivide_triangles(
     return new_points, tris, new_uv, values
 
 
+def dense_skin_weights(indices: np.ndarray, weights: np.ndarray, joints: int) -> np.ndarray:
+    """(P, k) UsdSkel joint indices and weights -> (P, joints) one weight per joint (what
+    subdivide_triangles interpolates at a midpoint)."""
+    dense = np.zeros((len(indices), joints), dtype=np.float32)
+    np.add.at(dense, (np.arange(len(indices))[:, None], indices), weights)
+    return dense
+
+
+def sparse_skin_weights(dense: np.ndarray, influences: int) -> tuple[np.ndarray, np.ndarray]:
+    """(P, joints) weights -> the `influences` largest per point as UsdSkel's (P, k) int32
+    joint indices and float32 weights, renormalised to sum to 1."""
+    top = np.argsort(-dense, axis=1)[:, :influences]
+    weights = np.take_along_axis(dense, top, axis=1)
+    weights /= np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
+    return top.astype(np.int32), weights.astype(np.float32)
+
+
 def _primvar_per_corner(primvar: UsdGeom.Primvar, triangles, corners, faces, time=None):
     """A primvar's values at every triangle corner, shape (T, 3, k), whatever its interpolation."""
     values = primvar.ComputeFlattened(Usd.TimeCode.Default() if time is None else time)

@@ -321,8 +321,8 @@ class Retargeter:
         n = len(self.target_joints)
         # Roots take their parent from a padded identity slot, so each level is one matmul.
         self._parent_slot = np.where(self.target_parents < 0, n, self.target_parents)
-        self._rest_local_rotations = _rotations(rest_local)
-        self._rest_world = self._compose_target(self._rest_local_rotations)
+        self._rest_local = rest_local
+        self._rest_world = self._compose_target(_rotations(rest_local))
         self._rest_positions = _world_positions(rest_local, self.target_levels, self._parent_slot)
         self._rest_t = rest_local[:, 3, :3]
         self.target_root = int(np.flatnonzero(self.target_parents < 0)[0])
@@ -433,11 +433,8 @@ class Retargeter:
         )  # fmt: skip
         t1 = first.rest_turns(source_rest_positions)
         bones = list(UNITY.bone_map)
-        rest_local = np.tile(np.eye(4), (len(self.target_joints), 1, 1))
-        rest_local[:, :3, :3] = np.swapaxes(self._rest_local_rotations, 1, 2)
-        rest_local[:, 3, :3] = self._rest_t
         second = Retargeter(
-            bones, UNITY.parents, "local", self.target_joints, rest_local, UNITY.bone_map,
+            bones, UNITY.parents, "local", self.target_joints, self._rest_local, UNITY.bone_map,
             UNITY.basis,
         )  # fmt: skip
         t2 = second.rest_turns(np.array([UNITY.rest_positions[b] for b in bones]))

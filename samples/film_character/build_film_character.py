@@ -39,7 +39,7 @@ import cv2
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, UsdSkel, Vt
 
-from rigspace.sdk.geometry import subdivide_triangles
+from rigspace.sdk.geometry import dense_skin_weights, sparse_skin_weights, subdivide_triangles
 
 HERE = Path(__file__).resolve().parent
 SAMPLES = HERE.parent
@@ -172,12 +172,7 @@ def finger_curl(t: np.ndarray) -> np.ndarray:
     return curl * (1 - fist) + 80.0 * fist
 
 
-def _hand_frame(bind: np.ndarray) -> np.ndarray:
-    """(4, 4) column-vector hand-to-skeleton transform from a row-vector bind matrix."""
-    return np.asarray(bind, dtype=np.float64).T
-
-
-def finger_joints(joints: list[str], binds: np.ndarray) -> list[tuple[str, int, np.ndarray]]:
+def finger_joints(joints: list[str]) -> list[tuple[str, int, np.ndarray]]:
     """(path, parent index, (3,) local translation) per finger joint, parents first; finger
     joints keep their hand's orientation (the arm chain's rest frame: bone along local X)."""
     out: list[tuple[str, int, np.ndarray]] = []
@@ -232,7 +227,7 @@ def hands_mesh(
         stops = [skel_points[p] for p in chain]
         tip = stops[-1] + (stops[-1] - stops[-2]) * 0.9
         stops.append(tip)
-        start = len(points) and sum(len(p) for p in points)
+        start = sum(len(p) for p in points)
         chain_points, chain_uv, chain_idx, chain_wts = [], [], [], []
         for k in range(len(chain)):
             a, b = stops[k], stops[k + 1]
@@ -255,7 +250,7 @@ def hands_mesh(
         uv = np.concatenate([np.concatenate(chain_uv), [[0.5, 1.0]]])
         ci = np.concatenate([np.concatenate(chain_idx), [[index[chain[-1]], index[chain[-1]]]]])
         cw = np.concatenate([np.concatenate(chain_wts), [[1.0, 0.0]]])
-        n_rings = (cap) // segments
+        n_rings = cap // segments
         for r in range(n_rings - 1):
             for k in range(segments):
                 a0, a1 = r * segments + k, r * segments + (k + 1) % segments
@@ -414,13 +409,6 @@ def displacement(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
     return (DISPLACEMENT * height * np.clip(1.0 - face, 0, 1))[:, None] * normals
 
 
-def _sparse_skin(dense: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    top = np.argsort(-dense, axis=1)[:, :INFLUENCES]
-    weights = np.take_along_axis(dense, top, axis=1)
-    weights /= np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
-    return top.astype(np.int32), weights.astype(np.float32)
-
-
 def build(out: Path, subdivisions: int = 3, texture_size: int = 4096, seed: int = 0) -> dict:
     """Write the character, its textures and its shot into `out`; returns what was built."""
     start = time.monotonic()
@@ -432,7 +420,7 @@ def build(out: Path, subdivisions: int = 3, texture_size: int = 4096, seed: int 
     joints = [str(j) for j in skeleton0.GetJointsAttr().Get()]
     binds = np.array(skeleton0.GetBindTransformsAttr().Get())
     rests = np.array(skeleton0.GetRestTransformsAttr().Get())
-    fingers = finger_joints(joints, binds)
+    fingers = finger_joints(joints)
     all_joints = joints + [p for p, _, _ in fingers]
     bind_all, rest_all = list(binds), list(rests)
     skel_points: dict[str, np.ndarray] = {}
@@ -507,8 +495,7 @@ def build(out: Path, subdivisions: int = 3, texture_size: int = 4096, seed: int 
     colour = np.array(UsdGeom.PrimvarsAPI(body0).GetPrimvar("displayColor").Get(), dtype=np.float64)
     idx0 = np.array(binding0.GetJointIndicesPrimvar().Get()).reshape(-1, INFLUENCES)
     wts0 = np.array(binding0.GetJointWeightsPrimvar().Get()).reshape(-1, INFLUENCES)
-    dense = np.zeros((len(points), len(all_joints)), np.float32)
-    np.add.at(dense, (np.arange(len(points))[:, None], idx0), wts0)
+    dense = dense_skin_weights(idx0, wts0, len(all_joints))
     face = face_shapes(points)
     vertex = {"skin": dense, "colour": colour}
     for name, (offsets, inbetweens) in face.items():
@@ -519,7 +506,7 @@ def build(out: Path, subdivisions: int = 3, texture_size: int = 4096, seed: int 
         points, tris, corner_uv, vertex = subdivide_triangles(points, tris, corner_uv, vertex)
     if subdivisions:
         points = points + displacement(points, tris)
-    idx, wts = _sparse_skin(vertex["skin"])
+    idx, wts = sparse_skin_weights(vertex["skin"], INFLUENCES)
     body = _mesh(
         stage,
         "/Character/Body",
@@ -551,11 +538,10 @@ def build(out: Path, subdivisions: int = 3, texture_size: int = 4096, seed: int 
     )
 
     hp, ht, huv, hidx, hwts = hands_mesh(skel_points, fingers, all_joints)
-    vertex = {"skin": np.zeros((len(hp), len(all_joints)), np.float32)}
-    np.add.at(vertex["skin"], (np.arange(len(hp))[:, None], hidx), hwts)
+    vertex = {"skin": dense_skin_weights(hidx, hwts, len(all_joints))}
     for _ in range(max(0, subdivisions - 1)):
         hp, ht, huv, vertex = subdivide_triangles(hp, ht, huv, vertex)
-    hidx, hwts = _sparse_skin(vertex["skin"])
+    hidx, hwts = sparse_skin_weights(vertex["skin"], INFLUENCES)
     _mesh(stage, "/Character/Hands", skeleton, hp, ht, huv, hidx, hwts, looks["Gloves"])
     head = all_joints.index(next(j for j in all_joints if j.endswith("/head")))
     eye_parts = [sphere(EYE * [side, 1, 1], EYE_RADIUS) for side in (1, -1)]
