@@ -179,6 +179,15 @@ def work_items(
     return items
 
 
+def frame_batches(items: Sequence[WorkItem]) -> list[list[WorkItem]]:
+    """Items grouped by (clip, frames), in order: one worker renders a batch, posing each frame
+    once for all its view groups (ItemWorker.run_batch)."""
+    batches: dict[tuple[int, tuple[float, ...]], list[WorkItem]] = {}
+    for item in items:
+        batches.setdefault((item.clip_index, item.times), []).append(item)
+    return list(batches.values())
+
+
 def shard_items(items: list[WorkItem], shard: tuple[int, int]) -> list[WorkItem]:
     index, count = shard
     return [item for item in items if item.index % count == index]

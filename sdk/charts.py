@@ -270,6 +270,9 @@ class ChartedMesh:
     fingerprint: str
     """sha256 of the mesh's triangles and corner uvs: the layout the charts were made for."""
 
+    def __post_init__(self) -> None:
+        self.triangle_chart.flags.writeable = False  # renderers cache it by identity (DrawMesh)
+
 
 def uv_fingerprint(triangles: np.ndarray, corner_uv: np.ndarray) -> str:
     """A mesh's uv layout as a hash (triangles and corner uvs, float32 as stored)."""

@@ -21,7 +21,7 @@ from pxr import Ar, Sdf, Usd, UsdGeom, UsdShade
 
 from rigspace.sdk.color import srgb_to_linear
 from rigspace.sdk.errors import SceneError
-from rigspace.sdk.render import DEFAULT_COLOR, DrawMesh
+from rigspace.sdk.render import DEFAULT_COLOR, DrawMesh, freeze
 
 
 def triangulate(counts: np.ndarray, indices: np.ndarray, left_handed: bool = False):
@@ -373,6 +373,11 @@ class MeshSource:
     triangles: np.ndarray
     corner_uv: np.ndarray | None
     albedo: Albedo
+
+    def __post_init__(self) -> None:
+        # Read-only: renderers cache by identity what never changes (DrawMesh, frozen).
+        color = self.albedo.color if isinstance(self.albedo.color, np.ndarray) else None
+        freeze(self.rest_points, self.triangles, self.corner_uv, self.albedo.texture, color)
 
     def draw_mesh(self, points: np.ndarray, normals: np.ndarray | None = None) -> DrawMesh:
         """The mesh with these (posed, world-space) points, ready for a renderer."""

@@ -22,7 +22,7 @@ from rigspace.sdk.character_rules import blend_shape_names, resolve_character
 from rigspace.sdk.charts import ChartTable, chart_table
 from rigspace.sdk.errors import SceneError
 from rigspace.sdk.geometry import MeshSource, read_mesh_parts
-from rigspace.sdk.render import DrawMesh, vertex_normals
+from rigspace.sdk.render import DrawMesh, freeze, vertex_normals
 
 
 @dataclass
@@ -121,6 +121,11 @@ class CharacterRig:
         return out
 
     # -- texture charts -----------------------------------------------------------------
+
+    @property
+    def triangle_count(self) -> int:
+        """Triangles a posed frame draws (every skinned mesh, after triangulation)."""
+        return sum(len(part.triangles) for mesh in self._meshes for part in mesh.parts)
 
     def mesh_name(self, mesh: MeshSource) -> str:
         """A skinned mesh's (or material subset's) path relative to the character prim (how
@@ -234,6 +239,7 @@ class CharacterRig:
             world = (p @ to_world[:3, :3].T + to_world[:3, 3]).astype(np.float32)
             # Normals once per pose, not once per camera that renders it.
             normals = vertex_normals(world, np.concatenate([p.triangles for p in mesh.parts]))
+            freeze(world, normals)  # renderers keep what they build from them (DrawMesh)
             for part in mesh.parts:
                 drawn = part.draw_mesh(world, normals)
                 drawn.chart = charted.get(self.mesh_name(part))

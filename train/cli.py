@@ -363,6 +363,10 @@ def run_eval(args: argparse.Namespace) -> int:
         to_json,
     )
     from rigspace.train.predictor import BundlePredictor
+    from rigspace.train.regions import dataset_regions
+
+    def note(text: str) -> None:
+        print(f"note: {text}", file=sys.stderr)
 
     if args.errors:
         check_folder(Path(args.errors), "--errors")  # before the evaluation, not after it
@@ -399,7 +403,15 @@ def run_eval(args: argparse.Namespace) -> int:
             Downsampled(BaselinePredictor(Path(args.dataset), kind), table.factor)
             for kind in ("nearest", "linear")
         ]
-    result = compare(predictors, table, args.split, limit=args.limit or None, out_dir=args.errors)
+    regions = dataset_regions(json.loads((table.folder / "capture.json").read_text()), note)
+    result = compare(
+        predictors,
+        table,
+        args.split,
+        limit=args.limit or None,
+        out_dir=args.errors,
+        regions=regions,
+    )
     if args.record:
         fallbacks = sorted(predictors[0].model.int8_fallbacks)
         record_metrics(

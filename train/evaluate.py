@@ -8,7 +8,7 @@ import time
 from collections.abc import Sequence
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import cv2
 import numpy as np
@@ -18,8 +18,11 @@ from rigspace.capture.ring import SPLITS, TRAIN
 from rigspace.sdk.render import Maps
 from rigspace.sdk.rotations import rig_inputs
 from rigspace.train.data import read_sample, targets_at
-from rigspace.train.metrics import MASK_THRESHOLD, METRICS, map_metrics
+from rigspace.train.metrics import MASK_THRESHOLD, METRICS, map_metrics, psnr
 from rigspace.train.stream import ShardSet, is_shards
+
+if TYPE_CHECKING:
+    from rigspace.train.regions import Region
 
 HEIGHT_SAMPLES = 16
 """Training samples (evenly spaced) whose masks estimate the character's height."""
@@ -268,8 +271,12 @@ def evaluate(
     worst: int = 4,
     out_dir: str | Path | None = None,
     indices: np.ndarray | None = None,
+    regions: Sequence[Region] = (),
 ) -> dict[str, Any]:
     """Metrics of `predictor` on a split: per sample, aggregated, and the worst samples.
+
+    Each of `regions` (train/regions.py: the whole character, its face) adds the albedo PSNR
+    over that region's pixels in the ground truth, `albedo_psnr@NAME`, and its pixel count.
 
     Samples: the split's rows, or `limit` of them evenly spaced (evenly_spaced), or exactly
     `indices` when given. Every metric (metrics.METRICS) gets its mean and median over the
@@ -293,6 +300,7 @@ def evaluate(
             record = _sample_info(table, int(index))
             target = table.maps(int(index))
             record.update(map_metrics(pred, target, height))
+            record.update(region_metrics(pred, target, regions))
             per_sample.append(record)
             kept[int(index)] = (record, pred, target)
         # Keep only the worst so far, so memory stays at `worst` samples' maps.
@@ -312,6 +320,16 @@ def evaluate(
             key: _summary(np.array([s[key] for s in per_sample], dtype=np.float64))
             for key in METRICS
         },
+        "regions": {
+            r.name: {
+                "description": r.description,
+                "albedo_psnr": _summary(
+                    np.array([s[f"albedo_psnr@{r.name}"] for s in per_sample], np.float64)
+                ),
+                "pixels_mean": float(np.mean([s[f"pixels@{r.name}"] for s in per_sample] or [0])),
+            }
+            for r in regions
+        },
         "per_sample": per_sample,
         "worst": [
             {"index": s["index"], "path": s["path"], "albedo_psnr": s["albedo_psnr"]}
@@ -330,6 +348,19 @@ def evaluate(
             entry["image"] = str(path)
         (out / f"{prefix}_report.json").write_text(to_json(report))
     return report
+
+
+def region_metrics(pred: Maps, target: Maps, regions: Sequence[Region]) -> dict[str, float]:
+    """Albedo PSNR over each region's pixels in `target` (nan where it shows none)."""
+    out: dict[str, float] = {}
+    for region in regions:
+        pixels = region.pixels(target)
+        count = 0 if pixels is None else int(pixels.sum())
+        out[f"albedo_psnr@{region.name}"] = (
+            psnr(pred.albedo, target.albedo, pixels) if count else math.nan
+        )
+        out[f"pixels@{region.name}"] = count
+    return out
 
 
 def _worst_first(per_sample: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -362,6 +393,7 @@ def compare(
     limit: int | None = None,
     out_dir: str | Path | None = None,
     worst: int = 4,
+    regions: Sequence[Region] = (),
 ) -> dict[str, Any]:
     """Evaluate several predictors on the SAME samples; one summary row per predictor.
 
@@ -370,7 +402,9 @@ def compare(
     """
     rows = evenly_spaced(table.indices(split), limit)
     reports = {
-        p.name: evaluate(p, table, split, worst=worst, out_dir=out_dir, indices=rows)
+        p.name: evaluate(
+            p, table, split, worst=worst, out_dir=out_dir, indices=rows, regions=regions
+        )
         for p in predictors
     }
     table_rows = []
@@ -380,6 +414,8 @@ def compare(
         row["normal_median_deg"] = report["metrics"]["normal_median_deg"]["median"]
         row["seconds_per_sample"] = report["seconds_per_sample"]
         row["footprint_bytes"] = report["footprint_bytes"]
+        for region, summary in report["regions"].items():
+            row[f"albedo_psnr@{region}"] = summary["albedo_psnr"]["mean"]
         table_rows.append(row)
     return {
         "dataset": str(table.folder),
@@ -441,6 +477,16 @@ def format_table(result: dict[str, Any]) -> str:
     ]
     for row in result["rows"]:
         lines.append("| " + " | ".join(_cell(row[k], f) for k, _, f in COLUMNS) + " |")
+    first: dict[str, Any] = next(iter(result.get("reports", {}).values()), {})
+    for name, region in first.get("regions", {}).items():
+        values = ", ".join(
+            f"{row['predictor']} {_cell(row.get(f'albedo_psnr@{name}'), '.2f')} dB"
+            for row in result["rows"]
+        )
+        lines.append(
+            f"\nalbedo PSNR over the {name} ({region['description']}, "
+            f"{region['pixels_mean']:.0f} pixels a sample): {values}"
+        )
     return "\n".join(lines) + "\n"
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -31,8 +32,11 @@ class DrawMesh:
     """One triangle mesh to draw, in world space.
 
     Renderers re-read `points` and `normals` on every call (they may change every frame, in place
-    or not). `triangles`, `corner_uv`, `color` and `texture` are cached by array identity: to
-    change them, assign a new array rather than editing the old one in place.
+    or not), unless they are frozen (`frozen`: read-only, as `CharacterRig.posed_meshes` returns
+    them): then a renderer may keep what it built from them (the checks, gl's upload, embree's
+    acceleration structure) while the same array objects come back, so the 32 views of one
+    captured pose pay for it once. `triangles`, `corner_uv`, `color` and `texture` are cached by
+    array identity: to change them, assign a new array rather than editing the old one in place.
     """
 
     points: np.ndarray
@@ -91,8 +95,45 @@ def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return np.divide(n, length, out=np.zeros_like(n), where=length > 0).astype(np.float32)
 
 
+def freeze(*arrays: np.ndarray | None) -> None:
+    """Make arrays read-only, so renderers may keep what they build from them (`frozen`)."""
+    for a in arrays:
+        if a is not None:
+            a.flags.writeable = False
+
+
+def frozen(a: Any) -> bool:
+    """True when nobody can change `a`'s values: it and every array it views are read-only (a
+    read-only view of a writeable array is not frozen: its owner can still write)."""
+    while isinstance(a, np.ndarray):
+        if a.flags.writeable:
+            return False
+        a = a.base
+    return a is None
+
+
+_CHECKED: weakref.WeakValueDictionary[tuple, np.ndarray] = weakref.WeakValueDictionary()
+"""Frozen arrays already checked, by (id, what was checked): the entry dies with the array, so a
+later array with the same id is never taken for it."""
+
+
+def checked_once(a: np.ndarray, what: tuple, check: Callable[[], None]) -> None:
+    """Run `check` on `a`, or skip it when `a` is frozen and passed the same check before."""
+    key = (id(a), *what)
+    if _CHECKED.get(key) is a:
+        return
+    check()
+    if frozen(a):
+        _CHECKED[key] = a
+
+
 def _array(mesh: DrawMesh, field_name: str, value: Any, dtype: type, shape: tuple) -> np.ndarray:
     a: np.ndarray = np.ascontiguousarray(value, dtype=dtype)
+    checked_once(a, (field_name, shape), lambda: _check_array(mesh, field_name, a, shape))
+    return a
+
+
+def _check_array(mesh: DrawMesh, field_name: str, a: np.ndarray, shape: tuple) -> None:
     if a.ndim != len(shape) or any(
         s is not None and s != n for s, n in zip(shape, a.shape, strict=True)
     ):
@@ -104,7 +145,6 @@ def _array(mesh: DrawMesh, field_name: str, value: Any, dtype: type, shape: tupl
         raise ValueError(
             f"DrawMesh {mesh.name or '(unnamed)'}: {field_name} has non-finite values."
         )
-    return a
 
 
 def mesh_arrays(mesh: DrawMesh) -> MeshArrays:
@@ -112,11 +152,7 @@ def mesh_arrays(mesh: DrawMesh) -> MeshArrays:
     points = _array(mesh, "points", mesh.points, np.float32, (None, 3))
     tris = _array(mesh, "triangles", mesh.triangles, np.int32, (None, 3))
     n, t = len(points), len(tris)
-    if t and (tris.min() < 0 or tris.max() >= n):
-        raise ValueError(
-            f"DrawMesh {mesh.name or '(unnamed)'}: triangle indices must lie in [0, {n}), "
-            f"got [{tris.min()}, {tris.max()}]."
-        )
+    _check_indices(mesh, tris, n)
     if mesh.normals is None:
         normals = vertex_normals(points, tris)
     else:
@@ -157,12 +193,21 @@ def depth_arrays(mesh: DrawMesh) -> tuple[np.ndarray, np.ndarray]:
     checks them: all a depth-only pass (render_depth) reads."""
     points = _array(mesh, "points", mesh.points, np.float32, (None, 3))
     tris = _array(mesh, "triangles", mesh.triangles, np.int32, (None, 3))
-    if len(tris) and (tris.min() < 0 or tris.max() >= len(points)):
-        raise ValueError(
-            f"DrawMesh {mesh.name or '(unnamed)'}: triangle indices must lie in "
-            f"[0, {len(points)}), got [{tris.min()}, {tris.max()}]."
-        )
+    _check_indices(mesh, tris, len(points))
     return points, tris
+
+
+def _check_indices(mesh: DrawMesh, tris: np.ndarray, n: int) -> None:
+    """Every triangle index lies in [0, n) (ValueError naming the mesh otherwise)."""
+
+    def check() -> None:
+        if len(tris) and (tris.min() < 0 or tris.max() >= n):
+            raise ValueError(
+                f"DrawMesh {mesh.name or '(unnamed)'}: triangle indices must lie in [0, {n}), "
+                f"got [{tris.min()}, {tris.max()}]."
+            )
+
+    checked_once(tris, ("indices", n), check)
 
 
 def render_depth(renderer: Renderer, meshes: Sequence[DrawMesh], camera: Camera) -> np.ndarray:
@@ -339,8 +384,16 @@ def renderer_plugins() -> PluginSet[RendererSpec]:
     return discover(RENDERERS)
 
 
-def choose_renderer(name: str | None = None) -> RendererSpec:
-    """The renderer called `name`, or for None / "auto" the first usable one of AUTO_ORDER.
+HEAVY_TRIANGLES = 250_000
+"""Over this many triangles a frame, "auto" prefers embree to a software GL (llvmpipe), whose
+cost grows with every triangle however small: capturing the film-weight character (1.5M) at
+128x128 measured 4.9 samples/s through gl and 20 through embree, the 23k-triangle sample 89.7
+and 38.5 (samples/film_character/README.md). A GPU's GL stays first at any size."""
+
+
+def choose_renderer(name: str | None = None, triangles: int = 0) -> RendererSpec:
+    """The renderer called `name`, or for None / "auto" the first usable one of AUTO_ORDER
+    (embree first for a frame of over HEAVY_TRIANGLES `triangles` where GL is software).
 
     Falling back prints one line to stderr saying why the preferred renderer was skipped. A
     named renderer that cannot run here raises RigspaceError with the reason.
@@ -349,6 +402,13 @@ def choose_renderer(name: str | None = None) -> RendererSpec:
     if name is None or name == "auto":
         order = [*AUTO_ORDER, *(n for n in plugins.specs if n not in AUTO_ORDER)]
         skipped: list[str] = []
+        if triangles > HEAVY_TRIANGLES and _software_gl():
+            order.remove("embree")
+            order.insert(0, "embree")
+            skipped.append(
+                f"{triangles:,} triangles raster slowly on this software GL (--renderer gl "
+                "to use it anyway)"
+            )
         for candidate in order:
             if candidate in plugins.specs:
                 reason = plugins.specs[candidate].unavailable()
@@ -374,8 +434,15 @@ def choose_renderer(name: str | None = None) -> RendererSpec:
     return spec
 
 
+def _software_gl() -> bool:
+    from rigspace.sdk.render import gl  # gl imports this module: import it when asked
+
+    return gl.software()
+
+
 __all__ = [
     "AUTO_ORDER",
+    "HEAVY_TRIANGLES",
     "RENDERERS",
     "DrawMesh",
     "Maps",

@@ -142,6 +142,23 @@ def unavailable() -> str | None:
     return None
 
 
+SOFTWARE_RASTERISERS = ("llvmpipe", "softpipe", "swrast", "lavapipe")
+
+
+@functools.cache
+def software() -> bool:
+    """True when this machine's GL is a CPU rasteriser (Mesa llvmpipe): its cost grows with the
+    triangles drawn, ~0.11 us each on one core here, however few pixels they cover."""
+    if unavailable() is not None:
+        return False
+    ctx = _context()
+    try:
+        name = str(ctx.info.get("GL_RENDERER", "")).lower()
+    finally:
+        ctx.release()
+    return any(s in name for s in SOFTWARE_RASTERISERS)
+
+
 def _mat(m: np.ndarray) -> bytes:
     """A numpy (column-vector, row-major storage) matrix as GLSL's column-major float32 bytes."""
     return np.ascontiguousarray(m.T, dtype=np.float32).tobytes()

@@ -89,3 +89,33 @@ def test_posing_equals_usdskel_bake_skinning_with_fingers_and_face(built, tmp_pa
             want = want @ world[:3, :3].T + world[:3, 3]
             got = next(v for k, v in ours.items() if k.endswith(name))
             np.testing.assert_allclose(got, want, atol=2e-3)  # cm, float32
+
+
+def test_the_face_region_is_found_from_the_shapes_and_seen_only_from_the_front(built):
+    """train/regions.py: the surface the blend shapes move, found in texture space and read
+    back from a render's uv and chart maps: seen in the head's part of the image from the
+    front, all but hidden from behind."""
+    from rigspace.capture.settings import resolve_settings
+    from rigspace.sdk.render import RenderSettings, choose_renderer
+    from rigspace.train.regions import WholeCharacter, blend_shape_region
+
+    info, _ = built
+    settings, rig = resolve_settings(info["scene"], "/World/Hero", None, warn=lambda _: None)
+    face = blend_shape_region(rig)
+    assert face is not None and face.name == "face"
+    meshes = rig.posed_meshes(0.0, charts=True)
+    head = rig.world_transforms(0.0)[rig.joints.index(settings.look_at_joint)][:3, 3]
+    counts = []
+    with choose_renderer("gl").create(RenderSettings(1)) as renderer:
+        for view in [v for v in settings.views() if v.elevation == settings.views()[0].elevation]:
+            maps = renderer.render(meshes, view.camera(head, settings.lens))
+            pixels = face.pixels(maps)
+            character = WholeCharacter().pixels(maps)
+            assert pixels is not None and not np.any(pixels & ~character)
+            if pixels.any():  # the face is the top of the character, never its legs
+                rows = np.flatnonzero(character.any(axis=1))
+                top, height = rows[0], rows[-1] - rows[0]
+                assert np.flatnonzero(pixels.any(axis=1))[-1] < top + 0.25 * height
+            counts.append(int(pixels.sum()))
+    # Seen from the front; from behind, at most the jaw's edge by the neck.
+    assert max(counts) > 20 and min(counts) <= 0.05 * max(counts)
