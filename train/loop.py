@@ -34,7 +34,6 @@ from typing import Any, ParamSpec, TypeVar
 import cv2
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from rigspace.capture.dataset import DatasetError, read_manifest
 from rigspace.sdk.cli import sigterm_as_interrupt
@@ -42,6 +41,16 @@ from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.fields import TRAINING_RUN, read_checked
 from rigspace.train import distributed
 from rigspace.train.budget import Pace, apply_plan, plan_schedule
+from rigspace.train.callbacks import (
+    Callback,
+    Checkpoints,
+    LoopState,
+    Pacer,
+    Previews,
+    ProgressBar,
+    StepLog,
+    run_steps,
+)
 from rigspace.train.conditioning import dataset_skeleton, parents_of
 from rigspace.train.config import TrainConfig
 from rigspace.train.data import SampleSet, chart_boxes, ensure_cache
@@ -330,12 +339,75 @@ def train(
     dataset, out = Path(dataset), Path(out)
     began = time.monotonic()  # the budget counts from here: the step-rate probe is part of it
     ctx = distributed.context(device)  # one process unless under torchrun (train.distributed)
+    run = _set_up(dataset, out, config, resume, progress, cache, ctx)
+    config, planned = _plan(run, ctx, minutes, began)
+    model = run.model.to(ctx.device)
+    state = LoopState(model, make_optimizer(model, config), config, out, start=0, total=0)
+    checkpoint_path = out / CHECKPOINT
+    if resume and checkpoint_path.exists():
+        saved = load_checkpoint(checkpoint_path)
+        model.load_state_dict(saved["model"])
+        state.optimizer.load_state_dict(saved["optimizer"])
+        torch.set_rng_state(saved["torch_rng"])
+        state.start = state.step = int(saved["step"])
+    state.total = config.total_steps() if steps is None else min(steps, config.total_steps())
+    state.last_good = checkpoint_path if checkpoint_path.exists() else None
+    state.seconds_before = logged_seconds(out / "log.jsonl", state.start) if state.start else 0.0
+    pacer = None
+    if minutes:
+        # A time budget is the user's "train the best model in M minutes": when the planned
+        # steps finish early (the probe ran on a busier machine), the final level trains on
+        # until the budget ends instead of leaving it unused (also after --resume of a
+        # finished run).
+        deadline = began + 60 * minutes
+        rates = {int(r): float(v) for r, v in planned.get("seconds_per_step", {}).items()}
+        pace = Pace(config, rates, deadline) if planned else None
+        pacer = Pacer(config, deadline, pace, ctx.agree)
+        pacer.extends = steps is None
+    stopped = _run(run, state, ctx, pacer, progress, "done" if steps is None else "step budget")
+    if stopped != "interrupted":
+        ctx.barrier()  # the other ranks return once rank 0's checkpoint is written
+    return TrainResult(
+        out, state.step, state.elapsed, stopped, state.last_loss, state.images_per_second
+    )
+
+
+@dataclass
+class _Run:
+    """A run's data and network, set up and checked before the first step."""
+
+    dataset: Path
+    out: Path
+    manifest: dict[str, Any]
+    config: TrainConfig
+    existing: dict[str, Any] | None
+    """The run.json of the run being resumed; None for a new run."""
+    samples: Any
+    held_out: Any
+    model: Rig2Image
+
+    @property
+    def previews(self) -> Any:
+        """The samples previews show: held-out views, or training ones if there are none."""
+        return self.held_out if len(self.held_out) else self.samples
+
+
+def _set_up(
+    dataset: Path,
+    out: Path,
+    config: TrainConfig,
+    resume: bool,
+    progress: bool,
+    cache: bool,
+    ctx: Any,
+) -> _Run:
+    """Check the run, decode the cache, open the splits and build the network."""
     manifest, config, existing = ctx.share(lambda: prepare_run(dataset, out, config, resume))
     if config.threads:
         torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
-    if cache and not is_shards(dataset):  # rank 0 decodes; the others wait for it
-        said = ctx.share(lambda: ensure_cache(dataset, manifest, progress))
+    if cache and not is_shards(dataset):
+        said = ctx.share(lambda: ensure_cache(dataset, manifest, progress))  # rank 0 decodes
         if ctx.is_main and progress:
             print(f"rigspace train: {said}", file=sys.stderr)
     samples = open_split(dataset, "train", config.resolution)  # a dataset or shards folder
@@ -345,11 +417,10 @@ def train(
             f"{dataset} has no training samples.", "capture with some non-held-out views."
         )
     boxes = chart_boxes(dataset) if config.texture else None
-    charts = 0 if boxes is None else len(boxes[0]) - 1
     shape = Shape(
         len(samples.joints),
         parents=parents_of(samples.joints),
-        charts=charts,
+        charts=0 if boxes is None else len(boxes[0]) - 1,
         blend_shapes=len(manifest.get("blend_shapes", ())),
     )
     model = Rig2Image(shape, config)
@@ -359,164 +430,110 @@ def train(
         samples.charts = held_out.charts = boxes
     if config.channels_last:
         model = model.to(memory_format=torch.channels_last)
-    plan = None
-    if existing is None and ctx.is_main:
+    return _Run(dataset, out, manifest, config, existing, samples, held_out, model)
+
+
+def _plan(
+    run: _Run, ctx: Any, minutes: float | None, began: float
+) -> tuple[TrainConfig, dict[str, Any]]:
+    """A new run's time-budget plan (measured on rank 0) and its run.json; the config to
+    train with and the plan (a resumed run's from its run.json; {} without a budget)."""
+    config, plan = run.config, None
+    if run.existing is None and ctx.is_main:
         if minutes:
-            previews = held_out if len(held_out) else samples
             probe = replace(config, batch=config.batch // ctx.world)  # one rank's share
-            rates = measure_step_seconds(model, samples, previews, probe, device=ctx.device)
+            rates = measure_step_seconds(
+                run.model, run.samples, run.previews, probe, device=ctx.device
+            )
             plan = plan_schedule(config, rates, 60 * minutes - (time.monotonic() - began))
             config = apply_plan(config, plan)
             print(f"rigspace train: {plan.summary()}", file=sys.stderr)
-        run = run_record(dataset, manifest, config)
+        record = run_record(run.dataset, run.manifest, config)
         if plan is not None:
-            run["plan"] = plan.to_json()
-        out.mkdir(parents=True, exist_ok=True)
-        (out / RUN_FILE).write_text(json.dumps(run, indent=2) + "\n")
+            record["plan"] = plan.to_json()
+        run.out.mkdir(parents=True, exist_ok=True)
+        (run.out / RUN_FILE).write_text(json.dumps(record, indent=2) + "\n")
     config, plan = ctx.share(lambda: (config, plan))  # rank 0 planned and wrote run.json
-    model = model.to(ctx.device)
-    start, optimizer = 0, make_optimizer(model, config)
-    checkpoint_path = out / CHECKPOINT
-    if resume and checkpoint_path.exists():
-        state = load_checkpoint(checkpoint_path)
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        torch.set_rng_state(state["torch_rng"])
-        start = int(state["step"])
-    total = config.total_steps() if steps is None else min(steps, config.total_steps())
-    deadline = began + 60 * minutes if minutes else math.inf
-    # A time budget is the user's "train the best model in M minutes": when the planned steps
-    # finish early (the probe ran on a busier machine), the final level trains on until the
-    # budget ends instead of leaving it unused (also after --resume of a finished run).
-    budgeted = bool(minutes) and steps is None
-    said_extended = False
-    net = ctx.wrap(model)  # DDP under torchrun: gradients averaged over the ranks
+    planned = plan.to_json() if plan is not None else (run.existing or {}).get("plan") or {}
+    return config, planned
+
+
+def _run(
+    run: _Run, state: LoopState, ctx: Any, pacer: Pacer | None, progress: bool, done: str
+) -> str:
+    """The steps from state.step, with the main run's callbacks; why they stopped."""
     prefetch = prefetcher(
-        samples, config.batch, config.seed, ctx.rank, ctx.world, config.oversample
-    )
-    log = (out / "log.jsonl").open("a") if ctx.is_main else open(os.devnull, "w")
-    bar = tqdm(
-        initial=start,
-        total=total,
-        unit="step",
-        disable=not progress or not ctx.is_main,
-        file=sys.stderr,
-        dynamic_ncols=True,
-    )
-    step, stopped, last_loss, t0 = start, "done", math.nan, time.monotonic()
-    # Wall seconds of training, summed over resumed calls: the x axis of quality against
-    # training time (python -m rigspace.train.curve).
-    seconds_before = logged_seconds(out / "log.jsonl", start) if start else 0.0
-    last_good = checkpoint_path if checkpoint_path.exists() else None
-    planned = plan.to_json() if plan is not None else (existing or {}).get("plan") or {}
-    pace = None
-    if minutes and planned:
-        rates = {int(r): float(s) for r, s in planned["seconds_per_step"].items()}
-        pace = Pace(config, rates, deadline)
-    trained = 0  # optimizer steps in this call (a slow run's pace skips some steps)
-    reported_reach = False
+        run.samples, state.config.batch, state.config.seed, ctx.rank, ctx.world,
+        state.config.oversample,
+    )  # fmt: skip
+    net = ctx.wrap(state.model)  # DDP under torchrun: gradients averaged over the ranks
+    callbacks: list[Callback] = [
+        ProgressBar(state, progress and ctx.is_main, _postfix),
+        # Previews add to the step's record before StepLog writes it.
+        *([Previews(functools.partial(_preview_step, run=run, ctx=ctx))] if ctx.is_main else []),
+        StepLog(run.out / "log.jsonl", ctx.is_main),
+        *([Checkpoints(functools.partial(_save, ctx=ctx))] if ctx.is_main else []),
+    ]
+    step = functools.partial(_train_step, net=net, prefetch=prefetch, ctx=ctx)
+    state.started = time.monotonic()
     terminate = sigterm_as_interrupt()
     try:
-        while step < total or budgeted:
-            now = time.monotonic()
-            if ctx.agree(now > deadline):  # rank 0's clock decides for every rank
-                stopped = "time budget"
-                break
-            if step >= total and not said_extended:
-                said_extended = True
-                bar.total = None  # steps past the plan: a count and a rate, no ETA
-                tqdm.write(
-                    f"rigspace train: the planned {total} steps are done with "
-                    f"{(deadline - now) / 60:.1f} min of the budget left: the final level "
-                    f"({config.resolution}x{config.resolution}) trains on until it ends",
-                    file=sys.stderr,
-                )
-            ahead = ctx.agree(pace.next_step(step, now) if pace is not None else step)
-            if pace is not None and pace.out_of_reach and not reported_reach:
-                reported_reach = True
-                tqdm.write(
-                    f"rigspace train: slower than planned: at this rate the budget reaches no "
-                    f"level after {schedule(config, step).resolution}, which trains on until "
-                    "it ends",
-                    file=sys.stderr,
-                )
-            if ahead != step:
-                level = schedule(config, step).resolution
-                tqdm.write(
-                    f"rigspace train: slower than planned: level {level} ends at step {step} "
-                    f"(of {ahead}) so that the run reaches the final level within the budget",
-                    file=sys.stderr,
-                )
-                log.write(json.dumps({"step": step, "skipped_to": ahead}) + "\n")
-                bar.update(ahead - step)
-                step = ahead
-                continue
-            where = schedule(config, step)
-            if where.first_step_of_level and step > start:
-                # A new block joins: fresh optimizer state (the paper resets per level).
-                optimizer = make_optimizer(model, config)
-            batch = ctx.to_device(to_torch(prefetch.get(step), config.channels_last))
-            loss, terms = forward_loss(net, batch, where.resolution, where.alpha, config)
-            shown, terms = ctx.mean(loss, terms)  # every rank sees the same value
-            if not math.isfinite(shown):
-                raise TrainingError(
-                    f"The loss became {shown} at step {step} (level {where.resolution}x"
-                    f"{where.resolution}, alpha {where.alpha:.2f}); training stopped. Last good "
-                    f"checkpoint: {last_good or 'none yet'}.",
-                    "lower --lr, or resume from the last good checkpoint with --resume.",
-                )
-            optimise(net, optimizer, loss, config)
-            step += 1
-            trained += 1
-            last_loss = shown
-            elapsed = time.monotonic() - t0
-            rate = trained * config.batch / max(elapsed, 1e-9)
-            bar.set_postfix(loss=f"{last_loss:.4f}", res=where.resolution, img_s=f"{rate:.1f}")
-            bar.update(1)
-            record: dict[str, Any] = {
-                "step": step,
-                "loss": last_loss,
-                **terms,
-                "fade": where.alpha,  # the newest block's fade-in weight; "alpha" is its loss term
-                "resolution": where.resolution,
-                "seconds": round(seconds_before + elapsed, 2),
-            }
-            if ctx.is_main and (step % config.eval_every == 0 or step == total):
-                record["heldout"] = _preview(
-                    ctx.on_cpu(model),
-                    held_out if len(held_out) else samples,
-                    where.resolution,
-                    out / "previews" / f"level_{where.resolution}.png",
-                )
-            log.write(json.dumps(record) + "\n")
-            if ctx.is_main and (step % config.checkpoint_every == 0 or step == total):
-                last_good = save_checkpoint(out, model, optimizer, step, where.level)
-    except KeyboardInterrupt:
-        stopped = "interrupted"
+        return run_steps(state, step, callbacks, pacer, done)
     except DatasetError as exc:  # a damaged sample: keep the progress, then say how to go on
-        if step > start and ctx.is_main:
-            save_checkpoint(out, model, optimizer, step, schedule(config, step - 1).level)
+        if state.step > state.start and ctx.is_main:
+            _save(state, ctx=ctx)
         raise TrainingError(
-            f"{exc.what} Training stopped at step {step}"
-            + (f"; checkpoint saved in {out}." if step > start else "."),
+            f"{exc.what} Training stopped at step {state.step}"
+            + (f"; checkpoint saved in {run.out}." if state.step > state.start else "."),
             f"{exc.fix} Then continue training with --resume.",
         ) from exc
     finally:
         terminate()
-        bar.close()
-        log.close()
         prefetch.close()
-    if stopped != "done" or steps is not None:
-        if stopped == "done":
-            stopped = "step budget"
-        if step > start and torch.isfinite(torch.tensor(last_loss)) and ctx.is_main:
-            save_checkpoint(out, model, optimizer, step, schedule(config, max(step - 1, 0)).level)
-    if stopped != "interrupted":
-        ctx.barrier()  # the other ranks return once rank 0's checkpoint is written
-    seconds = time.monotonic() - t0
-    return TrainResult(
-        out, step, seconds, stopped, last_loss, trained * config.batch / max(seconds, 1e-9)
-    )
+
+
+def _train_step(state: LoopState, *, net: Any, prefetch: Any, ctx: Any) -> dict[str, Any]:
+    """One optimizer step of the main run; its log record."""
+    config, step = state.config, state.step
+    where = schedule(config, step)
+    if where.first_step_of_level and step > state.start:
+        # A new block joins: fresh optimizer state (the paper resets per level).
+        state.optimizer = make_optimizer(state.model, config)
+    batch = ctx.to_device(to_torch(prefetch.get(step), config.channels_last))
+    loss, terms = forward_loss(net, batch, where.resolution, where.alpha, config)
+    shown, terms = ctx.mean(loss, terms)  # every rank sees the same value
+    if not math.isfinite(shown):
+        raise TrainingError(
+            f"The loss became {shown} at step {step} (level {where.resolution}x"
+            f"{where.resolution}, alpha {where.alpha:.2f}); training stopped. Last good "
+            f"checkpoint: {state.last_good or 'none yet'}.",
+            "lower --lr, or resume from the last good checkpoint with --resume.",
+        )
+    optimise(net, state.optimizer, loss, config)
+    state.last_loss = shown
+    return {
+        "step": step + 1,
+        "loss": shown,
+        **terms,
+        "fade": where.alpha,  # the newest block's fade-in weight; "alpha" is its loss term
+        "resolution": where.resolution,
+        "seconds": round(state.seconds_before + state.elapsed, 2),
+    }
+
+
+def _postfix(record: dict[str, Any]) -> dict[str, Any]:
+    return {"loss": f"{record['loss']:.4f}", "res": record["resolution"]}
+
+
+def _preview_step(state: LoopState, resolution: int, *, run: _Run, ctx: Any) -> dict[str, float]:
+    path = run.out / "previews" / f"level_{resolution}.png"
+    return _preview(ctx.on_cpu(state.model), run.previews, resolution, path)
+
+
+def _save(state: LoopState, *, ctx: Any) -> Path:
+    """The checkpoint at state.step (the level of the step last trained)."""
+    level = schedule(state.config, max(state.step - 1, 0)).level
+    return save_checkpoint(state.out, state.model, state.optimizer, state.step, level)
 
 
 def flush_denormal(on: bool) -> bool:
