@@ -14,16 +14,15 @@ checkpoint starts fresh (its shapes changed), so a later --resume restarts its m
 
 from __future__ import annotations
 
+import functools
 import json
-import math
-import sys
-import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import torch
-from tqdm import tqdm
 
+from rigspace.train.callbacks import LoopState, ProgressBar, StepLog, run_steps
 from rigspace.train.config import TrainConfig
 from rigspace.train.data import Prefetcher, SampleSet
 from rigspace.train.loop import (
@@ -37,6 +36,9 @@ from rigspace.train.loop import (
 from rigspace.train.loss import downsample, mixed
 from rigspace.train.network import ALBEDO_CHANNELS, Rig2Image, Shape, albedo_alpha
 from rigspace.train.step import make_optimizer
+
+UPGRADE_LOG_EVERY = 100
+"""Upgrade steps per log.jsonl line."""
 
 
 def upgrade_state(state: dict[str, torch.Tensor]) -> list[str]:
@@ -91,44 +93,48 @@ def upgrade(
         betas=(config.adam_beta1, config.adam_beta2),
     )
     prefetch = Prefetcher(samples, config.batch, config.seed + 1)
-    bar = tqdm(total=steps, unit="step", disable=not progress, file=sys.stderr, dynamic_ncols=True)
-    loss_value, t0 = math.nan, time.monotonic()
+    state = LoopState(model, optimizer, config, run_folder, start=0, total=steps)
+    callbacks = [
+        ProgressBar(state, progress, lambda r: {"alpha_loss": f"{r['alpha']:.4f}"}),
+        StepLog(run_folder / "log.jsonl", True, every=UPGRADE_LOG_EVERY),
+    ]
     try:
-        with (run_folder / "log.jsonl").open("a") as log:
-            for step in range(steps):
-                batch = {k: torch.from_numpy(v) for k, v in prefetch.get(step).items()}
-                with torch.no_grad():
-                    features = model.features(batch["rig"])
-                outs = model.albedo(features, config.resolution)
-                loss = torch.zeros(())
-                for k, head in enumerate(outs):
-                    weight = 1.0 if k == len(outs) - 1 else config.lower_level_weight
-                    target = downsample(batch["mask"], head.shape[-1])
-                    loss = loss + weight * mixed(albedo_alpha(head), target, config.l1_weight)
-                if not torch.isfinite(loss):
-                    raise TrainingError(
-                        f"The alpha heads' loss became {float(loss)} at upgrade step {step}.",
-                        "lower --lr and run the upgrade again (the checkpoint is unchanged).",
-                    )
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                optimizer.step()
-                loss_value = float(loss.detach())
-                bar.set_postfix(alpha_loss=f"{loss_value:.4f}")
-                bar.update(1)
-                if (step + 1) % 100 == 0 or step + 1 == steps:
-                    log.write(json.dumps({"upgrade_step": step + 1, "alpha": loss_value}) + "\n")
+        stopped = run_steps(state, functools.partial(_alpha_step, prefetch=prefetch), callbacks)
     finally:
-        bar.close()
         prefetch.close()
+    if stopped == "interrupted":
+        raise KeyboardInterrupt  # the checkpoint is left as it was
     step = int(checkpoint["step"])
     save_checkpoint(
         run_folder, model, make_optimizer(model, config), step, int(checkpoint["level"])
     )
-    seconds = time.monotonic() - t0
     return TrainResult(
-        run_folder, step, seconds, "upgraded", loss_value, steps * config.batch / seconds
+        run_folder, step, state.elapsed, "upgraded", state.last_loss, state.images_per_second
     )
+
+
+def _alpha_step(state: LoopState, *, prefetch: Prefetcher) -> dict[str, Any]:
+    """One step of the alpha heads alone against the mask, at every level of detail."""
+    model, config = state.model, state.config
+    batch = {k: torch.from_numpy(v) for k, v in prefetch.get(state.step).items()}
+    with torch.no_grad():
+        features = model.features(batch["rig"])
+    outs = model.albedo(features, config.resolution)
+    loss = torch.zeros(())
+    for k, head in enumerate(outs):
+        weight = 1.0 if k == len(outs) - 1 else config.lower_level_weight
+        target = downsample(batch["mask"], head.shape[-1])
+        loss = loss + weight * mixed(albedo_alpha(head), target, config.l1_weight)
+    if not torch.isfinite(loss):
+        raise TrainingError(
+            f"The alpha heads' loss became {float(loss)} at upgrade step {state.step}.",
+            "lower --lr and run the upgrade again (the checkpoint is unchanged).",
+        )
+    state.optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    state.optimizer.step()
+    state.last_loss = float(loss.detach())
+    return {"upgrade_step": state.step + 1, "alpha": state.last_loss}
 
 
 def _alpha_only(grad: torch.Tensor) -> torch.Tensor:
