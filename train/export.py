@@ -169,20 +169,9 @@ def export_bundle(
     this one does not write are removed, after the new manifest is in place.
     """
     run_folder, out = Path(run_folder), Path(out)
-    if (run_folder / RUN_FILE).is_file() and not (run_folder / CHECKPOINT).is_file():
-        raise TrainingError(
-            f"The run in {run_folder} has trained no level yet (no step, no checkpoint).",
-            "train longer: continue it with --resume (and a larger --steps or --minutes).",
-        )
-    model, run, step = build_model(run_folder)
+    model, run, step = _trained_run(run_folder)
     config = TrainConfig.from_json(run["config"])
-    trained = trained_levels(config, step)
-    if not trained:
-        raise TrainingError(
-            f"The run in {run_folder} has trained no level yet (step {step}).",
-            "train longer: continue it with --resume (and a larger --steps or --minutes).",
-        )
-    resolutions = [r for r in model.albedo.resolutions if r <= trained[-1]]
+    resolutions = [r for r in model.albedo.resolutions if r <= trained_levels(config, step)[-1]]
     dataset = Path(run["dataset"])
     data_manifest = read_manifest(dataset)
     # Capsules are fitted to the character, not trained: the dataset's copy wins; without
@@ -193,122 +182,13 @@ def export_bundle(
         read_capsules(capsules)  # before any graph is written: a CapsuleError naming the file
     skeleton = dataset_skeleton(dataset, data_manifest) if model.conditioned else None
     out.mkdir(parents=True, exist_ok=True)
-    calibration: dict[str, np.ndarray] = {}
-    if int8:
-        # Rows by input name: rig, features and (conditioned) joints2d, the rows' own by
-        # rigspace.sdk.conditioning; each graph is fed the inputs it reads (train.quantize).
-        train = SampleSet(dataset, "train")
-        picks = np.linspace(0, len(train) - 1, min(CALIBRATION_SAMPLES, len(train))).astype(int)
-        calibration = rig_feeds(train.rig[train.rows[picks]], skeleton)
-        with torch.no_grad():
-            tensors = {k: torch.from_numpy(v) for k, v in calibration.items()}
-            features = model.features(tensors["rig"], tensors.get("joints2d"))
-        calibration["features"] = features.numpy()
-    written: list[str] = []
-
-    def write(branch: str, resolution: int, stem: str) -> dict[str, str]:
-        names = {"fp32": f"{stem}.onnx"}
-        export_graph(model, branch, resolution, out / names["fp32"])
-        if int8:
-            names["int8"] = int8_name(names["fp32"])
-            quantize_int8(out / names["fp32"], out / names["int8"], INPUTS[branch], calibration)
-        written.extend(names.values())
-        return names
-
-    with torch.no_grad():
-        trunk = write("trunk", 8, "trunk")
-        levels = []
-        for resolution in resolutions:
-            entry: dict[str, Any] = {"resolution": resolution, "graphs": {}, "int8": {}}
-            for branch in ("albedo", "geometry"):
-                names = write(branch, resolution, f"{branch}_{resolution}")
-                entry["graphs"][branch] = names["fp32"]
-                if "int8" in names:
-                    entry["int8"][branch] = names["int8"]
-            levels.append(entry)
-    ring = data_manifest["ring"]
-    manifest = {
-        "format": FORMAT,
-        "format_version": FORMAT_VERSION,
-        "joints": list(run["joints"]),
-        **({"blend_shapes": list(run["blend_shapes"])} if run.get("blend_shapes") else {}),
-        "rotation_encoding": "rot6d",
-        "look_at_joint": data_manifest["look_at_joint"],
-        "maps": ["albedo", "normal", "depth", "mask"],
-        "trunk": {"graphs": {"trunk": trunk["fp32"]}, "int8": {"trunk": trunk.get("int8")}},
-        "levels": levels,
-        "inputs": {
-            "rig": "float32 (N, joints*6 + blend_shapes): per joint the world rotation in the "
-            "camera frame, first two matrix columns (r00 r10 r20 r01 r11 r21), then each blend "
-            "shape's weight (manifest blend_shapes order, when there are any); input of the "
-            "trunk graph",
-            "features": "float32 (N, C, 8, 8): the trunk's output, input of every branch graph",
-        },
-        "outputs": {
-            "albedo": "float32 (N,3,R,R) linear RGB premultiplied by mask, [0,1]",
-            "depth": "float32 (N,1,R,R) (camera depth along -Z - joint depth) / depth.scale",
-            "normal": "float32 (N,3,R,R) camera-space unit normals",
-            "mask": "float32 (N,1,R,R) coverage in [0,1]",
-            "alpha": "float32 (N,1,R,R) coverage in [0,1] from the albedo branch (for frames "
-            "that run the albedo branch alone)",
-            **(
-                {
-                    "chart": "float32 (N,K+1,R,R) texture chart probabilities (softmax over "
-                    "the charts of texture.file; 0: background or no texture), from the "
-                    "graphs of the branch texture.branch",
-                    "uv": "float32 (N,2K,R,R) per chart k (channels 2(k-1), 2(k-1)+1) its "
-                    "texture coordinates within its uv box (charts.json uv_min..uv_max mapped "
-                    "to -1..1), from the graphs of the branch texture.branch",
-                }
-                if model.charts
-                else {}
-            ),
-        },
-        "depth": {
-            "encoding": "relative-to-look-at-joint",
-            "scale": depth_scale(data_manifest),
-            "units": "scene units",
-        },
-        "training_camera": {
-            "distance": ring["radius"],
-            "focal_length": ring["focal_length"],
-            "horizontal_aperture": ring["horizontal_aperture"],
-            "resolution": data_manifest["resolution"],
-        },
-        "meters_per_unit": data_manifest["meters_per_unit"],
-        "dataset": {
-            "checksum": data_manifest["checksum"],
-            "scene_fingerprint": data_manifest["scene_fingerprint"],
-            "character": data_manifest["character"],
-            "samples": data_manifest["counts"],
-        },
-        "training": {
-            "config": run["config"],
-            "steps": step,
-            "planned_steps": config.total_steps(),
-            "trained_levels": resolutions,
-            "planned_levels": list(model.albedo.resolutions),
-            **({"plan": run["plan"]} if run.get("plan") else {}),
-        },
-        "metrics": metrics or {},
-    }
+    calibration = _calibration(model, dataset, skeleton) if int8 else {}
+    trunk, levels, written = _write_graphs(model, out, resolutions, calibration if int8 else None)
+    manifest = bundle_manifest(model, run, step, data_manifest, trunk, levels, metrics)
     if skeleton is not None:
         manifest["format_version"] = CONDITIONED_VERSION
-        manifest["conditioning"] = {
-            "kind": config.conditioning,
-            "sigma": config.conditioning_sigma,
-            "mode": config.conditioning_mode,
-            "top": config.conditioning_top,
-            "input": "joints2d",
-            "skeleton": skeleton.to_json(),
-        }
-        manifest["inputs"]["joints2d"] = (
-            "float32 (N, joints*2): per joint (u, v), the joint by forward kinematics from the "
-            "rig and conditioning.skeleton, projected by a camera at the training distance "
-            "from the look-at joint; [-1, 1] across the image, v down "
-            "(rigspace.sdk.conditioning.joints2d); input of the trunk and of every branch "
-            "graph above 8x8 (int8 variants included)"
-        )
+        manifest["conditioning"] = _conditioning(config, skeleton)
+        manifest["inputs"]["joints2d"] = JOINTS2D_INPUT
     rows, split = check_rows(dataset)  # the int8 graphs' and the weights' check
     if int8:
         manifest["int8_check"] = {
@@ -342,6 +222,171 @@ def export_bundle(
     os.replace(tmp, out / "manifest.json")
     remove_stale(out, set(written))
     return manifest
+
+
+def _trained_run(run_folder: Path) -> tuple[Rig2Image, dict[str, Any], int]:
+    """The run's network at its checkpoint, its run.json and step; a TrainingError when it
+    has trained no level yet."""
+    if (run_folder / RUN_FILE).is_file() and not (run_folder / CHECKPOINT).is_file():
+        raise TrainingError(
+            f"The run in {run_folder} has trained no level yet (no step, no checkpoint).",
+            "train longer: continue it with --resume (and a larger --steps or --minutes).",
+        )
+    model, run, step = build_model(run_folder)
+    if not trained_levels(TrainConfig.from_json(run["config"]), step):
+        raise TrainingError(
+            f"The run in {run_folder} has trained no level yet (step {step}).",
+            "train longer: continue it with --resume (and a larger --steps or --minutes).",
+        )
+    return model, run, step
+
+
+def _calibration(
+    model: Rig2Image, dataset: Path, skeleton: Skeleton2D | None
+) -> dict[str, np.ndarray]:
+    """The int8 calibration's rows by input name: rig, features and (conditioned) joints2d,
+    the rows' own by rigspace.sdk.conditioning; each graph is fed the inputs it reads
+    (train.quantize)."""
+    train = SampleSet(dataset, "train")
+    picks = np.linspace(0, len(train) - 1, min(CALIBRATION_SAMPLES, len(train))).astype(int)
+    calibration = rig_feeds(train.rig[train.rows[picks]], skeleton)
+    with torch.no_grad():
+        tensors = {k: torch.from_numpy(v) for k, v in calibration.items()}
+        features = model.features(tensors["rig"], tensors.get("joints2d"))
+    calibration["features"] = features.numpy()
+    return calibration
+
+
+def _write_graphs(
+    model: Rig2Image,
+    out: Path,
+    resolutions: list[int],
+    calibration: dict[str, np.ndarray] | None,
+) -> tuple[dict[str, str], list[dict[str, Any]], list[str]]:
+    """The trunk's and every level's branch graphs (and int8 variants, given calibration):
+    the trunk's names, the manifest's levels and every file written."""
+    written: list[str] = []
+
+    def write(branch: str, resolution: int, stem: str) -> dict[str, str]:
+        names = {"fp32": f"{stem}.onnx"}
+        export_graph(model, branch, resolution, out / names["fp32"])
+        if calibration is not None:
+            names["int8"] = int8_name(names["fp32"])
+            quantize_int8(out / names["fp32"], out / names["int8"], INPUTS[branch], calibration)
+        written.extend(names.values())
+        return names
+
+    with torch.no_grad():
+        trunk = write("trunk", 8, "trunk")
+        levels = []
+        for resolution in resolutions:
+            entry: dict[str, Any] = {"resolution": resolution, "graphs": {}, "int8": {}}
+            for branch in ("albedo", "geometry"):
+                names = write(branch, resolution, f"{branch}_{resolution}")
+                entry["graphs"][branch] = names["fp32"]
+                if "int8" in names:
+                    entry["int8"][branch] = names["int8"]
+            levels.append(entry)
+    return trunk, levels, written
+
+
+RIG_INPUT = (
+    "float32 (N, joints*6 + blend_shapes): per joint the world rotation in the camera frame, "
+    "first two matrix columns (r00 r10 r20 r01 r11 r21), then each blend shape's weight "
+    "(manifest blend_shapes order, when there are any); input of the trunk graph"
+)
+JOINTS2D_INPUT = (
+    "float32 (N, joints*2): per joint (u, v), the joint by forward kinematics from the "
+    "rig and conditioning.skeleton, projected by a camera at the training distance "
+    "from the look-at joint; [-1, 1] across the image, v down "
+    "(rigspace.sdk.conditioning.joints2d); input of the trunk and of every branch "
+    "graph above 8x8 (int8 variants included)"
+)
+OUTPUTS = {
+    "albedo": "float32 (N,3,R,R) linear RGB premultiplied by mask, [0,1]",
+    "depth": "float32 (N,1,R,R) (camera depth along -Z - joint depth) / depth.scale",
+    "normal": "float32 (N,3,R,R) camera-space unit normals",
+    "mask": "float32 (N,1,R,R) coverage in [0,1]",
+    "alpha": "float32 (N,1,R,R) coverage in [0,1] from the albedo branch (for frames "
+    "that run the albedo branch alone)",
+}
+TEXTURE_OUTPUTS = {
+    "chart": "float32 (N,K+1,R,R) texture chart probabilities (softmax over "
+    "the charts of texture.file; 0: background or no texture), from the "
+    "graphs of the branch texture.branch",
+    "uv": "float32 (N,2K,R,R) per chart k (channels 2(k-1), 2(k-1)+1) its "
+    "texture coordinates within its uv box (charts.json uv_min..uv_max mapped "
+    "to -1..1), from the graphs of the branch texture.branch",
+}
+
+
+def bundle_manifest(
+    model: Rig2Image,
+    run: dict[str, Any],
+    step: int,
+    data_manifest: dict[str, Any],
+    trunk: dict[str, str],
+    levels: list[dict[str, Any]],
+    metrics: dict[str, Any] | None,
+) -> dict[str, Any]:
+    """The manifest's document for these graphs (export_bundle adds the conditioning, the
+    int8 check, capsules, texture and files sections)."""
+    config = TrainConfig.from_json(run["config"])
+    ring = data_manifest["ring"]
+    return {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "joints": list(run["joints"]),
+        **({"blend_shapes": list(run["blend_shapes"])} if run.get("blend_shapes") else {}),
+        "rotation_encoding": "rot6d",
+        "look_at_joint": data_manifest["look_at_joint"],
+        "maps": ["albedo", "normal", "depth", "mask"],
+        "trunk": {"graphs": {"trunk": trunk["fp32"]}, "int8": {"trunk": trunk.get("int8")}},
+        "levels": levels,
+        "inputs": {
+            "rig": RIG_INPUT,
+            "features": "float32 (N, C, 8, 8): the trunk's output, input of every branch graph",
+        },
+        "outputs": {**OUTPUTS, **(TEXTURE_OUTPUTS if model.charts else {})},
+        "depth": {
+            "encoding": "relative-to-look-at-joint",
+            "scale": depth_scale(data_manifest),
+            "units": "scene units",
+        },
+        "training_camera": {
+            "distance": ring["radius"],
+            "focal_length": ring["focal_length"],
+            "horizontal_aperture": ring["horizontal_aperture"],
+            "resolution": data_manifest["resolution"],
+        },
+        "meters_per_unit": data_manifest["meters_per_unit"],
+        "dataset": {
+            "checksum": data_manifest["checksum"],
+            "scene_fingerprint": data_manifest["scene_fingerprint"],
+            "character": data_manifest["character"],
+            "samples": data_manifest["counts"],
+        },
+        "training": {
+            "config": run["config"],
+            "steps": step,
+            "planned_steps": config.total_steps(),
+            "trained_levels": [level["resolution"] for level in levels],
+            "planned_levels": list(model.albedo.resolutions),
+            **({"plan": run["plan"]} if run.get("plan") else {}),
+        },
+        "metrics": metrics or {},
+    }
+
+
+def _conditioning(config: TrainConfig, skeleton: Skeleton2D) -> dict[str, Any]:
+    return {
+        "kind": config.conditioning,
+        "sigma": config.conditioning_sigma,
+        "mode": config.conditioning_mode,
+        "top": config.conditioning_top,
+        "input": "joints2d",
+        "skeleton": skeleton.to_json(),
+    }
 
 
 def add_weights(
