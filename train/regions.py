@@ -145,6 +145,11 @@ def dataset_regions(capture: dict, warn: Callable[[str], None] = print) -> list[
         return []
     regions: list[Region] = [WholeCharacter()]
     face = blend_shape_region(rig)
-    if face is not None:
+    if face is None:
+        warn(
+            "the surface the blend shapes move is found through the texture charts, and "
+            f"{capture['character']} has none there (no texture): measured as a whole only"
+        )
+    else:
         regions.append(face)
     return regions

@@ -181,3 +181,21 @@ def test_a_live_vmc_face_stream_moves_the_rendered_face(face, bundle, tmp_path):
             assert got["smile"] == pytest.approx(0.6)  # not sent: the animation's at 6
         assert runtime.counters().malformed == 0
     assert np.abs(frames[0.0] - frames[1.0]).max() > 1e-3
+
+
+def test_eval_measures_the_whole_character_and_says_why_there_is_no_face_region(bundle, capsys):
+    """rigspace eval on a character with blend shapes adds albedo PSNR over the character's
+    pixels; the shapes' own region needs texture charts, which this untextured face lacks."""
+    from rigspace.sdk.cli import main
+
+    dataset = bundle.parent / "ds"  # trained_face's
+    assert main(["eval", str(bundle), str(dataset), "--no-baselines", "--limit", "4"]) == 0
+    out, err = capsys.readouterr()
+    assert "albedo PSNR over the character (every pixel the character covers" in out
+    assert "measured as a whole only" in err and "over the face" not in out
+    assert (
+        main(["eval", str(bundle), str(dataset), "--no-baselines", "--limit", "4", "--json"]) == 0
+    )
+    row = json.loads(capsys.readouterr().out)["rows"][0]
+    assert np.isfinite(row["albedo_psnr@character"])
+    assert row["albedo_psnr@character"] < row["albedo_psnr"]  # the black background is easy

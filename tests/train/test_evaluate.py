@@ -275,3 +275,35 @@ def test_eval_warns_of_a_damaged_graph_at_a_level_it_does_not_use(
         main(["eval", str(bundle_at_16), str(tiny_dataset), "--limit", "2", "--no-baselines"]) == 0
     )
     assert "warning" not in capsys.readouterr().err
+
+
+def test_region_metrics_measure_the_region_pixels_from_the_truths_uv_and_chart():
+    """A region is found from the ground truth's texture coordinates: the error inside it
+    counts, the error outside it does not; a region out of view is nan, not 0."""
+    from rigspace.sdk.render import Maps
+    from rigspace.train.evaluate import region_metrics
+    from rigspace.train.regions import TEXELS, SurfaceRegion, WholeCharacter
+
+    h = w = 8
+    uv = np.zeros((h, w, 2), np.float32)
+    uv[..., 0] = (np.arange(w) + 0.5) / w  # u runs across the image, on chart 1
+    chart = np.ones((h, w), np.int32)
+    truth = Maps(
+        albedo=np.full((h, w, 3), 0.5, np.float32),
+        normal=np.zeros((h, w, 3), np.float32),
+        depth=np.ones((h, w), np.float32),
+        mask=np.ones((h, w), np.float32),
+        uv=uv,
+        chart=chart,
+    )
+    left = np.zeros((TEXELS, TEXELS), bool)
+    left[:, : TEXELS // 2] = True  # u < 0.5: the image's left half
+    region = SurfaceRegion("face", "the left half", {1: (np.zeros(2), np.ones(2), left)})
+    pred = Maps(truth.albedo.copy(), truth.normal, truth.depth, truth.mask)
+    pred.albedo[:, w // 2 :] = 0.0  # wrong on the right half only
+    got = region_metrics(pred, truth, [WholeCharacter(), region])
+    assert got["pixels@face"] == h * w // 2 and got["pixels@character"] == h * w
+    assert got["albedo_psnr@face"] == np.inf
+    assert np.isclose(got["albedo_psnr@character"], 10 * np.log10(1 / (0.5 * 0.25)))
+    elsewhere = Maps(truth.albedo, truth.normal, truth.depth, truth.mask, uv, chart * 2)
+    assert np.isnan(region_metrics(pred, elsewhere, [region])["albedo_psnr@face"])
