@@ -28,6 +28,7 @@ import shutil
 import sys
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -193,6 +194,107 @@ def open_cache(folder: str | Path, manifest: dict[str, Any]) -> DecodedCache | N
         return None
 
 
+@dataclass(frozen=True)
+class _Index:
+    """Per sample of a cache being built: its crop box, its offset, its fill values."""
+
+    boxes: np.ndarray
+    offsets: np.ndarray
+    fill_half: np.ndarray
+    fill_float: np.ndarray
+    fill_chart: np.ndarray
+
+    @classmethod
+    def zeros(cls, n: int) -> _Index:
+        """An index of `n` samples, all zero."""
+        return cls(
+            boxes=np.zeros((n, 4), np.int32),
+            offsets=np.zeros(n + 1, np.int64),
+            fill_half=np.zeros((n, len(HALF)), np.float16),
+            fill_float=np.zeros((n, 3), np.float32),
+            fill_chart=np.zeros(n, np.int32),
+        )
+
+    def put(self, row: int, record: dict[str, Any]) -> None:
+        """Enter an encoded sample as row `row` (its offset follows the previous row's)."""
+        self.boxes[row] = record["box"]
+        self.offsets[row + 1] = self.offsets[row] + len(record["half"])
+        self.fill_half[row] = record["fill_half"]
+        self.fill_float[row, : len(record["fill_float"])] = record["fill_float"]
+        self.fill_chart[row] = record["fill_chart"]
+
+    def save(self, path: Path, textured: bool | None) -> None:
+        """Write the index as index.npz (one fill float per sample unless textured)."""
+        np.savez(
+            path,
+            boxes=self.boxes,
+            offsets=self.offsets,
+            fill_half=self.fill_half,
+            fill_float=self.fill_float[:, : 3 if textured else 1],
+            fill_chart=self.fill_chart,
+        )
+
+
+def _decode_into(
+    tmp: Path,
+    folder: Path,
+    manifest: dict[str, Any],
+    chunks: list[list[str]],
+    index: _Index,
+    workers: int,
+    progress: bool,
+    decode: Callable[[tuple[str, dict[str, Any], Sequence[str]]], list[dict[str, Any]]],
+) -> bool | None:
+    """Decode the chunks into tmp's pixel files and `index`; whether the samples are textured."""
+    from tqdm import tqdm
+
+    textured: bool | None = None
+    with (
+        open(tmp / "half.u16", "wb") as half_file,
+        open(tmp / "float.f32", "wb") as float_file,
+        open(tmp / "chart.u16", "wb") as chart_file,
+        ProcessPoolExecutor(workers) as pool,
+        tqdm(
+            total=len(index.boxes),
+            unit="sample",
+            desc="decoding the dataset once",
+            file=sys.stderr,
+            disable=not progress,
+            dynamic_ncols=True,
+        ) as bar,
+    ):
+        row = 0
+        small = {"scene": manifest.get("scene", "SCENE")}  # what read_sample's errors name
+        tasks = [(str(folder), small, chunk) for chunk in chunks]
+        for records in pool.map(decode, tasks):
+            for record in records:
+                if textured is None:
+                    textured = record["chart"] is not None
+                elif textured != (record["chart"] is not None):
+                    raise CacheError(
+                        f"Dataset {folder} mixes samples with and without texture AOVs.",
+                        "capture the dataset again.",
+                    )
+                index.put(row, record)
+                half_file.write(record["half"].tobytes())
+                float_file.write(record["float"].tobytes())
+                if record["chart"] is not None:
+                    chart_file.write(record["chart"].tobytes())
+                row += 1
+            bar.update(len(records))
+    return textured
+
+
+def _replace_cache(folder: Path, tmp: Path) -> None:
+    """Rename the built cache `tmp` into place, then delete the cache it replaces."""
+    final = folder / FOLDER
+    old = folder / f".{FOLDER}.{os.getpid()}.old"
+    if final.exists():
+        final.rename(old)
+    tmp.rename(final)
+    shutil.rmtree(old, ignore_errors=True)
+
+
 def build_cache(
     folder: str | Path,
     manifest: dict[str, Any],
@@ -206,8 +308,6 @@ def build_cache(
     """Decode every sample (params.npz rows `relatives`) into the cache, in `workers`
     processes (0: one per core), with a progress bar. Written to a temporary folder and
     renamed into place, so an interrupted build leaves no half cache behind."""
-    from tqdm import tqdm
-
     folder = Path(folder)
     size = int(manifest["resolution"])
     tmp = folder / f".{FOLDER}.{os.getpid()}.tmp"
@@ -215,61 +315,13 @@ def build_cache(
     tmp.mkdir()
     chunks = [list(relatives[i : i + CHUNK]) for i in range(0, len(relatives), CHUNK)]
     n = len(relatives)
-    boxes = np.zeros((n, 4), np.int32)
-    offsets = np.zeros(n + 1, np.int64)
-    fill_half = np.zeros((n, len(HALF)), np.float16)
-    fill_float = np.zeros((n, 3), np.float32)
-    fill_chart = np.zeros(n, np.int32)
-    textured: bool | None = None
+    index = _Index.zeros(n)
     workers = workers or os.cpu_count() or 1
     try:
-        with (
-            open(tmp / "half.u16", "wb") as half_file,
-            open(tmp / "float.f32", "wb") as float_file,
-            open(tmp / "chart.u16", "wb") as chart_file,
-            ProcessPoolExecutor(workers) as pool,
-            tqdm(
-                total=n,
-                unit="sample",
-                desc="decoding the dataset once",
-                file=sys.stderr,
-                disable=not progress,
-                dynamic_ncols=True,
-            ) as bar,
-        ):
-            row = 0
-            small = {"scene": manifest.get("scene", "SCENE")}  # what read_sample's errors name
-            tasks = [(str(folder), small, chunk) for chunk in chunks]
-            for records in pool.map(decode, tasks):
-                for record in records:
-                    if textured is None:
-                        textured = record["chart"] is not None
-                    elif textured != (record["chart"] is not None):
-                        raise CacheError(
-                            f"Dataset {folder} mixes samples with and without texture AOVs.",
-                            "capture the dataset again.",
-                        )
-                    boxes[row] = record["box"]
-                    offsets[row + 1] = offsets[row] + len(record["half"])
-                    fill_half[row] = record["fill_half"]
-                    fill_float[row, : len(record["fill_float"])] = record["fill_float"]
-                    fill_chart[row] = record["fill_chart"]
-                    half_file.write(record["half"].tobytes())
-                    float_file.write(record["float"].tobytes())
-                    if record["chart"] is not None:
-                        chart_file.write(record["chart"].tobytes())
-                    row += 1
-                bar.update(len(records))
+        textured = _decode_into(tmp, folder, manifest, chunks, index, workers, progress, decode)
         if not textured:
             (tmp / "chart.u16").unlink()
-        np.savez(
-            tmp / "index.npz",
-            boxes=boxes,
-            offsets=offsets,
-            fill_half=fill_half,
-            fill_float=fill_float[:, : 3 if textured else 1],
-            fill_chart=fill_chart,
-        )
+        index.save(tmp / "index.npz", textured)
         info = {
             "format": FORMAT,
             "version": VERSION,
@@ -280,16 +332,11 @@ def build_cache(
             "textured": bool(textured),
             "half": list(HALF),
             "float": list(FLOAT + (TEXTURE_FLOAT if textured else ())),
-            "stored_pixels": int(offsets[-1]),
+            "stored_pixels": int(index.offsets[-1]),
             "bytes": sum(p.stat().st_size for p in tmp.iterdir()),
         }
         (tmp / "index.json").write_text(json.dumps(info, indent=2) + "\n")
-        final = folder / FOLDER
-        old = folder / f".{FOLDER}.{os.getpid()}.old"
-        if final.exists():
-            final.rename(old)
-        tmp.rename(final)
-        shutil.rmtree(old, ignore_errors=True)
+        _replace_cache(folder, tmp)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -349,6 +349,80 @@ def read_charts(folder: str | Path) -> dict[str, Any] | None:
     return data
 
 
+def _dataset_checksum(
+    folder: Path, table: dict[str, np.ndarray], params_bytes: bytes, charted: bool
+) -> str:
+    """sha256 over every sample's path and checksum, params.npz and charts.json if any."""
+    digest = hashlib.sha256()
+    for path, checksum in zip(table["path"], table["sha256"], strict=True):
+        digest.update(f"{path} {checksum}\n".encode())
+    digest.update(hashlib.sha256(params_bytes).digest())
+    if charted:  # the chart numbering is part of what the samples mean
+        digest.update(hashlib.sha256((folder / CHARTS_FILE).read_bytes()).digest())
+    return digest.hexdigest()
+
+
+def _ring_json(settings: CaptureSettings) -> dict[str, Any]:
+    """The manifest's description of the capture ring and its views."""
+    return {
+        "views_per_ring": settings.views_per_ring,
+        "elevations": list(settings.elevations),
+        "held_out_views_per_ring": settings.held_out_views_per_ring,
+        "held_out_elevations": list(settings.held_out_elevations),
+        "radius": settings.radius,
+        "focal_length": settings.focal_length,
+        "horizontal_aperture": settings.horizontal_aperture,
+        "clipping_range": list(settings.clipping_range),
+        "views": [
+            {
+                "index": v.index,
+                "azimuth": v.azimuth,
+                "elevation": v.elevation,
+                "held_out": v.held_out,
+            }
+            for v in settings.views()
+        ],
+    }
+
+
+def _channels_json(charts: dict[str, Any] | None) -> dict[str, str]:
+    """The manifest's description of a sample EXR's channels (texture AOVs when charted)."""
+    return {
+        "R,G,B": "albedo, linear, premultiplied by A",
+        "A": "coverage mask in [0, 1]",
+        "Z": "camera-space depth along -Z, scene units, +inf where empty",
+        "N.X,N.Y,N.Z": "camera-space unit normal, 0 where empty",
+        **(
+            {
+                "uv.U,uv.V": "USD st of the visible surface on its chart's texture (the "
+                "nearest sample's chart, mean over its samples on that chart), 0 where "
+                "chart is 0",
+                "chart": f"texture chart of the visible surface, 1..{charts['count']} "
+                f"({CHARTS_FILE}), 0: background or no texture",
+            }
+            if charts
+            else {}
+        ),
+    }
+
+
+def _params_json(settings: CaptureSettings, table: dict[str, np.ndarray]) -> dict[str, Any]:
+    """The manifest's description of params.npz and its columns."""
+    return {
+        "file": PARAMS_FILE,
+        "rig": "per joint (skeleton order) the world rotation in the camera frame, 6D "
+        "(first two matrix columns)",
+        "coverage": f"pixels the mask covers (sum of A); below {EMPTY_PIXELS:g} the sample "
+        "shows nothing",
+        **(
+            {"blend": "per blend shape (blend_shapes order) the frame's weight"}
+            if settings.blend_shapes
+            else {}
+        ),
+        "columns": sorted(table),
+    }
+
+
 def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> dict[str, Any]:
     """Assemble params.npz and manifest.json from every item's record (all must exist)."""
     records = [load_record(folder, item) for item in items]
@@ -361,12 +435,7 @@ def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> 
     write_atomic(folder / PARAMS_FILE, params_bytes)
     split_counts = {s: int(np.sum(table["split"] == i)) for i, s in enumerate(SPLITS)}
     empty = empty_by_view(table["coverage"], table["view"])
-    digest = hashlib.sha256()
-    for path, checksum in zip(table["path"], table["sha256"], strict=True):
-        digest.update(f"{path} {checksum}\n".encode())
-    digest.update(hashlib.sha256(params_bytes).digest())
-    if charts:  # the chart numbering is part of what the samples mean
-        digest.update(hashlib.sha256((folder / CHARTS_FILE).read_bytes()).digest())
+    checksum = _dataset_checksum(folder, table, params_bytes, charted=bool(charts))
     total_bytes = int(sum((folder / str(p)).stat().st_size for p in table["path"]))
     manifest = {
         "format": FORMAT,
@@ -385,58 +454,12 @@ def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> 
             {"name": c.name, "first": c.first, "last": c.last, "held_out": c.held_out}
             for c in settings.clips
         ],
-        "ring": {
-            "views_per_ring": settings.views_per_ring,
-            "elevations": list(settings.elevations),
-            "held_out_views_per_ring": settings.held_out_views_per_ring,
-            "held_out_elevations": list(settings.held_out_elevations),
-            "radius": settings.radius,
-            "focal_length": settings.focal_length,
-            "horizontal_aperture": settings.horizontal_aperture,
-            "clipping_range": list(settings.clipping_range),
-            "views": [
-                {
-                    "index": v.index,
-                    "azimuth": v.azimuth,
-                    "elevation": v.elevation,
-                    "held_out": v.held_out,
-                }
-                for v in settings.views()
-            ],
-        },
+        "ring": _ring_json(settings),
         "resolution": settings.resolution,
         "renderer": {"name": settings.renderer, "samples_per_axis": settings.samples_per_axis},
-        "channels": {
-            "R,G,B": "albedo, linear, premultiplied by A",
-            "A": "coverage mask in [0, 1]",
-            "Z": "camera-space depth along -Z, scene units, +inf where empty",
-            "N.X,N.Y,N.Z": "camera-space unit normal, 0 where empty",
-            **(
-                {
-                    "uv.U,uv.V": "USD st of the visible surface on its chart's texture (the "
-                    "nearest sample's chart, mean over its samples on that chart), 0 where "
-                    "chart is 0",
-                    "chart": f"texture chart of the visible surface, 1..{charts['count']} "
-                    f"({CHARTS_FILE}), 0: background or no texture",
-                }
-                if charts
-                else {}
-            ),
-        },
+        "channels": _channels_json(charts),
         **({"charts": charts} if charts else {}),
-        "params": {
-            "file": PARAMS_FILE,
-            "rig": "per joint (skeleton order) the world rotation in the camera frame, 6D "
-            "(first two matrix columns)",
-            "coverage": f"pixels the mask covers (sum of A); below {EMPTY_PIXELS:g} the sample "
-            "shows nothing",
-            **(
-                {"blend": "per blend shape (blend_shapes order) the frame's weight"}
-                if settings.blend_shapes
-                else {}
-            ),
-            "columns": sorted(table),
-        },
+        "params": _params_json(settings, table),
         "counts": {"samples": len(table["path"]), "items": len(items), **split_counts},
         "coverage": {
             "empty_below_pixels": EMPTY_PIXELS,
@@ -445,7 +468,7 @@ def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> 
         },
         "splits": list(SPLITS),
         "bytes": total_bytes,
-        "checksum": digest.hexdigest(),
+        "checksum": checksum,
         "settings": settings.to_json(),
     }
     write_atomic(folder / MANIFEST_FILE, (json.dumps(manifest, indent=2) + "\n").encode())

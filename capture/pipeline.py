@@ -413,6 +413,134 @@ def local_items(
     return itertools.chain.from_iterable(pool.imap_unordered(_run_batch, batches))
 
 
+def _plan_items(
+    folder: Path,
+    settings: CaptureSettings,
+    rig: CharacterRig,
+    shard: tuple[int, int],
+    created: bool,
+) -> tuple[list[ds.WorkItem], list[ds.Damage], list[ds.WorkItem]]:
+    """Tidy the folder; every work item, the shard's repaired ones, and its unfinished ones."""
+    (folder / "items").mkdir(exist_ok=True)
+    ds.clean_temporaries(folder)
+    items = ds.work_items(settings, animation_time_samples(rig))
+    ours = ds.shard_items(items, shard)
+    repaired = [] if created else repair(folder, ours)
+    mine = [i for i in ours if not ds.record_path(folder, i).is_file()]
+    return items, repaired, mine
+
+
+@dataclass
+class _Tally:
+    """What the items this run rendered add up to, as they commit."""
+
+    done: int = 0
+    timings: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
+    coverage: list[np.ndarray] = field(default_factory=list)
+    views: list[np.ndarray] = field(default_factory=list)
+
+
+def _tally_items(
+    results: Iterator[ItemDone],
+    settings: CaptureSettings,
+    rig: CharacterRig,
+    total: int,
+    bar: tqdm,
+    tally: _Tally,
+) -> None:
+    """Count each item as it commits; stop when the first samples show nothing."""
+    seen_something = False
+    for finished in results:
+        tally.done += finished.samples
+        bar.update(finished.samples)
+        for k, v in finished.timings.items():
+            tally.timings[k] = tally.timings.get(k, 0.0) + v
+        tally.coverage.append(finished.coverage)
+        tally.views.append(finished.views)
+        # A ring that misses the character: stop after a few seconds, not hours.
+        seen_something = seen_something or bool(np.any(tally.coverage[-1] >= ds.EMPTY_PIXELS))
+        if not seen_something and tally.done >= min(EARLY_SAMPLES, total):
+            best = float(np.concatenate(tally.coverage).max())
+            raise nothing_in_view(settings, rig, tally.done, best)
+
+
+def _render_items(
+    settings: CaptureSettings,
+    rig: CharacterRig,
+    folder: Path,
+    mine: list[ds.WorkItem],
+    total: int,
+    *,
+    scene: str | Path,
+    remove_on_error: bool,
+    workers: int | None,
+    progress: bool,
+    runner: Runner,
+) -> tuple[_Tally, float]:
+    """Render the unfinished items with `runner`, with progress; their tally and seconds."""
+    tally = _Tally()
+    bar = tqdm(
+        total=total, unit="sample", disable=not progress, file=sys.stderr, dynamic_ncols=True
+    )
+    start = time.perf_counter()
+    restore = sigterm_as_interrupt()
+    try:
+        with contextlib.ExitStack() as stack:
+            stack.callback(bar.close)
+            results = runner(settings, folder, mine, workers, stack)
+            start = time.perf_counter()  # after the runner's start-up (a pool, a cluster)
+            _tally_items(results, settings, rig, total, bar, tally)
+    except KeyboardInterrupt:
+        # Ctrl-C or SIGTERM: the pool is gone, every committed item is kept; say how to go on.
+        kept = len(list((folder / "items").glob("*.npz")))
+        print(
+            f"rigspace capture: interrupted: {kept} work items are kept in {folder}; finish "
+            f"them with `rigspace capture {scene} --out {folder} --resume` (and the other "
+            "options you gave)",
+            file=sys.stderr,
+        )
+        raise
+    except CaptureError as exc:
+        # The pool is gone (the with block ended); a folder this run created holds nothing
+        # worth keeping, and leaving it would make the fixed command fail as "different
+        # settings". An existing dataset, or one shared with other shards, is kept as it is.
+        if remove_on_error:
+            shutil.rmtree(folder, ignore_errors=True)
+            exc.what += f" Nothing was kept: {folder} was removed."
+        else:
+            exc.what += f" {folder} is kept as it was."
+        exc.args = (f"{exc.what} Fix: {exc.fix}",)
+        raise
+    finally:
+        restore()
+    return tally, time.perf_counter() - start
+
+
+def _complete_dataset(
+    folder: Path, settings: CaptureSettings, rig: CharacterRig, items: list[ds.WorkItem]
+) -> dict[str, Any]:
+    """Write a finished dataset's charts, manifest, contact sheet and capsules."""
+    # The texture charts the samples' chart AOV numbers (before the manifest names them).
+    ds.write_charts(folder, rig.texture_charts())
+    manifest = ds.finalize(folder, settings, items)
+    write_contact_sheet(folder)
+    # The character's shadow capsules, fitted at bind pose; export copies them into the bundle.
+    write_capsules(fit_capsules(rig), folder / CAPSULES_FILE)
+    return manifest
+
+
+def _empty_views(manifest: dict[str, Any] | None, tally: _Tally) -> tuple[dict[int, int], int]:
+    """The empty samples per view, and how many samples they are counted among."""
+    if manifest is not None:
+        empty = {int(v): n for v, n in manifest["coverage"]["empty_by_view"].items()}
+        return empty, manifest["counts"]["samples"]
+    empty = ds.empty_by_view(
+        np.concatenate(tally.coverage or [np.zeros(0)]),
+        np.concatenate(tally.views or [np.zeros(0)]),
+    )
+    return empty, tally.done
+
+
 def capture(
     scene: str | Path,
     character: str,
@@ -444,82 +572,34 @@ def capture(
     settings = replace(settings, renderer=renderer.name)
     folder = Path(out)
     created = prepare_folder(folder, settings, resume, sharded=shard[1] > 1)
-    (folder / "items").mkdir(exist_ok=True)
-    ds.clean_temporaries(folder)
-    items = ds.work_items(settings, animation_time_samples(rig))
-    ours = ds.shard_items(items, shard)
-    repaired = [] if created else repair(folder, ours)
-    mine = [i for i in ours if not ds.record_path(folder, i).is_file()]
+    items, repaired, mine = _plan_items(folder, settings, rig, shard, created)
     total = sum(i.samples for i in mine)
-    timings = dict.fromkeys(STAGES, 0.0)
-    bar = tqdm(
-        total=total, unit="sample", disable=not progress, file=sys.stderr, dynamic_ncols=True
+    tally, seconds = _render_items(
+        settings,
+        rig,
+        folder,
+        mine,
+        total,
+        scene=scene,
+        remove_on_error=created and shard[1] == 1,
+        workers=workers,
+        progress=progress,
+        runner=runner,
     )
-    done = 0
-    coverage: list[np.ndarray] = []
-    views: list[np.ndarray] = []
-    seen_something = False
-    start = time.perf_counter()
-    restore = sigterm_as_interrupt()
-    try:
-        with contextlib.ExitStack() as stack:
-            stack.callback(bar.close)
-            results = runner(settings, folder, mine, workers, stack)
-            start = time.perf_counter()  # after the runner's start-up (a pool, a cluster)
-            for finished in results:
-                done += finished.samples
-                bar.update(finished.samples)
-                for k, v in finished.timings.items():
-                    timings[k] = timings.get(k, 0.0) + v
-                coverage.append(finished.coverage)
-                views.append(finished.views)
-                # A ring that misses the character: stop after a few seconds, not hours.
-                seen_something = seen_something or bool(np.any(coverage[-1] >= ds.EMPTY_PIXELS))
-                if not seen_something and done >= min(EARLY_SAMPLES, total):
-                    best = float(np.concatenate(coverage).max())
-                    raise nothing_in_view(settings, rig, done, best)
-    except KeyboardInterrupt:
-        # Ctrl-C or SIGTERM: the pool is gone, every committed item is kept; say how to go on.
-        kept = len(list((folder / "items").glob("*.npz")))
-        print(
-            f"rigspace capture: interrupted: {kept} work items are kept in {folder}; finish "
-            f"them with `rigspace capture {scene} --out {folder} --resume` (and the other "
-            "options you gave)",
-            file=sys.stderr,
-        )
-        raise
-    except CaptureError as exc:
-        # The pool is gone (the with block ended); a folder this run created holds nothing
-        # worth keeping, and leaving it would make the fixed command fail as "different
-        # settings". An existing dataset, or one shared with other shards, is kept as it is.
-        if created and shard[1] == 1:
-            shutil.rmtree(folder, ignore_errors=True)
-            exc.what += f" Nothing was kept: {folder} was removed."
-        else:
-            exc.what += f" {folder} is kept as it was."
-        exc.args = (f"{exc.what} Fix: {exc.fix}",)
-        raise
-    finally:
-        restore()
-    seconds = time.perf_counter() - start
     complete = all(ds.record_path(folder, i).is_file() for i in items)
-    manifest = None
-    if complete:
-        # The texture charts the samples' chart AOV numbers (before the manifest names them).
-        ds.write_charts(folder, rig.texture_charts())
-        manifest = ds.finalize(folder, settings, items)
-        write_contact_sheet(folder)
-        # The character's shadow capsules, fitted at bind pose; export copies them into the bundle.
-        write_capsules(fit_capsules(rig), folder / CAPSULES_FILE)
-        empty = {int(v): n for v, n in manifest["coverage"]["empty_by_view"].items()}
-        total_samples = manifest["counts"]["samples"]
-    else:
-        empty = ds.empty_by_view(
-            np.concatenate(coverage or [np.zeros(0)]), np.concatenate(views or [np.zeros(0)])
-        )
-        total_samples = done
+    manifest = _complete_dataset(folder, settings, rig, items) if complete else None
+    empty, total_samples = _empty_views(manifest, tally)
     if empty:
         note(_empty_views_warning(settings, empty, total_samples))
     return CaptureResult(
-        folder, settings, total, done, seconds, complete, manifest, timings, repaired, warnings
+        folder,
+        settings,
+        total,
+        tally.done,
+        seconds,
+        complete,
+        manifest,
+        tally.timings,
+        repaired,
+        warnings,
     )

@@ -369,6 +369,120 @@ def derive_radius(
     return fit_radius(character_reach(rig, joint, clips), focal, aperture)
 
 
+def _check_resolution(defaults: schema.CaptureRing, overrides: CaptureOverrides) -> int:
+    """The image resolution, refused unless a power of two in the allowed range."""
+    resolution = defaults.resolution if overrides.resolution is None else overrides.resolution
+    if not (MIN_RESOLUTION <= resolution <= MAX_RESOLUTION and resolution & (resolution - 1) == 0):
+        raise CaptureError(
+            f"Resolution {resolution} is not a power of two from {MIN_RESOLUTION} to {MAX_RESOLUTION}.",
+            "use 64, 128, 256, ... (the network doubles its resolution block by block).",
+        )
+    return resolution
+
+
+def _check_rings(
+    defaults: schema.CaptureRing, overrides: CaptureOverrides
+) -> tuple[int, tuple[float, ...]]:
+    """The views per ring and the ring elevations, refused when out of range."""
+    views = defaults.views_per_ring if overrides.views is None else overrides.views
+    elevations = defaults.elevations if overrides.elevations is None else overrides.elevations
+    if not 1 <= views <= 360:
+        raise CaptureError(f"--views {views} is outside 1 to 360.", "use a count in 1 to 360.")
+    if not elevations or any(not abs(e) <= 89 for e in elevations):
+        raise CaptureError(
+            f"Elevations {list(elevations)} must be in [-89, 89] degrees.", "use such elevations."
+        )
+    return views, elevations
+
+
+def _check_clipping_range(defaults: schema.CaptureRing) -> tuple[float, float]:
+    """The clipping range (near, far), refused unless 0 < near < far."""
+    near, far = defaults.clipping_range
+    if not 0 < near < far:
+        raise CaptureError(
+            f"Clipping range ({near:g}, {far:g}) is not 0 < near < far.",
+            "fix rigspace:captureRing:clippingRange.",
+        )
+    return near, far
+
+
+def _look_at_joint(
+    rig: CharacterRig, ring: schema.CaptureRing | None, info: schema.CharacterAttributes
+) -> int:
+    """The index of the joint the ring looks at: the ring's, the character's, or the root."""
+    look_at = (ring.look_at_joint if ring else "") or info.look_at_joint or rig.joints[0]
+    try:
+        return schema.find_joint(look_at, rig.joints)
+    except schema.JointLookupError as exc:
+        raise CaptureError(
+            f"Look-at joint: {exc.args[0]}.", "name a joint of the skeleton."
+        ) from exc
+
+
+def _resolve_radius(
+    rig: CharacterRig,
+    joint: int,
+    clips: tuple[Clip, ...],
+    defaults: schema.CaptureRing,
+    overrides: CaptureOverrides,
+    clipping: tuple[float, float],
+) -> float:
+    """The camera distance, given or fitted to the character, refused outside the clipping."""
+    near, far = clipping
+    radius = overrides.radius or defaults.radius
+    if not radius:
+        radius = derive_radius(
+            rig, joint, clips, defaults.focal_length, defaults.horizontal_aperture
+        )
+    if not math.isfinite(radius):
+        raise CaptureError(
+            f"Camera radius {radius:g} is not a finite distance.",
+            "pass --radius with a distance in scene units (or 0 to fit the character).",
+        )
+    if not radius > near:
+        raise CaptureError(
+            f"Camera radius {radius:g} is not beyond the near clipping plane {near:g}.",
+            "raise the radius or lower the near clipping distance.",
+        )
+    if not radius < far:
+        raise CaptureError(
+            f"Camera radius {radius:g} puts the look-at joint beyond the far clipping plane "
+            f"{far:g}, so the character would be clipped away.",
+            "lower the radius or raise the far clipping distance "
+            "(rigspace:captureRing:clippingRange).",
+        )
+    return radius
+
+
+def _check_work_options(overrides: CaptureOverrides) -> None:
+    """Refuse a frames-per-item count, frame stride or anti-aliasing outside its range."""
+    if overrides.frames_per_item < 1:
+        raise CaptureError(
+            f"--frames-per-item {overrides.frames_per_item} must be at least 1.", "use e.g. 16."
+        )
+    if overrides.every < 1:
+        raise CaptureError(
+            f"--every {overrides.every} must be at least 1.", "use 1 (every frame), 2, 10, ..."
+        )
+    if not 1 <= overrides.samples_per_axis <= MAX_SAMPLES_PER_AXIS:
+        raise CaptureError(
+            f"--samples {overrides.samples_per_axis} is outside 1 to {MAX_SAMPLES_PER_AXIS}.",
+            "use 1, 2, 3 or 4.",
+        )
+
+
+def _warn_all_held_out(clips: tuple[Clip, ...], warn: Warn) -> None:
+    """Warn when every clip is held out, so the dataset would have no training samples."""
+    if all(clip.held_out for clip in clips):
+        names = ", ".join(clip.name for clip in clips)
+        warn(
+            f"every clip of this capture ({names}) is held out (rigspace:captureRing:"
+            "heldOutClips), so the dataset will have 0 training samples and `rigspace train` "
+            "cannot use it; capture a training clip too (another --clips or --frames) unless "
+            "this dataset is for evaluation only."
+        )
+
+
 def resolve_settings(
     scene: str | Path,
     character: str,
@@ -393,78 +507,15 @@ def resolve_settings(
     defaults = ring or schema.CaptureRing(
         12, (0.0,), 0.0, 50.0, 20.955, 128, (0.1, 1e4), "", (), (), (), 0, ()
     )
-    resolution = defaults.resolution if overrides.resolution is None else overrides.resolution
-    if not (MIN_RESOLUTION <= resolution <= MAX_RESOLUTION and resolution & (resolution - 1) == 0):
-        raise CaptureError(
-            f"Resolution {resolution} is not a power of two from {MIN_RESOLUTION} to {MAX_RESOLUTION}.",
-            "use 64, 128, 256, ... (the network doubles its resolution block by block).",
-        )
-    views = defaults.views_per_ring if overrides.views is None else overrides.views
-    elevations = defaults.elevations if overrides.elevations is None else overrides.elevations
-    if not 1 <= views <= 360:
-        raise CaptureError(f"--views {views} is outside 1 to 360.", "use a count in 1 to 360.")
-    if not elevations or any(not abs(e) <= 89 for e in elevations):
-        raise CaptureError(
-            f"Elevations {list(elevations)} must be in [-89, 89] degrees.", "use such elevations."
-        )
-    near, far = defaults.clipping_range
-    if not 0 < near < far:
-        raise CaptureError(
-            f"Clipping range ({near:g}, {far:g}) is not 0 < near < far.",
-            "fix rigspace:captureRing:clippingRange.",
-        )
-    look_at = (ring.look_at_joint if ring else "") or info.look_at_joint or rig.joints[0]
-    try:
-        joint = schema.find_joint(look_at, rig.joints)
-    except schema.JointLookupError as exc:
-        raise CaptureError(
-            f"Look-at joint: {exc.args[0]}.", "name a joint of the skeleton."
-        ) from exc
+    resolution = _check_resolution(defaults, overrides)
+    views, elevations = _check_rings(defaults, overrides)
+    near, far = _check_clipping_range(defaults)
+    joint = _look_at_joint(rig, ring, info)
     clips = _resolve_clips(ring, overrides, span, animation_time_samples(rig), warn)
     _warn_off_centre(rig, joint, clips, warn)
-    radius = overrides.radius or defaults.radius
-    if not radius:
-        radius = derive_radius(
-            rig, joint, clips, defaults.focal_length, defaults.horizontal_aperture
-        )
-    if not math.isfinite(radius):
-        raise CaptureError(
-            f"Camera radius {radius:g} is not a finite distance.",
-            "pass --radius with a distance in scene units (or 0 to fit the character).",
-        )
-    if not radius > near:
-        raise CaptureError(
-            f"Camera radius {radius:g} is not beyond the near clipping plane {near:g}.",
-            "raise the radius or lower the near clipping distance.",
-        )
-    if not radius < far:
-        raise CaptureError(
-            f"Camera radius {radius:g} puts the look-at joint beyond the far clipping plane "
-            f"{far:g}, so the character would be clipped away.",
-            "lower the radius or raise the far clipping distance "
-            "(rigspace:captureRing:clippingRange).",
-        )
-    if overrides.frames_per_item < 1:
-        raise CaptureError(
-            f"--frames-per-item {overrides.frames_per_item} must be at least 1.", "use e.g. 16."
-        )
-    if overrides.every < 1:
-        raise CaptureError(
-            f"--every {overrides.every} must be at least 1.", "use 1 (every frame), 2, 10, ..."
-        )
-    if not 1 <= overrides.samples_per_axis <= MAX_SAMPLES_PER_AXIS:
-        raise CaptureError(
-            f"--samples {overrides.samples_per_axis} is outside 1 to {MAX_SAMPLES_PER_AXIS}.",
-            "use 1, 2, 3 or 4.",
-        )
-    if all(clip.held_out for clip in clips):
-        names = ", ".join(clip.name for clip in clips)
-        warn(
-            f"every clip of this capture ({names}) is held out (rigspace:captureRing:"
-            "heldOutClips), so the dataset will have 0 training samples and `rigspace train` "
-            "cannot use it; capture a training clip too (another --clips or --frames) unless "
-            "this dataset is for evaluation only."
-        )
+    radius = _resolve_radius(rig, joint, clips, defaults, overrides, (near, far))
+    _check_work_options(overrides)
+    _warn_all_held_out(clips, warn)
     draws = _blend_draws(rig, ring, clips, every=overrides.every)
     settings = CaptureSettings(
         scene=str(Path(scene).resolve()),

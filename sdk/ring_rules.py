@@ -7,7 +7,7 @@ import re
 from collections.abc import Iterator
 from urllib.parse import urlsplit
 
-from pxr import Usd
+from pxr import Sdf, Usd
 
 from rigspace.sdk import schema, timecodes
 from rigspace.sdk.character_rules import (
@@ -34,30 +34,30 @@ def _range_issue(ok: bool, code: str, message: str) -> Iterator[Issue]:
         yield error(code, message)
 
 
-def check_capture_ring(prim: Usd.Prim) -> Iterator[Issue]:
-    if not schema.has_capture_ring(prim):
-        return
-    yield from _owner_is_character(prim, "RigspaceCaptureRingAPI")
-    path = prim.GetPath()
-    ring = schema.read_capture_ring(prim)
-    ns = "rigspace:captureRing:"
+_RING_NS = "rigspace:captureRing:"
 
-    def out_of_range(prop: str, value, allowed: str) -> str:
-        return (
-            f"Capture ring on {path}: {ns}{prop} is {value}; allowed: {allowed}. Fix: author a "
-            "value that is allowed."
-        )
 
+def _out_of_range(path: Sdf.Path, prop: str, value: object, allowed: str) -> str:
+    """The message for a capture ring property whose value is not allowed."""
+    return (
+        f"Capture ring on {path}: {_RING_NS}{prop} is {value}; allowed: {allowed}. Fix: author a "
+        "value that is allowed."
+    )
+
+
+def _check_ring_views(path: Sdf.Path, ring: schema.CaptureRing) -> Iterator[Issue]:
+    """viewsPerRing, elevations and heldOutElevations are in range."""
     yield from _range_issue(
         1 <= ring.views_per_ring <= MAX_VIEWS,
         "ViewsOutOfRange",
-        out_of_range("viewsPerRing", ring.views_per_ring, f"1 to {MAX_VIEWS}"),
+        _out_of_range(path, "viewsPerRing", ring.views_per_ring, f"1 to {MAX_VIEWS}"),
     )
     bad_elevations = [e for e in ring.elevations if not abs(e) <= MAX_ELEVATION_DEG]
     yield from _range_issue(
         bool(ring.elevations) and not bad_elevations,
         "ElevationOutOfRange",
-        out_of_range(
+        _out_of_range(
+            path,
             "elevations",
             list(ring.elevations),
             f"[-{MAX_ELEVATION_DEG:g}, {MAX_ELEVATION_DEG:g}] degrees, at least one ring",
@@ -67,14 +67,23 @@ def check_capture_ring(prim: Usd.Prim) -> Iterator[Issue]:
     yield from _range_issue(
         not bad_held,
         "ElevationOutOfRange",
-        out_of_range(
-            "heldOutElevations", bad_held, f"[-{MAX_ELEVATION_DEG:g}, {MAX_ELEVATION_DEG:g}]"
+        _out_of_range(
+            path,
+            "heldOutElevations",
+            bad_held,
+            f"[-{MAX_ELEVATION_DEG:g}, {MAX_ELEVATION_DEG:g}]",
         ),
     )
+
+
+def _check_ring_camera(path: Sdf.Path, ring: schema.CaptureRing) -> Iterator[Issue]:
+    """radius, lens, resolution and clippingRange are in range; the radius inside the clipping."""
     yield from _range_issue(
         math.isfinite(ring.radius) and ring.radius >= 0,
         "RadiusOutOfRange",
-        out_of_range("radius", ring.radius, "> 0 scene units, or 0 to derive it from the bounds"),
+        _out_of_range(
+            path, "radius", ring.radius, "> 0 scene units, or 0 to derive it from the bounds"
+        ),
     )
     for prop, value in (
         ("focalLength", ring.focal_length),
@@ -83,35 +92,48 @@ def check_capture_ring(prim: Usd.Prim) -> Iterator[Issue]:
         yield from _range_issue(
             math.isfinite(value) and value > 0,
             "LensOutOfRange",
-            out_of_range(prop, value, "> 0 tenths of a scene unit"),
+            _out_of_range(path, prop, value, "> 0 tenths of a scene unit"),
         )
     res = ring.resolution
     yield from _range_issue(
         MIN_RESOLUTION <= res <= MAX_RESOLUTION and res & (res - 1) == 0,
         "ResolutionNotPowerOfTwo",
-        out_of_range(
-            "resolution", res, f"a power of two from {MIN_RESOLUTION} to {MAX_RESOLUTION}"
+        _out_of_range(
+            path, "resolution", res, f"a power of two from {MIN_RESOLUTION} to {MAX_RESOLUTION}"
         ),
     )
     near, far = ring.clipping_range
     yield from _range_issue(
         0 < near < far and math.isfinite(far),
         "ClippingOutOfRange",
-        out_of_range("clippingRange", (near, far), "0 < near < far"),
+        _out_of_range(path, "clippingRange", (near, far), "0 < near < far"),
     )
     if ring.radius > 0 and 0 < near < far:
         yield from _range_issue(
             near < ring.radius < far,
             "RadiusOutsideClipping",
-            f"Capture ring on {path}: {ns}radius {ring.radius:g} puts the look-at joint outside "
-            f"the clipping range ({near:g}, {far:g}), so the character would be clipped away. "
-            "Fix: author a radius between near and far, or widen clippingRange.",
+            f"Capture ring on {path}: {_RING_NS}radius {ring.radius:g} puts the look-at joint "
+            f"outside the clipping range ({near:g}, {far:g}), so the character would be clipped "
+            "away. Fix: author a radius between near and far, or widen clippingRange.",
         )
+
+
+def check_capture_ring(prim: Usd.Prim) -> Iterator[Issue]:
+    if not schema.has_capture_ring(prim):
+        return
+    yield from _owner_is_character(prim, "RigspaceCaptureRingAPI")
+    path = prim.GetPath()
+    ring = schema.read_capture_ring(prim)
+    yield from _check_ring_views(path, ring)
+    yield from _check_ring_camera(path, ring)
     yield from _range_issue(
         0 <= ring.held_out_views_per_ring <= ring.views_per_ring,
         "HeldOutViewsOutOfRange",
-        out_of_range(
-            "heldOutViewsPerRing", ring.held_out_views_per_ring, f"0 to {ring.views_per_ring}"
+        _out_of_range(
+            path,
+            "heldOutViewsPerRing",
+            ring.held_out_views_per_ring,
+            f"0 to {ring.views_per_ring}",
         ),
     )
     yield from _check_clips(prim, ring)
