@@ -3,7 +3,7 @@
     capture_throughput(("gl", "embree"), (64, 128, 256), frames=(0.0, 31.0))
     training_throughput(("tiny", "small", "paper"), steps=5, dataset=None)
 
-Capture rows come from capture/bench.py's `run` (real captures of the previs sample's
+Capture rows come from capture/rates.py's `run` (real captures of the previs sample's
 /World/Hero into a temporary folder). Training rows time real steps of the training loop's
 own parts (Rig2Image, Prefetcher, total_loss, the Adam optimizer, each preset's batch,
 widths, bf16 and channels_last) at the preset's final level with the fade-in complete,
@@ -22,14 +22,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from rigspace.capture import bench as capture_bench
+from rigspace.capture import rates as capture_rates
 from rigspace.capture.dataset import read_manifest
 from rigspace.capture.pipeline import capture
 from rigspace.capture.settings import CaptureOverrides
 from rigspace.sdk.render import renderer_plugins
 
-SCENE = capture_bench.DEFAULT_SCENE
-CHARACTER = capture_bench.DEFAULT_CHARACTER
+SCENE = capture_rates.DEFAULT_SCENE
+CHARACTER = capture_rates.DEFAULT_CHARACTER
 DATASET_FRAMES = (0.0, 3.0)
 """Time codes of the on-the-fly training dataset (the walk clip's first four frames)."""
 DATASET_VIEWS = 4
@@ -61,7 +61,7 @@ def capture_throughput(
             rows.append({"renderer": renderer, "skipped": reason})
             continue
         with contextlib.redirect_stdout(io.StringIO()):  # run() prints a markdown row each
-            measured = capture_bench.run(SCENE, CHARACTER, frames, views, resolutions, [renderer])
+            measured = capture_rates.run(SCENE, CHARACTER, frames, views, resolutions, [renderer])
         for row in measured:
             rows.append(
                 {

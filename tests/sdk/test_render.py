@@ -20,9 +20,9 @@ from rigspace.sdk.render import (
 )
 from rigspace.sdk.render import embree as embree_module
 from rigspace.sdk.render import gl as gl_module
-from rigspace.sdk.render.bench import textured_sphere
 from rigspace.sdk.render.embree import sample_bilinear
 from rigspace.sdk.render.gl import weld_corners
+from rigspace.sdk.render.timing import textured_sphere
 
 # Agreement between gl and embree on the same frame. Measured here (Mesa llvmpipe, the five
 # scenes below; docs/renderers.md): IoU 1, mask MAE 0, depth relative error median <= 8.1e-8 and
@@ -410,6 +410,87 @@ def test_rerender_with_changed_points_is_not_stale(renderer):
     alone = renderer.render([mesh], cam)
     np.testing.assert_array_equal(alone.mask, half.mask)
     assert both.mask.sum() > alone.mask.sum()
+
+
+def test_frozen_points_are_kept_and_new_or_writeable_ones_are_reread(renderer):
+    """DrawMesh: frozen (read-only) arrays may be kept between calls (embree keeps its scene);
+    a new frozen array, or a writeable one edited in place, is always drawn as it is now."""
+    from rigspace.sdk.render import freeze, frozen
+
+    p, t = icosphere(2, radius=0.5)
+    cam = camera()
+    points = p.copy()
+    freeze(points, t)
+    assert frozen(points) and not frozen(p) and not frozen(p[:4].view())
+    view = p.view()
+    view.flags.writeable = False
+    assert not frozen(view)  # its owner can still write
+    first = renderer.render([DrawMesh(points, t)], cam)
+    np.testing.assert_array_equal(renderer.render([DrawMesh(points, t)], cam).mask, first.mask)
+    moved = points + np.float32(0.4)
+    freeze(moved)
+    shifted = renderer.render([DrawMesh(moved, t)], cam)
+    assert not np.array_equal(shifted.mask, first.mask)
+    writeable = moved.copy()
+    again = renderer.render([DrawMesh(writeable, t)], cam)
+    np.testing.assert_array_equal(again.mask, shifted.mask)
+    writeable -= np.float32(0.4)  # in place: a writeable array is re-read every call
+    np.testing.assert_array_equal(renderer.render([DrawMesh(writeable, t)], cam).mask, first.mask)
+
+
+def test_embree_builds_a_frozen_scene_once_and_matches_embreex():
+    """The ctypes binding (sdk/render/embree_api.py) against embreex's own ray casting, and
+    the embree renderer's scene kept for frozen arrays only."""
+    if embree_module.unavailable() is not None:
+        pytest.skip(embree_module.unavailable())
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
+
+    from rigspace.sdk.render import embree_api, freeze
+
+    p, t = icosphere(3, radius=0.5)
+    rng = np.random.default_rng(1)
+    origins = np.tile(np.float32([0, 0, 3]), (5000, 1))
+    directions = np.float32([0, 0, -1]) + rng.normal(0, 0.15, (5000, 3)).astype(np.float32)
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    far = np.full(5000, 10, np.float32)
+    device = embree_api.Device()
+    ours = embree_api.TriangleScene(device, [(p, t)]).intersect(origins, directions, far)
+    reference = rtcore_scene.EmbreeScene()
+    TriangleMesh(reference, p, t)
+    theirs = reference.run(origins, directions, dists=far, output=1)
+    np.testing.assert_array_equal(ours["geomID"], theirs["geomID"])
+    hit = theirs["geomID"] >= 0
+    assert 1000 < hit.sum() < 5000
+    np.testing.assert_allclose(ours["tfar"][hit], theirs["tfar"][hit], atol=1e-5)
+    device.close()
+
+    renderer = embree_module.EmbreeRenderer(RenderSettings())
+    built = []
+    real = embree_api.TriangleScene
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(embree_api, "TriangleScene", lambda *a: built.append(1) or real(*a))
+        freeze(p, t)
+        for _ in range(3):
+            renderer.render([DrawMesh(p, t)], camera())
+        assert len(built) == 1  # one scene for three views of one frozen pose
+        for _ in range(2):
+            renderer.render([DrawMesh(p.copy(), t)], camera())
+        assert len(built) == 3  # a writeable array is built every call
+    renderer.close()
+
+
+def test_auto_prefers_embree_for_a_heavy_frame_on_a_software_gl(monkeypatch, capsys):
+    from rigspace.sdk.render import HEAVY_TRIANGLES
+
+    monkeypatch.setattr(gl_module, "software", lambda: True)
+    assert choose_renderer(None, triangles=HEAVY_TRIANGLES + 1).name == "embree"
+    assert "raster slowly on this software GL (--renderer gl" in capsys.readouterr().err
+    if gl_module.unavailable() is None:
+        assert choose_renderer(None, triangles=HEAVY_TRIANGLES).name == "gl"
+        assert choose_renderer("gl", triangles=10 * HEAVY_TRIANGLES).name == "gl"
+        monkeypatch.setattr(gl_module, "software", lambda: False)  # a GPU's GL
+        assert choose_renderer(None, triangles=10 * HEAVY_TRIANGLES).name == "gl"
 
 
 def test_new_texture_array_is_uploaded(renderer):

@@ -1,6 +1,6 @@
 """Capture throughput per renderer and resolution, with the time split per sample.
 
-    python -m rigspace.capture.bench [--scene S] [--character P] [--frames A:B] [--json F]
+    python -m rigspace.capture.rates [--scene S] [--character P] [--frames A:B] [--json F]
 
 Runs real captures (every core, the scene's ring with --views views at one elevation)
 into a temporary folder, each renderer and resolution in turn within one run, and
@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(
-            json.dumps({"command": "python -m rigspace.capture.bench", "rows": rows}, indent=2)
+            json.dumps({"command": "python -m rigspace.capture.rates", "rows": rows}, indent=2)
         )
 
 
