@@ -26,6 +26,7 @@ character's textures change at display size is the bench's `texture` part.
 from __future__ import annotations
 
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -132,6 +133,42 @@ def measure(
     model = BundleModel(
         schema.resolve_model_path(schema.read_neural_character(prim)), precision=precision
     )
+    own = _model_error(settings, rig, model, samples)
+    result: dict[str, Any] = {"samples": own.picked, "framings": {}}
+    with tempfile.TemporaryDirectory() as tmp:
+        layer = _framing_layer(Path(tmp), scene, own.cameras)
+        for name, samples_ in own.cameras.items():
+            rows, strips = _runtime_error(layer, name, samples_, precision, prim, own.height)
+            mine = _means(own.rows)
+            theirs = _means(rows)
+            result["framings"][name] = {
+                "model": mine,
+                "runtime": theirs,
+                "delta": {k: mine[k] - theirs[k] for k in COMPARED},
+                "per_sample_albedo_psnr": [r["albedo_psnr"] for r in rows],
+            }
+            if out_dir is not None:
+                _write_sheet(Path(out_dir) / f"accuracy_{name}.png", strips)
+    return result
+
+
+@dataclass(frozen=True)
+class _ModelError:
+    """The model's own error per held-out sample, and the framings' cameras at those samples."""
+
+    picked: list[dict[str, float]]
+    """Each sample's time and ring view."""
+    cameras: dict[str, list[tuple[float, Camera]]]
+    """Per framing, (time, camera) of each sample."""
+    rows: list[dict[str, float]]
+    """map_metrics of the network's maps against the mesh, per sample."""
+    height: float
+    """The character's height (along the first sample's view's up), for the depth metric."""
+
+
+def _model_error(settings, rig, model: BundleModel, samples: int) -> _ModelError:
+    """The model's maps at held-out ring views (at frames spread over the scene's clips)
+    against the mesh drawn there, as `rigspace eval` measures them; and each framing's camera."""
     order = [schema.find_joint(j, rig.joints) for j in model.joints]
     look_at = schema.find_joint(settings.look_at_joint, rig.joints)
     held_out = [v for v in settings.views() if v.held_out]
@@ -166,43 +203,38 @@ def measure(
     finally:
         renderer.close()
     assert height is not None
-    result: dict[str, Any] = {"samples": picked, "framings": {}}
-    with tempfile.TemporaryDirectory() as tmp:
-        layer = _framing_layer(Path(tmp), scene, cameras)
-        for name, samples_ in cameras.items():
-            path = f"/AccuracyCameras/{name.replace('-', '_')}"
-            size = {"width": samples_[0][1].width, "height": samples_[0][1].height}
-            neural = Engine(
-                layer, camera=path, precision=precision, aovs=AOVS, textures=False, **size
+    return _ModelError(picked, cameras, model_rows, height)
+
+
+def _runtime_error(
+    layer: Path,
+    name: str,
+    samples: list[tuple[float, Camera]],
+    precision: str,
+    prim: Usd.Prim,
+    height: float,
+) -> tuple[list[dict[str, float]], list[np.ndarray]]:
+    """One framing through the whole Engine, neural against reference, over the character's
+    region: (map_metrics per sample, an image strip per sample)."""
+    path = f"/AccuracyCameras/{name.replace('-', '_')}"
+    size = {"width": samples[0][1].width, "height": samples[0][1].height}
+    neural = Engine(layer, camera=path, precision=precision, aovs=AOVS, textures=False, **size)
+    truth_engine = Engine(layer, camera=path, reference=True, aovs=AOVS, **size)
+    rows, strips = [], []
+    try:
+        for time, _ in samples:
+            frame = neural.render(time)
+            truth_frame = truth_engine.render(time)
+            region = next(
+                c["region"] for c in frame.report["characters"] if c["path"] == str(prim.GetPath())
             )
-            truth_engine = Engine(layer, camera=path, reference=True, aovs=AOVS, **size)
-            rows, strips = [], []
-            try:
-                for time, _ in samples_:
-                    frame = neural.render(time)
-                    truth_frame = truth_engine.render(time)
-                    region = next(
-                        c["region"]
-                        for c in frame.report["characters"]
-                        if c["path"] == str(prim.GetPath())
-                    )
-                    a, b = _crop(frame.maps, region), _crop(truth_frame.maps, region)
-                    rows.append(map_metrics(a, b, height))
-                    strips.append(_strip(a.albedo, b.albedo))
-            finally:
-                neural.close()
-                truth_engine.close()
-            mine = _means(model_rows)
-            theirs = _means(rows)
-            result["framings"][name] = {
-                "model": mine,
-                "runtime": theirs,
-                "delta": {k: mine[k] - theirs[k] for k in COMPARED},
-                "per_sample_albedo_psnr": [r["albedo_psnr"] for r in rows],
-            }
-            if out_dir is not None:
-                _write_sheet(Path(out_dir) / f"accuracy_{name}.png", strips)
-    return result
+            a, b = _crop(frame.maps, region), _crop(truth_frame.maps, region)
+            rows.append(map_metrics(a, b, height))
+            strips.append(_strip(a.albedo, b.albedo))
+    finally:
+        neural.close()
+        truth_engine.close()
+    return rows, strips
 
 
 def _means(rows: list[dict[str, float]]) -> dict[str, float]:

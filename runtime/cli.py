@@ -112,12 +112,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import cv2
-    import numpy as np
-    from tqdm import tqdm
 
     from rigspace.runtime.engine import AOVS, Engine
-    from rigspace.runtime.output import VideoWriter, write_frame_exr
-    from rigspace.sdk.color import linear_to_srgb
+    from rigspace.runtime.output import VideoWriter
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -155,37 +152,7 @@ def run(args: argparse.Namespace) -> int:
                     f"--video {args.video} cannot be written ({exc}).",
                     "choose a writable .mp4 path in an existing folder.",
                 ) from exc
-        reports, thumbs = [], []
-        picks = set(
-            np.linspace(0, len(times) - 1, min(CONTACT_FRAMES, len(times))).astype(int).tolist()
-        )
-        for k, t in enumerate(tqdm(times, unit="frame", file=sys.stderr, dynamic_ncols=True)):
-            began = clock.perf_counter()
-            frame = engine.render(float(t))
-            if k == 0 and clock.perf_counter() - began > FIRST_FRAME_NOTE:
-                tqdm.write(
-                    f"rigspace render: the first frame took {clock.perf_counter() - began:.0f} s: "
-                    "numba compiled the shadow and texture kernels (cached on disk now; "
-                    ".ci/setup compiles them ahead), and the network sessions loaded",
-                    file=sys.stderr,
-                )
-            stem = f"frame_{t:08.1f}"
-            write_frame_exr(out / f"{stem}.exr", frame, aovs)
-            rgb = (linear_to_srgb(frame.beauty) * 255 + 0.5).astype(np.uint8)
-            png = rgb[..., ::-1]
-            cv2.imwrite(str(out / f"{stem}.png"), png)
-            if video is not None:
-                video.write(rgb)
-            if k in picks:
-                thumbs.append(png)
-            if truth is not None:
-                frame.report["reference"] = compare_with_reference(
-                    frame,
-                    truth.render(float(t)),
-                    out / f"compare_{t:08.1f}.png",
-                    coverages(engine, truth, float(t)),
-                )
-            reports.append(frame.report)
+        reports, thumbs = _render_frames(engine, truth, video, times, out, aovs)
     finally:
         engine.close()
         if truth is not None:
@@ -196,6 +163,59 @@ def run(args: argparse.Namespace) -> int:
     warnings = never_drawn(reports, [c.path for c in engine.characters])
     for warning in warnings:
         print(f"rigspace render: warning: {warning}", file=sys.stderr)
+    _write_report(out, args, engine, warnings, reports)
+    _print_totals(args, out, reports, truth is not None)
+    return 0
+
+
+def _render_frames(engine, truth, video, times, out: Path, aovs) -> tuple[list[dict], list]:
+    """Render, write and compare every frame: the frames' reports and the contact sheet's."""
+    import cv2
+    import numpy as np
+    from tqdm import tqdm
+
+    from rigspace.runtime.output import write_frame_exr
+    from rigspace.sdk.color import linear_to_srgb
+
+    reports, thumbs = [], []
+    picks = set(
+        np.linspace(0, len(times) - 1, min(CONTACT_FRAMES, len(times))).astype(int).tolist()
+    )
+    for k, t in enumerate(tqdm(times, unit="frame", file=sys.stderr, dynamic_ncols=True)):
+        began = clock.perf_counter()
+        frame = engine.render(float(t))
+        if k == 0 and clock.perf_counter() - began > FIRST_FRAME_NOTE:
+            tqdm.write(
+                f"rigspace render: the first frame took {clock.perf_counter() - began:.0f} s: "
+                "numba compiled the shadow and texture kernels (cached on disk now; "
+                ".ci/setup compiles them ahead), and the network sessions loaded",
+                file=sys.stderr,
+            )
+        stem = f"frame_{t:08.1f}"
+        write_frame_exr(out / f"{stem}.exr", frame, aovs)
+        rgb = (linear_to_srgb(frame.beauty) * 255 + 0.5).astype(np.uint8)
+        png = rgb[..., ::-1]
+        cv2.imwrite(str(out / f"{stem}.png"), png)
+        if video is not None:
+            video.write(rgb)
+        if k in picks:
+            thumbs.append(png)
+        if truth is not None:
+            frame.report["reference"] = compare_with_reference(
+                frame,
+                truth.render(float(t)),
+                out / f"compare_{t:08.1f}.png",
+                coverages(engine, truth, float(t)),
+            )
+        reports.append(frame.report)
+    return reports, thumbs
+
+
+def _write_report(
+    out: Path, args: argparse.Namespace, engine, warnings: list[str], reports: list[dict]
+) -> None:
+    """report.json in `out`, replaced at once (written beside it, then renamed)."""
+    width, height = args.resolution
     tmp = out / f".report.json.{os.getpid()}.tmp"
     tmp.write_text(
         json.dumps(
@@ -211,9 +231,18 @@ def run(args: argparse.Namespace) -> int:
         + "\n"
     )
     os.replace(tmp, out / "report.json")
+
+
+def _print_totals(
+    args: argparse.Namespace, out: Path, reports: list[dict], reference: bool
+) -> None:
+    """The console's closing lines: the reference summary, frames, timing and decisions."""
+    import numpy as np
+
+    width, height = args.resolution
     totals = np.array([r["seconds"]["total"] for r in reports])
     counts = {k: sum(r["counts"][k] for r in reports) for k in reports[0]["counts"]}
-    if truth is not None:
+    if reference:
         print(reference_summary(reports))
     print(
         f"rendered {len(reports)} frames at {width}x{height} into {out} "
@@ -224,7 +253,6 @@ def run(args: argparse.Namespace) -> int:
         "characters: "
         + ", ".join(f"{k} {v}" for k, v in counts.items() if v or k in ("evaluated", "reused"))
     )
-    return 0
 
 
 def never_drawn(reports: list[dict], characters: list[str]) -> list[str]:

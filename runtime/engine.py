@@ -156,42 +156,18 @@ class Engine:
         instead of their rigspace:model, in the session layer: the scene file is not edited.
         `shadow_backend` says what computes the shadows (rigspace.runtime.shadows.ShadowBackend:
         the compiled kernels and, on a GPU, the fragment shader by default)."""
-        unknown = sorted(set(aovs) - set(AOVS))
-        if unknown:
-            raise SceneError(
-                f"Unknown AOV {', '.join(unknown)}.", f"choose from {', '.join(AOVS)}."
-            )
+        _check_request(aovs, width, height)
         self.aovs = tuple(aovs)
         self.max_level = max_level
-        if width <= 0 or height <= 0:
-            raise SceneError(
-                f"The viewport is {width}x{height}.",
-                "render at least 1x1 pixels (--resolution WxH).",
-            )
         self.stage: Usd.Stage = open_stage(scene)
         if models:
             use_models(self.stage, models)
         self.width, self.height = width, height
         self.camera_prim = self._camera(camera)
         validation.require_valid(self.stage, "render")  # inspect's checks, in inspect's words
-        self.characters: list[NeuralCharacter] = []
-        self.without_model: list[str] = []
-        loaded: dict[Path, BundleModel] = {}
-        for prim in schema.neural_characters(self.stage):
-            manifest = schema.resolve_model_path(schema.read_neural_character(prim))
-            if manifest is None:
-                self.without_model.append(str(prim.GetPath()))
-                continue
-            folder = manifest.parent.resolve()
-            if folder not in loaded:  # characters sharing a bundle share its sessions
-                loaded[folder] = BundleModel(folder, precision, predictor=predictor)
-                if not reference:
-                    loaded[folder].preload()  # a damaged bundle fails here, not mid-sequence
-            character = NeuralCharacter(prim, loaded[folder])
-            if not textures and character.textures is not None:
-                character.textures = None
-                character.no_texture = "textures are turned off (--no-textures)"
-            self.characters.append(character)
+        self.characters, self.without_model = self._load_characters(
+            precision, predictor, reference, textures
+        )
         self.reference = reference
         self.weight_overrides: dict[str, dict[str, float]] = {}
         """character path -> blend shape name -> weight that replaces the animation's (and a
@@ -202,6 +178,43 @@ class Engine:
         self.light_prims = light_prims(self.stage)
         spec = choose_renderer(renderer)
         self.renderer = spec.create(RenderSettings(prim_samples))
+        self._init_caches()
+        self.shadows = PrimShadows(spec)
+        self._compiled: CompiledPasses | None = None
+        """The kernels' passes when the backend computes with numba, else None (numpy)."""
+        self.use_shadow_backend(shadow_backend or ShadowBackend())
+        self._no_shadow = [(c.path, c.no_shadow) for c in self.characters if c.no_shadow]
+        self._warn_characters(textures)
+        # Edits to the stage (a live session, a script) invalidate what was read as still.
+        self._listener = Tf.Notice.Register(Usd.Notice.ObjectsChanged, self._changed, self.stage)
+
+    def _load_characters(
+        self, precision: str, predictor: str, reference: bool, textures: bool
+    ) -> tuple[list[NeuralCharacter], list[str]]:
+        """The stage's neural characters with their bundles loaded, and the paths of those
+        without a model bundle."""
+        characters: list[NeuralCharacter] = []
+        without_model: list[str] = []
+        loaded: dict[Path, BundleModel] = {}
+        for prim in schema.neural_characters(self.stage):
+            manifest = schema.resolve_model_path(schema.read_neural_character(prim))
+            if manifest is None:
+                without_model.append(str(prim.GetPath()))
+                continue
+            folder = manifest.parent.resolve()
+            if folder not in loaded:  # characters sharing a bundle share its sessions
+                loaded[folder] = BundleModel(folder, precision, predictor=predictor)
+                if not reference:
+                    loaded[folder].preload()  # a damaged bundle fails here, not mid-sequence
+            character = NeuralCharacter(prim, loaded[folder])
+            if not textures and character.textures is not None:
+                character.textures = None
+                character.no_texture = "textures are turned off (--no-textures)"
+            characters.append(character)
+        return characters, without_model
+
+    def _init_caches(self) -> None:
+        """The caches kept between frames, empty: G-buffer, layers, lighting, last frame."""
         self._prims_key: tuple = ()
         self._prims: Maps | None = None
         self._layers: dict[str, _CachedLayer] = {}
@@ -209,22 +222,8 @@ class Engine:
             None
         )
         """The lit prims, keyed by lights and shadow maps, with each light's shadow factor."""
-        self.shadows = PrimShadows(spec)
-        self._compiled: CompiledPasses | None = None
-        """The kernels' passes when the backend computes with numba, else None (numpy)."""
-        self.use_shadow_backend(shadow_backend or ShadowBackend())
         self._box: tuple[tuple, np.ndarray] | None = None
         self._background: tuple[bytes, np.ndarray] | None = None
-        self._no_shadow = [(c.path, c.no_shadow) for c in self.characters if c.no_shadow]
-        for path, why in self._no_shadow:  # said once, here and in the first frame's report
-            print(f"rigspace render: warning: {path} casts no shadow: {why}.", file=sys.stderr)
-        for c in self.characters:
-            if c.model.charts and c.no_texture and not reference and textures:
-                print(
-                    f"rigspace render: warning: {c.path} samples no texture, its colour comes from "
-                    f"the albedo branch: {c.no_texture}.",
-                    file=sys.stderr,
-                )
         self._frame: tuple[tuple, Frame] | None = None
         self._light_problems: list[str] = []
         self._edited = False
@@ -234,8 +233,18 @@ class Engine:
         self._still_lights: tuple[list[Light], list[str]] | None = None
         self._camera_varies: bool | None = None
         self._lights_vary: bool | None = None
-        # Edits to the stage (a live session, a script) invalidate what was read as still.
-        self._listener = Tf.Notice.Register(Usd.Notice.ObjectsChanged, self._changed, self.stage)
+
+    def _warn_characters(self, textures: bool) -> None:
+        """Warn once, at the start, of characters that cast no shadow or sample no texture."""
+        for path, why in self._no_shadow:  # said once, here and in the first frame's report
+            print(f"rigspace render: warning: {path} casts no shadow: {why}.", file=sys.stderr)
+        for c in self.characters:
+            if c.model.charts and c.no_texture and not self.reference and textures:
+                print(
+                    f"rigspace render: warning: {c.path} samples no texture, its colour comes from "
+                    f"the albedo branch: {c.no_texture}.",
+                    file=sys.stderr,
+                )
 
     def _camera(self, path: str | None) -> Usd.Prim:
         if path:
@@ -989,6 +998,18 @@ def use_models(stage: Usd.Stage, models: dict[str, str]) -> None:
                     "rigspace:model", Sdf.ValueTypeNames.Asset, custom=False
                 )
             attr.Set(Sdf.AssetPath(str(folder)))
+
+
+def _check_request(aovs: tuple[str, ...], width: int, height: int) -> None:
+    """Refuse unknown AOVs and an empty viewport (a SceneError naming the fix)."""
+    unknown = sorted(set(aovs) - set(AOVS))
+    if unknown:
+        raise SceneError(f"Unknown AOV {', '.join(unknown)}.", f"choose from {', '.join(AOVS)}.")
+    if width <= 0 or height <= 0:
+        raise SceneError(
+            f"The viewport is {width}x{height}.",
+            "render at least 1x1 pixels (--resolution WxH).",
+        )
 
 
 def _world_points(depth, rows, cols, normal, camera: Camera, origin):

@@ -842,25 +842,9 @@ def sparse_visibility(
     h, w = candidates.shape
     crop = _crop(candidates, step)
     if crop is not None:  # only where candidates are (the sky above the ground is none)
-        rows, cols = crop
-        inner = candidates[rows, cols]
-        width = cols.stop - cols.start
-
-        def evaluate_inner(pixels: np.ndarray) -> np.ndarray:
-            r, c = np.divmod(pixels, width)
-            return evaluate((r + rows.start) * w + c + cols.start)
-
-        out = np.ones((h, w), np.float32)
-        out[rows, cols] = sparse_visibility(
-            inner, evaluate_inner, None if depth is None else depth[rows, cols], step
-        )
-        return out
+        return _cropped_visibility(candidates, evaluate, depth, step, crop)
     if h < 2 or w < 2:  # no cells to blend in
-        out = np.ones(h * w, np.float32)
-        exact = np.flatnonzero(candidates)
-        if exact.size:
-            out[exact] = evaluate(exact)
-        return out.reshape(h, w)
+        return _exact_visibility(candidates, evaluate)
     # Padded to whole cells; the padding is no candidate (its cells are evaluated exactly).
     size_y, size_x = (-(-(n - 1) // step) * step + 1 for n in (h, w))
     wanted = np.zeros((size_y, size_x), bool)
@@ -870,53 +854,97 @@ def sparse_visibility(
     if depth is not None:  # 1 / depth is affine in screen space across a plane; empty: 0
         inverse = np.zeros((size_y, size_x), np.float32)
         inverse[:h, :w] = 1.0 / np.maximum(depth, 1e-30)
-
-    def where(at: tuple[slice, slice], mask: np.ndarray) -> np.ndarray:
-        """Flat frame indices of a strided view's True entries (no index grid to gather)."""
-        rows, cols = np.nonzero(mask)
-        return (rows * at[0].step + (at[0].start or 0)) * w + cols * at[1].step + (at[1].start or 0)
-
-    def fill(pixels: np.ndarray) -> None:
-        if pixels.size:
-            rows, cols = np.divmod(pixels, w)
-            out[rows, cols] = evaluate(pixels)
-
     grid = (slice(None, None, step),) * 2
-    fill(where(grid, wanted[grid]))
+    _fill(out, _where(grid, wanted[grid], w), evaluate, w)
     spacing = step
     while spacing > 1:
-        half = spacing // 2
-        on, mid = slice(None, None, spacing), slice(half, None, spacing)
-        c, valid = out[on, on], wanted[on, on]
-        corners = (c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:])
-        rough = _bend(c) > BEND_TOLERANCE
-        rough = rough[:-1, :-1] | rough[:-1, 1:] | rough[1:, :-1] | rough[1:, 1:]
-        if inverse is None:  # nothing tells a non-candidate's surface: evaluate beside one
-            rough |= ~(valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:])
-        smooth = ~_around(rough)
-        # The middles of horizontal edges, of vertical edges, and of cells; an edge is
-        # smooth where a cell beside it is (the dilation has looked at the other).
-        parts = [
-            ((on, mid), (c[:, :-1] + c[:, 1:]) * 0.5, np.concatenate([smooth, smooth[-1:]])),
-            ((mid, on), (c[:-1] + c[1:]) * 0.5, np.concatenate([smooth, smooth[:, -1:]], 1)),
-            ((mid, mid), (corners[0] + corners[1] + corners[2] + corners[3]) * 0.25, smooth),
-        ]
-        pending: list[np.ndarray] = []
-        for at, blended, ok in parts:
-            new = wanted[at]
-            blend = new & ok
-            if inverse is not None:
-                i = inverse[on, on]
-                if at == (on, mid):
-                    expected = (i[:, :-1] + i[:, 1:]) * 0.5
-                elif at == (mid, on):
-                    expected = (i[:-1] + i[1:]) * 0.5
-                else:
-                    expected = (i[:-1, :-1] + i[:-1, 1:] + i[1:, :-1] + i[1:, 1:]) * 0.25
-                mine = inverse[at]
-                blend &= np.abs(expected - mine) <= np.float32(SURFACE_TOLERANCE) * mine
-            np.copyto(out[at], blended, where=blend)
-            pending.append(where(at, new & ~blend))
-        fill(np.concatenate(pending))
-        spacing = half
+        _fill(out, _refine(out, wanted, inverse, spacing, w), evaluate, w)
+        spacing //= 2
     return out[:h, :w]
+
+
+def _cropped_visibility(
+    candidates: np.ndarray,
+    evaluate,
+    depth: np.ndarray | None,
+    step: int,
+    crop: tuple[slice, slice],
+) -> np.ndarray:
+    """sparse_visibility on the `crop` of the frame that holds the candidates; 1 elsewhere."""
+    h, w = candidates.shape
+    rows, cols = crop
+    inner = candidates[rows, cols]
+    width = cols.stop - cols.start
+
+    def evaluate_inner(pixels: np.ndarray) -> np.ndarray:
+        r, c = np.divmod(pixels, width)
+        return evaluate((r + rows.start) * w + c + cols.start)
+
+    out = np.ones((h, w), np.float32)
+    out[rows, cols] = sparse_visibility(
+        inner, evaluate_inner, None if depth is None else depth[rows, cols], step
+    )
+    return out
+
+
+def _exact_visibility(candidates: np.ndarray, evaluate) -> np.ndarray:
+    """Every candidate evaluated exactly (1 elsewhere): a frame too thin for cells."""
+    h, w = candidates.shape
+    out = np.ones(h * w, np.float32)
+    exact = np.flatnonzero(candidates)
+    if exact.size:
+        out[exact] = evaluate(exact)
+    return out.reshape(h, w)
+
+
+def _where(at: tuple[slice, slice], mask: np.ndarray, w: int) -> np.ndarray:
+    """Flat frame indices of a strided view's True entries (no index grid to gather)."""
+    rows, cols = np.nonzero(mask)
+    return (rows * at[0].step + (at[0].start or 0)) * w + cols * at[1].step + (at[1].start or 0)
+
+
+def _fill(out: np.ndarray, pixels: np.ndarray, evaluate, w: int) -> None:
+    """Evaluate `pixels` (flat indices of a frame `w` wide) exactly, into `out`."""
+    if pixels.size:
+        rows, cols = np.divmod(pixels, w)
+        out[rows, cols] = evaluate(pixels)
+
+
+def _refine(
+    out: np.ndarray, wanted: np.ndarray, inverse: np.ndarray | None, spacing: int, w: int
+) -> np.ndarray:
+    """Fill in, in `out`, the candidates of the grid of half `spacing` that blend from the
+    grid of `spacing` (sparse_visibility); the flat indices of those to evaluate instead."""
+    half = spacing // 2
+    on, mid = slice(None, None, spacing), slice(half, None, spacing)
+    c, valid = out[on, on], wanted[on, on]
+    corners = (c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:])
+    rough = _bend(c) > BEND_TOLERANCE
+    rough = rough[:-1, :-1] | rough[:-1, 1:] | rough[1:, :-1] | rough[1:, 1:]
+    if inverse is None:  # nothing tells a non-candidate's surface: evaluate beside one
+        rough |= ~(valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:])
+    smooth = ~_around(rough)
+    # The middles of horizontal edges, of vertical edges, and of cells; an edge is
+    # smooth where a cell beside it is (the dilation has looked at the other).
+    parts = [
+        ((on, mid), (c[:, :-1] + c[:, 1:]) * 0.5, np.concatenate([smooth, smooth[-1:]])),
+        ((mid, on), (c[:-1] + c[1:]) * 0.5, np.concatenate([smooth, smooth[:, -1:]], 1)),
+        ((mid, mid), (corners[0] + corners[1] + corners[2] + corners[3]) * 0.25, smooth),
+    ]
+    pending: list[np.ndarray] = []
+    for at, blended, ok in parts:
+        new = wanted[at]
+        blend = new & ok
+        if inverse is not None:
+            i = inverse[on, on]
+            if at == (on, mid):
+                expected = (i[:, :-1] + i[:, 1:]) * 0.5
+            elif at == (mid, on):
+                expected = (i[:-1] + i[1:]) * 0.5
+            else:
+                expected = (i[:-1, :-1] + i[:-1, 1:] + i[1:, :-1] + i[1:, 1:]) * 0.25
+            mine = inverse[at]
+            blend &= np.abs(expected - mine) <= np.float32(SURFACE_TOLERANCE) * mine
+        np.copyto(out[at], blended, where=blend)
+        pending.append(_where(at, new & ~blend, w))
+    return np.concatenate(pending)

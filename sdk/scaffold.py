@@ -156,73 +156,26 @@ def _author(
     asset_prim: Sdf.Path,
     skeleton: Sdf.Path,
 ) -> Derived:
+    """Author the new scene on `stage` around the asset; return what was derived."""
     from rigspace.sdk.posing import CharacterRig
 
-    units = UsdGeom.GetStageMetersPerUnit(source)
-    up = UsdGeom.GetStageUpAxis(source)
-    UsdGeom.SetStageMetersPerUnit(stage, units)
-    UsdGeom.SetStageUpAxis(stage, up)
-    stage.SetTimeCodesPerSecond(source.GetTimeCodesPerSecond())
-    stage.SetFramesPerSecond(source.GetFramesPerSecond())
-    world = UsdGeom.Xform.Define(stage, "/World")
-    stage.SetDefaultPrim(world.GetPrim())
-    prim = stage.DefinePrim(character, schema.NEURAL_CHARACTER)
-    reference = os.path.relpath(asset.resolve(), out.resolve().parent)
-    held = stage.DefinePrim(asset_prim)
-    if source.GetDefaultPrim():
-        held.GetReferences().AddReference(reference)
-    else:
-        held.GetReferences().AddReference(reference, root.GetPath())
-    prim.CreateRelationship("rigspace:skeleton", custom=False).SetTargets([skeleton])
-    joints = [
-        str(j) for j in UsdSkel.Skeleton(stage.GetPrimAtPath(skeleton)).GetJointsAttr().Get() or []
-    ]
-    if not joints:
-        raise SceneError(f"Skeleton {skeleton} lists no joints.", "export the skeleton's joints.")
+    up = _copy_stage_metadata(stage, source)
+    prim, joints = _define_character(
+        stage, source, asset, out, root, character, asset_prim, skeleton
+    )
     leaf = [j.rsplit("/", 1)[-1] for j in joints]
     prim.CreateAttribute("rigspace:lookAtJoint", Sdf.ValueTypeNames.Token, custom=False).Set(
         leaf[0]
     )  # provisional: the rig reads it; set below
     rig = CharacterRig(prim)
-    span = rig.time_range()
-    if span is None or span[1] <= span[0]:
-        raise SceneError(
-            f"The skeleton {skeleton} of {asset} has no animation over time (its SkelAnimation "
-            "holds one pose or none).",
-            "export the character with its animation: capture renders it in many poses.",
-        )
-    times = np.linspace(span[0], span[1], SAMPLES)
-    found = centre_joint(rig, times)
-    if found is None:
-        raise SceneError(
-            f"No mesh of {asset} is skinned to {skeleton}.",
-            "bind the character's meshes to its skeleton (UsdSkelBindingAPI).",
-        )
-    look, jp, points = found
-    extent = max(float(np.linalg.norm(p - jp[k, look], axis=1).max()) for k, p in enumerate(points))
+    span, look, jp, extent = _animated_extent(rig, asset, skeleton)
     half_fov = math.atan(APERTURE / 2 / FOCAL_LENGTH)
     radius = MARGIN * extent / math.sin(half_fov)  # the whole sphere of that radius in view
     near = max((radius - extent) * 0.5, radius * 1e-3)
     far = (radius + extent) * 4
     prim.GetAttribute("rigspace:lookAtJoint").Set(leaf[look])
     clip_name = _prim_name(rig.animation.GetName())
-    schema_ring = {
-        "viewsPerRing": (Sdf.ValueTypeNames.Int, VIEWS),
-        "elevations": (Sdf.ValueTypeNames.FloatArray, list(ELEVATIONS)),
-        "radius": (Sdf.ValueTypeNames.Float, radius),
-        "focalLength": (Sdf.ValueTypeNames.Float, FOCAL_LENGTH),
-        "horizontalAperture": (Sdf.ValueTypeNames.Float, APERTURE),
-        "resolution": (Sdf.ValueTypeNames.Int, RESOLUTION),
-        "clippingRange": (Sdf.ValueTypeNames.Float2, Gf.Vec2f(near, far)),
-        "clipNames": (Sdf.ValueTypeNames.TokenArray, [clip_name]),
-        "clipRanges": (Sdf.ValueTypeNames.Float2Array, [Gf.Vec2f(*span)]),
-        "heldOutViewsPerRing": (Sdf.ValueTypeNames.Int, HELD_OUT),
-    }
-    prim.AddAppliedSchema(schema.CAPTURE_RING_API)
-    for key, (kind, value) in schema_ring.items():
-        attr = prim.CreateAttribute(f"rigspace:captureRing:{key}", kind, custom=False)
-        attr.SetVariability(Sdf.VariabilityUniform)
-        attr.Set(value)
+    _author_capture_ring(prim, radius, near, far, clip_name, span)
     stage.SetStartTimeCode(span[0])
     stage.SetEndTimeCode(span[1])
     target = jp[:, look].mean(axis=0)
@@ -244,6 +197,99 @@ def _author(
         clip=(clip_name, float(span[0]), float(span[1])),
         camera=camera,
     )
+
+
+def _copy_stage_metadata(stage: Usd.Stage, source: Usd.Stage) -> str:
+    """Give `stage` the asset's units, up axis and rates; return the up axis."""
+    units = UsdGeom.GetStageMetersPerUnit(source)
+    up = UsdGeom.GetStageUpAxis(source)
+    UsdGeom.SetStageMetersPerUnit(stage, units)
+    UsdGeom.SetStageUpAxis(stage, up)
+    stage.SetTimeCodesPerSecond(source.GetTimeCodesPerSecond())
+    stage.SetFramesPerSecond(source.GetFramesPerSecond())
+    return up
+
+
+def _define_character(
+    stage: Usd.Stage,
+    source: Usd.Stage,
+    asset: Path,
+    out: Path,
+    root: Usd.Prim,
+    character: Sdf.Path,
+    asset_prim: Sdf.Path,
+    skeleton: Sdf.Path,
+) -> tuple[Usd.Prim, list[str]]:
+    """Define /World and the character (the asset referenced, its skeleton bound); return the
+    character prim and the skeleton's joints."""
+    world = UsdGeom.Xform.Define(stage, "/World")
+    stage.SetDefaultPrim(world.GetPrim())
+    prim = stage.DefinePrim(character, schema.NEURAL_CHARACTER)
+    reference = os.path.relpath(asset.resolve(), out.resolve().parent)
+    held = stage.DefinePrim(asset_prim)
+    if source.GetDefaultPrim():
+        held.GetReferences().AddReference(reference)
+    else:
+        held.GetReferences().AddReference(reference, root.GetPath())
+    prim.CreateRelationship("rigspace:skeleton", custom=False).SetTargets([skeleton])
+    joints = [
+        str(j) for j in UsdSkel.Skeleton(stage.GetPrimAtPath(skeleton)).GetJointsAttr().Get() or []
+    ]
+    if not joints:
+        raise SceneError(f"Skeleton {skeleton} lists no joints.", "export the skeleton's joints.")
+    return prim, joints
+
+
+def _animated_extent(
+    rig, asset: Path, skeleton: Sdf.Path
+) -> tuple[tuple[float, float], int, np.ndarray, float]:
+    """(the animation's time span, the look-at joint, (T, J, 3) joint positions, the farthest
+    skinned point from the look-at joint) over SAMPLES frames of the animation."""
+    span = rig.time_range()
+    if span is None or span[1] <= span[0]:
+        raise SceneError(
+            f"The skeleton {skeleton} of {asset} has no animation over time (its SkelAnimation "
+            "holds one pose or none).",
+            "export the character with its animation: capture renders it in many poses.",
+        )
+    times = np.linspace(span[0], span[1], SAMPLES)
+    found = centre_joint(rig, times)
+    if found is None:
+        raise SceneError(
+            f"No mesh of {asset} is skinned to {skeleton}.",
+            "bind the character's meshes to its skeleton (UsdSkelBindingAPI).",
+        )
+    look, jp, points = found
+    extent = max(float(np.linalg.norm(p - jp[k, look], axis=1).max()) for k, p in enumerate(points))
+    return span, look, jp, extent
+
+
+def _author_capture_ring(
+    prim: Usd.Prim,
+    radius: float,
+    near: float,
+    far: float,
+    clip_name: str,
+    span: tuple[float, float],
+) -> None:
+    """Apply the capture ring schema to the character with the derived values (uniform)."""
+    schema_ring = {
+        "viewsPerRing": (Sdf.ValueTypeNames.Int, VIEWS),
+        "elevations": (Sdf.ValueTypeNames.FloatArray, list(ELEVATIONS)),
+        "radius": (Sdf.ValueTypeNames.Float, radius),
+        "focalLength": (Sdf.ValueTypeNames.Float, FOCAL_LENGTH),
+        "horizontalAperture": (Sdf.ValueTypeNames.Float, APERTURE),
+        "resolution": (Sdf.ValueTypeNames.Int, RESOLUTION),
+        "clippingRange": (Sdf.ValueTypeNames.Float2, Gf.Vec2f(near, far)),
+        "clipNames": (Sdf.ValueTypeNames.TokenArray, [clip_name]),
+        "clipRanges": (Sdf.ValueTypeNames.Float2Array, [Gf.Vec2f(*span)]),
+        "heldOutViewsPerRing": (Sdf.ValueTypeNames.Int, HELD_OUT),
+    }
+    prim.AddAppliedSchema(schema.CAPTURE_RING_API)
+    for key, (kind, value) in schema_ring.items():
+        attr = prim.CreateAttribute(f"rigspace:captureRing:{key}", kind, custom=False)
+        attr.SetVariability(Sdf.VariabilityUniform)
+        attr.Set(value)
 
 
 def centre_joint(rig, times: np.ndarray) -> tuple[int, np.ndarray, list[np.ndarray]] | None:

@@ -296,9 +296,81 @@ def sample_region_reference(
     """The kernel's computation in vectorised numpy, over all covered pixels at once (the
     texture reads through the embree renderer's sample_bilinear): the reference the compiled
     kernel (sdk/texture_kernel.py) is tested against."""
-    from rigspace.sdk.render.embree import sample_bilinear
+    ii, jj, nx, ny, jac, ok = _network_positions(inverse, x0, y0, coverage)
+    cell, ok = _network_cell(nx, ny, best, ok)
+    chart, ci, cj, ok = _choose_chart(cell, probabilities, threshold, image, ok)
+    u, v, du, dv = _chart_coordinates(cell, chart, ci, cj, coordinates)
+    footprint = _texel_footprint(
+        chart, u, v, du, dv, jac, center, half, image, transform, bounds, levels
+    )
+    taps = _tap_grid(footprint, max_taps, lod_bias, level_count)
+    colour = _filter_taps(
+        footprint, taps, chart, ok, max_taps, transform, wrap, bounds, texels, levels, level_count
+    )
+    st = np.stack([footprint.s, footprint.t], axis=1)
+    out[ii[ok], jj[ok]] = colour[ok]
+    used[ii[ok], jj[ok]] = True
+    st_out[ii[ok], jj[ok]] = st[ok]
+    chart_out[ii[ok], jj[ok]] = chart[ok]
 
-    r = best.shape[0]
+
+_CORNERS = tuple((a, b) for a in (0, 1) for b in (0, 1))
+"""The four network pixels around a point, as (row, column) of the bilinear cell."""
+
+
+@dataclass(frozen=True)
+class _NetworkCell:
+    """The four network pixels around each covered pixel, in _CORNERS order, and their weights."""
+
+    rows: np.ndarray
+    """(2, n) the cell's two network rows (clamped into the image)."""
+    cols: np.ndarray
+    """(2, n) the cell's two network columns (clamped into the image)."""
+    wy: np.ndarray
+    """(2, n) the bilinear weights of the two rows."""
+    wx: np.ndarray
+    """(2, n) the bilinear weights of the two columns."""
+    chart_at: np.ndarray
+    """(4, n) the most likely chart at each corner."""
+    weight: np.ndarray
+    """(4, n) the bilinear weight of each corner."""
+
+
+@dataclass(frozen=True)
+class _Footprint:
+    """Each pixel's st, the image its chart reads and its footprint there (n pixels)."""
+
+    s: np.ndarray
+    t: np.ndarray
+    su: np.ndarray
+    """The st -> image scale along s."""
+    sv: np.ndarray
+    """The st -> image scale along t."""
+    img: np.ndarray
+    """The image read (0 where the chart has none: those pixels are not `ok`)."""
+    width0: np.ndarray
+    height0: np.ndarray
+    ds: list[np.ndarray]
+    """The footprint's axes (network x, network y) along s, in level-0 texels."""
+    dt: list[np.ndarray]
+    """The footprint's axes (network x, network y) along t, in level-0 texels."""
+
+
+@dataclass(frozen=True)
+class _Taps:
+    """The grid of taps each pixel's footprint is read with, and their mip level."""
+
+    taps_x: np.ndarray
+    taps_y: np.ndarray
+    level: np.ndarray
+    blend: np.ndarray
+    """The share of the next (smaller) mip level in each tap (trilinear)."""
+
+
+def _network_positions(
+    inverse: np.ndarray, x0: int, y0: int, coverage: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[list[np.ndarray]], np.ndarray]:
+    """Each covered pixel's (ii, jj) in the region, network position (nx, ny), Jacobian, `ok`."""
     ii, jj = np.nonzero(coverage > 0)
     px, py = x0 + jj + 0.5, y0 + ii + 0.5
     qx, qy, qw = (inverse[k, 0] * px + inverse[k, 1] * py + inverse[k, 2] for k in range(3))
@@ -309,6 +381,14 @@ def sample_region_reference(
     jac = [
         [(inverse[a, b] - n * inverse[2, b]) / qw for b in (0, 1)] for a, n in ((0, nx), (1, ny))
     ]
+    return ii, jj, nx, ny, jac, ok
+
+
+def _network_cell(
+    nx: np.ndarray, ny: np.ndarray, best: np.ndarray, ok: np.ndarray
+) -> tuple[_NetworkCell, np.ndarray]:
+    """The bilinear cell of network pixels around each position; `ok` without those outside."""
+    r = best.shape[0]
     xs, ys = nx - 0.5, ny - 0.5
     ok &= (xs >= -0.5) & (ys >= -0.5) & (xs <= r - 0.5) & (ys <= r - 0.5)
     j0, i0 = np.floor(xs).astype(np.int64), np.floor(ys).astype(np.int64)
@@ -316,35 +396,64 @@ def sample_region_reference(
     rows = np.stack([np.clip(i0, 0, r - 1), np.clip(i0 + 1, 0, r - 1)])
     cols = np.stack([np.clip(j0, 0, r - 1), np.clip(j0 + 1, 0, r - 1)])
     wy, wx = np.stack([1 - fy, fy]), np.stack([1 - fx, fx])
-    corners = [(a, b) for a in (0, 1) for b in (0, 1)]
-    chart_at = np.stack([best[rows[a], cols[b]] for a, b in corners])  # (4, n)
-    weight = np.stack([wy[a] * wx[b] for a, b in corners])
+    chart_at = np.stack([best[rows[a], cols[b]] for a, b in _CORNERS])  # (4, n)
+    weight = np.stack([wy[a] * wx[b] for a, b in _CORNERS])
+    return _NetworkCell(rows, cols, wy, wx, chart_at, weight), ok
+
+
+def _choose_chart(
+    cell: _NetworkCell,
+    probabilities: np.ndarray,
+    threshold: float,
+    image: np.ndarray,
+    ok: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each pixel's chart, the nearest corner showing it (ci, cj); `ok` without unsure pixels."""
+    rows, cols, chart_at, weight = cell.rows, cell.cols, cell.chart_at, cell.weight
 
     def interpolated(charts):  # each pixel's probability of `charts` (n,), bilinearly
         return sum(
-            weight[k] * probabilities[charts, rows[a], cols[b]] for k, (a, b) in enumerate(corners)
+            weight[k] * probabilities[charts, rows[a], cols[b]] for k, (a, b) in enumerate(_CORNERS)
         )
 
     # Of the corners' charts, the largest interpolated probability (the first on ties).
     score = np.stack([np.where(c > 0, interpolated(c), -1.0) for c in chart_at])
-    n = np.arange(len(px))
+    n = np.arange(chart_at.shape[1])
     chart = chart_at[score.argmax(axis=0), n]
     given = score.max(axis=0)
-    none = interpolated(np.zeros(len(px), np.int64))
+    none = interpolated(np.zeros(chart_at.shape[1], np.int64))
     # The nearest corner that shows the chart (its coordinates if no other does).
     pick = np.where(chart_at == chart, weight, -1.0).argmax(axis=0)
-    ci = np.stack([rows[a] for a, _ in corners])[pick, n]
-    cj = np.stack([cols[b] for _, b in corners])[pick, n]
+    ci = np.stack([rows[a] for a, _ in _CORNERS])[pick, n]
+    cj = np.stack([cols[b] for _, b in _CORNERS])[pick, n]
     ok &= (chart > 0) & (given >= threshold * np.maximum(1.0 - none, 1e-6)) & (image[chart] >= 0)
+    return chart, ci, cj, ok
+
+
+def _chart_coordinates(
+    cell: _NetworkCell, chart: np.ndarray, ci: np.ndarray, cj: np.ndarray, coordinates: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]:
+    """The chart's coordinates (u, v) interpolated over the corners showing it, and their
+    derivatives (du, dv) along network x and y."""
+    rows, cols, chart_at, weight = cell.rows, cell.cols, cell.chart_at, cell.weight
     pair = np.maximum(chart - 1, 0)
-    u_at = np.stack([coordinates[2 * pair, rows[a], cols[b]] for a, b in corners])
-    v_at = np.stack([coordinates[2 * pair + 1, rows[a], cols[b]] for a, b in corners])
+    u_at = np.stack([coordinates[2 * pair, rows[a], cols[b]] for a, b in _CORNERS])
+    v_at = np.stack([coordinates[2 * pair + 1, rows[a], cols[b]] for a, b in _CORNERS])
     same = chart_at == chart
     total = (weight * same).sum(axis=0)
     own_u, own_v = coordinates[2 * pair, ci, cj], coordinates[2 * pair + 1, ci, cj]
     safe = np.where(total > 0, total, 1.0)
     u = np.where(total > 0, (weight * same * u_at).sum(axis=0) / safe, own_u)
     v = np.where(total > 0, (weight * same * v_at).sum(axis=0) / safe, own_v)
+    du, dv = _coordinate_derivatives(cell, same, u_at, v_at, u)
+    return u, v, du, dv
+
+
+def _coordinate_derivatives(
+    cell: _NetworkCell, same: np.ndarray, u_at: np.ndarray, v_at: np.ndarray, u: np.ndarray
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """(du, dv): the chart's coordinates' derivatives, each [along network x, along y]."""
+    rows, cols, wy, wx = cell.rows, cell.cols, cell.wy, cell.wx
     # Derivatives along network x (pairs in a row) and y (pairs in a column), same chart only.
     du, dv = [], []
     for first, second, row_weight, distinct in (
@@ -359,6 +468,15 @@ def sample_region_reference(
             acc_w = acc_w + np.where(valid, row_weight[k], 0.0)
         du.append(np.where(acc_w > 0, acc_u / np.maximum(acc_w, 1e-30), 0.0))
         dv.append(np.where(acc_w > 0, acc_v / np.maximum(acc_w, 1e-30), 0.0))
+    return du, dv
+
+
+def _texel_footprint(
+    chart: np.ndarray, u: np.ndarray, v: np.ndarray, du: list[np.ndarray], dv: list[np.ndarray],
+    jac: list[list[np.ndarray]], center: np.ndarray, half: np.ndarray, image: np.ndarray,
+    transform: np.ndarray, bounds: np.ndarray, levels: np.ndarray,
+) -> _Footprint:  # fmt: skip
+    """Each pixel's st (in its chart's bounds) and footprint in its image's level-0 texels."""
     hu, hv = half[chart, 0], half[chart, 1]
     s = np.clip(center[chart, 0] + hu * u, bounds[chart, 0], bounds[chart, 2])
     t = np.clip(center[chart, 1] + hv * v, bounds[chart, 1], bounds[chart, 3])
@@ -367,16 +485,38 @@ def sample_region_reference(
     width0, height0 = levels[img, 0, 1], levels[img, 0, 2]
     ds = [hu * su * (du[0] * jac[0][b] + du[1] * jac[1][b]) * width0 for b in (0, 1)]
     dt = [hv * sv * (dv[0] * jac[0][b] + dv[1] * jac[1][b]) * height0 for b in (0, 1)]
+    return _Footprint(s, t, su, sv, img, width0, height0, ds, dt)
+
+
+def _tap_grid(
+    footprint: _Footprint, max_taps: int, lod_bias: float, level_count: np.ndarray
+) -> _Taps:
+    """The grid of taps each footprint is read with and the mip level (trilinear) they read."""
+    ds, dt = footprint.ds, footprint.dt
     # The footprint (axes (ds[0], dt[0]) and (ds[1], dt[1]) in level-0 texels) as a grid of
     # taps, each at most `cell` texels along both axes, read at that size's mip level.
     length_x, length_y = np.hypot(ds[0], dt[0]), np.hypot(ds[1], dt[1])
     cell = np.maximum(1.0, np.maximum(length_x, length_y) / max_taps)
     taps_x = np.clip(np.ceil(length_x / cell - 1e-9), 1, max_taps).astype(np.int64)
     taps_y = np.clip(np.ceil(length_y / cell - 1e-9), 1, max_taps).astype(np.int64)
-    lod = np.minimum(np.maximum(np.log2(cell) + lod_bias, 0.0), level_count[img] - 1.0)
+    lod = np.minimum(np.maximum(np.log2(cell) + lod_bias, 0.0), level_count[footprint.img] - 1.0)
     level = np.floor(lod).astype(np.int64)
     blend = lod - level
-    colour = np.zeros((len(px), 3))
+    return _Taps(taps_x, taps_y, level, blend)
+
+
+def _filter_taps(
+    footprint: _Footprint, taps: _Taps, chart: np.ndarray, ok: np.ndarray, max_taps: int,
+    transform: np.ndarray, wrap: np.ndarray, bounds: np.ndarray, texels: np.ndarray,
+    levels: np.ndarray, level_count: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """(n, 3) each pixel's colour: the mean of its taps, each a trilinear texture read."""
+    from rigspace.sdk.render.embree import sample_bilinear
+
+    s, t, su, sv, img = footprint.s, footprint.t, footprint.su, footprint.sv, footprint.img
+    width0, height0, ds, dt = footprint.width0, footprint.height0, footprint.ds, footprint.dt
+    taps_x, taps_y, level, blend = taps.taps_x, taps.taps_y, taps.level, taps.blend
+    colour = np.zeros((len(s), 3))
     # The footprint's axes in st (texels / image size / the st -> image scale).
     axis_x = np.stack([ds[0] / (width0 * su), dt[0] / (height0 * sv)], axis=1)
     axis_y = np.stack([ds[1] / (width0 * su), dt[1] / (height0 * sv)], axis=1)
@@ -412,11 +552,7 @@ def sample_region_reference(
                             if where.any():
                                 read = sample_bilinear(texture, at[where], tuple(wrap[k]))
                                 colour[where] += read * (part[where, None] / count[where])
-    st = np.stack([s, t], axis=1)
-    out[ii[ok], jj[ok]] = colour[ok]
-    used[ii[ok], jj[ok]] = True
-    st_out[ii[ok], jj[ok]] = st[ok]
-    chart_out[ii[ok], jj[ok]] = chart[ok]
+    return colour
 
 
 def _kernel():

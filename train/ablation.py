@@ -534,27 +534,11 @@ def cost(dataset: Path, names: list[str], resolution: int = 128, rounds: int = 8
     Returns a markdown table (variant, params, MFLOP, ms fp32, ms int8, ratio)."""
     import tempfile
 
-    from rigspace.capture.dataset import read_manifest
-    from rigspace.train.conditioning import dataset_skeleton, parents_of
-    from rigspace.train.data import SampleSet
-    from rigspace.train.export import export_graph
-    from rigspace.train.int8check import graph_feeds, rig_feeds, session
-    from rigspace.train.network import Shape
-    from rigspace.train.quantize import head_nodes, quantize
+    from rigspace.train.conditioning import dataset_skeleton
 
-    manifest = read_manifest(dataset)
-    train_rows = SampleSet(dataset, "train")
-    picks = np.linspace(0, len(train_rows) - 1, 64).astype(int)
-    rig = train_rows.rig[train_rows.rows[picks]].astype(np.float32)
-    shape = Shape(len(train_rows.joints), parents=parents_of(train_rows.joints))
+    manifest, rig, shape = _cost_inputs(dataset)
     skeleton = None
-    groups: dict[tuple, list[str]] = {}
-    configs: dict[tuple, Any] = {}
-    for name in names:
-        config = preset("small", resolution=resolution, channels_last=False, **VARIANTS[name][1])
-        key = tuple(getattr(config, k) for k in ARCHITECTURE)
-        groups.setdefault(key, []).append(name)
-        configs.setdefault(key, config)
+    groups, configs = _architectures(names, resolution)
     rows: dict[tuple, dict[str, Any]] = {}
     graphs: dict[tuple, dict[str, tuple[Any, dict[str, np.ndarray]]]] = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -563,23 +547,8 @@ def cost(dataset: Path, names: list[str], resolution: int = 128, rounds: int = 8
             model = Rig2Image(shape, config).eval()
             if model.conditioned and skeleton is None:
                 skeleton = dataset_skeleton(dataset, manifest)
-            feeds = rig_feeds(rig, skeleton if model.conditioned else None)
-            with torch.no_grad():
-                tensors = {k: torch.from_numpy(v) for k, v in feeds.items()}
-                feeds["features"] = model.features(tensors["rig"], tensors.get("joints2d")).numpy()
             folder = Path(tmp) / groups[key][0]
-            folder.mkdir()
-            graphs[key] = {}
-            for branch in ("trunk", "albedo", "geometry"):
-                fp32 = folder / f"{branch}.onnx"
-                int8 = folder / f"{branch}.int8.onnx"
-                with torch.no_grad():
-                    export_graph(model, branch, resolution, fp32)
-                quantize(fp32, int8, feeds, head_nodes(fp32))
-                one = {k: v[:1] for k, v in feeds.items()}
-                for precision, path in (("fp32", fp32), ("int8", int8)):
-                    graph = session(path)
-                    graphs[key][f"{branch}.{precision}"] = (graph, graph_feeds(graph, one))
+            graphs[key] = _export_graphs(model, rig, skeleton, resolution, folder)
             rows[key] = {
                 "parameters": int(sum(p.numel() for p in model.parameters())),
                 "mflop": mflop(model, resolution),
@@ -587,21 +556,95 @@ def cost(dataset: Path, names: list[str], resolution: int = 128, rounds: int = 8
                 "int8": math.inf,
             }
             print(f"ablation: cost: {', '.join(groups[key])} exported", file=sys.stderr, flush=True)
-        for _ in range(rounds):
-            for key in configs:
-                for precision in ("fp32", "int8"):
-                    evaluation = [
-                        graphs[key][f"{b}.{precision}"] for b in ("trunk", "albedo", "geometry")
-                    ]
+        _time_graphs(graphs, rows, rounds)
+    return _cost_table(rows, groups, resolution)
+
+
+def _cost_inputs(dataset: Path) -> tuple[Any, np.ndarray, Any]:
+    """(the dataset's manifest, 64 evenly spaced training rig rows, the network's Shape)."""
+    from rigspace.capture.dataset import read_manifest
+    from rigspace.train.conditioning import parents_of
+    from rigspace.train.data import SampleSet
+    from rigspace.train.network import Shape
+
+    manifest = read_manifest(dataset)
+    train_rows = SampleSet(dataset, "train")
+    picks = np.linspace(0, len(train_rows) - 1, 64).astype(int)
+    rig = train_rows.rig[train_rows.rows[picks]].astype(np.float32)
+    shape = Shape(len(train_rows.joints), parents=parents_of(train_rows.joints))
+    return manifest, rig, shape
+
+
+def _architectures(
+    names: list[str], resolution: int
+) -> tuple[dict[tuple, list[str]], dict[tuple, Any]]:
+    """The variants grouped by their ARCHITECTURE options: (key -> names, key -> first config)."""
+    groups: dict[tuple, list[str]] = {}
+    configs: dict[tuple, Any] = {}
+    for name in names:
+        config = preset("small", resolution=resolution, channels_last=False, **VARIANTS[name][1])
+        key = tuple(getattr(config, k) for k in ARCHITECTURE)
+        groups.setdefault(key, []).append(name)
+        configs.setdefault(key, config)
+    return groups, configs
+
+
+def _export_graphs(
+    model: Rig2Image, rig: np.ndarray, skeleton: Any, resolution: int, folder: Path
+) -> dict[str, tuple[Any, dict[str, np.ndarray]]]:
+    """Export the model's graphs to `folder`, fp32 and int8 (calibrated on `rig`), and open
+    them: "branch.precision" -> (onnxruntime session, its feeds for one sample)."""
+    from rigspace.train.export import export_graph
+    from rigspace.train.int8check import graph_feeds, rig_feeds, session
+    from rigspace.train.quantize import head_nodes, quantize
+
+    feeds = rig_feeds(rig, skeleton if model.conditioned else None)
+    with torch.no_grad():
+        tensors = {k: torch.from_numpy(v) for k, v in feeds.items()}
+        feeds["features"] = model.features(tensors["rig"], tensors.get("joints2d")).numpy()
+    folder.mkdir()
+    graphs: dict[str, tuple[Any, dict[str, np.ndarray]]] = {}
+    for branch in ("trunk", "albedo", "geometry"):
+        fp32 = folder / f"{branch}.onnx"
+        int8 = folder / f"{branch}.int8.onnx"
+        with torch.no_grad():
+            export_graph(model, branch, resolution, fp32)
+        quantize(fp32, int8, feeds, head_nodes(fp32))
+        one = {k: v[:1] for k, v in feeds.items()}
+        for precision, path in (("fp32", fp32), ("int8", int8)):
+            graph = session(path)
+            graphs[f"{branch}.{precision}"] = (graph, graph_feeds(graph, one))
+    return graphs
+
+
+def _time_graphs(
+    graphs: dict[tuple, dict[str, tuple[Any, dict[str, np.ndarray]]]],
+    rows: dict[tuple, dict[str, Any]],
+    rounds: int,
+) -> None:
+    """Time each architecture's evaluation, fp32 and int8, round-robin over all of them;
+    each row keeps its best ms per precision."""
+    for _ in range(rounds):
+        for key in graphs:
+            for precision in ("fp32", "int8"):
+                evaluation = [
+                    graphs[key][f"{b}.{precision}"] for b in ("trunk", "albedo", "geometry")
+                ]
+                for graph, feed in evaluation:
+                    graph.run(None, feed)  # warm
+                times = []
+                for _ in range(TIMING_REPEATS):
+                    begin = time.perf_counter()
                     for graph, feed in evaluation:
-                        graph.run(None, feed)  # warm
-                    times = []
-                    for _ in range(TIMING_REPEATS):
-                        begin = time.perf_counter()
-                        for graph, feed in evaluation:
-                            graph.run(None, feed)
-                        times.append(time.perf_counter() - begin)
-                    rows[key][precision] = min(rows[key][precision], 1e3 * min(times))
+                        graph.run(None, feed)
+                    times.append(time.perf_counter() - begin)
+                rows[key][precision] = min(rows[key][precision], 1e3 * min(times))
+
+
+def _cost_table(
+    rows: dict[tuple, dict[str, Any]], groups: dict[tuple, list[str]], resolution: int
+) -> str:
+    """The cost rows as a markdown table."""
     lines = [
         f"| variants (same graphs) | params | MFLOP at {resolution} | ms fp32 | ms int8 | int8 speed-up |",
         "|---|---|---|---|---|---|",
@@ -712,6 +755,41 @@ def plot_cost(records: list[dict[str, Any]], path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    unknown = sorted(set(args.variants) - set(VARIANTS))
+    try:
+        if unknown:
+            raise RigspaceError(
+                f"Unknown variants {unknown}.", f"choose from {', '.join(VARIANTS)}."
+            )
+        if args.threads:
+            torch.set_num_threads(args.threads)
+        args.out.mkdir(parents=True, exist_ok=True)
+        if args.cost:
+            print(cost(args.dataset, args.variants, args.cost), end="")
+            return 0
+        if args.breakdown:
+            print(breakdown(args.out, args.dataset, args.variants), end="")
+            return 0
+        if args.redisplay:
+            _redisplay(args)
+            report(args.out)
+            return 0
+        if args.retime:
+            for name, ms in retime(args.out, args.dataset).items():
+                print(f"ablation: {name}: {ms:.2f} ms fp32", file=sys.stderr)
+            report(args.out)
+            return 0
+        _run_variants(args)
+        report(args.out)
+    except RigspaceError as exc:
+        print(f"ablation: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The command line (the module doc)."""
     parser = argparse.ArgumentParser(
         prog="python -m rigspace.train.ablation", description=__doc__.splitlines()[0]
     )
@@ -768,71 +846,51 @@ def main(argv: list[str] | None = None) -> int:
         help="only print MFLOP and ms fp32/int8 at R x R of --variants' architectures "
         "(untrained: cost does not depend on weights; one onnxruntime thread, interleaved)",
     )
-    args = parser.parse_args(argv)
-    unknown = sorted(set(args.variants) - set(VARIANTS))
-    try:
-        if unknown:
-            raise RigspaceError(
-                f"Unknown variants {unknown}.", f"choose from {', '.join(VARIANTS)}."
-            )
-        if args.threads:
-            torch.set_num_threads(args.threads)
-        args.out.mkdir(parents=True, exist_ok=True)
-        if args.cost:
-            print(cost(args.dataset, args.variants, args.cost), end="")
-            return 0
-        if args.breakdown:
-            print(breakdown(args.out, args.dataset, args.variants), end="")
-            return 0
-        if args.redisplay:
-            for name in args.variants:
-                path = args.out / name / "result.json"
-                if not path.is_file():
-                    continue
-                record = json.loads(path.read_text())
-                record["display"] = display_metrics(
-                    args.out / name / "bundle",
-                    [args.dataset, *([args.display] if args.display else [])],
-                    "heldout-views",
-                    args.limit,
-                )
-                path.write_text(json.dumps(_finite(record), indent=2) + "\n")
-                print(f"ablation: {name}: display {record['display']}", file=sys.stderr)
-            report(args.out)
-            return 0
-        if args.retime:
-            for name, ms in retime(args.out, args.dataset).items():
-                print(f"ablation: {name}: {ms:.2f} ms fp32", file=sys.stderr)
-            report(args.out)
-            return 0
-        for name in args.variants:
-            if (args.out / name / "result.json").is_file():
-                print(f"ablation: {name} already measured", file=sys.stderr)
-                continue
-            began = time.monotonic()
-            record = run_variant(
-                args.dataset,
-                args.out,
-                name,
-                args.steps_per_level,
-                args.resolution,
-                args.limit,
-                args.display,
-                args.device,
-            )
-            views = record["metrics"]["heldout-views"]
-            print(
-                f"ablation: {name}: {time.monotonic() - began:.0f} s, held-out views "
-                f"{views['albedo_psnr']:.2f} dB, IoU {views['mask_iou']:.3f}",
-                file=sys.stderr,
-                flush=True,
-            )
-            report(args.out)
+    return parser
+
+
+def _redisplay(args: argparse.Namespace) -> None:
+    """Measure the finished --variants at the sizes they are seen again (display_metrics)."""
+    for name in args.variants:
+        path = args.out / name / "result.json"
+        if not path.is_file():
+            continue
+        record = json.loads(path.read_text())
+        record["display"] = display_metrics(
+            args.out / name / "bundle",
+            [args.dataset, *([args.display] if args.display else [])],
+            "heldout-views",
+            args.limit,
+        )
+        path.write_text(json.dumps(_finite(record), indent=2) + "\n")
+        print(f"ablation: {name}: display {record['display']}", file=sys.stderr)
+
+
+def _run_variants(args: argparse.Namespace) -> None:
+    """Train and measure the --variants not measured yet, rewriting the report after each."""
+    for name in args.variants:
+        if (args.out / name / "result.json").is_file():
+            print(f"ablation: {name} already measured", file=sys.stderr)
+            continue
+        began = time.monotonic()
+        record = run_variant(
+            args.dataset,
+            args.out,
+            name,
+            args.steps_per_level,
+            args.resolution,
+            args.limit,
+            args.display,
+            args.device,
+        )
+        views = record["metrics"]["heldout-views"]
+        print(
+            f"ablation: {name}: {time.monotonic() - began:.0f} s, held-out views "
+            f"{views['albedo_psnr']:.2f} dB, IoU {views['mask_iou']:.3f}",
+            file=sys.stderr,
+            flush=True,
+        )
         report(args.out)
-    except RigspaceError as exc:
-        print(f"ablation: {exc}", file=sys.stderr)
-        return 2
-    return 0
 
 
 if __name__ == "__main__":

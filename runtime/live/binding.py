@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import parse_qsl, quote
@@ -297,43 +297,11 @@ def open_binding(
     scheme = binding.url.split("://", 1)[0].lower()
     source = open_source(_with_gamepad_map(binding, scheme), binding.name, extra)
     joints, rest = target_skeleton(skeleton_prim)
-    explicit = preset or BONE_PRESETS.get(binding.bone_preset)
-    if explicit is None and binding.bone_preset == "auto":
-        chosen = PRESETS.get(DEFAULT_PRESET.get(scheme, ""))
-    else:
-        chosen = PRESETS.get(explicit or "")  # "none": no preset, same-name joints
     native = bool(getattr(source, "native", False))  # a recorded take of this skeleton
-    if chosen is not None and explicit and not (binding.source_bones or native):
-        if not set(chosen.bone_map) & set(source.bones):
-            raise RetargetError(
-                f"Live binding {binding.name!r}: bonePreset {binding.bone_preset!r} names none "
-                f"of the bones {binding.url} sends ({', '.join(source.bones[:6])}, ...).",
-                f'author rigspace:live:{binding.name}:bonePreset = "auto" or the source\'s '
-                "family, or author sourceBones/targetJoints.",
-            )
+    chosen = _chosen_preset(binding, scheme, preset, source, native)
     clip_ranges = _clip_ranges(binding, source, clips or {})
-    meters_per_unit = binding.source_meters_per_unit
-    if native:
-        meters_per_unit = getattr(source, "meters_per_unit", None) or meters_per_unit
-    if binding.source_bones:
-        bone_map = dict(zip(binding.source_bones, binding.target_joints, strict=True))
-    elif native:
-        leaves = {j.rsplit("/", 1)[-1] for j in joints}
-        bone_map = {b: b for b in source.bones if b in leaves}
-    elif chosen is not None and set(chosen.bone_map) & set(source.bones):
-        bone_map = chosen.bone_map
-        if meters_per_unit == 1.0:
-            meters_per_unit = chosen.meters_per_unit
-    else:
-        names = {j.rsplit("/", 1)[-1] for j in joints} | set(joints)
-        bone_map = {b: b for b in source.bones if b in names}
-    own = None if native else _own_skeleton(source)
-    if binding.source_meters_per_unit == 1.0 and own is not None:
-        # A BVH's units are its file's (sourceMetersPerUnit unauthored): the rest pose's height
-        # says which (a CMU conversion, centimetres, inches, metres), whatever its bone names.
-        meters_per_unit, note, sure = guess_units(own)
-        fix = "" if sure else f"; if wrong, author rigspace:live:{binding.name}:sourceMetersPerUnit"
-        print(f"rigspace live: {binding.name}: {note}{fix}", file=sys.stderr)
+    bone_map, meters_per_unit = _map_bones(binding, source, joints, chosen, native)
+    meters_per_unit = _file_units(binding, source, native, meters_per_unit)
     basis = np.eye(3) if native else NATIVE_BASIS.get(scheme)
     if basis is None:
         basis = source_basis(binding.source_up_axis, binding.source_handedness)
@@ -349,16 +317,7 @@ def open_binding(
         meters_per_unit / stage_meters_per_unit,
     )
     if native:
-        # The take's rest is the skeleton's own: then each joint gets the take's rotation back.
-        leaf = {j.rsplit("/", 1)[-1]: i for i, j in enumerate(joints)}
-        rest_rotations = quat_from_matrix(np.swapaxes(rest[:, :3, :3], 1, 2))
-        full = np.tile([1.0, 0.0, 0.0, 0.0], (len(source.bones), 1))
-        for k, bone in enumerate(source.bones):
-            if bone in leaf:
-                full[k] = rest_rotations[leaf[bone]]
-        retargeter.calibrate_rotations(full)
-        root = retargeter.target_root
-        retargeter.rest_root = rest[root, 3, :3] * stage_meters_per_unit / meters_per_unit
+        _native_rest(retargeter, source, joints, rest, stage_meters_per_unit, meters_per_unit)
     elif not binding.rest_pose and (positions := _rest_positions(source, chosen)) is not None:
         # The source's rest (this CMU conversion: arms hanging; VMC: a T-pose) is not the
         # character's (an A-pose): turn the character's rest onto the source's.
@@ -366,12 +325,7 @@ def open_binding(
         through = chosen if chosen is not None and bone_map is chosen.bone_map else None
         retargeter.align_rest(positions, through)
     elif binding.rest_pose:
-        full = np.tile([1.0, 0.0, 0.0, 0.0], (len(source.bones), 1))
-        index = {b: i for i, b in enumerate(source.bones)}
-        for bone, q in zip(bone_map, binding.rest_pose, strict=False):
-            if bone in index:
-                full[index[bone]] = q
-        retargeter.calibrate_rotations(full)
+        _authored_rest(retargeter, source, bone_map, binding.rest_pose)
     return LiveBindingRuntime(
         binding.name,
         source,
@@ -379,6 +333,99 @@ def open_binding(
         retargeter,
         clip_ranges,
     )
+
+
+def _chosen_preset(
+    binding: Any, scheme: str, preset: str | None, source: Source, native: bool
+) -> Preset | None:
+    """The bone-name preset in play: `preset`, the binding's bonePreset, or for "auto" the
+    scheme's default; an explicit one that names none of the source's bones is an error."""
+    explicit = preset or BONE_PRESETS.get(binding.bone_preset)
+    if explicit is None and binding.bone_preset == "auto":
+        chosen = PRESETS.get(DEFAULT_PRESET.get(scheme, ""))
+    else:
+        chosen = PRESETS.get(explicit or "")  # "none": no preset, same-name joints
+    if chosen is not None and explicit and not (binding.source_bones or native):
+        if not set(chosen.bone_map) & set(source.bones):
+            raise RetargetError(
+                f"Live binding {binding.name!r}: bonePreset {binding.bone_preset!r} names none "
+                f"of the bones {binding.url} sends ({', '.join(source.bones[:6])}, ...).",
+                f'author rigspace:live:{binding.name}:bonePreset = "auto" or the source\'s '
+                "family, or author sourceBones/targetJoints.",
+            )
+    return chosen
+
+
+def _map_bones(
+    binding: Any, source: Source, joints: tuple[str, ...], chosen: Preset | None, native: bool
+) -> tuple[dict[str, str], float]:
+    """(source bone -> target joint, the source's meters per unit): the binding's authored map,
+    a take's same joints, the preset's map (with its units), or the bones of the joints' names."""
+    meters_per_unit = binding.source_meters_per_unit
+    if native:
+        meters_per_unit = getattr(source, "meters_per_unit", None) or meters_per_unit
+    if binding.source_bones:
+        bone_map = dict(zip(binding.source_bones, binding.target_joints, strict=True))
+    elif native:
+        leaves = {j.rsplit("/", 1)[-1] for j in joints}
+        bone_map = {b: b for b in source.bones if b in leaves}
+    elif chosen is not None and set(chosen.bone_map) & set(source.bones):
+        bone_map = chosen.bone_map
+        if meters_per_unit == 1.0:
+            meters_per_unit = chosen.meters_per_unit
+    else:
+        names = {j.rsplit("/", 1)[-1] for j in joints} | set(joints)
+        bone_map = {b: b for b in source.bones if b in names}
+    return bone_map, meters_per_unit
+
+
+def _file_units(binding: Any, source: Source, native: bool, meters_per_unit: float) -> float:
+    """The source's meters per unit: a BVH's guessed from its rest pose (and said) when the
+    binding leaves sourceMetersPerUnit at 1, else `meters_per_unit`."""
+    own = None if native else _own_skeleton(source)
+    if binding.source_meters_per_unit == 1.0 and own is not None:
+        # A BVH's units are its file's (sourceMetersPerUnit unauthored): the rest pose's height
+        # says which (a CMU conversion, centimetres, inches, metres), whatever its bone names.
+        meters_per_unit, note, sure = guess_units(own)
+        fix = "" if sure else f"; if wrong, author rigspace:live:{binding.name}:sourceMetersPerUnit"
+        print(f"rigspace live: {binding.name}: {note}{fix}", file=sys.stderr)
+    return meters_per_unit
+
+
+def _native_rest(
+    retargeter: Retargeter,
+    source: Source,
+    joints: tuple[str, ...],
+    rest: np.ndarray,
+    stage_meters_per_unit: float,
+    meters_per_unit: float,
+) -> None:
+    """Calibrate a recorded take's retargeter to its own skeleton's rest, root included."""
+    # The take's rest is the skeleton's own: then each joint gets the take's rotation back.
+    leaf = {j.rsplit("/", 1)[-1]: i for i, j in enumerate(joints)}
+    rest_rotations = quat_from_matrix(np.swapaxes(rest[:, :3, :3], 1, 2))
+    full = np.tile([1.0, 0.0, 0.0, 0.0], (len(source.bones), 1))
+    for k, bone in enumerate(source.bones):
+        if bone in leaf:
+            full[k] = rest_rotations[leaf[bone]]
+    retargeter.calibrate_rotations(full)
+    root = retargeter.target_root
+    retargeter.rest_root = rest[root, 3, :3] * stage_meters_per_unit / meters_per_unit
+
+
+def _authored_rest(
+    retargeter: Retargeter,
+    source: Source,
+    bone_map: dict[str, str],
+    rest_pose: Sequence[Sequence[float]],
+) -> None:
+    """Calibrate the retargeter to the binding's restPose (parallel to the map's bones)."""
+    full = np.tile([1.0, 0.0, 0.0, 0.0], (len(source.bones), 1))
+    index = {b: i for i, b in enumerate(source.bones)}
+    for bone, q in zip(bone_map, rest_pose, strict=False):
+        if bone in index:
+            full[index[bone]] = q
+    retargeter.calibrate_rotations(full)
 
 
 def _turn_degrees(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -186,17 +186,7 @@ def live(args: argparse.Namespace) -> int:
     video = recorder = None
     result = None
     try:
-        if not engine.live.active:
-            print(
-                "rigspace live: warning: no enabled live binding: the stage animation plays "
-                "(enable one, or give one a source with --source NAME=URL).",
-                file=sys.stderr,
-            )
-        if args.record and not engine.live.active:
-            raise RigspaceError(
-                "--record: there is no live binding to record.",
-                "enable a binding (rigspace:live:NAME:enabled = true) or pass --source NAME=URL.",
-            )
+        _check_bindings(args, engine)
         engine.open_live()  # a port in use fails here, before the output folder exists
         stage = engine.stage
         fps = stage.GetTimeCodesPerSecond()
@@ -212,18 +202,7 @@ def live(args: argparse.Namespace) -> int:
                     f"--video {args.video} cannot be written ({exc}).",
                     "choose a writable .mp4 path in an existing folder.",
                 ) from exc
-        # One frame before the clock starts: sessions, GL buffers, shadow maps, and on a first
-        # run numba's compile of the shadow and texture kernels (cached on disk after; .ci/setup
-        # compiles them ahead), so that the first live frame is on time.
-        began = time.monotonic()
-        engine.render(float(start_code))
-        if time.monotonic() - began > FIRST_FRAME_NOTE:
-            print(
-                f"rigspace live: the first frame took {time.monotonic() - began:.1f} s (numba "
-                "compiled the shadow and texture kernels; they are cached for later runs): the "
-                "clock starts now",
-                file=sys.stderr,
-            )
+        _warm_up(engine, start_code)
         t0 = time.monotonic()
         if args.record:
             recorder = _TakeThread(engine, start_code, fps, t0, ticks)
@@ -251,6 +230,37 @@ def live(args: argparse.Namespace) -> int:
     os.replace(tmp, out / "report.json")
     _print_summary(summary, out, args.video, stopped)
     return 0
+
+
+def _check_bindings(args: argparse.Namespace, engine) -> None:
+    """Warn when no live binding is enabled; refuse --record then (nothing to record)."""
+    if not engine.live.active:
+        print(
+            "rigspace live: warning: no enabled live binding: the stage animation plays "
+            "(enable one, or give one a source with --source NAME=URL).",
+            file=sys.stderr,
+        )
+    if args.record and not engine.live.active:
+        raise RigspaceError(
+            "--record: there is no live binding to record.",
+            "enable a binding (rigspace:live:NAME:enabled = true) or pass --source NAME=URL.",
+        )
+
+
+def _warm_up(engine, start_code: float) -> None:
+    """Render one frame before the clock starts, saying so when it was slow."""
+    # One frame before the clock starts: sessions, GL buffers, shadow maps, and on a first
+    # run numba's compile of the shadow and texture kernels (cached on disk after; .ci/setup
+    # compiles them ahead), so that the first live frame is on time.
+    began = time.monotonic()
+    engine.render(float(start_code))
+    if time.monotonic() - began > FIRST_FRAME_NOTE:
+        print(
+            f"rigspace live: the first frame took {time.monotonic() - began:.1f} s (numba "
+            "compiled the shadow and texture kernels; they are cached for later runs): the "
+            "clock starts now",
+            file=sys.stderr,
+        )
 
 
 def _loop(engine, out, video, start_code, fps, t0, ticks, cv2, np, linear_to_srgb):

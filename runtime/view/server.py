@@ -23,7 +23,7 @@ from urllib.parse import urlsplit
 from starlette.applications import Starlette
 from starlette.requests import Request
 from starlette.responses import JSONResponse, Response
-from starlette.routing import Route, WebSocketRoute
+from starlette.routing import BaseRoute, Route, WebSocketRoute
 from starlette.types import ASGIApp, Receive, Scope, Send
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
@@ -155,7 +155,29 @@ def _hostname(url: str) -> str:
 
 
 def create_app(viewer: Viewer, host: str = "127.0.0.1") -> ASGIApp:
-    files = _static_files()
+    """The viewer's app behind its Guard: the page and its assets, the scene's data as JSON,
+    the frames' websocket; while it runs, a task reloads the scene when a layer changes."""
+    routes: list[BaseRoute] = []
+    _add_page_routes(routes, _static_files())
+    _add_data_routes(routes, viewer)
+    _add_prim_routes(routes, viewer)
+    routes.append(WebSocketRoute("/ws", lambda ws: _socket(viewer, ws)))
+
+    @asynccontextmanager
+    async def lifespan(app):
+        watcher = asyncio.create_task(viewer.watch())
+        try:
+            yield
+        finally:
+            watcher.cancel()
+
+    app = Starlette(routes=routes, lifespan=lifespan)
+    hosts = {*LOOPBACK, host.strip("[]")}
+    return Guard(app, hosts)
+
+
+def _add_page_routes(routes: list[BaseRoute], files: dict[str, tuple[bytes, str]]) -> None:
+    """Add the page (/) and its assets (/static/NAME, exact names of `files` only)."""
 
     async def page(request: Request) -> Response:
         return Response(files["index.html"][0], media_type="text/html",
@@ -168,32 +190,11 @@ def create_app(viewer: Viewer, host: str = "127.0.0.1") -> ASGIApp:
         content, media = files[name]
         return Response(content, media_type=media)
 
-    def data(handler):
-        def endpoint(request: Request) -> Response:
-            try:
-                return handler(request)
-            except ValueError as exc:
-                return _error(400, f"bad parameter: {exc}")
+    routes += [Route("/", page), Route("/static/{name:path}", static)]
 
-        return endpoint
 
-    def prim_of(request: Request):
-        path = request.query_params.get("path", "")
-        if len(path) > 1024:
-            raise ValueError("path is too long")
-        prim = viewer.scene.prim(path)
-        if prim is None:
-            raise LookupError(path)
-        return prim
-
-    def with_prim(handler):
-        def endpoint(request: Request) -> Response:
-            try:
-                return JSONResponse(handler(prim_of(request), request))
-            except LookupError as exc:
-                return _error(404, f"no prim at {str(exc)!r}")
-
-        return data(endpoint)
+def _add_data_routes(routes: list[BaseRoute], viewer: Viewer) -> None:
+    """Add the scene's JSON: /api/summary, /api/tree, /api/findings and /api/live."""
 
     def live_error() -> str | None:
         if viewer.frames.error:
@@ -213,36 +214,58 @@ def create_app(viewer: Viewer, host: str = "127.0.0.1") -> ASGIApp:
             "size": [frames.width, frames.height],
         }
 
-    routes = [
-        Route("/", page),
-        Route("/static/{name:path}", static),
-        Route("/api/summary", data(lambda r: JSONResponse(summary()))),
-        Route("/api/tree", data(lambda r: JSONResponse(viewer.scene.tree()))),
-        Route("/api/findings", data(lambda r: JSONResponse(viewer.scene.findings()))),
+    routes += [
+        Route("/api/summary", _data(lambda r: JSONResponse(summary()))),
+        Route("/api/tree", _data(lambda r: JSONResponse(viewer.scene.tree()))),
+        Route("/api/findings", _data(lambda r: JSONResponse(viewer.scene.findings()))),
         Route(
             "/api/live",
-            data(
+            _data(
                 lambda r: JSONResponse(
                     {"bindings": viewer.frames.live_status(), "error": live_error()}
                 )
             ),
         ),
-        Route("/api/prim", with_prim(lambda p, r: viewer.scene.properties(p, _time(r)))),
-        Route("/api/composition", with_prim(lambda p, r: viewer.scene.composition(p))),
-        WebSocketRoute("/ws", lambda ws: _socket(viewer, ws)),
     ]
 
-    @asynccontextmanager
-    async def lifespan(app):
-        watcher = asyncio.create_task(viewer.watch())
-        try:
-            yield
-        finally:
-            watcher.cancel()
 
-    app = Starlette(routes=routes, lifespan=lifespan)
-    hosts = {*LOOPBACK, host.strip("[]")}
-    return Guard(app, hosts)
+def _add_prim_routes(routes: list[BaseRoute], viewer: Viewer) -> None:
+    """Add one prim's JSON (?path=): /api/prim (its properties at ?time=), /api/composition."""
+
+    def prim_of(request: Request):
+        path = request.query_params.get("path", "")
+        if len(path) > 1024:
+            raise ValueError("path is too long")
+        prim = viewer.scene.prim(path)
+        if prim is None:
+            raise LookupError(path)
+        return prim
+
+    def with_prim(handler):
+        def endpoint(request: Request) -> Response:
+            try:
+                return JSONResponse(handler(prim_of(request), request))
+            except LookupError as exc:
+                return _error(404, f"no prim at {str(exc)!r}")
+
+        return _data(endpoint)
+
+    routes += [
+        Route("/api/prim", with_prim(lambda p, r: viewer.scene.properties(p, _time(r)))),
+        Route("/api/composition", with_prim(lambda p, r: viewer.scene.composition(p))),
+    ]
+
+
+def _data(handler):
+    """An endpoint answering a bad parameter (a ValueError from `handler`) with a 400."""
+
+    def endpoint(request: Request) -> Response:
+        try:
+            return handler(request)
+        except ValueError as exc:
+            return _error(400, f"bad parameter: {exc}")
+
+    return endpoint
 
 
 def parse_request(text: str, cameras: list[str]) -> dict[str, Any]:

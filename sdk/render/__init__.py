@@ -371,6 +371,10 @@ class RendererSpec:
     create: Callable[[RenderSettings], Renderer]
     unavailable: Callable[[], str | None] = field(repr=False)
     """None when usable on this machine, else the reason (with the original error)."""
+    cost_grows_with_triangles: Callable[[], bool] = field(default=lambda: False, repr=False)
+    """True where this renderer's time grows with every triangle drawn however small (gl on a
+    software rasteriser): choose_renderer("auto") then puts it after the others for a heavy
+    frame (HEAVY_TRIANGLES)."""
 
 
 RENDERERS: Kind[RendererSpec] = Kind("renderer", "rigspace.renderers", RendererSpec)
@@ -402,13 +406,15 @@ def choose_renderer(name: str | None = None, triangles: int = 0) -> RendererSpec
     if name is None or name == "auto":
         order = [*AUTO_ORDER, *(n for n in plugins.specs if n not in AUTO_ORDER)]
         skipped: list[str] = []
-        if triangles > HEAVY_TRIANGLES and _software_gl():
-            order.remove("embree")
-            order.insert(0, "embree")
-            skipped.append(
-                f"{triangles:,} triangles raster slowly on this software GL (--renderer gl "
-                "to use it anyway)"
-            )
+        if triangles > HEAVY_TRIANGLES:
+            slow = [n for n in order if n in plugins.specs and _grows(plugins.specs[n])]
+            if slow:
+                order = [n for n in order if n not in slow] + slow
+                skipped.append(
+                    f"{triangles:,} triangles raster slowly on this machine's "
+                    f"{' and '.join(slow)} (a software rasteriser; --renderer {slow[0]} to "
+                    "use it anyway)"
+                )
         for candidate in order:
             if candidate in plugins.specs:
                 reason = plugins.specs[candidate].unavailable()
@@ -434,10 +440,9 @@ def choose_renderer(name: str | None = None, triangles: int = 0) -> RendererSpec
     return spec
 
 
-def _software_gl() -> bool:
-    from rigspace.sdk.render import gl  # gl imports this module: import it when asked
-
-    return gl.software()
+def _grows(spec: RendererSpec) -> bool:
+    """A usable renderer whose cost grows with every triangle (RendererSpec)."""
+    return spec.unavailable() is None and spec.cost_grows_with_triangles()
 
 
 __all__ = [

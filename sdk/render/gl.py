@@ -504,4 +504,5 @@ SPEC = RendererSpec(
     description="moderngl rasterisation on EGL (GPU, or Mesa llvmpipe on the CPU)",
     create=GLRenderer,
     unavailable=unavailable,
+    cost_grows_with_triangles=software,
 )

@@ -483,13 +483,17 @@ def test_embree_builds_a_frozen_scene_once_and_matches_embreex():
 def test_auto_prefers_embree_for_a_heavy_frame_on_a_software_gl(monkeypatch, capsys):
     from rigspace.sdk.render import HEAVY_TRIANGLES
 
-    monkeypatch.setattr(gl_module, "software", lambda: True)
+    spec = dataclasses.replace(gl_module.SPEC, cost_grows_with_triangles=lambda: True)
+    monkeypatch.setattr(gl_module, "SPEC", spec)
     assert choose_renderer(None, triangles=HEAVY_TRIANGLES + 1).name == "embree"
-    assert "raster slowly on this software GL (--renderer gl" in capsys.readouterr().err
+    assert "raster slowly on this machine's gl (a software rasteriser; --renderer gl" in (
+        capsys.readouterr().err
+    )
     if gl_module.unavailable() is None:
         assert choose_renderer(None, triangles=HEAVY_TRIANGLES).name == "gl"
         assert choose_renderer("gl", triangles=10 * HEAVY_TRIANGLES).name == "gl"
-        monkeypatch.setattr(gl_module, "software", lambda: False)  # a GPU's GL
+        gpu = dataclasses.replace(gl_module.SPEC, cost_grows_with_triangles=lambda: False)
+        monkeypatch.setattr(gl_module, "SPEC", gpu)  # a GPU's GL
         assert choose_renderer(None, triangles=10 * HEAVY_TRIANGLES).name == "gl"
 
 

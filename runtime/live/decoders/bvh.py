@@ -93,39 +93,69 @@ _POSITION_CHANNELS = {"Xposition", "Yposition", "Zposition"}
 
 def parse_bvh(text: str, source: str = "BVH") -> tuple[BvhSkeleton, np.ndarray, float]:
     """A BVH file's text -> (skeleton, (F, C) motion values, frame time in seconds)."""
-    lines = text.splitlines()
-    tokens: list[tuple[str, int]] = [
-        (t, n + 1) for n, line in enumerate(lines) for t in line.split()
-    ]
-    pos = 0
+    reader = _Tokens.of(text, source)
+    skeleton = _parse_hierarchy(reader)
+    tokens, pos = reader.tokens, reader.pos
+    if pos >= len(tokens) or tokens[pos][0] != "MOTION":
+        return skeleton, np.zeros((0, skeleton.channel_count)), 0.0
+    motion, frame_time = _parse_motion(reader, skeleton, tokens[pos][1])
+    return skeleton, motion, frame_time
 
-    def fail(what: str, line: int) -> BvhError:
+
+@dataclass
+class _Tokens:
+    """A BVH file's whitespace-separated tokens with their line numbers, read in turn."""
+
+    source: str
+    """What the errors call the file (its path)."""
+    lines: list[str]
+    tokens: list[tuple[str, int]]
+    pos: int = 0
+    """The next token's index."""
+
+    @classmethod
+    def of(cls, text: str, source: str) -> _Tokens:
+        """The tokens of a BVH file's text."""
+        lines = text.splitlines()
+        tokens: list[tuple[str, int]] = [
+            (t, n + 1) for n, line in enumerate(lines) for t in line.split()
+        ]
+        return cls(source, lines, tokens)
+
+    def fail(self, what: str, line: int) -> BvhError:
+        """The error for a problem at `line` of the file."""
         return BvhError(
-            f"{source}, line {line}: {what}.",
+            f"{self.source}, line {line}: {what}.",
             "export the file again as BVH (HIERARCHY with ROOT/JOINT/End Site blocks, then MOTION).",
         )
 
-    def take() -> tuple[str, int]:
-        nonlocal pos
-        if pos >= len(tokens):
-            raise fail("the file ends inside the HIERARCHY", len(lines))
-        pos += 1
-        return tokens[pos - 1]
+    def take(self) -> tuple[str, int]:
+        """The next token and its line; the end of the file here is an error."""
+        if self.pos >= len(self.tokens):
+            raise self.fail("the file ends inside the HIERARCHY", len(self.lines))
+        self.pos += 1
+        return self.tokens[self.pos - 1]
 
-    def number(what: str) -> float:
-        t, line = take()
+    def number(self, what: str) -> float:
+        """The next token as a number (`what` names it in the error)."""
+        t, line = self.take()
         try:
             return float(t)
         except ValueError:
-            raise fail(f"{what} {t!r} is not a number", line) from None
+            raise self.fail(f"{what} {t!r} is not a number", line) from None
 
+
+def _parse_hierarchy(reader: _Tokens) -> BvhSkeleton:
+    """The HIERARCHY block's joints, from the first token to the root's closing brace."""
+    fail, take = reader.fail, reader.take
+    tokens = reader.tokens
     names: list[str] = []
     parents: list[int] = []
     offsets: list[list[float]] = []
     channels: list[tuple[str, ...]] = []
     if not tokens or tokens[0][0] != "HIERARCHY":
         raise fail("it does not start with HIERARCHY", tokens[0][1] if tokens else 1)
-    pos = 1
+    reader.pos = 1
     stack: list[int] = []  # joint indices of open blocks; -2 marks an End Site
     while True:
         t, line = take()
@@ -146,7 +176,7 @@ def parse_bvh(text: str, source: str = "BVH") -> tuple[BvhSkeleton, np.ndarray, 
                 raise fail("End Site has no opening brace", line)
             stack.append(-2)
         elif t == "OFFSET":
-            offset = [number("OFFSET value") for _ in range(3)]
+            offset = [reader.number("OFFSET value") for _ in range(3)]
             if stack and stack[-1] >= 0:
                 offsets[stack[-1]] = offset
         elif t == "CHANNELS":
@@ -166,12 +196,16 @@ def parse_bvh(text: str, source: str = "BVH") -> tuple[BvhSkeleton, np.ndarray, 
                 break
         else:
             raise fail(f"unexpected {t!r} in the HIERARCHY", line)
-    skeleton = BvhSkeleton(
+    return BvhSkeleton(
         tuple(names), tuple(parents), np.array(offsets, dtype=np.float64), tuple(channels)
     )
-    if pos >= len(tokens) or tokens[pos][0] != "MOTION":
-        return skeleton, np.zeros((0, skeleton.channel_count)), 0.0
-    motion_line = tokens[pos][1]
+
+
+def _parse_motion(
+    reader: _Tokens, skeleton: BvhSkeleton, motion_line: int
+) -> tuple[np.ndarray, float]:
+    """The MOTION block at `motion_line` (1-based): (F, C) values and the frame time."""
+    fail, lines = reader.fail, reader.lines
     header = lines[motion_line : motion_line + 2]
     try:
         count = int(header[0].split(":")[1])
@@ -191,7 +225,7 @@ def parse_bvh(text: str, source: str = "BVH") -> tuple[BvhSkeleton, np.ndarray, 
         raise fail(f"a MOTION value is not a number ({exc})", motion_line + 3) from None
     if not (frame_time > 0 and np.isfinite(frame_time)):
         raise fail(f"Frame Time {frame_time} is not a positive number of seconds", motion_line + 2)
-    return skeleton, motion, frame_time
+    return motion, frame_time
 
 
 def read_bvh(path: str | Path) -> tuple[BvhSkeleton, np.ndarray, float]:
