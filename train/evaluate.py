@@ -320,16 +320,7 @@ def evaluate(
             key: _summary(np.array([s[key] for s in per_sample], dtype=np.float64))
             for key in METRICS
         },
-        "regions": {
-            r.name: {
-                "description": r.description,
-                "albedo_psnr": _summary(
-                    np.array([s[f"albedo_psnr@{r.name}"] for s in per_sample], np.float64)
-                ),
-                "pixels_mean": float(np.mean([s[f"pixels@{r.name}"] for s in per_sample] or [0])),
-            }
-            for r in regions
-        },
+        "regions": {r.name: _region_summary(r, per_sample) for r in regions},
         "per_sample": per_sample,
         "worst": [
             {"index": s["index"], "path": s["path"], "albedo_psnr": s["albedo_psnr"]}
@@ -337,17 +328,38 @@ def evaluate(
         ],
     }
     if out_dir is not None:
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        prefix = f"{_safe(predictor.name)}_{split}"
-        for rank, entry in enumerate(report["worst"]):
-            _, pred, target = kept[entry["index"]]
-            path = out / f"{prefix}_worst{rank}_{entry['index']:06d}_{Path(entry['path']).stem}.png"
-            title = f"{predictor.name}  {entry['path']}  PSNR {entry['albedo_psnr']:.1f} dB"
-            write_png(path, error_map_image(pred, target, height, title))
-            entry["image"] = str(path)
-        (out / f"{prefix}_report.json").write_text(to_json(report))
+        _write_worst(report, kept, Path(out_dir), height)
     return report
+
+
+def _write_worst(
+    report: dict[str, Any],
+    kept: dict[int, tuple[dict[str, Any], Maps, Maps]],
+    out: Path,
+    height: float,
+) -> None:
+    """The worst samples' error-map PNGs (named in report["worst"]) and the report JSON."""
+    out.mkdir(parents=True, exist_ok=True)
+    name = report["predictor"]
+    prefix = f"{_safe(name)}_{report['split']}"
+    for rank, entry in enumerate(report["worst"]):
+        _, pred, target = kept[entry["index"]]
+        path = out / f"{prefix}_worst{rank}_{entry['index']:06d}_{Path(entry['path']).stem}.png"
+        title = f"{name}  {entry['path']}  PSNR {entry['albedo_psnr']:.1f} dB"
+        write_png(path, error_map_image(pred, target, height, title))
+        entry["image"] = str(path)
+    (out / f"{prefix}_report.json").write_text(to_json(report))
+
+
+def _region_summary(region: Region, per_sample: list[dict[str, Any]]) -> dict[str, Any]:
+    """A region's albedo PSNR over the samples, and its mean pixel count a sample."""
+    psnrs = np.array([s[f"albedo_psnr@{region.name}"] for s in per_sample], np.float64)
+    pixels = [s[f"pixels@{region.name}"] for s in per_sample]
+    return {
+        "description": region.description,
+        "albedo_psnr": _summary(psnrs),
+        "pixels_mean": float(np.mean(pixels or [0])),
+    }
 
 
 def region_metrics(pred: Maps, target: Maps, regions: Sequence[Region]) -> dict[str, float]:
