@@ -250,9 +250,11 @@ def _accuracy(plan: BenchPlan, tmp: Path, dataset: Path | None) -> dict[str, Any
 
 
 def _frames(plan: BenchPlan, tmp: Path, dataset: Path | None) -> list[dict[str, Any]]:
-    from rigspace.bench import frames
+    from rigspace.bench import frame_stages
 
-    return frames.measure(tmp, plan.frame_sizes, (1, 4), plan.frames, predictor=plan.predictor)
+    return frame_stages.measure(
+        tmp, plan.frame_sizes, (1, 4), plan.frames, predictor=plan.predictor
+    )
 
 
 def _skips(plan: BenchPlan, tmp: Path, dataset: Path | None) -> dict[str, Any]:

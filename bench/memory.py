@@ -43,7 +43,7 @@ def measure(characters: int, size: int, precision: str, frames: int) -> dict[str
     rss = {"start": _max_rss_kib()}
     import numpy as np
 
-    from rigspace.bench.frames import TIMES
+    from rigspace.bench.frame_stages import TIMES
     from rigspace.bench.scenes import PREVIS, crowd_scene
     from rigspace.runtime.engine import Engine
 

@@ -30,7 +30,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from rigspace.bench.frames import frame_reports, total_ms
+from rigspace.bench.frame_stages import frame_reports, total_ms
 from rigspace.bench.predictors import for_precision
 from rigspace.bench.timing import timed
 from rigspace.capture.settings import resolve_settings

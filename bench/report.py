@@ -102,7 +102,7 @@ def _accuracy(r: dict[str, Any]) -> list[str]:
 
 
 def _frames(rows: list[dict[str, Any]]) -> list[str]:
-    from rigspace.bench.frames import table
+    from rigspace.bench.frame_stages import table
 
     return [
         "## Frame time by stage",

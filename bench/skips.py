@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from pxr import Gf, Usd, UsdGeom
 
-from rigspace.bench.frames import frame_reports, total_ms
+from rigspace.bench.frame_stages import frame_reports, total_ms
 from rigspace.runtime.engine import AOVS
 from rigspace.sdk.stage import overlay_layer
 

@@ -34,7 +34,7 @@ from rigspace.runtime.shadows import ShadowBackend
 KERNELS = ("numba", "numpy")
 SCENE = Path(__file__).resolve().parents[1] / "samples" / "scenes" / "previs.usda"
 TIMES = np.linspace(100.0, 1400.0, 64)
-"""The frames rendered (the first a warm-up): bench/frames.py's."""
+"""The frames rendered (the first a warm-up): bench/frame_stages.py's."""
 
 # Sub-step: the functions whose own time it is (module or class, attribute).
 SHADOW_STAGE = ("_update_shadow_maps", "_prim_shadows", "_layer_visibility", "_capsule_reshade")

@@ -22,7 +22,6 @@ from rigspace.runtime.live.buffer import (
     LiveBuffer,
     LivePose,
 )
-from rigspace.runtime.live.frames import quat_angle
 from rigspace.runtime.live.retarget import (
     PRESETS,
     Y_180,
@@ -34,6 +33,7 @@ from rigspace.runtime.live.retarget import (
     source_hierarchy,
     target_skeleton,
 )
+from rigspace.runtime.live.source_frame import quat_angle
 from rigspace.runtime.live.sources import open_source
 from rigspace.runtime.live.transports import LiveSourceError, Source
 from rigspace.sdk.rotations import quat_from_matrix

@@ -11,7 +11,7 @@ from itertools import islice
 
 import numpy as np
 
-from rigspace.runtime.live.frames import DecodeCounters, SourceFrame, quat_slerp
+from rigspace.runtime.live.source_frame import DecodeCounters, SourceFrame, quat_slerp
 from rigspace.sdk.schema import LOST_FACTOR
 
 LATEST = "latest"

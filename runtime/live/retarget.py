@@ -23,7 +23,7 @@ import numpy as np
 
 from rigspace.runtime.live.buffer import LivePose
 from rigspace.runtime.live.decoders.vmc import HUMAN_BODY_BONES, ROOT
-from rigspace.runtime.live.frames import quat_slerp
+from rigspace.runtime.live.source_frame import quat_slerp
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.rotations import matrix_from_quat, quat_from_matrix, quat_multiply
 

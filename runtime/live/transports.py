@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from rigspace.runtime.live.buffer import BindingCounters, LiveBuffer
-from rigspace.runtime.live.frames import DecodeCounters, SourceFrame
+from rigspace.runtime.live.source_frame import DecodeCounters, SourceFrame
 from rigspace.sdk.errors import RigspaceError
 
 POLL_SECONDS = 0.1

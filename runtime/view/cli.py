@@ -73,9 +73,9 @@ def build(
     predictor: str = "auto",
 ) -> Viewer:
     """The viewer of one scene, its engines open (or `frames.error` saying why not)."""
-    from rigspace.runtime.view.frames import FrameService
     from rigspace.runtime.view.scene import SceneModel
     from rigspace.runtime.view.server import Viewer
+    from rigspace.runtime.view.viewport import FrameService
 
     model = SceneModel(scene)
     width, height = resolution

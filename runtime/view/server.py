@@ -27,8 +27,8 @@ from starlette.routing import BaseRoute, Route, WebSocketRoute
 from starlette.types import ASGIApp, Receive, Scope, Send
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
-from rigspace.runtime.view.frames import MAPS, VIEWS, FrameService
 from rigspace.runtime.view.scene import SceneModel
+from rigspace.runtime.view.viewport import MAPS, VIEWS, FrameService
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1", "[::1]")
 """Host names the server binds without --allow-remote (the server's, the command's check too)."""

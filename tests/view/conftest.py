@@ -13,9 +13,9 @@ with warnings.catch_warnings():  # starlette 1.x suggests httpx2; httpx is what 
     from starlette.testclient import TestClient
 
 from rigspace.runtime.view.cli import build, in_background
-from rigspace.runtime.view.frames import FrameService
 from rigspace.runtime.view.scene import SceneModel
 from rigspace.runtime.view.server import Viewer, create_app
+from rigspace.runtime.view.viewport import FrameService
 from tests.conftest import REPO
 
 PREVIS = REPO / "samples" / "scenes" / "previs.usda"

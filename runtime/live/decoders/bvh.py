@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rigspace.runtime.live.frames import (
+from rigspace.runtime.live.source_frame import (
     MAX_ANGLE_DEGREES,
     MAX_POSITION,
     DecodeCounters,

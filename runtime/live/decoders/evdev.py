@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rigspace.runtime.live.frames import DecodeCounters, SourceFrame, quat_from_euler
+from rigspace.runtime.live.source_frame import DecodeCounters, SourceFrame, quat_from_euler
 from rigspace.sdk.input_codes import (  # noqa: F401  (re-exported for the fuzzer and tests)
     ABS_CODES,
     BTN_CODES,

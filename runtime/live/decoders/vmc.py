@@ -9,7 +9,12 @@ import struct
 import numpy as np
 from pythonosc.osc_packet import OscPacket
 
-from rigspace.runtime.live.frames import MAX_POSITION, DecodeCounters, SourceFrame, unit_quaternions
+from rigspace.runtime.live.source_frame import (
+    MAX_POSITION,
+    DecodeCounters,
+    SourceFrame,
+    unit_quaternions,
+)
 
 HUMAN_BODY_BONES = (
     "Hips", "LeftUpperLeg", "RightUpperLeg", "LeftLowerLeg", "RightLowerLeg", "LeftFoot",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rigspace.runtime.live.frames import DecodeCounters, SourceFrame, unit_quaternions
+from rigspace.runtime.live.source_frame import DecodeCounters, SourceFrame, unit_quaternions
 
 QUATERNION = b"Q"
 MICROSECONDS = 1e-6

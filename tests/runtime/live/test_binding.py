@@ -13,8 +13,8 @@ from pxr import Sdf, Usd, UsdSkel
 from rigspace.runtime.live.binding import open_binding
 from rigspace.runtime.live.buffer import BufferSettings
 from rigspace.runtime.live.decoders.vmc import HUMAN_BODY_BONES, encode_frame
-from rigspace.runtime.live.frames import quat_angle
 from rigspace.runtime.live.retarget import RetargetError
+from rigspace.runtime.live.source_frame import quat_angle
 from rigspace.sdk.ring_rules import check_live_binding
 from rigspace.sdk.rotations import quat_from_matrix
 from rigspace.sdk.schema import LiveBinding, LiveBindingDeprecationWarning, read_live_bindings
@@ -256,7 +256,7 @@ def test_connect_reconnect_and_loss_move_no_joint_more_than_10_degrees_a_tick(sk
     """30 fps ticks through a connect (the stage pose to a pose 120 deg away), a loss (held,
     then the stage animation in place: the root stays where the performer left it) and a
     reconnect to another far pose: no joint turns more than 10 deg in one tick, no root jump."""
-    from rigspace.runtime.live.frames import SourceFrame
+    from rigspace.runtime.live.source_frame import SourceFrame
 
     _, skel_prim, local = skel
     runtime = open_binding(binding("vmc://127.0.0.1:1"), skel_prim, 0.01)  # never started

@@ -16,7 +16,7 @@ from rigspace.runtime.live.buffer import (
     OneEuroFilter,
     one_euro_alpha,
 )
-from rigspace.runtime.live.frames import SourceFrame, quat_angle, quat_slerp
+from rigspace.runtime.live.source_frame import SourceFrame, quat_angle, quat_slerp
 from tests.runtime.live.conftest import wait_for
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])

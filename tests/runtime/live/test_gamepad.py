@@ -22,7 +22,7 @@ from rigspace.runtime.live.decoders.evdev import (
     SYN_REPORT,
     EvdevDecoder,
 )
-from rigspace.runtime.live.frames import quat_angle
+from rigspace.runtime.live.source_frame import quat_angle
 from rigspace.runtime.live.sources import open_source
 from rigspace.runtime.live.transports import LiveSourceError
 from rigspace.sdk.rotations import matrix_from_quat, quat_from_matrix

@@ -25,8 +25,8 @@ from rigspace.runtime.live.decoders.evdev import (
     parse_axes,
     parse_clips,
 )
-from rigspace.runtime.live.frames import quat_angle
 from rigspace.runtime.live.retarget import blend_transforms
+from rigspace.runtime.live.source_frame import quat_angle
 from rigspace.runtime.live.transports import LiveSourceError
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.rotations import matrix_from_quat, quat_from_matrix

@@ -8,9 +8,9 @@ from pxr import Usd, UsdSkel
 
 from rigspace.runtime.live.buffer import LivePose
 from rigspace.runtime.live.decoders.bvh import read_bvh
-from rigspace.runtime.live.frames import quat_angle
 from rigspace.runtime.live.record import TakeError, TakeRecorder
 from rigspace.runtime.live.retarget import PRESETS, Retargeter, target_skeleton
+from rigspace.runtime.live.source_frame import quat_angle
 from rigspace.sdk.rotations import quat_from_matrix
 from tests.runtime.live.conftest import CMU_CLIP, SAMPLE_CHARACTER
 

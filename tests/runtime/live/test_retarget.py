@@ -9,7 +9,6 @@ from pxr import Usd, UsdSkel, Vt
 from rigspace.runtime.live.buffer import LivePose
 from rigspace.runtime.live.decoders.bvh import read_bvh
 from rigspace.runtime.live.decoders.vmc import VmcDecoder
-from rigspace.runtime.live.frames import quat_angle, quat_conjugate
 from rigspace.runtime.live.retarget import (
     PRESETS,
     Retargeter,
@@ -19,6 +18,7 @@ from rigspace.runtime.live.retarget import (
     source_basis,
     target_skeleton,
 )
+from rigspace.runtime.live.source_frame import quat_angle, quat_conjugate
 from rigspace.sdk.rotations import quat_from_matrix, quat_multiply
 from tests.runtime.live.conftest import CMU_CLIP, SAMPLE_CHARACTER
 

@@ -14,9 +14,9 @@ from pxr import Usd, UsdSkel, Vt
 from rigspace.runtime.live.buffer import LiveBuffer, LivePose
 from rigspace.runtime.live.decoders.bvh import read_bvh
 from rigspace.runtime.live.decoders.vmc import VmcDecoder, encode_frame
-from rigspace.runtime.live.frames import quat_angle
 from rigspace.runtime.live.retarget import PRESETS, Retargeter, for_preset, target_skeleton
 from rigspace.runtime.live.send import humanoid_clip, send_vmc, serve_bvh
+from rigspace.runtime.live.source_frame import quat_angle
 from rigspace.runtime.live.sources import open_source
 from rigspace.sdk.rotations import quat_from_matrix
 from tests.runtime.live.conftest import CMU_CLIP, SAMPLE_CHARACTER, wait_for

@@ -9,7 +9,7 @@ import pytest
 
 from rigspace.runtime.live.buffer import LiveBuffer
 from rigspace.runtime.live.decoders.bvh import read_bvh
-from rigspace.runtime.live.frames import quat_angle
+from rigspace.runtime.live.source_frame import quat_angle
 from rigspace.runtime.live.sources import open_source, source_specs
 from rigspace.runtime.live.transports import LiveSourceError, ReplaySource
 from rigspace.sdk.plugins import SourceSpec

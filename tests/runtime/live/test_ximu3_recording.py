@@ -12,8 +12,8 @@ import numpy as np
 from pxr import Usd, UsdSkel, Vt
 
 from rigspace.runtime.live.buffer import LiveBuffer
-from rigspace.runtime.live.frames import quat_angle, quat_conjugate
 from rigspace.runtime.live.retarget import Retargeter, source_basis, target_skeleton
+from rigspace.runtime.live.source_frame import quat_angle, quat_conjugate
 from rigspace.runtime.live.sources import open_source
 from rigspace.sdk.rotations import quat_from_matrix, quat_multiply
 from tests.runtime.live.conftest import SAMPLE_CHARACTER, wait_for

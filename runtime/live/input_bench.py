@@ -1,4 +1,4 @@
-"""Measure live input: `python -m rigspace.runtime.live.bench [--json FILE]` (docs/live.md)."""
+"""Measure live input: `python -m rigspace.runtime.live.input_bench [--json FILE]` (docs/live.md)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from rigspace.runtime.live.buffer import BufferSettings, LiveBuffer
 from rigspace.runtime.live.decoders.bvh import BvhStreamDecoder, read_bvh
 from rigspace.runtime.live.decoders.vmc import HUMAN_BODY_BONES, VmcDecoder, encode_frame
 from rigspace.runtime.live.decoders.ximu3 import Ximu3Decoder
-from rigspace.runtime.live.frames import SourceFrame, quat_angle, quat_slerp
+from rigspace.runtime.live.source_frame import SourceFrame, quat_angle, quat_slerp
 from rigspace.runtime.live.sources import open_source
 
 REPO = Path(__file__).resolve().parents[2]
@@ -306,7 +306,7 @@ def end_to_end(seconds: float = 5.0, size: int = 256) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m rigspace.runtime.live.bench", description=__doc__
+        prog="python -m rigspace.runtime.live.input_bench", description=__doc__
     )
     parser.add_argument("--seconds", type=float, default=2.0, help="per decode-rate measurement")
     parser.add_argument("--json", type=Path, help="also write the results here")
