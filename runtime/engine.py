@@ -7,7 +7,7 @@ Per frame: the camera at t; the scene's other prims drawn by the renderer plugin
 G-buffer (reused while neither they nor the camera move); per neural character the pose,
 its billboard, and (when visible) its network maps in the billboard's region, reused when
 pose and camera repeat; each layer lit by the scene's lights (runtime/shading.py) and
-shadowed (runtime/shadows.py: prims by shadow maps, characters by their capsules, onto
+shadowed (runtime/shadows/__init__.py: prims by shadow maps, characters by their capsules, onto
 each other); then a depth test composites the character over or under the prims, with its
 coverage as alpha at its edges, and a DomeLight fills what nothing covers. Every decision
 and every stage's time goes into the frame's report. A stage without lights renders unlit
@@ -28,7 +28,6 @@ from typing import Any
 import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom
 
-from rigspace.runtime import shadow_pass
 from rigspace.runtime.billboard import Billboard
 from rigspace.runtime.character import Layer, NeuralCharacter
 from rigspace.runtime.lights import (
@@ -52,6 +51,7 @@ from rigspace.runtime.shadows import (
     shadow_regions,
     sparse_visibility,
 )
+from rigspace.runtime.shadows import passes as shadow_pass
 from rigspace.sdk import schema, validation
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.errors import SceneError

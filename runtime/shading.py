@@ -4,7 +4,7 @@ The same function lights the neural character's maps and the scene prims' maps, 
 two match. Game-engine convention: diffuse = albedo * sum(radiance * max(0, n.l)), no
 1/pi; specular = SPECULAR * (n.h)^SHININESS * radiance * max(0, n.l); ambient (DomeLight)
 = albedo * radiance. Albedo is premultiplied by coverage, and so is the result. A light's
-shadow (runtime/shadows.py) scales its diffuse and specular terms, never the ambient one.
+shadow (runtime/shadows/__init__.py) scales its diffuse and specular terms, never the ambient one.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Unreal's capsule shadows stand in for a skinned character with one capsule per bone; the
 runtime poses them with the joint transforms it already computes and casts soft shadows
-from them analytically (runtime/shadows.py). The fit is made once, at the skeleton's bind
+from them analytically (runtime/shadows/__init__.py). The fit is made once, at the skeleton's bind
 pose (where UsdSkel's skinning is the identity, so joint-relative coordinates hold in every
 pose for the vertices a joint dominates):
 

@@ -32,6 +32,7 @@ the files are large): `film_character.usdc`, `textures/`, `film.usda`.
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 
@@ -45,6 +46,8 @@ HERE = Path(__file__).resolve().parent
 SAMPLES = HERE.parent
 BASE = SAMPLES / "character" / "sample_character.usda"
 PREVIS = SAMPLES / "scenes" / "previs.usda"
+MODEL = SAMPLES / "models" / "film"
+"""The film character's model bundle, trained on its shot's capture (README.md here)."""
 USD_NAME = "film_character.usdc"
 SCENE_NAME = "film.usda"
 INFLUENCES = 4
@@ -573,13 +576,16 @@ def build(out: Path, subdivisions: int = 3, texture_size: int = 4096, seed: int 
 
 def write_scene(out: Path, drawn: list[str]) -> Path:
     """The previs shot around the film character: its set, camera, lights and capture ring,
-    the ring drawing the face shapes its clips leave still; no model yet."""
+    the ring drawing the face shapes its clips leave still, and its model (samples/models/film,
+    trained on this shot's capture: README.md here)."""
     text = PREVIS.read_text()
     text = text.replace("@../character/sample_character.usda@", f"@./{USD_NAME}@")
+    model = Path(os.path.relpath(MODEL, out.resolve())).as_posix()
     text = text.replace(
         "        # Trained on this scene's capture: `rigspace train /tmp/sample_ds --out samples/models/sample`\n"
         "        uniform asset rigspace:model = @../models/sample@\n",
-        "",
+        "        # Trained on this shot's capture (samples/film_character/README.md)\n"
+        f"        uniform asset rigspace:model = @{model}@\n",
     )
     ranges = ", ".join("(0, 0.8)" for _ in drawn)
     names = ", ".join(f'"{n}"' for n in drawn)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
-from rigspace.runtime import shadow_pass, shadows
+from rigspace.runtime import shadows
 from rigspace.runtime.engine import Engine
 from rigspace.runtime.lights import DISTANT, POINT, Light
 from rigspace.runtime.shadows import (
@@ -19,6 +19,7 @@ from rigspace.runtime.shadows import (
     capsule_visibility,
     cone_occlusion,
 )
+from rigspace.runtime.shadows import passes as shadow_pass
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.capsules import (
     CapsuleError,
@@ -586,7 +587,7 @@ by atan where numpy takes arccos)."""
 
 
 def _shader():
-    from rigspace.runtime.gl_shadows import GLCapsuleShadows
+    from rigspace.runtime.shadows.gl import GLCapsuleShadows
     from rigspace.sdk.render import gl as gl_module
 
     if gl_module.unavailable() is not None:
@@ -626,7 +627,7 @@ def test_the_shader_matches_numpy_on_the_sample_capsules(kind):
 def test_the_shader_draws_more_capsules_than_one_draw_holds():
     """70 random capsules in uneven groups: two draws (MAX_CAPSULES each), their visibilities
     multiplied, the same as numpy's product over all of them."""
-    from rigspace.runtime.gl_shadows import MAX_CAPSULES
+    from rigspace.runtime.shadows.gl import MAX_CAPSULES
 
     rng = np.random.default_rng(3)
     k = MAX_CAPSULES + 6
@@ -699,7 +700,7 @@ def test_the_shader_runs_only_with_the_gl_renderer_on_a_gpu(name, monkeypatch):
     prim_shadows.close()
 
 
-# -- the compiled kernels (shadow_kernels.py, shadow_pass.py) ---------------------------------
+# -- the compiled kernels (runtime/shadows: kernels.py, passes.py) ---------------------------------
 
 KERNEL_TOLERANCE = 2e-3
 """Largest visibility gap between the compiled passes and the numpy ones (measured on the
@@ -777,7 +778,7 @@ def test_the_compiled_blend_matches_every_pixel_evaluated(monkeypatch):
 def test_the_compiled_capsule_occlusion_matches_numpy(kind, where):
     """Receivers around the sample character under a sun and a lamp, the lamp also among
     the capsules (every pair: no 2-D view); and the same through a shadow map."""
-    from rigspace.runtime import shadow_pass
+    from rigspace.runtime.shadows import passes as shadow_pass
 
     capsules = read_capsules(SAMPLE_MODEL / "capsules.json")
     rig = _rig()
@@ -804,7 +805,7 @@ def test_the_compiled_capsule_occlusion_matches_numpy(kind, where):
 
 
 def test_the_compiled_map_lookup_matches_numpy():
-    from rigspace.runtime import shadow_pass
+    from rigspace.runtime.shadows import passes as shadow_pass
 
     rng = np.random.default_rng(3)
     depth = rng.uniform(90.0, 110.0, (64, 64)).astype(np.float32)
@@ -829,7 +830,7 @@ def test_the_kernels_compile_once_and_later_processes_load_them():
 
     script = (
         "import numpy as np\n"
-        "from rigspace.runtime import shadow_kernels as k\n"
+        "from rigspace.runtime.shadows import kernels as k\n"
         "from rigspace.runtime.engine import Engine\n"
         f"e = Engine({str(PREVIS)!r}, width=64, height=36, prim_samples=1)\n"
         "e.render(600.0); e.close()\n"

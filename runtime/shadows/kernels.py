@@ -1,6 +1,6 @@
 """Compiled (numba) shadow kernels: shadow-map lookups, capsule occlusion and coarse-to-fine passes.
 
-The maths is runtime/shadows.py's numpy, pixel by pixel: a shadow map's normal offset and
+The maths is runtime/shadows/__init__.py's numpy, pixel by pixel: a shadow map's normal offset and
 2x2 bilinear taps (ShadowMap.visibility), a capsule's 2-D cull in the light's view
 (_light_plane, _candidate_pairs) and its cone occlusion (capsule_visibility), and the
 coarse-to-fine blend of sparse_visibility. Fused into one loop per pass they skip numpy's

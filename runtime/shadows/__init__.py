@@ -22,7 +22,7 @@
   the screen rectangles of the limbs' shadow volumes are visited, and only the (pixel,
   capsule) pairs that lie close in the light's 2-D view (a capsule's shadow is a 2-D
   capsule there, widened by each pixel's penumbra) are computed. With a GPU behind the gl
-  renderer the same maths runs in a fragment shader instead (gl_shadows.py, ShadowBackend).
+  renderer the same maths runs in a fragment shader instead (shadows/gl.py, ShadowBackend).
 
 Shadowing multiplies each light's contribution (diffuse and specular), never the ambient.
 """
@@ -35,8 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from rigspace.runtime.billboard import cross
-from rigspace.runtime.gl_shadows import GLCapsuleShadows
 from rigspace.runtime.lights import DISTANT, POINT, Light
+from rigspace.runtime.shadows.gl import GLCapsuleShadows
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.render import DrawMesh, Renderer, RendererSpec, RenderSettings, render_depth
 
@@ -80,10 +80,10 @@ class ShadowBackend:
 
     kernel: str = "numba"
     """What computes the shadows where the fragment shader does not: "numba", the compiled
-    kernels of shadow_kernels.py (one call per pass, shadow_pass.py), or "numpy", the engine's
+    kernels of shadows/kernels.py (one call per pass, shadows/passes.py), or "numpy", the engine's
     passes over this module's functions (the reference the kernels are tested against)."""
     gl_capsules: str = "hardware"
-    """Where capsule occlusion runs in a fragment shader (gl_shadows.py) rather than on the
+    """Where capsule occlusion runs in a fragment shader (shadows/gl.py) rather than on the
     CPU: "hardware" with the gl renderer on a GPU, "always" with the gl renderer (Mesa's
     llvmpipe too), "never". On llvmpipe, 2 shared cores, the shader measured no faster than
     numpy per frame (each draw hands its pixels to llvmpipe's threads and waits for them), so
@@ -99,7 +99,7 @@ class ShadowBackend:
 
 @dataclass(frozen=True)
 class CompiledPasses:
-    """The compiled kernels' entry points a PrimShadows calls instead of numpy (shadow_pass
+    """The compiled kernels' entry points a PrimShadows calls instead of numpy (shadows.passes
     gives them: this module does not import it, which imports this one)."""
 
     points_visibility: Callable[..., np.ndarray]

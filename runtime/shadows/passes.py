@@ -1,10 +1,10 @@
-"""The prims' shadow passes through the compiled kernels (shadow_kernels.py): one call per light and kind.
+"""The prims' shadow passes through the compiled kernels (kernels.py): one call per light and kind.
 
 The engine's numpy passes (Engine._prim_shadows) call back into Python for every grid of
 every pass; here each (light, maps or capsules) pass is one kernel call over its window,
 with the maps' depth and the capsules' 2-D view handed over as arrays. The result is the
 numpy passes' within float rounding (tests/runtime/test_shadows.py holds the tolerance);
-`python -m rigspace.runtime.shadow_bench` measures both.
+`python -m rigspace.runtime.shadows.timing` measures both.
 """
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from rigspace.runtime import shadow_kernels as kernels
 from rigspace.runtime import shadows as sh
 from rigspace.runtime.lights import DISTANT, POINT, Light
+from rigspace.runtime.shadows import kernels as kernels
 from rigspace.sdk.camera import Camera
 
 CONSTANTS = np.array(

@@ -1,6 +1,6 @@
 """Measure the shadow stage on the previs scene: compiled kernels against numpy, split by sub-step.
 
-`python -m rigspace.runtime.shadow_bench [--frames N] [--sizes 256x256 640x360] [--kernels
+`python -m rigspace.runtime.shadows.timing [--frames N] [--sizes 256x256 640x360] [--kernels
 numba numpy]`: per size, two engines (ShadowBackend kernel "numba" and "numpy", or those named)
 render the same frames of
 samples/scenes/previs.usda with the sample character, one frame each in turn in one
@@ -27,9 +27,11 @@ from pathlib import Path
 import numpy as np
 
 from rigspace.runtime import engine as engine_module
-from rigspace.runtime import shadow_kernels, shadow_pass, shadows
+from rigspace.runtime import shadows
 from rigspace.runtime.engine import STAGES, Engine
 from rigspace.runtime.shadows import ShadowBackend
+from rigspace.runtime.shadows import kernels as shadow_kernels
+from rigspace.runtime.shadows import passes as shadow_pass
 
 KERNELS = ("numba", "numpy")
 SCENE = Path(__file__).resolve().parents[1] / "samples" / "scenes" / "previs.usda"
