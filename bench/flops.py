@@ -132,12 +132,13 @@ def graph_flops(path: str | Path, batch: int = 1) -> dict[str, Any]:
 
 def bundle_graphs(folder: str | Path, level: int, branches, precision: str) -> dict[str, str]:
     """Graph file names BundleModel.predict runs for `level`: the trunk, then each branch."""
-    raw = read_manifest(folder).raw
-    key = "int8" if precision == "int8" else "graphs"
-    levels = {int(entry["resolution"]): entry[key] for entry in raw["levels"]}
-    if level not in levels:
+    manifest = read_manifest(folder)
+    int8 = precision == "int8"
+    levels = {e.resolution: e.files.int8 if int8 else e.files.fp32 for e in manifest.levels}
+    if level not in levels or manifest.trunk is None:
         raise ValueError(f"the bundle {folder} has no level {level}; it has {sorted(levels)}")
-    return {"trunk": raw["trunk"][key]["trunk"], **{b: levels[level][b] for b in branches}}
+    trunk = (manifest.trunk.int8 if int8 else manifest.trunk.fp32)["trunk"]
+    return {"trunk": str(trunk), **{b: str(levels[level][b]) for b in branches}}
 
 
 def bundle_flops(

@@ -314,7 +314,7 @@ def drift(
         if name == "depth":
             diff = diff[:, 0] * fp32_model.depth_scale
             diff = diff[covered] if covered is not None else diff
-            units = fp32_model.manifest.raw.get("depth", {}).get("units", "bundle units")
+            units = fp32_model.manifest.depth_units
             row["units"] = units
         if name == "normal" and covered is not None:
             n32, n8 = np.moveaxis(a[name], 1, -1)[covered], np.moveaxis(b[name], 1, -1)[covered]

@@ -108,18 +108,26 @@ class NeuralCharacter:
         self.path = str(prim.GetPath())
         self.model = model
         self.rig = CharacterRig(prim)
-        raw = model.manifest.raw
+        manifest = model.manifest
         self.order = joint_order(model.joints, self.rig.joints, f"Neural character {self.path}")
         self.blend_order = blend_order(
             model.blend_shapes, self.rig.blend_shapes, f"Neural character {self.path}"
         )
         """Indices into the character's blend shapes of the model's (its input order)."""
         self.look_at = schema.find_joint(
-            raw.get("look_at_joint") or self.rig.joints[0], self.rig.joints
+            manifest.look_at_joint or self.rig.joints[0], self.rig.joints
         )
-        tc = raw["training_camera"]
-        self.view = TrainingView(tc["distance"], tc["focal_length"], tc["horizontal_aperture"])
-        self.training_resolution = int(tc.get("resolution", max(model.resolutions)))
+        if manifest.training_distance <= 0:
+            raise BundleError(
+                f"Model bundle {manifest.folder}: manifest.json has no training_camera.",
+                "re-export the bundle with `rigspace train`; the manifest is incomplete.",
+            )
+        self.view = TrainingView(
+            manifest.training_distance,
+            manifest.training_focal_length,
+            manifest.training_aperture,
+        )
+        self.training_resolution = manifest.training_resolution or max(model.resolutions)
         axis = UsdGeom.GetStageUpAxis(prim.GetStage())
         self.up = (
             np.array([0.0, 0.0, 1.0]) if axis == UsdGeom.Tokens.z else np.array([0.0, 1.0, 0.0])
@@ -127,7 +135,7 @@ class NeuralCharacter:
         """The stage's up axis: the training ring kept it upright in every view."""
         self.capsules: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         """Shadow capsules (skeleton joint index, a, b, radius), None without any."""
-        self.no_shadow = self._load_capsules(raw)
+        self.no_shadow = self._load_capsules(manifest.capsules)
         """Why the character casts no shadow ("" when it has capsules)."""
         self.textures: ChartTextures | None = None
         """Its meshes' textures by texture chart, when its bundle has a texture head."""
@@ -155,8 +163,7 @@ class NeuralCharacter:
         self.textures = textures
         return ""
 
-    def _load_capsules(self, raw: dict) -> str:
-        name = raw.get("capsules")
+    def _load_capsules(self, name: str | None) -> str:
         if not name:
             return "its model bundle has no shadow capsules (capsules.json)"
         try:

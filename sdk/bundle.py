@@ -32,8 +32,39 @@ class BundleError(RigspaceError):
 
 
 @dataclass(frozen=True)
+class GraphFiles:
+    """One set of graphs (the trunk, or a level's branches): file names by graph, fp32 and
+    int8 (an int8 name is None, or absent, where the export wrote none)."""
+
+    fp32: dict[str, str]
+    int8: dict[str, str | None]
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> GraphFiles:
+        return cls(dict(data.get("graphs", {})), dict(data.get("int8") or {}))
+
+
+@dataclass(frozen=True)
+class Level:
+    """A level of detail: the output resolution and its branches' graphs."""
+
+    resolution: int
+    files: GraphFiles
+
+
+@dataclass(frozen=True)
+class TextureHead:
+    """The texture head (manifest `texture`): K charts, their table, the branch giving them."""
+
+    charts: int
+    file: str = "charts.json"
+    branch: str = "albedo"
+
+
+@dataclass(frozen=True)
 class ModelManifest:
-    """What a model bundle's manifest.json declares (format versions 1 to 3)."""
+    """What a model bundle's manifest.json declares (format versions 1 to 3), read and checked
+    once (read_manifest): every reader takes its sections from here, typed."""
 
     path: Path
     """The manifest file."""
@@ -45,13 +76,45 @@ class ModelManifest:
     training_distance: float = 0.0
     training_focal_length: float = 0.0
     training_aperture: float = 0.0
+    training_resolution: int | None = None
+    """The capture's resolution (training_camera.resolution); None in older manifests."""
     format_version: int = FORMAT_VERSION
-    raw: dict[str, Any] = field(default_factory=dict, repr=False)
-    """The whole manifest, for the fields the train and runtime packages own."""
+    blend_shapes: tuple[str, ...] = ()
+    """Blend shapes whose weights follow the rotations in the rig input (manifest order)."""
+    trunk: GraphFiles | None = None
+    levels: tuple[Level, ...] = ()
+    depth_scale: float = 1.0
+    depth_units: str = "bundle units"
+    texture: TextureHead | None = None
+    capsules: str | None = None
+    """The bundle's capsules.json (shadow capsules), None without any."""
+    int8_offered_levels: tuple[int, ...] | None = None
+    """Levels where int8 met the accuracy aim and was faster at export (int8_check); None for
+    a check older than that judgement."""
+    int8_failed: frozenset[str] = frozenset()
+    """int8 graphs the export's check failed (int8_check.graphs[name].ok is false)."""
+    files: dict[str, dict[str, Any]] = field(default_factory=dict, repr=False)
+    """Per file its recorded bytes and sha256."""
+    training: dict[str, Any] = field(default_factory=dict, repr=False)
+    """The training record (train.export): config, steps, planned and trained levels, plan."""
+    conditioning: dict[str, Any] | None = field(default=None, repr=False)
+    """The pose conditioning (train.conditioning; rigspace.sdk.conditioning reads its skeleton)."""
+    torch: dict[str, Any] | None = field(default=None, repr=False)
+    """The torch predictor's section (train.torch_predictor): weights file, shape, config."""
+    document: dict[str, Any] = field(default_factory=dict, repr=False)
+    """The manifest as read (to_json gives a copy): metrics and the fields no reader types."""
 
     @property
     def folder(self) -> Path:
         return self.path.parent
+
+    def to_json(self) -> dict[str, Any]:
+        return json.loads(json.dumps(self.document))
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any], path: Path) -> ModelManifest:
+        """Check a manifest document (BundleError naming `path` and the field) and type it."""
+        return _typed(data, path)
 
 
 def manifest_path(path: str | Path) -> Path:
@@ -74,6 +137,12 @@ def read_manifest(path: str | Path) -> ModelManifest:
             f"Model bundle manifest {file} is not readable JSON ({exc}).",
             "re-export the bundle with `rigspace train`; the file is damaged.",
         ) from exc
+    return _typed(data, file)
+
+
+def _typed(data: Any, file: Path) -> ModelManifest:
+    """A manifest document checked (format, version, joints, encoding, the field spec) and
+    typed."""
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise BundleError(
             f"{file} is not a rigspace model bundle manifest (format is "
@@ -107,16 +176,56 @@ def read_manifest(path: str | Path) -> ModelManifest:
             f"Model bundle manifest {file}: {'; '.join(wrong)}.",
             "re-export the bundle with `rigspace train` (or restore the file).",
         )
+    return _sections(data, file, tuple(joints), encoding, int(version))
+
+
+def _sections(
+    data: dict[str, Any], file: Path, joints: tuple[str, ...], encoding: str, version: int
+) -> ModelManifest:
+    """The checked document's sections, typed."""
     camera = data.get("training_camera", {})
+    check = data.get("int8_check") or {}
+    offered = check.get("offered_levels")
+    texture = data.get("texture")
+    trunk = data.get("trunk")
     return ModelManifest(
         path=file,
-        joints=tuple(joints),
+        joints=joints,
         rotation_encoding=encoding,
         maps=tuple(data.get("maps", ())),
         look_at_joint=str(data.get("look_at_joint", "")),
         training_distance=float(camera.get("distance", 0.0)),
         training_focal_length=float(camera.get("focal_length", 0.0)),
         training_aperture=float(camera.get("horizontal_aperture", 0.0)),
-        format_version=int(version),
-        raw=data,
+        training_resolution=int(camera["resolution"]) if "resolution" in camera else None,
+        format_version=version,
+        blend_shapes=tuple(data.get("blend_shapes") or ()),
+        trunk=GraphFiles.from_json(trunk) if isinstance(trunk, dict) else None,
+        levels=tuple(
+            Level(int(level["resolution"]), GraphFiles.from_json(level))
+            for level in data.get("levels", ())
+        ),
+        depth_scale=float(data.get("depth", {}).get("scale", 1.0)),
+        depth_units=str(data.get("depth", {}).get("units", "bundle units")),
+        texture=(
+            TextureHead(
+                int(texture["charts"]),
+                str(texture.get("file", "charts.json")),
+                str(texture.get("branch", "albedo")),
+            )
+            if texture
+            else None
+        ),
+        int8_offered_levels=None if offered is None else tuple(sorted(int(r) for r in offered)),
+        int8_failed=frozenset(
+            name
+            for name, result in (check.get("graphs") or {}).items()
+            if isinstance(result, dict) and not result.get("ok", True)
+        ),
+        capsules=str(data["capsules"]) if data.get("capsules") else None,
+        files=dict(data.get("files") or {}),
+        training=dict(data.get("training") or {}),
+        conditioning=data.get("conditioning") or None,
+        torch=data.get("torch") if isinstance(data.get("torch"), dict) else None,
+        document=data,
     )

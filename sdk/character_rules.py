@@ -322,13 +322,13 @@ def check_character_model(prim: Usd.Prim) -> Iterator[Issue]:
     except BundleError as exc:
         yield error("BadModel", f"Neural character {path}: {exc}", exception=BundleError)
         return
-    if "trunk" in manifest.raw or "levels" in manifest.raw:  # a manifest alone: nothing to load
+    if manifest.trunk is not None or manifest.levels:  # a manifest alone: nothing to load
         from rigspace.sdk.model import graphs_problem  # onnxruntime, only once a bundle resolves
 
         problem = graphs_problem(manifest.folder)
         if problem:
             yield error("BadModel", f"Neural character {path}: {problem}", exception=BundleError)
-    wanted = manifest.raw.get("blend_shapes") or []
+    wanted = manifest.blend_shapes
     if wanted:
         have = character_blend_shapes(prim)
         lacking = [name for name in wanted if name not in have]

@@ -89,9 +89,9 @@ class Skeleton2D:
         }
 
     @classmethod
-    def of_bundle(cls, manifest: dict[str, Any]) -> Skeleton2D | None:
-        """A bundle manifest's `conditioning.skeleton`; None for an unconditioned bundle."""
-        conditioning = manifest.get("conditioning")
+    def of_conditioning(cls, conditioning: dict[str, Any] | None) -> Skeleton2D | None:
+        """A bundle manifest's `conditioning.skeleton` (ModelManifest.conditioning); None for
+        an unconditioned bundle."""
         return cls.from_json(conditioning["skeleton"]) if conditioning else None
 
     @classmethod

@@ -43,8 +43,8 @@ class BundleModel:
         this bundle here); `device`: "auto", "cpu" or "cuda[:N]" (predictors that cannot run
         there are passed over); `threads`: intra-op threads of CPU predictors (0: all)."""
         self.manifest: ModelManifest = read_manifest(path)
-        raw = self.manifest.raw
-        if "trunk" not in raw or "levels" not in raw:
+        manifest = self.manifest
+        if manifest.trunk is None or not manifest.levels:
             raise BundleError(
                 f"{self.manifest.path} lists no trunk or levels.",
                 "re-export the bundle with `rigspace train` from this rigspace version.",
@@ -55,24 +55,24 @@ class BundleModel:
         self.levels: dict[int, dict[str, str]] = {}
         self.int8_fallbacks: dict[str, str] = {}
         """int8 graphs the export's check failed (manifest int8_check) -> fp32 graph run instead."""
-        offered = raw.get("int8_check", {}).get("offered_levels")
-        self.int8_offered: list[int] | None = None if offered is None else sorted(offered)
+        offered = manifest.int8_offered_levels
+        self.int8_offered: list[int] | None = None if offered is None else list(offered)
         """Levels where int8 met the accuracy aim and was MIN_SPEEDUP faster at export
         (rigspace.train.int8check): the only ones to run int8 at for speed. None: a check
         older than that judgement (every level whose graphs passed is then offered)."""
-        for level in raw["levels"]:
-            graphs = level["int8"] if precision == "int8" else level["graphs"]
+        for level in manifest.levels:
+            graphs = level.files.int8 if precision == "int8" else level.files.fp32
             if precision == "int8" and not graphs:
                 raise BundleError(
                     f"{self.manifest.path} has no int8 graphs.",
                     "evaluate the fp32 graphs, or export with int8 (drop --no-int8).",
                 )
             if precision == "int8":
-                graphs = {b: self._checked(g, level["graphs"][b]) for b, g in graphs.items()}
-            self.levels[int(level["resolution"])] = graphs
-        trunk = raw["trunk"]["int8" if precision == "int8" else "graphs"]["trunk"]
+                graphs = {b: self._checked(g, level.files.fp32[b]) for b, g in graphs.items()}
+            self.levels[level.resolution] = graphs
+        trunk = (manifest.trunk.int8 if precision == "int8" else manifest.trunk.fp32)["trunk"]
         if precision == "int8":
-            trunk = self._checked(trunk, raw["trunk"]["graphs"]["trunk"])
+            trunk = self._checked(trunk, manifest.trunk.fp32["trunk"])
         if self.int8_fallbacks:
             warnings.warn(
                 f"Model bundle {self.manifest.folder}: int8 graphs "
@@ -88,26 +88,25 @@ class BundleModel:
             predictor, GraphSet(self.manifest, precision, threads, graphs, device)
         )
         """The predictor running the graphs (runner.description says which, on what)."""
-        self.depth_scale = float(raw["depth"]["scale"])
+        self.depth_scale = manifest.depth_scale
         self.albedo_has_alpha = self.manifest.format_version >= 2
         """Whether the albedo branch alone gives coverage (lets unlit frames skip geometry)."""
         self.joints = list(self.manifest.joints)
-        self.blend_shapes: tuple[str, ...] = tuple(raw.get("blend_shapes", ()))
+        self.blend_shapes: tuple[str, ...] = manifest.blend_shapes
         """Blend shapes whose weights follow the rotations in the rig input (manifest order)."""
-        texture = raw.get("texture") or {}
-        self.charts = int(texture.get("charts", 0))
+        self.charts = manifest.texture.charts if manifest.texture else 0
         """K texture charts the texture head predicts (0: no texture head)."""
-        self.texture_branch = str(texture.get("branch", "albedo"))
+        self.texture_branch = manifest.texture.branch if manifest.texture else "albedo"
         """The branch whose graphs give the texture head's chart and uv outputs."""
-        self.skeleton = Skeleton2D.of_bundle(raw)
+        self.skeleton = Skeleton2D.of_conditioning(manifest.conditioning)
         """The skeleton a pose-conditioned bundle projects (None: the rig is the only input)."""
 
     def chart_table(self) -> dict[str, Any] | None:
         """The bundle's texture charts (charts.json, rigspace.sdk.charts), None without a head."""
-        texture = self.manifest.raw.get("texture")
-        if not texture:
+        texture = self.manifest.texture
+        if texture is None:
             return None
-        path = self.manifest.folder / str(texture.get("file", "charts.json"))
+        path = self.manifest.folder / texture.file
         try:
             table = json.loads(path.read_text())
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -133,8 +132,7 @@ class BundleModel:
         return table
 
     def _checked(self, int8: str, fp32: str) -> str:
-        check = self.manifest.raw.get("int8_check", {}).get("graphs", {}).get(int8, {})
-        if check.get("ok", True):
+        if int8 not in self.manifest.int8_failed:
             return int8
         self.int8_fallbacks[int8] = fp32
         return fp32
@@ -259,13 +257,14 @@ def _check_graphs(folder: Path, _stamp: tuple) -> str | None:
     runtime's loader, so its words). Loading every graph would triple inspect's time."""
     try:
         model = BundleModel(folder, predictor="onnxruntime")  # checks the ONNX files
-        raw = model.manifest.raw
-        sets = [raw["trunk"], *raw["levels"]]
+        manifest = model.manifest
+        assert manifest.trunk is not None  # BundleModel refuses a manifest without one
+        sets = [manifest.trunk, *(level.files for level in manifest.levels)]
         graphs = sorted(  # an fp32-only bundle (--no-int8) records its trunk's int8 as null
-            {g for s in sets for key in ("graphs", "int8") for g in s.get(key, {}).values() if g}
+            {g for s in sets for names in (s.fp32, s.int8) for g in names.values() if g}
         )
-        records = raw.get("files", {})
-        load = {raw["trunk"]["graphs"]["trunk"]}
+        records = manifest.files
+        load = {manifest.trunk.fp32["trunk"]}
         changed = []
         for name in graphs:
             path = folder / name

@@ -217,6 +217,8 @@ def export_bundle(
         name: {"bytes": (out / name).stat().st_size, "sha256": _sha256(out / name)}
         for name in sorted(written)
     }
+    # The readers' type checks the document before it is written (sdk.bundle.ModelManifest).
+    ModelManifest.from_json(json.loads(json.dumps(manifest)), out / "manifest.json")
     tmp = out / f".manifest.json.{os.getpid()}.tmp"
     tmp.write_text(json.dumps(manifest, indent=2) + "\n")
     os.replace(tmp, out / "manifest.json")
@@ -429,9 +431,7 @@ def check_weights(
     for level in manifest["levels"]:
         for branch, file in level["graphs"].items():
             graphs[file] = (branch, int(level["resolution"]))
-    bundle = ModelManifest(
-        folder / "manifest.json", tuple(manifest["joints"]), "rot6d", raw=manifest
-    )
+    bundle = ModelManifest.from_json(json.loads(json.dumps(manifest)), folder / "manifest.json")
     request = GraphSet(bundle, "fp32", 1, graphs)
     ours = TorchRunner(request, device="cpu", half=False, cuda_graphs=False)
     onnx = OrtRunner(request, ["CPUExecutionProvider"], "CPU")

@@ -54,7 +54,7 @@ class BundlePredictor:
         if table.resolution not in self.model.levels:
             from rigspace.sdk.bundle import BundleError
 
-            training = self.model.manifest.raw.get("training", {})
+            training = self.model.manifest.training
             if table.resolution in training.get("planned_levels", ()):
                 raise BundleError(
                     f"The model {model} has levels {self.model.resolutions}: its run stopped at "

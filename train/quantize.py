@@ -281,7 +281,9 @@ def requantize_bundle(bundle: Path, dataset: Path, rows: int = 128) -> dict[str,
     manifest = _read_manifest(bundle)
     train = SampleSet(dataset, "train")
     picks = np.unique(np.linspace(0, len(train) - 1, min(rows, len(train))).astype(int))
-    inputs = rig_feeds(train.rig[train.rows[picks]], Skeleton2D.of_bundle(manifest))
+    inputs = rig_feeds(
+        train.rig[train.rows[picks]], Skeleton2D.of_conditioning(manifest.get("conditioning"))
+    )
     trunk = manifest["trunk"]["graphs"]["trunk"]
     features = named_outputs(session(bundle / trunk), inputs)["features"]
     int8 = manifest["trunk"].setdefault("int8", {})
@@ -348,7 +350,11 @@ def recheck_bundle(bundle: Path, dataset: Path, limit: int = 200) -> dict[str, A
     check_rig = held.rig[held.rows[picks]]
     entry = {"fp32": trunk, "int8": trunk_int8}
     graphs = check_int8(
-        bundle, entry, manifest["levels"], check_rig, skeleton=Skeleton2D.of_bundle(manifest)
+        bundle,
+        entry,
+        manifest["levels"],
+        check_rig,
+        skeleton=Skeleton2D.of_conditioning(manifest.get("conditioning")),
     )
     levels = level_table(bundle, dataset, split, limit)
     ok = all(g["ok"] for g in graphs.values())

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from rigspace.sdk.bundle import BundleError
+from rigspace.sdk.bundle import BundleError, ModelManifest
 from rigspace.sdk.predictors import GraphSet, PredictorSpec, PredictorUnavailable, nvidia_driver
 from rigspace.sdk.weights import read_safetensors
 
@@ -31,13 +31,7 @@ MAX_CAPTURED = 16
 """CUDA graphs kept per predictor (one per graph and batch size seen); older ones are dropped."""
 
 
-def network_section(manifest: dict[str, Any]) -> dict[str, Any] | None:
-    """The manifest's `torch` section (None: the bundle has no weights)."""
-    section = manifest.get("torch")
-    return section if isinstance(section, dict) else None
-
-
-def weights_from_graphs(folder, manifest: dict[str, Any]) -> dict[str, np.ndarray]:
+def weights_from_graphs(folder, manifest: ModelManifest) -> dict[str, np.ndarray]:
     """The network's state dict read back from the bundle's own fp32 ONNX graphs: every
     parameter is an initializer named after it, except each level's 1x1 head, which the
     export slices by output (graphs.BranchAtLevel) and which is their concatenation, in the
@@ -45,10 +39,12 @@ def weights_from_graphs(folder, manifest: dict[str, Any]) -> dict[str, np.ndarra
     import onnx
     from onnx import numpy_helper
 
-    files = [(manifest["trunk"]["graphs"]["trunk"], "trunk", 0)]
+    if manifest.trunk is None:
+        raise KeyError("trunk")
+    files = [(manifest.trunk.fp32["trunk"], "trunk", 0)]
     for branch in ("albedo", "geometry"):
-        levels = sorted(manifest["levels"], key=lambda level: int(level["resolution"]))
-        files += [(level["graphs"][branch], branch, k) for k, level in enumerate(levels)]
+        levels = sorted(manifest.levels, key=lambda level: level.resolution)
+        files += [(level.files.fp32[branch], branch, k) for k, level in enumerate(levels)]
     state: dict[str, np.ndarray] = {}
     for file, branch, index in files:
         graph = onnx.load(str(folder / file)).graph
@@ -65,7 +61,7 @@ def weights_from_graphs(folder, manifest: dict[str, Any]) -> dict[str, np.ndarra
     return state
 
 
-def build_network(folder, manifest: dict[str, Any]):
+def build_network(folder, manifest: ModelManifest):
     """The Rig2Image of a bundle, its weights loaded, in eval mode on the CPU (fp32): from the
     weights file its `torch` section names (what the export writes), else from its fp32 ONNX
     graphs (weights_from_graphs)."""
@@ -74,7 +70,12 @@ def build_network(folder, manifest: dict[str, Any]):
     from rigspace.train.config import TrainConfig
     from rigspace.train.network import Rig2Image, Shape
 
-    section = manifest["torch"]
+    section = manifest.torch
+    if section is None:
+        raise BundleError(
+            f"Model bundle {folder} has no torch section (exported before it).",
+            "re-export the bundle with `rigspace train`, or use --predictor onnxruntime.",
+        )
     source = str(section["file"]) if section.get("file") else "fp32 graphs"
     try:
         if section.get("file"):
@@ -122,7 +123,7 @@ class TorchRunner:
 
         from rigspace.train.graphs import INPUTS, BranchAtLevel, Trunk, output_names
 
-        section = network_section(graphs.manifest.raw)
+        section = graphs.manifest.torch
         if section is None:
             raise PredictorUnavailable(
                 f"model bundle {graphs.folder} has no network weights ({WEIGHTS}): it was "
@@ -154,7 +155,7 @@ class TorchRunner:
         cuda = self.device.type == "cuda"
         self.dtype = torch.float16 if (cuda if half is None else half) else torch.float32
         self.cuda_graphs = cuda if cuda_graphs is None else cuda_graphs
-        model = build_network(graphs.folder, graphs.manifest.raw).to(self.device, self.dtype)
+        model = build_network(graphs.folder, graphs.manifest).to(self.device, self.dtype)
         if cuda:
             model = model.to(memory_format=torch.channels_last)
         self.model = model

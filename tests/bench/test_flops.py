@@ -76,9 +76,9 @@ def test_hand_built_graph_counts_the_formula_exactly(tmp_path):
 
 
 def test_flops_scale_with_batch_and_match_between_precisions():
-    levels = read_manifest(SAMPLE).raw["levels"]
+    levels = read_manifest(SAMPLE).levels
     previous = 0
-    for level in sorted(int(entry["resolution"]) for entry in levels):
+    for level in sorted(entry.resolution for entry in levels):
         fp32 = bundle_flops(SAMPLE, level)
         int8 = bundle_flops(SAMPLE, level, precision="int8")
         assert fp32["total"] == int8["total"] > previous, level  # each level costs more
@@ -92,7 +92,7 @@ def test_flops_scale_with_batch_and_match_between_precisions():
 
 def test_trunk_gemms_cost_twice_their_weights_at_batch_one():
     """An independent count: (1, K) x (K, N) is K * N multiply-adds, the weight's size."""
-    trunk = read_manifest(SAMPLE).raw["trunk"]["graphs"]["trunk"]
+    trunk = read_manifest(SAMPLE).trunk.fp32["trunk"]
     model = onnx.load(str(SAMPLE / trunk))
     weights = {t.name: t for t in model.graph.initializer}
     gemm_weights = [weights[n.input[1]] for n in model.graph.node if n.op_type == "Gemm"]

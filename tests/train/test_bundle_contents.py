@@ -342,7 +342,7 @@ def test_capsules_in_the_dataset_travel_with_the_bundle(tmp_path, tiny_run, tiny
     manifest = export_bundle(run, bundle, int8=False)
     assert manifest["capsules"] == "capsules.json" and "capsules.json" in manifest["files"]
     assert (bundle / "capsules.json").read_bytes() == capsules.read_bytes()
-    assert read_manifest(bundle).raw["capsules"] == "capsules.json"
+    assert read_manifest(bundle).capsules == "capsules.json"
     assert BundleModel(bundle).resolutions == [8, 16, 32]
     # A dataset without them (captured before capsules): the bundle's own stay named.
     capsules.unlink()

@@ -201,7 +201,7 @@ def test_runtime_renders_a_conditioned_character(hero):
 def test_unconditioned_bundles_keep_their_single_input(tiny_run, tmp_path):
     export_bundle(tiny_run, tmp_path / "bundle", int8=False)
     model = BundleModel(tmp_path / "bundle")
-    assert "conditioning" not in model.manifest.raw and model.skeleton is None
+    assert model.manifest.conditioning is None and model.skeleton is None
     assert model.manifest.format_version == 2
     trunk = ort.InferenceSession(
         str(tmp_path / "bundle" / "trunk.onnx"), providers=["CPUExecutionProvider"]

@@ -58,10 +58,10 @@ def test_the_torch_predictor_matches_every_graph_of_the_sample_model():
 
 
 def test_the_sample_bundle_records_its_weights_check():
-    check = read_manifest(SAMPLE).raw["torch"]["check"]
+    check = read_manifest(SAMPLE).torch["check"]
     assert check["ok"] and check["max_abs"] <= CHECK_TOLERANCE
     assert set(check["graphs"]) == {
-        f for level in read_manifest(SAMPLE).raw["levels"] for f in level["graphs"].values()
+        f for level in read_manifest(SAMPLE).levels for f in level.files.fp32.values()
     } | {"trunk.onnx"}
 
 
@@ -118,8 +118,8 @@ def test_damaged_or_mismatched_weights_name_the_file(tmp_path, tiny_run):
 def test_every_graph_module_runs_on_the_meta_device(half):
     manifest = read_manifest(SAMPLE)
     graphs = {"trunk.onnx": ("trunk", 8)}
-    for level in manifest.raw["levels"]:
-        graphs |= {f: (b, int(level["resolution"])) for b, f in level["graphs"].items()}
+    for level in manifest.levels:
+        graphs |= {f: (b, level.resolution) for b, f in level.files.fp32.items()}
     runner = TorchRunner(
         GraphSet(manifest, "fp32", 0, graphs), device="meta", half=half, cuda_graphs=False
     )
@@ -145,10 +145,10 @@ def test_the_weights_read_back_from_the_graphs_are_the_exported_ones(tmp_path, t
     from rigspace.train.torch_predictor import weights_from_graphs
 
     bundle = tmp_path / "bundle"
-    manifest = export_bundle(tiny_run, bundle, int8=False)
+    export_bundle(tiny_run, bundle, int8=False)
     exported, _ = read_safetensors(bundle / WEIGHTS)
-    derived = weights_from_graphs(bundle, manifest)
+    derived = weights_from_graphs(bundle, read_manifest(bundle))
     assert sorted(derived) == sorted(exported)
     for name, value in exported.items():
         np.testing.assert_array_equal(derived[name], value, err_msg=name)
-    assert not (SAMPLE / WEIGHTS).exists() and "file" not in read_manifest(SAMPLE).raw["torch"]
+    assert not (SAMPLE / WEIGHTS).exists() and "file" not in read_manifest(SAMPLE).torch
