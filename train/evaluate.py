@@ -492,7 +492,7 @@ def format_table(result: dict[str, Any]) -> str:
     first: dict[str, Any] = next(iter(result.get("reports", {}).values()), {})
     for name, region in first.get("regions", {}).items():
         values = ", ".join(
-            f"{row['predictor']} {_cell(row.get(f'albedo_psnr@{name}'), '.2f')} dB"
+            f"{row['predictor']} {_cell(row.get(f'albedo_psnr@{name}'), '{:.2f}')} dB"
             for row in result["rows"]
         )
         lines.append(

@@ -5,6 +5,7 @@ feeds the animation's weights to it; a rig without blend shapes is unchanged."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import numpy as np
@@ -192,6 +193,7 @@ def test_eval_measures_the_whole_character_and_says_why_there_is_no_face_region(
     assert main(["eval", str(bundle), str(dataset), "--no-baselines", "--limit", "4"]) == 0
     out, err = capsys.readouterr()
     assert "albedo PSNR over the character (every pixel the character covers" in out
+    assert re.search(r"over the character \(every pixel .*\): model \d+\.\d\d dB", out)
     assert "measured as a whole only" in err and "over the face" not in out
     assert (
         main(["eval", str(bundle), str(dataset), "--no-baselines", "--limit", "4", "--json"]) == 0
