@@ -101,15 +101,10 @@ class ModelManifest:
     """The pose conditioning (train.conditioning; rigspace.sdk.conditioning reads its skeleton)."""
     torch: dict[str, Any] | None = field(default=None, repr=False)
     """The torch predictor's section (train.torch_predictor): weights file, shape, config."""
-    document: dict[str, Any] = field(default_factory=dict, repr=False)
-    """The manifest as read (to_json gives a copy): metrics and the fields no reader types."""
 
     @property
     def folder(self) -> Path:
         return self.path.parent
-
-    def to_json(self) -> dict[str, Any]:
-        return json.loads(json.dumps(self.document))
 
     @classmethod
     def from_json(cls, data: dict[str, Any], path: Path) -> ModelManifest:
@@ -227,5 +222,4 @@ def _sections(
         training=dict(data.get("training") or {}),
         conditioning=data.get("conditioning") or None,
         torch=data.get("torch") if isinstance(data.get("torch"), dict) else None,
-        document=data,
     )
