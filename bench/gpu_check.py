@@ -278,6 +278,7 @@ def part_frames(frames: int, folder: Path) -> list[dict[str, Any]]:
             engine.render(float(times[0]))
             reports = [engine.render(float(t)).report for t in times[1:]]
             runs_on = sorted({c.model.runner.description for c in engine.characters})
+            runs_on.append(f"lighting: {reports[-1]['lighting_on']}")
         finally:
             engine.close()
         ms = {

@@ -30,6 +30,8 @@ from pxr import Sdf, Tf, Usd, UsdGeom
 
 from rigspace.runtime.billboard import Billboard
 from rigspace.runtime.character import Layer, NeuralCharacter
+from rigspace.runtime.composite_kernel import composite, over_background
+from rigspace.runtime.gl_shading import GLShading, open_gl_shading
 from rigspace.runtime.lights import (
     AMBIENT,
     DISTANT,
@@ -138,6 +140,7 @@ class Engine:
         predictor: str = "auto",
         models: dict[str, str] | None = None,
         shadow_backend: ShadowBackend | None = None,
+        gl_lighting: str = "hardware",
     ) -> None:
         """`reference=True` draws each character's real skinned mesh with the renderer instead
         of its network (the ground truth that `rigspace render --reference` compares with).
@@ -155,7 +158,9 @@ class Engine:
         maps neural character paths ("" for the stage's only one) to model bundles drawn
         instead of their rigspace:model, in the session layer: the scene file is not edited.
         `shadow_backend` says what computes the shadows (rigspace.runtime.shadows.ShadowBackend:
-        the compiled kernels and, on a GPU, the fragment shader by default)."""
+        the compiled kernels and, on a GPU, the fragment shader by default). `gl_lighting`
+        says where the lighting runs in a fragment shader (runtime/gl_shading.py:
+        "hardware", the gl renderer on a GPU; "always", on Mesa's llvmpipe too; "never")."""
         _check_request(aovs, width, height)
         self.aovs = tuple(aovs)
         self.max_level = max_level
@@ -180,6 +185,8 @@ class Engine:
         self.renderer = spec.create(RenderSettings(prim_samples))
         self._init_caches()
         self.shadows = PrimShadows(spec)
+        self.gl_shading: GLShading | None = open_gl_shading(spec, gl_lighting)
+        """The fragment shader that lights the prims and the characters' layers; None: numpy."""
         self._compiled: CompiledPasses | None = None
         """The kernels' passes when the backend computes with numba, else None (numpy)."""
         self.use_shadow_backend(shadow_backend or ShadowBackend())
@@ -278,6 +285,9 @@ class Engine:
         self._listener.Revoke()
         self.renderer.close()
         self.shadows.close()
+        if self.gl_shading is not None:
+            self.gl_shading.close()
+            self.gl_shading = None
 
     def _scene_maps(self, meshes, camera: Camera, camera_key: bytes) -> tuple[Maps, bool]:
         key = (tuple(id(m) for m in meshes), camera_key)
@@ -450,12 +460,17 @@ class Engine:
             camera, (0, 0),
         )  # fmt: skip
 
-    @staticmethod
-    def _shade_prims(prims: Maps, camera: Camera, lights, visibility) -> np.ndarray:
+    def _shade(self, albedo, normal, depth, mask, camera: Camera, lights, origin=(0, 0),
+               visibility=None) -> np.ndarray:  # fmt: skip
+        """shading.shade, in the fragment shader where the engine has one (gl_shading)."""
+        light = shade if self.gl_shading is None else self.gl_shading.shade
+        return light(albedo, normal, depth, mask, camera, lights, origin, visibility)
+
+    def _shade_prims(self, prims: Maps, camera: Camera, lights, visibility) -> np.ndarray:
         """The prims' G-buffer lit, with per-light shadow factors `visibility`."""
         if not lights:
             return prims.albedo.copy()
-        return shade(
+        return self._shade(
             prims.albedo, prims.normal, prims.depth, prims.mask, camera, lights,
             visibility=visibility,
         )  # fmt: skip
@@ -607,6 +622,7 @@ class Engine:
             "camera": str(self.camera_prim.GetPath()),
             "scene_prims": {"meshes": len(meshes), "reused": f.reused},
             "lights": len(lights),
+            "lighting_on": "numpy" if self.gl_shading is None else self.gl_shading.renderer,
             "characters": [],
         }
         if self._light_problems:
@@ -785,7 +801,7 @@ class Engine:
                     )
                 with f.timed("lighting"):
                     cached.lit = (
-                        shade(
+                        self._shade(
                             layer.albedo,
                             layer.normal,
                             layer.depth,
@@ -799,14 +815,12 @@ class Engine:
                         else layer.albedo
                     )
             with f.timed("composite"):
-                _composite(layer, cached.lit, beauty, albedo, normal, depth, mask, uv, chart)
+                composite(layer, cached.lit, beauty, albedo, normal, depth, mask, uv, chart)
         with f.timed("composite"):
             dome = next((light for light in lights if light.kind == AMBIENT), None)
             f.report["background"] = dome.path if dome is not None else None
             if dome is not None:  # behind everything: over it goes the premultiplied frame
-                beauty += (1.0 - mask)[..., None] * self._dome_background(
-                    dome, camera, f.camera_key
-                )
+                over_background(beauty, mask, self._dome_background(dome, camera, f.camera_key))
         f.report["shadows"]["maps_drawn"] = self.shadows.drawn  # drawn when first needed
         for array in (beauty, albedo, normal, depth, mask, uv, chart):
             if array is not None:
@@ -1084,39 +1098,3 @@ def _camera_key(camera: Camera) -> bytes:
         camera.far,
     )
     return camera.camera_to_world.tobytes() + np.asarray(lens, dtype=np.float64).tobytes()
-
-
-def _composite(
-    layer: Layer, lit: np.ndarray, beauty, albedo, normal, depth, mask, uv=None, chart=None
-) -> None:
-    """Depth-test a character layer against the frame and composite it with its coverage.
-
-    Where the character is in front: colour = its premultiplied colour + (1 - a) * frame,
-    a its coverage; elsewhere the frame is unchanged (a = 0 and nothing added). Normals,
-    depth (and the texture AOVs uv and chart, when given) take the character's where it is
-    in front and at least half covers the pixel. In place, on the region only.
-    """
-    h, w = layer.mask.shape
-    region = np.s_[layer.y0 : layer.y0 + h, layer.x0 : layer.x0 + w]
-    if layer.depth is None:
-        # The unlit mode, chosen only when nothing overlaps the billboard: no depth test, and
-        # the normal and depth maps (not asked for) keep the scene's values.
-        a = layer.mask
-        front = None
-    else:
-        front = layer.depth < depth[region]  # inf where empty loses every test
-        a = layer.mask * front
-    keep = (1.0 - a)[..., None]
-    for target, colour in ((beauty, lit), (albedo, layer.albedo)):
-        out = target[region]
-        out *= keep
-        out += colour if front is None else colour * front[..., None]
-    out = mask[region]
-    out += a * (1.0 - out)
-    solid = (layer.mask >= 0.5) if front is None else front & (layer.mask >= 0.5)
-    if front is not None and layer.normal is not None:
-        np.copyto(normal[region], layer.normal, where=solid[..., None])
-        np.copyto(depth[region], layer.depth, where=solid)
-    if uv is not None and chart is not None:
-        np.copyto(uv[region], 0.0 if layer.uv is None else layer.uv, where=solid[..., None])
-        np.copyto(chart[region], 0 if layer.chart is None else layer.chart, where=solid)
