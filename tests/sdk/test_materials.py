@@ -80,3 +80,33 @@ def test_both_renderers_draw_its_colour_and_texture_aovs_alike(rig, time, azimut
     # The boots have no texture: no chart there; the rest is charted.
     charted = set(np.unique(gl.chart[whole]).tolist())
     assert 0 in charted and len(charted) >= 3
+
+
+@pytest.mark.parametrize("samples", [1, 2, 3])
+def test_the_gl_resolve_pass_equals_maps_from_samples(rig, samples):
+    """The gl renderer reduces its supersamples in a fragment shader; maps_from_samples over
+    the same samples read back is the reference: equal bit for bit but the uv mean (float32
+    against float64 sums)."""
+    from rigspace.sdk.render import gl as gl_module
+
+    if gl_module.unavailable() is not None:
+        pytest.skip(f"the gl renderer cannot run here: {gl_module.unavailable()}")
+    camera = Camera.look_at([3.0, 1.2, 4.0], [0, 1.0, 0], width=80, height=64,
+                            focal_length=35, horizontal_aperture=20.955)  # fmt: skip
+    for charts in (True, False):
+        meshes = rig.posed_meshes(6.0, charts=charts)
+        maps = {}
+        for resolve in ("gpu", "numpy"):
+            with gl_module.GLRenderer(RenderSettings(samples), resolve) as renderer:
+                maps[resolve] = renderer.render(meshes, camera)
+        gpu, reference = maps["gpu"], maps["numpy"]
+        assert 0.05 < (reference.mask > 0).mean() < 0.95  # the character and the background
+        for name in ("albedo", "normal", "depth", "mask", "chart"):
+            assert np.array_equal(getattr(gpu, name), getattr(reference, name)), name
+        if charts:
+            assert (reference.chart > 0).sum() > 300
+            assert np.abs(gpu.uv - reference.uv).max() < 1e-6
+        else:
+            assert gpu.uv is None and reference.uv is None
+    with pytest.raises(ValueError, match="resolve 'cuda'"):
+        gl_module.GLRenderer(RenderSettings(2), "cuda")
