@@ -161,6 +161,11 @@ class OrtRunner:
                     "re-export the bundle, or restore the file.",
                 )
             options = ort.SessionOptions()
+            # Its threads sleep after a run instead of spinning for the next: a frame does
+            # other work between network calls, which the spinning threads took the cores
+            # from (256x256 previs frame on 2 cores: network stage 23.5 -> 17 ms, frame
+            # 37 -> 31 ms; rigspace bench --only frames).
+            options.add_session_config_entry("session.intra_op.allow_spinning", "0")
             if self.graphs.threads:
                 options.intra_op_num_threads = self.graphs.threads
             try:

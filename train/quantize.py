@@ -168,6 +168,27 @@ def pose_nodes(fp32: Path) -> list[str]:
     return nodes
 
 
+def softmax_nodes(fp32: Path) -> list[str]:
+    """The nodes of the texture head's written-out softmax (graphs.channel_softmax: from the
+    chart logits' convolution to the `chart` output), kept in float: probabilities in uint8
+    steps would blur the chart borders the runtime draws at display size. onnxruntime's
+    default registry leaves these operators alone today; named, they stay so if it grows.
+    Empty without a texture head."""
+    import onnx
+
+    graph = onnx.load(str(fp32)).graph
+    producer = {out: node for node in graph.node for out in node.output}
+    nodes: list[str] = []
+    pending = [o.name for o in graph.output if o.name == "chart"]
+    while pending:
+        node = producer.get(pending.pop())
+        if node is None or node.op_type == "Conv" or node.name in nodes:
+            continue
+        nodes.append(node.name)
+        pending.extend(i for i in node.input if i in producer)
+    return nodes
+
+
 def quantize(
     fp32: Path,
     int8: Path,
@@ -200,7 +221,7 @@ def quantize(
             activation_type=QuantType.QUInt8,
             weight_type=QuantType.QInt8,
             per_channel=True,
-            nodes_to_exclude=[*exclude, *pose_nodes(fp32)],
+            nodes_to_exclude=[*exclude, *pose_nodes(fp32), *softmax_nodes(fp32)],
             calibrate_method=CalibrationMethod.MinMax,
             extra_options={"TensorQuantOverrides": overrides},
         )

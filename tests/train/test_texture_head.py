@@ -11,12 +11,14 @@ import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch", reason="training needs the train extra (torch)")
+onnx = pytest.importorskip("onnx", reason="the export needs the train extra (onnx)")
 
 from rigspace.sdk.model import BundleModel  # noqa: E402
-from rigspace.train import loop  # noqa: E402
+from rigspace.train import graph_rewrite, loop  # noqa: E402
 from rigspace.train.config import preset  # noqa: E402
 from rigspace.train.data import SampleSet, chart_boxes, chart_targets  # noqa: E402
 from rigspace.train.export import export_bundle  # noqa: E402
+from rigspace.train.quantize import softmax_nodes  # noqa: E402
 from rigspace.train.loss import chart_downsample, texture_loss  # noqa: E402
 from rigspace.train.network import Rig2Image, Shape, texture_channels, texture_maps  # noqa: E402
 
@@ -177,6 +179,62 @@ def test_a_textured_run_learns_and_exports_its_head(textured_run, tiny_dataset, 
         logits, coords = texture_maps(heads["albedo"][-1], k)
     np.testing.assert_allclose(out["uv"], coords.numpy(), atol=1e-4)
     np.testing.assert_allclose(out["chart"], torch.softmax(logits, 1).numpy(), atol=1e-5)
+    # The softmax is written out in the graph (onnxruntime's Softmax node over the channel
+    # axis was most of the head's time): nothing for the bundle rewrite to do.
+    graph = onnx.load(str(tmp_path / "model" / "albedo_32.onnx"))
+    assert "Softmax" not in {n.op_type for n in graph.graph.node}
+    assert graph_rewrite.rewrite_bundle(tmp_path / "model", dry_run=True) == []
+    # The softmax's five nodes stay in float in the int8 graphs.
+    kept = softmax_nodes(tmp_path / "model" / "albedo_32.onnx")
+    ops = {n.op_type for n in graph.graph.node if n.name in kept}
+    assert {"Div", "Exp", "ReduceMax", "ReduceSum", "Sub"} <= ops and "Conv" not in ops
+
+
+def test_the_int8_graphs_keep_the_chart_softmax_in_float(textured_run, tmp_path):
+    export_bundle(textured_run, tmp_path / "model", int8=True)
+    graph = onnx.load(str(tmp_path / "model" / "albedo_32.int8.onnx")).graph
+    producer = {out: node for node in graph.node for out in node.output}
+    node, path = producer["chart"], []
+    while node.op_type != "Conv":  # back from the output to the logits' convolution
+        path.append(node.op_type)
+        node = producer[node.input[0]]
+    assert path[0] == "Div" and "Exp" in path
+    assert not {"QuantizeLinear", "DequantizeLinear"} & set(path)
+
+
+def test_an_older_bundle_s_channel_softmax_is_rewritten_to_the_same_outputs(tmp_path):
+    """A graph ending in Softmax(axis=1), as exports before channel_softmax wrote: rewritten
+    in place, its manifest entry updated, its outputs unchanged; a second run finds nothing."""
+    import hashlib
+
+    import onnxruntime as ort
+    from onnx import TensorProto, helper
+
+    node = helper.make_node("Softmax", ["logits"], ["chart"], axis=1)
+    graph = helper.make_graph(
+        [node], "head",
+        [helper.make_tensor_value_info("logits", TensorProto.FLOAT, ["n", 7, 5, 4])],
+        [helper.make_tensor_value_info("chart", TensorProto.FLOAT, ["n", 7, 5, 4])],
+    )  # fmt: skip
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    onnx.save(model, str(bundle / "albedo_8.onnx"))
+    before = (bundle / "albedo_8.onnx").read_bytes()
+    entry = {"bytes": len(before), "sha256": hashlib.sha256(before).hexdigest()}
+    (bundle / "manifest.json").write_text(json.dumps({"files": {"albedo_8.onnx": entry}}))
+    assert graph_rewrite.rewrite_bundle(bundle, dry_run=True) == ["albedo_8.onnx"]
+    assert (bundle / "albedo_8.onnx").read_bytes() == before  # a dry run writes nothing
+    assert graph_rewrite.rewrite_bundle(bundle) == ["albedo_8.onnx"]
+    after = (bundle / "albedo_8.onnx").read_bytes()
+    recorded = json.loads((bundle / "manifest.json").read_text())["files"]["albedo_8.onnx"]
+    assert recorded == {"bytes": len(after), "sha256": hashlib.sha256(after).hexdigest()}
+    assert "Softmax" not in {n.op_type for n in onnx.load_from_string(after).graph.node}
+    logits = np.random.default_rng(0).normal(0, 10, (3, 7, 5, 4)).astype(np.float32)
+    run = [ort.InferenceSession(g, providers=["CPUExecutionProvider"]).run(None, {"logits": logits})[0]
+           for g in (before, after)]  # fmt: skip
+    np.testing.assert_allclose(run[1], run[0], atol=1e-6)
+    assert graph_rewrite.rewrite_bundle(bundle) == []
 
 
 def test_an_untextured_config_trains_no_head(tiny_dataset):
