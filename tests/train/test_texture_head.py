@@ -18,9 +18,9 @@ from rigspace.train import graph_rewrite, loop  # noqa: E402
 from rigspace.train.config import preset  # noqa: E402
 from rigspace.train.data import SampleSet, chart_boxes, chart_targets  # noqa: E402
 from rigspace.train.export import export_bundle  # noqa: E402
-from rigspace.train.quantize import softmax_nodes  # noqa: E402
 from rigspace.train.loss import chart_downsample, texture_loss  # noqa: E402
 from rigspace.train.network import Rig2Image, Shape, texture_channels, texture_maps  # noqa: E402
+from rigspace.train.quantize import softmax_nodes  # noqa: E402
 
 TINY = preset("tiny", texture=True)
 BOXES = (
