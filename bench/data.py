@@ -78,6 +78,44 @@ def measure(dataset: Path | None, count: int = 400) -> dict[str, Any]:
         "samples": len(ks),
         "cache": built,
         **{f"{name}_per_s": rate for name, rate in rates.items()},
+        **batches(samples),
+    }
+
+
+def batches(samples: Any, kept: int = 2048, batch: int = 256, repeats: int = 3) -> dict[str, Any]:
+    """A step's batch as the prefetcher makes it (decoded from the cache) against gathered
+    from items kept in memory (train.resident, on the CPU here: on a GPU the gather is a
+    copy in its memory), over the first `kept` train samples; and how fast they were kept."""
+    try:
+        import torch
+
+        from rigspace.train.data import Prefetcher
+        from rigspace.train.resident import ResidentBatches
+    except ImportError:
+        return {"batches": {"skipped": "needs torch (the train extra)"}}
+    samples.rows = samples.rows[:kept]
+    start = time.perf_counter()
+    resident = ResidentBatches(samples, batch, seed=0, device=torch.device("cpu"),
+                               channels_last=True, progress=False)  # fmt: skip
+    decoding = time.perf_counter() - start
+    plain = Prefetcher(samples, batch, seed=0)
+    ms: dict[str, list[float]] = {"decoded": [], "gathered": []}
+    for step in range(repeats):  # alternating, as above
+        for name, get in (("decoded", lambda s: samples.batch(plain.indices(s))),
+                          ("gathered", resident.get)):  # fmt: skip
+            began = time.perf_counter()
+            get(step)
+            ms[name].append(1e3 * (time.perf_counter() - began))
+    plain.close()
+    resident.close()
+    return {
+        "batches": {
+            "batch": batch,
+            "kept": len(samples),
+            "kept_seconds": decoding,
+            "mib_per_item": resident.bytes / len(samples) / 2**20,
+            **{f"{name}_ms": float(np.median(v)) for name, v in ms.items()},
+        }
     }
 
 
@@ -95,4 +133,19 @@ def table(r: dict[str, Any]) -> list[str]:
         "|---|---|---|",
         f"| the EXRs | {r['exr_maps_per_s']:.0f} | {r['exr_items_per_s']:.0f} |",
         f"| the decoded cache | {r['cache_maps_per_s']:.0f} | {r['cache_items_per_s']:.0f} |",
+        "",
+        *_batch_lines(r.get("batches")),
+    ]
+
+
+def _batch_lines(b: dict[str, Any] | None) -> list[str]:
+    if not b:
+        return []
+    if "skipped" in b:
+        return [f"A step's batch: skipped: {b['skipped']}."]
+    return [
+        f"A step's batch of {b['batch']}: decoded by the prefetcher {b['decoded_ms']:.0f} ms; "
+        f"gathered from the items kept in memory (`rigspace train --resident`) "
+        f"{b['gathered_ms']:.0f} ms, after {b['kept']} items ({b['mib_per_item']:.2f} MiB "
+        f"each) were kept in {b['kept_seconds']:.1f} s by every core."
     ]

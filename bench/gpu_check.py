@@ -253,8 +253,10 @@ def part_train(device: str, dataset: Path | None, steps: int, folder: Path) -> d
         eval_every=10**9,
         checkpoint_every=10**9,
     )
+    began = time.perf_counter()
     result = train(dataset, folder / "run", config, steps=steps, device=device)
     return {
+        "wall_seconds": round(time.perf_counter() - began, 1),  # with the set-up and decoding
         "batch": batch,
         "lr": config.lr,
         "steps": result.step,
@@ -317,7 +319,9 @@ def markdown(result: dict[str, Any]) -> str:
             + (
                 f"skipped: {t['skipped']}"
                 if "skipped" in t
-                else f"{t['images_per_s']:.0f} images/s (batch {t['batch']}, bf16, {t['steps']} steps)"
+                else f"{t['images_per_s']:.0f} images/s (batch {t['batch']}, bf16, {t['steps']} "
+                f"steps; {t.get('wall_seconds', 0):.0f} s with the set-up and the items decoded "
+                "into GPU memory)"
             )
         )
         lines.append("")

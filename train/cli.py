@@ -74,6 +74,13 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         "into DATASET/cache (`rigspace dataset cache`)",
     )
     parser.add_argument(
+        "--resident",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="keep the training items decoded in the device's memory, a batch a gather there "
+        "(auto: on a GPU where they fit in half its free memory; on: always; off: never)",
+    )
+    parser.add_argument(
         "--device",
         default="auto",
         help="where to train: auto (a CUDA GPU when torch sees one, else the CPU), cpu, cuda "
@@ -128,6 +135,7 @@ def run_train(args: argparse.Namespace) -> int:
         resume=args.resume,
         device=args.device,
         cache=not args.no_cache,
+        resident=args.resident,
     )
     if not ctx.is_main:  # rank 0 reports and exports; the others wait for it
         if result.stopped != "interrupted":

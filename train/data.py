@@ -463,11 +463,14 @@ class Prefetcher:
         self._pool = ThreadPoolExecutor(max_workers=1)
         self._pending: dict[int, Future] = {}
 
+    def indices(self, step: int) -> np.ndarray:
+        """This rank's sample indices of step `step` (its slice of the global batch)."""
+        ks = batch_indices(len(self.samples), self.batch, step, self.seed, self.weights)
+        return np.array_split(ks, self.world)[self.rank]
+
     def _submit(self, step: int) -> None:
         if step not in self._pending:
-            ks = batch_indices(len(self.samples), self.batch, step, self.seed, self.weights)
-            ks = np.array_split(ks, self.world)[self.rank]
-            self._pending[step] = self._pool.submit(self.samples.batch, ks)
+            self._pending[step] = self._pool.submit(self.samples.batch, self.indices(step))
 
     def get(self, step: int) -> dict[str, np.ndarray]:
         for other in [s for s in self._pending if s != step]:  # a skipped step's read

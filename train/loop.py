@@ -56,6 +56,7 @@ from rigspace.train.config import TrainConfig
 from rigspace.train.data import SampleSet, chart_boxes, ensure_cache
 from rigspace.train.loss import targets_for
 from rigspace.train.network import Rig2Image, Shape, albedo_maps, geometry_maps, texture_maps
+from rigspace.train.resident import ResidentBatches, resident_or_not
 from rigspace.train.step import forward_loss, make_optimizer, optimise, schedule, to_torch
 from rigspace.train.stream import is_shards, open_split, prefetcher
 
@@ -332,10 +333,12 @@ def train(
     progress: bool = True,
     device: str | None = None,
     cache: bool = True,
+    resident: str = "auto",
 ) -> TrainResult:
     """Train Rig2Image on a capture dataset (see the module doc). `device`: a --device value
     (train.distributed.resolve_device; None: the CPU, or the context already made). `cache`:
-    decode a dataset folder's samples once into its cache first (train.data.ensure_cache)."""
+    decode a dataset folder's samples once into its cache first (train.data.ensure_cache).
+    `resident`: keep the training items in the device's memory (train.resident)."""
     dataset, out = Path(dataset), Path(out)
     began = time.monotonic()  # the budget counts from here: the step-rate probe is part of it
     ctx = distributed.context(device)  # one process unless under torchrun (train.distributed)
@@ -364,7 +367,8 @@ def train(
         pace = Pace(config, rates, deadline) if planned else None
         pacer = Pacer(config, deadline, pace, ctx.agree)
         pacer.extends = steps is None
-    stopped = _run(run, state, ctx, pacer, progress, "done" if steps is None else "step budget")
+    done = "done" if steps is None else "step budget"
+    stopped = _run(run, state, ctx, pacer, progress, done, resident)
     if stopped != "interrupted":
         ctx.barrier()  # the other ranks return once rank 0's checkpoint is written
     return TrainResult(
@@ -459,13 +463,16 @@ def _plan(
 
 
 def _run(
-    run: _Run, state: LoopState, ctx: Any, pacer: Pacer | None, progress: bool, done: str
+    run: _Run,
+    state: LoopState,
+    ctx: Any,
+    pacer: Pacer | None,
+    progress: bool,
+    done: str,
+    resident: str = "auto",
 ) -> str:
     """The steps from state.step, with the main run's callbacks; why they stopped."""
-    prefetch = prefetcher(
-        run.samples, state.config.batch, state.config.seed, ctx.rank, ctx.world,
-        state.config.oversample,
-    )  # fmt: skip
+    prefetch = _batches(run.samples, state.config, ctx, resident, progress)
     net = ctx.wrap(state.model)  # DDP under torchrun: gradients averaged over the ranks
     callbacks: list[Callback] = [
         ProgressBar(state, progress and ctx.is_main, _postfix),
@@ -492,6 +499,31 @@ def _run(
         prefetch.close()
 
 
+def _batches(samples: Any, config: TrainConfig, ctx: Any, resident: str, progress: bool) -> Any:
+    """Where the steps' batches come from: a prefetcher reading them from the dataset, or
+    the items kept in the device's memory (train.resident)."""
+    plain = prefetcher(
+        samples, config.batch, config.seed, ctx.rank, ctx.world, config.oversample
+    )  # checks the batch against the world size
+    keep, why = resident_or_not(samples, ctx.device, resident)
+    if why is not None and ctx.is_main:
+        print(f"rigspace train: {why}.", file=sys.stderr)
+    if not keep:
+        return plain
+    plain.close()
+    kept = ResidentBatches(
+        samples, config.batch, config.seed, ctx.rank, ctx.world, config.oversample,
+        device=ctx.device, channels_last=config.channels_last, progress=progress and ctx.is_main,
+    )  # fmt: skip
+    if ctx.is_main:
+        print(
+            f"rigspace train: {len(samples)} training items kept in {ctx.device} memory "
+            f"({kept.bytes / 2**30:.2f} GiB): a batch is a gather there",
+            file=sys.stderr,
+        )
+    return kept
+
+
 def _train_step(state: LoopState, *, net: Any, prefetch: Any, ctx: Any) -> dict[str, Any]:
     """One optimizer step of the main run; its log record."""
     config, step = state.config, state.step
@@ -499,7 +531,9 @@ def _train_step(state: LoopState, *, net: Any, prefetch: Any, ctx: Any) -> dict[
     if where.first_step_of_level and step > state.start:
         # A new block joins: fresh optimizer state (the paper resets per level).
         state.optimizer = make_optimizer(state.model, config)
-    batch = ctx.to_device(to_torch(prefetch.get(step), config.channels_last))
+    batch = prefetch.get(step)
+    if not isinstance(prefetch, ResidentBatches):  # numpy from the dataset
+        batch = ctx.to_device(to_torch(batch, config.channels_last))
     loss, terms = forward_loss(net, batch, where.resolution, where.alpha, config)
     shown, terms = ctx.mean(loss, terms)  # every rank sees the same value
     if not math.isfinite(shown):
