@@ -43,7 +43,8 @@ from rigspace.runtime.lights import (
 )
 from rigspace.runtime.live.engine import LiveInput
 from rigspace.runtime.scene import SceneGeometry
-from rigspace.runtime.shading import pixel_positions, shade, shade_pixels
+from rigspace.runtime.shading import pixel_positions, shade_pixels
+from rigspace.runtime.shading_kernel import shade as compiled_shade
 from rigspace.runtime.shadows import (
     CompiledPasses,
     PosedCapsules,
@@ -462,8 +463,9 @@ class Engine:
 
     def _shade(self, albedo, normal, depth, mask, camera: Camera, lights, origin=(0, 0),
                visibility=None) -> np.ndarray:  # fmt: skip
-        """shading.shade, in the fragment shader where the engine has one (gl_shading)."""
-        light = shade if self.gl_shading is None else self.gl_shading.shade
+        """shading.shade: in the fragment shader where the engine has one (gl_shading), else
+        compiled (shading_kernel)."""
+        light = compiled_shade if self.gl_shading is None else self.gl_shading.shade
         return light(albedo, normal, depth, mask, camera, lights, origin, visibility)
 
     def _shade_prims(self, prims: Maps, camera: Camera, lights, visibility) -> np.ndarray:
@@ -622,7 +624,7 @@ class Engine:
             "camera": str(self.camera_prim.GetPath()),
             "scene_prims": {"meshes": len(meshes), "reused": f.reused},
             "lights": len(lights),
-            "lighting_on": "numpy" if self.gl_shading is None else self.gl_shading.renderer,
+            "lighting_on": "numba" if self.gl_shading is None else self.gl_shading.renderer,
             "characters": [],
         }
         if self._light_problems:

@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from rigspace.runtime.lights import AMBIENT, DISTANT, POINT, Light
-from rigspace.runtime.shading import MIN_DISTANCE, SHININESS, SPECULAR
+from rigspace.runtime.lights import Light
+from rigspace.runtime.shading import MIN_DISTANCE, SHININESS, SPECULAR, light_uniforms
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.render import RendererSpec
 
@@ -112,27 +112,6 @@ def _squarings() -> int:
     if SHININESS != exponent or exponent.bit_count() != 1:
         raise ValueError(f"the shader raises to powers of two only, not SHININESS={SHININESS}")
     return exponent.bit_length() - 1
-
-
-def light_uniforms(lights: Sequence[Light], camera: Camera) -> list[tuple[int, Any, Any, float]]:
-    """Per light, (kind, radiance, camera-space vector, area) as the shader reads them: the
-    direction towards a DistantLight, a point light's position (shading.shade_pixels')."""
-    rotation = camera.world_to_camera[:3, :3]
-    out = []
-    for light in lights:
-        if light.kind == AMBIENT:
-            out.append((0, light.radiance, np.zeros(3), 0.0))
-        elif light.kind == DISTANT:
-            towards = -(rotation @ light.direction).astype(np.float32)
-            out.append((1, light.radiance, towards, 0.0))
-        elif light.kind == POINT:
-            position = (rotation @ light.position + camera.world_to_camera[:3, 3]).astype(
-                np.float32
-            )
-            out.append((2, light.radiance, position, float(light.area)))
-        else:
-            raise ValueError(f"unknown light kind {light.kind!r}")
-    return out
 
 
 def open_gl_shading(renderer: RendererSpec, where: str) -> GLShading | None:

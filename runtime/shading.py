@@ -149,3 +149,27 @@ def shade_pixels(
     coverage = np.reshape(mask, -1).astype(np.float32)
     lit = np.reshape(albedo, (-1, 3)).T * diffuse + (SPECULAR * coverage) * specular
     return np.ascontiguousarray(lit.T, dtype=np.float32).reshape(shape)
+
+
+def light_uniforms(
+    lights: Sequence[Light], camera: Camera
+) -> list[tuple[int, np.ndarray, np.ndarray, float]]:
+    """Per light, (kind, radiance, camera-space vector, area) as the compiled kernel and the
+    fragment shader read them: kind 0 ambient, 1 distant, 2 point; the direction towards a
+    DistantLight, a point light's position (as shade_pixels computes them)."""
+    rotation = camera.world_to_camera[:3, :3]
+    out = []
+    for light in lights:
+        if light.kind == AMBIENT:
+            out.append((0, light.radiance, np.zeros(3), 0.0))
+        elif light.kind == DISTANT:
+            towards = -(rotation @ light.direction).astype(np.float32)
+            out.append((1, light.radiance, towards, 0.0))
+        elif light.kind == POINT:
+            position = (rotation @ light.position + camera.world_to_camera[:3, 3]).astype(
+                np.float32
+            )
+            out.append((2, light.radiance, position, float(light.area)))
+        else:
+            raise ValueError(f"unknown light kind {light.kind!r}")
+    return out

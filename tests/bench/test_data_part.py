@@ -6,8 +6,8 @@ import pytest
 
 pytest.importorskip("torch", reason="the kept items need the train extra (torch)")
 
-from rigspace.bench import data  # noqa: E402
-from rigspace.train.data import SampleSet  # noqa: E402
+from rigspace.bench import data
+from rigspace.train.data import SampleSet
 
 
 def test_the_batch_comparison_measures_both_ways_and_reports_them(tiny_dataset):
