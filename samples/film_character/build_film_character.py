@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -419,6 +420,57 @@ def build(out: Path, subdivisions: int = 3, texture_size: int = 4096, seed: int 
     out.mkdir(parents=True, exist_ok=True)
     textures = write_textures(out / "textures", texture_size, rng)
     base = Usd.Stage.Open(str(BASE))
+    stage = Usd.Stage.CreateNew(str(out / USD_NAME))
+    for key in (
+        "metersPerUnit",
+        "upAxis",
+        "timeCodesPerSecond",
+        "framesPerSecond",
+        "startTimeCode",
+        "endTimeCode",
+    ):
+        stage.SetMetadata(key, base.GetMetadata(key))
+    rig = _skeleton(stage, base)
+    _animation(stage, base, rig)
+    looks = {
+        name: _material(stage, name, textures[key])
+        for name, key in (("Body", "body"), ("Gloves", "gloves"), ("Eyes", "eyes"))
+    }
+    names, face = _body(stage, base, rig, looks["Body"], subdivisions)
+    _hands(stage, rig, looks["Gloves"], subdivisions)
+    _eyes(stage, rig, looks["Eyes"])
+    stage.GetRootLayer().Save()
+    scene = write_scene(out, [n for n in names if n not in ANIMATED])
+    triangles = {
+        m: len(UsdGeom.Mesh(stage.GetPrimAtPath(f"/Character/{m}")).GetFaceVertexCountsAttr().Get())
+        for m in ("Body", "Hands", "Eyes")
+    }
+    return {
+        "usd": str(out / USD_NAME),
+        "scene": str(scene),
+        "joints": len(rig.joints),
+        "blend_shapes": names,
+        "inbetweens": sum(len(b) for _, b in face.values()),
+        "triangles": triangles,
+        "seconds": round(time.monotonic() - start, 1),
+    }
+
+
+@dataclass
+class _Rig:
+    """The built skeleton: the sample's joints and the added finger joints."""
+
+    skeleton: UsdSkel.Skeleton
+    joints: list[str]
+    """Every joint path, the sample's first, then the fingers'."""
+    fingers: list
+    """(path, parent index, offset) per added finger joint."""
+    points: dict[str, np.ndarray]
+    """Each joint's bind position (where the hands are built around)."""
+
+
+def _skeleton(stage: Usd.Stage, base: Usd.Stage) -> _Rig:
+    """The SkelRoot and its Skeleton: the sample's joints plus a chain of finger joints."""
     skeleton0 = UsdSkel.Skeleton(base.GetPrimAtPath("/Character/Skel"))
     joints = [str(j) for j in skeleton0.GetJointsAttr().Get()]
     binds = np.array(skeleton0.GetBindTransformsAttr().Get())
@@ -436,17 +488,6 @@ def build(out: Path, subdivisions: int = 3, texture_size: int = 4096, seed: int 
         skel_points[path] = bind[3, :3]
     for path in joints:
         skel_points[path] = binds[joints.index(path)][3, :3]
-
-    stage = Usd.Stage.CreateNew(str(out / USD_NAME))
-    for key in (
-        "metersPerUnit",
-        "upAxis",
-        "timeCodesPerSecond",
-        "framesPerSecond",
-        "startTimeCode",
-        "endTimeCode",
-    ):
-        stage.SetMetadata(key, base.GetMetadata(key))
     root = UsdSkel.Root.Define(stage, "/Character")
     stage.SetDefaultPrim(root.GetPrim())
     skeleton = UsdSkel.Skeleton.Define(stage, "/Character/Skel")
@@ -454,18 +495,21 @@ def build(out: Path, subdivisions: int = 3, texture_size: int = 4096, seed: int 
     skeleton.CreateBindTransformsAttr(Vt.Matrix4dArray.FromNumpy(np.array(bind_all)))
     skeleton.CreateRestTransformsAttr(Vt.Matrix4dArray.FromNumpy(np.array(rest_all)))
     UsdSkel.BindingAPI.Apply(root.GetPrim())
+    return _Rig(skeleton, all_joints, fingers, skel_points)
 
-    # Animation: the sample's clips, fingers curling, the face talking.
+
+def _animation(stage: Usd.Stage, base: Usd.Stage, rig: _Rig) -> None:
+    """The sample's clips, the fingers curling, the face talking."""
     anim0 = UsdSkel.Animation(base.GetPrimAtPath("/Character/Skel/Anim"))
     anim = UsdSkel.Animation.Define(stage, "/Character/Skel/Anim")
     anim.GetPrim().SetCustomData(anim0.GetPrim().GetCustomData())
-    anim.CreateJointsAttr(Vt.TokenArray(all_joints))
+    anim.CreateJointsAttr(Vt.TokenArray(rig.joints))
     anim.CreateBlendShapesAttr(Vt.TokenArray(list(ANIMATED)))
     times = anim0.GetRotationsAttr().GetTimeSamples()
     curl = finger_curl(np.array(times))
     faces = face_weights(np.array(times))
-    finger_t = np.array([o for _, _, o in fingers], dtype=np.float32)
-    scales = Vt.Vec3hArray([Gf.Vec3h(1, 1, 1)] * len(all_joints))
+    finger_t = np.array([o for _, _, o in rig.fingers], dtype=np.float32)
+    scales = Vt.Vec3hArray([Gf.Vec3h(1, 1, 1)] * len(rig.joints))
     anim.CreateScalesAttr(scales)
     rot_attr, tr_attr, w_attr = (
         anim.CreateRotationsAttr(),
@@ -475,20 +519,21 @@ def build(out: Path, subdivisions: int = 3, texture_size: int = 4096, seed: int 
     for k, t in enumerate(times):
         q = np.array(anim0.GetRotationsAttr().Get(t))  # (J, 4) as (i, j, k, r)
         bend = np.radians(curl[k]) / 2
-        fq = np.tile([0.0, 0.0, -np.sin(bend), np.cos(bend)], (len(fingers), 1))  # about local Z
+        fq = np.tile([0.0, 0.0, -np.sin(bend), np.cos(bend)], (len(rig.fingers), 1))  # local Z
         rot_attr.Set(Vt.QuatfArray.FromNumpy(np.concatenate([q, fq]).astype(np.float32)), t)
         tr = np.array(anim0.GetTranslationsAttr().Get(t))
         tr_attr.Set(Vt.Vec3fArray.FromNumpy(np.concatenate([tr, finger_t]).astype(np.float32)), t)
         w_attr.Set(Vt.FloatArray.FromNumpy(faces[k]), t)
-    UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets(
+    UsdSkel.BindingAPI.Apply(rig.skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets(
         [anim.GetPath()]
     )
 
-    looks = {
-        name: _material(stage, name, textures[key])
-        for name, key in (("Body", "body"), ("Gloves", "gloves"), ("Eyes", "eyes"))
-    }
-    # The body: the sample's mesh with the face's shapes, subdivided.
+
+def _body(
+    stage: Usd.Stage, base: Usd.Stage, rig: _Rig, look, subdivisions: int
+) -> tuple[list[str], dict]:
+    """The body: the sample's mesh with the face's shapes, subdivided and displaced; its
+    blend shapes' names and the face's shapes."""
     body0 = UsdGeom.Mesh(base.GetPrimAtPath("/Character/Body"))
     binding0 = UsdSkel.BindingAPI(body0.GetPrim())
     points = np.array(body0.GetPointsAttr().Get(), dtype=np.float64)
@@ -498,7 +543,7 @@ def build(out: Path, subdivisions: int = 3, texture_size: int = 4096, seed: int 
     colour = np.array(UsdGeom.PrimvarsAPI(body0).GetPrimvar("displayColor").Get(), dtype=np.float64)
     idx0 = np.array(binding0.GetJointIndicesPrimvar().Get()).reshape(-1, INFLUENCES)
     wts0 = np.array(binding0.GetJointWeightsPrimvar().Get()).reshape(-1, INFLUENCES)
-    dense = dense_skin_weights(idx0, wts0, len(all_joints))
+    dense = dense_skin_weights(idx0, wts0, len(rig.joints))
     face = face_shapes(points)
     vertex = {"skin": dense, "colour": colour}
     for name, (offsets, inbetweens) in face.items():
@@ -510,43 +555,46 @@ def build(out: Path, subdivisions: int = 3, texture_size: int = 4096, seed: int 
     if subdivisions:
         points = points + displacement(points, tris)
     idx, wts = sparse_skin_weights(vertex["skin"], INFLUENCES)
-    body = _mesh(
-        stage,
-        "/Character/Body",
-        skeleton,
-        points,
-        tris,
-        corner_uv,
-        idx,
-        wts,
-        looks["Body"],
-        vertex["colour"],
-    )
-    names = []
-    for name, (_, inbetweens) in face.items():
-        offsets = vertex[name]
-        moved = np.flatnonzero(np.abs(offsets).max(axis=1) > 1e-4)
-        shape = UsdSkel.BlendShape.Define(stage, f"/Character/Body/{name}")
-        shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(offsets[moved].astype(np.float32)))
-        shape.CreatePointIndicesAttr(Vt.IntArray.FromNumpy(moved.astype(np.int32)))
-        for between, (weight, _) in inbetweens.items():
-            inbetween = shape.CreateInbetween(between)
-            inbetween.SetWeight(weight)
-            inbetween.SetOffsets(Vt.Vec3fArray.FromNumpy(vertex[between][moved].astype(np.float32)))
-        names.append(name)
+    body = _mesh(stage, "/Character/Body", rig.skeleton, points, tris, corner_uv, idx, wts,
+                 look, vertex["colour"])  # fmt: skip
+    names = [
+        _blend_shape(stage, name, vertex, inbetweens) for name, (_, inbetweens) in face.items()
+    ]
     body_binding = UsdSkel.BindingAPI(body.GetPrim())
     body_binding.CreateBlendShapesAttr(Vt.TokenArray(names))
     body_binding.CreateBlendShapeTargetsRel().SetTargets(
         [Sdf.Path(f"/Character/Body/{n}") for n in names]
     )
+    return names, face
 
-    hp, ht, huv, hidx, hwts = hands_mesh(skel_points, fingers, all_joints)
-    vertex = {"skin": dense_skin_weights(hidx, hwts, len(all_joints))}
+
+def _blend_shape(stage: Usd.Stage, name: str, vertex: dict, inbetweens: dict) -> str:
+    """One of the body's blend shapes, on the vertices it moves, with its inbetweens."""
+    offsets = vertex[name]
+    moved = np.flatnonzero(np.abs(offsets).max(axis=1) > 1e-4)
+    shape = UsdSkel.BlendShape.Define(stage, f"/Character/Body/{name}")
+    shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(offsets[moved].astype(np.float32)))
+    shape.CreatePointIndicesAttr(Vt.IntArray.FromNumpy(moved.astype(np.int32)))
+    for between, (weight, _) in inbetweens.items():
+        inbetween = shape.CreateInbetween(between)
+        inbetween.SetWeight(weight)
+        inbetween.SetOffsets(Vt.Vec3fArray.FromNumpy(vertex[between][moved].astype(np.float32)))
+    return name
+
+
+def _hands(stage: Usd.Stage, rig: _Rig, look, subdivisions: int) -> None:
+    """The gloved hands around the finger joints, one subdivision less than the body."""
+    hp, ht, huv, hidx, hwts = hands_mesh(rig.points, rig.fingers, rig.joints)
+    vertex = {"skin": dense_skin_weights(hidx, hwts, len(rig.joints))}
     for _ in range(max(0, subdivisions - 1)):
         hp, ht, huv, vertex = subdivide_triangles(hp, ht, huv, vertex)
     hidx, hwts = sparse_skin_weights(vertex["skin"], INFLUENCES)
-    _mesh(stage, "/Character/Hands", skeleton, hp, ht, huv, hidx, hwts, looks["Gloves"])
-    head = all_joints.index(next(j for j in all_joints if j.endswith("/head")))
+    _mesh(stage, "/Character/Hands", rig.skeleton, hp, ht, huv, hidx, hwts, look)
+
+
+def _eyes(stage: Usd.Stage, rig: _Rig, look) -> None:
+    """Two eyes bound rigidly to the head joint."""
+    head = rig.joints.index(next(j for j in rig.joints if j.endswith("/head")))
     eye_parts = [sphere(EYE * [side, 1, 1], EYE_RADIUS) for side in (1, -1)]
     offset = np.cumsum([0] + [len(p) for p, _, _ in eye_parts])
     ep = np.concatenate([p for p, _, _ in eye_parts])
@@ -556,22 +604,7 @@ def build(out: Path, subdivisions: int = 3, texture_size: int = 4096, seed: int 
     eidx[:, 0] = head
     ewts = np.zeros((len(ep), INFLUENCES), np.float32)
     ewts[:, 0] = 1.0
-    _mesh(stage, "/Character/Eyes", skeleton, ep, et, euv, eidx, ewts, looks["Eyes"])
-    stage.GetRootLayer().Save()
-    scene = write_scene(out, [n for n in names if n not in ANIMATED])
-    triangles = {
-        m: len(UsdGeom.Mesh(stage.GetPrimAtPath(f"/Character/{m}")).GetFaceVertexCountsAttr().Get())
-        for m in ("Body", "Hands", "Eyes")
-    }
-    return {
-        "usd": str(out / USD_NAME),
-        "scene": str(scene),
-        "joints": len(all_joints),
-        "blend_shapes": names,
-        "inbetweens": sum(len(b) for _, b in face.values()),
-        "triangles": triangles,
-        "seconds": round(time.monotonic() - start, 1),
-    }
+    _mesh(stage, "/Character/Eyes", rig.skeleton, ep, et, euv, eidx, ewts, look)
 
 
 def write_scene(out: Path, drawn: list[str]) -> Path:
