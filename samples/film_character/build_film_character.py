@@ -34,8 +34,8 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -456,8 +456,7 @@ def build(out: Path, subdivisions: int = 3, texture_size: int = 4096, seed: int 
     }
 
 
-@dataclass
-class _Rig:
+class _Rig(NamedTuple):
     """The built skeleton: the sample's joints and the added finger joints."""
 
     skeleton: UsdSkel.Skeleton
