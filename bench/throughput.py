@@ -98,7 +98,7 @@ def _step_rate(
     from rigspace.train.step import forward_loss, make_optimizer, optimise, to_torch
 
     config = preset(name)
-    have = int(read_manifest(folder)["resolution"])
+    have = read_manifest(folder).resolution
     row: dict[str, Any] = {
         "preset": name,
         "resolution": config.resolution,

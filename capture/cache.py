@@ -30,12 +30,15 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.render import Maps
+
+if TYPE_CHECKING:  # capture.dataset reads EXRs (OpenImageIO): only building needs it
+    from rigspace.capture.dataset import DatasetManifest
 
 FOLDER = "cache"
 FORMAT = "rigspace.decoded-cache"
@@ -96,7 +99,7 @@ def encode(maps: Maps) -> dict[str, Any]:
     }
 
 
-def _decode_chunk(task: tuple[str, dict[str, Any], Sequence[str]]) -> list[dict[str, Any]]:
+def _decode_chunk(task: tuple[str, DatasetManifest, Sequence[str]]) -> list[dict[str, Any]]:
     """Encode a chunk of samples (in a worker): a missing or damaged EXR is the DatasetError
     that names it and the capture that re-renders it (capture.dataset.read_sample)."""
     from rigspace.capture.dataset import read_sample  # OpenImageIO: only building needs it
@@ -164,7 +167,7 @@ class DecodedCache:
         return maps
 
 
-def stale_reason(folder: str | Path, manifest: dict[str, Any]) -> str | None:
+def stale_reason(folder: str | Path, manifest: DatasetManifest) -> str | None:
     """Why the cache of a dataset cannot be used (missing, another format, built from other
     samples); None when it is fresh."""
     folder = Path(folder)
@@ -177,14 +180,14 @@ def stale_reason(folder: str | Path, manifest: dict[str, Any]) -> str | None:
         return f"its index cannot be read ({exc})"
     if info.get("format") != FORMAT or info.get("version") != VERSION:
         return f"it was built by another rigspace (format {info.get('version')})"
-    if info.get("checksum") != manifest.get("checksum"):
+    if info.get("checksum") != manifest.checksum:
         return "the dataset's samples changed since it was built (manifest checksum)"
     if info.get("params") != params_digest(folder):
         return "params.npz changed since it was built"
     return None
 
 
-def open_cache(folder: str | Path, manifest: dict[str, Any]) -> DecodedCache | None:
+def open_cache(folder: str | Path, manifest: DatasetManifest) -> DecodedCache | None:
     """The dataset's fresh cache, or None (stale, missing or damaged: read the EXRs)."""
     if stale_reason(folder, manifest) is not None:
         return None
@@ -238,12 +241,12 @@ class _Index:
 def _decode_into(
     tmp: Path,
     folder: Path,
-    manifest: dict[str, Any],
+    manifest: DatasetManifest,
     chunks: list[list[str]],
     index: _Index,
     workers: int,
     progress: bool,
-    decode: Callable[[tuple[str, dict[str, Any], Sequence[str]]], list[dict[str, Any]]],
+    decode: Callable[[tuple[str, DatasetManifest, Sequence[str]]], list[dict[str, Any]]],
 ) -> bool | None:
     """Decode the chunks into tmp's pixel files and `index`; whether the samples are textured."""
     from tqdm import tqdm
@@ -264,8 +267,7 @@ def _decode_into(
         ) as bar,
     ):
         row = 0
-        small = {"scene": manifest.get("scene", "SCENE")}  # what read_sample's errors name
-        tasks = [(str(folder), small, chunk) for chunk in chunks]
+        tasks = [(str(folder), manifest, chunk) for chunk in chunks]
         for records in pool.map(decode, tasks):
             for record in records:
                 if textured is None:
@@ -297,11 +299,11 @@ def _replace_cache(folder: Path, tmp: Path) -> None:
 
 def build_cache(
     folder: str | Path,
-    manifest: dict[str, Any],
+    manifest: DatasetManifest,
     relatives: Sequence[str],
     workers: int = 0,
     progress: bool = True,
-    decode: Callable[[tuple[str, dict[str, Any], Sequence[str]]], list[dict[str, Any]]] = (
+    decode: Callable[[tuple[str, DatasetManifest, Sequence[str]]], list[dict[str, Any]]] = (
         _decode_chunk
     ),
 ) -> DecodedCache:
@@ -309,7 +311,7 @@ def build_cache(
     processes (0: one per core), with a progress bar. Written to a temporary folder and
     renamed into place, so an interrupted build leaves no half cache behind."""
     folder = Path(folder)
-    size = int(manifest["resolution"])
+    size = manifest.resolution
     tmp = folder / f".{FOLDER}.{os.getpid()}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
@@ -325,7 +327,7 @@ def build_cache(
         info = {
             "format": FORMAT,
             "version": VERSION,
-            "checksum": manifest.get("checksum"),
+            "checksum": manifest.checksum,
             "params": params_digest(folder),
             "resolution": size,
             "samples": n,

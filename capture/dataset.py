@@ -22,6 +22,7 @@ manifest.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import io
 import json
@@ -29,7 +30,7 @@ import os
 import shlex
 import zipfile
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -93,8 +94,290 @@ def resume_command(folder: str | Path) -> str:
     return shlex.join(args)
 
 
-def read_manifest(folder: str | Path) -> dict[str, Any]:
-    """A finished dataset's manifest, checked: the one reader that training and eval share."""
+@dataclass(frozen=True)
+class ManifestView:
+    """One camera of the capture ring as the manifest records it (capture.ring.RingView without
+    its vectors, which the ring's settings give again)."""
+
+    index: int
+    """Position in the ring's view list (training views first, then held-out ones)."""
+    azimuth: float
+    """Degrees, 0 = the stage's front, counter-clockwise seen from above."""
+    elevation: float
+    """Degrees above the horizontal plane through the look-at joint."""
+    held_out: bool
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "index": self.index,
+            "azimuth": self.azimuth,
+            "elevation": self.elevation,
+            "held_out": self.held_out,
+        }
+
+
+@dataclass(frozen=True)
+class ManifestRing:
+    """The capture ring (manifest `ring`): its camera and its views. A hand-written manifest
+    may give only the camera (radius, focal_length, horizontal_aperture): the rest reads empty."""
+
+    radius: float
+    """Distance from the look-at joint to every camera, scene units."""
+    focal_length: float
+    """Millimetres, as UsdGeom.Camera's focalLength."""
+    horizontal_aperture: float
+    """Millimetres, as UsdGeom.Camera's horizontalAperture."""
+    views_per_ring: int = 0
+    elevations: tuple[float, ...] = ()
+    """Degrees, one ring of training views per elevation."""
+    held_out_views_per_ring: int = 0
+    held_out_elevations: tuple[float, ...] = ()
+    clipping_range: tuple[float, ...] = ()
+    """(near, far) in scene units; empty when not recorded."""
+    views: tuple[ManifestView, ...] = ()
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "views_per_ring": self.views_per_ring,
+            "elevations": list(self.elevations),
+            "held_out_views_per_ring": self.held_out_views_per_ring,
+            "held_out_elevations": list(self.held_out_elevations),
+            "radius": self.radius,
+            "focal_length": self.focal_length,
+            "horizontal_aperture": self.horizontal_aperture,
+            "clipping_range": list(self.clipping_range),
+            "views": [view.to_json() for view in self.views],
+        }
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> ManifestRing:
+        return cls(
+            radius=data["radius"],
+            focal_length=data["focal_length"],
+            horizontal_aperture=data["horizontal_aperture"],
+            views_per_ring=data.get("views_per_ring", 0),
+            elevations=tuple(data.get("elevations", ())),
+            held_out_views_per_ring=data.get("held_out_views_per_ring", 0),
+            held_out_elevations=tuple(data.get("held_out_elevations", ())),
+            clipping_range=tuple(data.get("clipping_range", ())),
+            views=tuple(
+                ManifestView(v["index"], v["azimuth"], v["elevation"], v["held_out"])
+                for v in data.get("views", ())
+            ),
+        )
+
+
+@dataclass(frozen=True)
+class Renderer:
+    """The renderer that made the samples (manifest `renderer`)."""
+
+    name: str
+    """The renderer's name ("gl" or "embree", the capture's --renderer)."""
+    samples_per_axis: int
+    """Supersamples per pixel along each axis."""
+
+
+@dataclass(frozen=True)
+class ChartsFile:
+    """The dataset's texture charts (manifest `charts`): the file and how many charts it holds,
+    which the samples' chart AOV numbers 1..count."""
+
+    file: str
+    count: int
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """How many samples show nothing (manifest `coverage`: mask below `empty_below_pixels`)."""
+
+    empty_below_pixels: float
+    empty_samples: int
+    empty_by_view: dict[int, int]
+    """Per ring view index with any, its empty samples (ascending views)."""
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "empty_below_pixels": self.empty_below_pixels,
+            "empty_samples": self.empty_samples,
+            "empty_by_view": {str(view): n for view, n in self.empty_by_view.items()},
+        }
+
+
+@dataclass(frozen=True)
+class DatasetManifest:
+    """What a dataset's manifest.json declares (format version 1), read and checked once
+    (read_manifest, or from_json for a copy such as a pack's index): every reader takes its
+    fields from here, typed. `to_json` gives the document back exactly as finalize writes it.
+
+    A field an older or hand-written manifest lacks reads as its default: empty text, lists
+    and tables, or None where nothing can stand in (a section, meters_per_unit); to_json leaves
+    a None field out, as finalize leaves out `charts` and an empty `blend_shapes`."""
+
+    path: Path
+    """The manifest file (not part of the document)."""
+    joints: tuple[str, ...]
+    """Skeleton joint names, in the order of params.npz's `rig` rows."""
+    ring: ManifestRing
+    resolution: int
+    """Width and height of every sample, pixels."""
+    format: str = FORMAT
+    format_version: int = FORMAT_VERSION
+    scene: str = ""
+    """The scene as the capture was given it (a path), "" when not recorded."""
+    scene_fingerprint: str = ""
+    """sha256 over the bytes of every layer of the scene (capture.settings.scene_fingerprint)."""
+    character: str = ""
+    """The RigspaceNeuralCharacter prim's path."""
+    skeleton: str = ""
+    """The Skeleton prim's path."""
+    blend_shapes: tuple[str, ...] = ()
+    """Blend shapes whose weights params.npz's `blend` holds, in its order (none: no column)."""
+    look_at_joint: str = ""
+    rotation_encoding: str = "rot6d"
+    up_axis: str = "Y"
+    meters_per_unit: float | None = None
+    clips: tuple[Clip, ...] = ()
+    renderer: Renderer | None = None
+    channels: dict[str, str] = field(default_factory=dict, repr=False)
+    """Per channel group of a sample EXR, what it holds."""
+    charts: ChartsFile | None = None
+    """None: the character has no texture (and the samples no uv/chart AOVs)."""
+    params: dict[str, Any] = field(default_factory=dict, repr=False)
+    """params.npz described: its file, what some columns hold, and every column's name."""
+    counts: dict[str, int] = field(default_factory=dict)
+    """Samples in all ("samples"), work items ("items") and samples per split (SPLITS)."""
+    coverage: Coverage | None = None
+    splits: tuple[str, ...] = SPLITS
+    """The split names, in the order params.npz's `split` numbers them."""
+    bytes: int = 0
+    """Bytes of every sample EXR together."""
+    checksum: str = ""
+    """sha256 over every sample's path and sha256, params.npz and charts.json (finalize)."""
+    settings: dict[str, Any] = field(default_factory=dict, repr=False)
+    """The capture's settings as capture.json holds them (CaptureSettings.from_json reads it)."""
+
+    @property
+    def folder(self) -> Path:
+        return self.path.parent
+
+    @classmethod
+    def from_json(cls, data: Any, path: Path) -> DatasetManifest:
+        """Check a manifest document (DatasetError naming `path`, the field and the fix) and
+        type it."""
+        path = Path(path)
+        if not isinstance(data, dict) or (data.get("format"), data.get("format_version")) != (
+            FORMAT,
+            FORMAT_VERSION,
+        ):
+            found = data if not isinstance(data, dict) else data.get("format")
+            raise DatasetError(
+                f"{path} is not a {FORMAT} manifest of version {FORMAT_VERSION} (found {found!r}).",
+                "re-capture the dataset with this version of rigspace.",
+            )
+        wrong = problems(data, DATASET_MANIFEST) + _view_keys(data.get("coverage"))
+        if wrong:
+            raise DatasetError(
+                f"{path}: {'; '.join(wrong)}.",
+                f"restore the file, or re-capture the dataset (`{resume_command(path.parent)}` "
+                "rewrites it from the samples).",
+            )
+        return _typed_manifest(data, path)
+
+    def to_json(self) -> dict[str, Any]:
+        """The manifest's document: what finalize writes to manifest.json."""
+        document = {
+            "format": self.format,
+            "format_version": self.format_version,
+            "scene": self.scene,
+            "scene_fingerprint": self.scene_fingerprint,
+            "character": self.character,
+            "skeleton": self.skeleton,
+            "joints": list(self.joints),
+            "blend_shapes": list(self.blend_shapes) or None,
+            "look_at_joint": self.look_at_joint,
+            "rotation_encoding": self.rotation_encoding,
+            "up_axis": self.up_axis,
+            "meters_per_unit": self.meters_per_unit,
+            "clips": [
+                {"name": c.name, "first": c.first, "last": c.last, "held_out": c.held_out}
+                for c in self.clips
+            ],
+            "ring": self.ring.to_json(),
+            "resolution": self.resolution,
+            "renderer": None if self.renderer is None else asdict(self.renderer),
+            "channels": dict(self.channels),
+            "charts": None if self.charts is None else asdict(self.charts),
+            "params": copy.deepcopy(self.params),
+            "counts": dict(self.counts),
+            "coverage": None if self.coverage is None else self.coverage.to_json(),
+            "splits": list(self.splits),
+            "bytes": self.bytes,
+            "checksum": self.checksum,
+            "settings": copy.deepcopy(self.settings),
+        }
+        return {key: value for key, value in document.items() if value is not None}
+
+
+def _view_keys(coverage: Any) -> list[str]:
+    """A sentence per key of coverage.empty_by_view that is not a view index (problems() checks
+    the values' kinds only by path)."""
+    if not isinstance(coverage, dict) or not isinstance(coverage.get("empty_by_view"), dict):
+        return []
+    return [
+        f"'coverage.empty_by_view.{key}' is {value!r}, not a view's count of empty samples"
+        for key, value in coverage["empty_by_view"].items()
+        if not key.isdigit() or not isinstance(value, int) or isinstance(value, bool)
+    ]
+
+
+def _typed_manifest(data: dict[str, Any], path: Path) -> DatasetManifest:
+    """A checked manifest document's fields, typed (values as written: to_json gives them back
+    unchanged)."""
+    renderer, charts, coverage = data.get("renderer"), data.get("charts"), data.get("coverage")
+    return DatasetManifest(
+        path=path,
+        joints=tuple(data["joints"]),
+        ring=ManifestRing.from_json(data["ring"]),
+        resolution=data["resolution"],
+        format=data["format"],
+        format_version=data["format_version"],
+        scene=data.get("scene", ""),
+        scene_fingerprint=data.get("scene_fingerprint", ""),
+        character=data.get("character", ""),
+        skeleton=data.get("skeleton", ""),
+        blend_shapes=tuple(data.get("blend_shapes") or ()),
+        look_at_joint=data.get("look_at_joint", ""),
+        rotation_encoding=data.get("rotation_encoding", "rot6d"),
+        up_axis=data.get("up_axis", "Y"),
+        meters_per_unit=data.get("meters_per_unit"),
+        clips=tuple(
+            Clip(c["name"], c["first"], c["last"], c.get("held_out", False))
+            for c in data.get("clips", ())
+        ),
+        renderer=Renderer(renderer["name"], renderer["samples_per_axis"]) if renderer else None,
+        channels=dict(data.get("channels", {})),
+        charts=ChartsFile(charts["file"], charts["count"]) if charts else None,
+        params=copy.deepcopy(data.get("params", {})),
+        counts=dict(data.get("counts", {})),
+        coverage=(
+            Coverage(
+                coverage["empty_below_pixels"],
+                coverage["empty_samples"],
+                {int(view): n for view, n in coverage["empty_by_view"].items()},
+            )
+            if coverage is not None
+            else None
+        ),
+        splits=tuple(data.get("splits", SPLITS)),
+        bytes=data.get("bytes", 0),
+        checksum=data.get("checksum", ""),
+        settings=copy.deepcopy(data.get("settings", {})),
+    )
+
+
+def read_manifest(folder: str | Path) -> DatasetManifest:
+    """A finished dataset's manifest, checked and typed: the one reader that training and eval
+    share."""
     folder = Path(folder)
     fix = "point at a dataset folder written by `rigspace capture SCENE --out DIR`."
     if folder.exists() and not folder.is_dir():
@@ -109,30 +392,13 @@ def read_manifest(folder: str | Path) -> dict[str, Any]:
                 f"`{resume_command(folder)}`.",
             )
     try:
-        manifest = json.loads((folder / MANIFEST_FILE).read_text())
+        data = json.loads((folder / MANIFEST_FILE).read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise DatasetError(
             f"{folder / MANIFEST_FILE} is not readable JSON ({exc}).",
             f"run `{resume_command(folder)}` to rewrite it.",
         ) from exc
-    if not isinstance(manifest, dict) or (
-        manifest.get("format"),
-        manifest.get("format_version"),
-    ) != (FORMAT, FORMAT_VERSION):
-        found = manifest if not isinstance(manifest, dict) else manifest.get("format")
-        raise DatasetError(
-            f"{folder / MANIFEST_FILE} is not a {FORMAT} manifest of version {FORMAT_VERSION} "
-            f"(found {found!r}).",
-            "re-capture the dataset with this version of rigspace.",
-        )
-    wrong = problems(manifest, DATASET_MANIFEST)
-    if wrong:
-        raise DatasetError(
-            f"{folder / MANIFEST_FILE}: {'; '.join(wrong)}.",
-            f"restore the file, or re-capture the dataset (`{resume_command(folder)}` rewrites "
-            "it from the samples).",
-        )
-    return manifest
+    return DatasetManifest.from_json(data, folder / MANIFEST_FILE)
 
 
 @dataclass(frozen=True)
@@ -362,30 +628,24 @@ def _dataset_checksum(
     return digest.hexdigest()
 
 
-def _ring_json(settings: CaptureSettings) -> dict[str, Any]:
+def _ring(settings: CaptureSettings) -> ManifestRing:
     """The manifest's description of the capture ring and its views."""
-    return {
-        "views_per_ring": settings.views_per_ring,
-        "elevations": list(settings.elevations),
-        "held_out_views_per_ring": settings.held_out_views_per_ring,
-        "held_out_elevations": list(settings.held_out_elevations),
-        "radius": settings.radius,
-        "focal_length": settings.focal_length,
-        "horizontal_aperture": settings.horizontal_aperture,
-        "clipping_range": list(settings.clipping_range),
-        "views": [
-            {
-                "index": v.index,
-                "azimuth": v.azimuth,
-                "elevation": v.elevation,
-                "held_out": v.held_out,
-            }
-            for v in settings.views()
-        ],
-    }
+    return ManifestRing(
+        views_per_ring=settings.views_per_ring,
+        elevations=tuple(settings.elevations),
+        held_out_views_per_ring=settings.held_out_views_per_ring,
+        held_out_elevations=tuple(settings.held_out_elevations),
+        radius=settings.radius,
+        focal_length=settings.focal_length,
+        horizontal_aperture=settings.horizontal_aperture,
+        clipping_range=tuple(settings.clipping_range),
+        views=tuple(
+            ManifestView(v.index, v.azimuth, v.elevation, v.held_out) for v in settings.views()
+        ),
+    )
 
 
-def _channels_json(charts: dict[str, Any] | None) -> dict[str, str]:
+def _channels_json(charts: ChartsFile | None) -> dict[str, str]:
     """The manifest's description of a sample EXR's channels (texture AOVs when charted)."""
     return {
         "R,G,B": "albedo, linear, premultiplied by A",
@@ -397,7 +657,7 @@ def _channels_json(charts: dict[str, Any] | None) -> dict[str, str]:
                 "uv.U,uv.V": "USD st of the visible surface on its chart's texture (the "
                 "nearest sample's chart, mean over its samples on that chart), 0 where "
                 "chart is 0",
-                "chart": f"texture chart of the visible surface, 1..{charts['count']} "
+                "chart": f"texture chart of the visible surface, 1..{charts.count} "
                 f"({CHARTS_FILE}), 0: background or no texture",
             }
             if charts
@@ -423,59 +683,48 @@ def _params_json(settings: CaptureSettings, table: dict[str, np.ndarray]) -> dic
     }
 
 
-def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> dict[str, Any]:
+def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> DatasetManifest:
     """Assemble params.npz and manifest.json from every item's record (all must exist)."""
     records = [load_record(folder, item) for item in items]
     table_of_charts = read_charts(folder)
-    charts = (
-        {"file": CHARTS_FILE, "count": len(table_of_charts["charts"])} if table_of_charts else None
-    )
+    charts = ChartsFile(CHARTS_FILE, len(table_of_charts["charts"])) if table_of_charts else None
     table = {key: np.concatenate([r[key] for r in records]) for key in records[0]}
     params_bytes = npz_bytes(table)
     write_atomic(folder / PARAMS_FILE, params_bytes)
     split_counts = {s: int(np.sum(table["split"] == i)) for i, s in enumerate(SPLITS)}
     empty = empty_by_view(table["coverage"], table["view"])
-    checksum = _dataset_checksum(folder, table, params_bytes, charted=bool(charts))
-    total_bytes = int(sum((folder / str(p)).stat().st_size for p in table["path"]))
-    manifest = {
-        "format": FORMAT,
-        "format_version": FORMAT_VERSION,
-        "scene": settings.scene,
-        "scene_fingerprint": settings.scene_fingerprint,
-        "character": settings.character,
-        "skeleton": settings.skeleton,
-        "joints": list(settings.joints),
-        **({"blend_shapes": list(settings.blend_shapes)} if settings.blend_shapes else {}),
-        "look_at_joint": settings.look_at_joint,
-        "rotation_encoding": "rot6d",
-        "up_axis": settings.up_axis,
-        "meters_per_unit": settings.meters_per_unit,
-        "clips": [
-            {"name": c.name, "first": c.first, "last": c.last, "held_out": c.held_out}
-            for c in settings.clips
-        ],
-        "ring": _ring_json(settings),
-        "resolution": settings.resolution,
-        "renderer": {"name": settings.renderer, "samples_per_axis": settings.samples_per_axis},
-        "channels": _channels_json(charts),
-        **({"charts": charts} if charts else {}),
-        "params": _params_json(settings, table),
-        "counts": {"samples": len(table["path"]), "items": len(items), **split_counts},
-        "coverage": {
-            "empty_below_pixels": EMPTY_PIXELS,
-            "empty_samples": sum(empty.values()),
-            "empty_by_view": {str(v): n for v, n in empty.items()},
-        },
-        "splits": list(SPLITS),
-        "bytes": total_bytes,
-        "checksum": checksum,
-        "settings": settings.to_json(),
-    }
-    write_atomic(folder / MANIFEST_FILE, (json.dumps(manifest, indent=2) + "\n").encode())
+    manifest = DatasetManifest(
+        path=folder / MANIFEST_FILE,
+        scene=settings.scene,
+        scene_fingerprint=settings.scene_fingerprint,
+        character=settings.character,
+        skeleton=settings.skeleton,
+        joints=tuple(settings.joints),
+        blend_shapes=tuple(settings.blend_shapes),
+        look_at_joint=settings.look_at_joint,
+        rotation_encoding="rot6d",
+        up_axis=settings.up_axis,
+        meters_per_unit=settings.meters_per_unit,
+        clips=tuple(settings.clips),
+        ring=_ring(settings),
+        resolution=settings.resolution,
+        renderer=Renderer(settings.renderer, settings.samples_per_axis),
+        channels=_channels_json(charts),
+        charts=charts,
+        params=_params_json(settings, table),
+        counts={"samples": len(table["path"]), "items": len(items), **split_counts},
+        coverage=Coverage(EMPTY_PIXELS, sum(empty.values()), empty),
+        splits=SPLITS,
+        bytes=int(sum((folder / str(p)).stat().st_size for p in table["path"])),
+        checksum=_dataset_checksum(folder, table, params_bytes, charted=charts is not None),
+        settings=json.loads(json.dumps(settings.to_json())),  # as read back: lists, not tuples
+    )
+    text = json.dumps(manifest.to_json(), indent=2) + "\n"
+    write_atomic(folder / MANIFEST_FILE, text.encode())
     return manifest
 
 
-def read_sample(folder: Path, manifest: dict[str, Any], relative: str) -> Maps:
+def read_sample(folder: Path, manifest: DatasetManifest, relative: str) -> Maps:
     """A dataset sample's maps; a missing or damaged EXR is a DatasetError naming the file
     and the capture command that re-renders it (training and evaluation read through here)."""
     path = folder / relative
@@ -484,7 +733,7 @@ def read_sample(folder: Path, manifest: dict[str, Any], relative: str) -> Maps:
     except OSError as exc:  # sdk.exr.ExrError is an OSError, as is a file that went away
         state = "missing" if not path.is_file() else "damaged"
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        scene = manifest.get("scene", "SCENE")
+        scene = manifest.scene or "SCENE"
         raise DatasetError(
             f"Sample {path} of the dataset is {state} ({reason}).",
             f"re-render it: repeat the capture with --resume (`rigspace capture {scene} --out "

@@ -106,7 +106,7 @@ def write_shard(
     return {"bytes": size, "sha256": digest.hexdigest()}
 
 
-def _check_out(out: Path, manifest: dict[str, Any], samples_per_shard: int) -> dict | None:
+def _check_out(out: Path, manifest: ds.DatasetManifest, samples_per_shard: int) -> dict | None:
     """The index of an identical finished pack in `out` (then nothing to do), else None once
     `out` is known to be new, empty, or an unfinished pack (which is replaced)."""
     if out.exists() and not out.is_dir():
@@ -117,7 +117,7 @@ def _check_out(out: Path, manifest: dict[str, Any], samples_per_shard: int) -> d
     if index_path.is_file():
         index = json.loads(index_path.read_text())
         same = (
-            index.get("manifest", {}).get("checksum") == manifest["checksum"]
+            index.get("manifest", {}).get("checksum") == manifest.checksum
             and index.get("samples_per_shard") == samples_per_shard
         )
         if same:
@@ -186,7 +186,7 @@ def pack(
         "counts": {s: sum(x["count"] for x in shards if x["split"] == s) for s in SPLITS},
         "bytes": sum(x["bytes"] for x in shards),
         "shards": shards,
-        "manifest": manifest,
+        "manifest": manifest.to_json(),
     }
     ds.write_atomic(out / INDEX_FILE, (json.dumps(index, indent=1) + "\n").encode())
     return index

@@ -66,7 +66,7 @@ class CaptureResult:
     """Samples this run rendered (not counting items finished by earlier runs or other shards)."""
     seconds: float
     complete: bool
-    manifest: dict[str, Any] | None
+    manifest: ds.DatasetManifest | None
     timings: dict[str, float] = field(default_factory=dict)
     """Seconds spent per stage (pose, render, write) summed over workers."""
     repaired: list[ds.Damage] = field(default_factory=list)
@@ -85,12 +85,12 @@ class CaptureResult:
                 f"{k} {v:.1f} ms" for k, v in per.items()
             )
         if self.manifest:
-            counts = self.manifest["counts"]
+            counts = self.manifest.counts
             text += (
                 f"\ndataset complete: {counts['samples']} samples (train {counts['train']}, "
                 f"held-out views {counts['heldout-views']}, held-out clips "
-                f"{counts['heldout-clips']}), {self.manifest['bytes'] / 2**20:.1f} MiB, "
-                f"checksum {self.manifest['checksum'][:16]}"
+                f"{counts['heldout-clips']}), {self.manifest.bytes / 2**20:.1f} MiB, "
+                f"checksum {self.manifest.checksum[:16]}"
             )
         else:
             text += f"\n{self.samples_total - self.samples_done} samples remain for other shards"
@@ -518,7 +518,7 @@ def _render_items(
 
 def _complete_dataset(
     folder: Path, settings: CaptureSettings, rig: CharacterRig, items: list[ds.WorkItem]
-) -> dict[str, Any]:
+) -> ds.DatasetManifest:
     """Write a finished dataset's charts, manifest, contact sheet and capsules."""
     # The texture charts the samples' chart AOV numbers (before the manifest names them).
     ds.write_charts(folder, rig.texture_charts())
@@ -529,11 +529,10 @@ def _complete_dataset(
     return manifest
 
 
-def _empty_views(manifest: dict[str, Any] | None, tally: _Tally) -> tuple[dict[int, int], int]:
+def _empty_views(manifest: ds.DatasetManifest | None, tally: _Tally) -> tuple[dict[int, int], int]:
     """The empty samples per view, and how many samples they are counted among."""
-    if manifest is not None:
-        empty = {int(v): n for v, n in manifest["coverage"]["empty_by_view"].items()}
-        return empty, manifest["counts"]["samples"]
+    if manifest is not None and manifest.coverage is not None:
+        return dict(manifest.coverage.empty_by_view), manifest.counts["samples"]
     empty = ds.empty_by_view(
         np.concatenate(tally.coverage or [np.zeros(0)]),
         np.concatenate(tally.views or [np.zeros(0)]),

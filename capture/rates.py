@@ -44,7 +44,7 @@ def run(scene: Path, character: str, frames: tuple[float, float], views: int, si
                     "seconds": result.seconds,
                     "samples_per_s": n / result.seconds,
                     "ms_per_sample_one_core": {k: 1e3 * v / n for k, v in result.timings.items()},
-                    "bytes_per_sample": result.manifest["bytes"] / n if result.manifest else None,
+                    "bytes_per_sample": result.manifest.bytes / n if result.manifest else None,
                 }
             )
             print(_row(rows[-1]), flush=True)

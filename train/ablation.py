@@ -38,6 +38,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from rigspace.capture.dataset import DatasetManifest
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.model import BundleModel
 from rigspace.sdk.render import Maps
@@ -175,7 +176,7 @@ class DownsampledTable(DatasetTable):
 
     def __init__(self, folder: str | Path, resolution: int) -> None:
         super().__init__(folder)
-        full = int(self.manifest["resolution"])
+        full = self.manifest.resolution
         if full % resolution:
             raise RigspaceError(
                 f"Resolution {resolution} does not divide the dataset's {full}.",
@@ -560,7 +561,7 @@ def cost(dataset: Path, names: list[str], resolution: int = 128, rounds: int = 8
     return _cost_table(rows, groups, resolution)
 
 
-def _cost_inputs(dataset: Path) -> tuple[Any, np.ndarray, Any]:
+def _cost_inputs(dataset: Path) -> tuple[DatasetManifest, np.ndarray, Any]:
     """(the dataset's manifest, 64 evenly spaced training rig rows, the network's Shape)."""
     from rigspace.capture.dataset import read_manifest
     from rigspace.train.conditioning import parents_of

@@ -9,13 +9,16 @@ graphs and a frame passes J*2 numbers.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import nn
 
 from rigspace.sdk.conditioning import KINDS, Skeleton2D, bone_offsets, joint_parents
+
+if TYPE_CHECKING:
+    from rigspace.capture.dataset import DatasetManifest
 
 BONE_LENGTH_TOLERANCE = 1e-3
 """Largest change of a bone offset across the clips, as a share of the ring radius, that still
@@ -26,8 +29,8 @@ MAP_FLOOR = 20.0
 """Conditioning maps stop at exp(-MAP_FLOOR) (2e-9), a normal float32 (see ConditionMaps)."""
 
 
-def dataset_skeleton(folder: str | Path, manifest: dict[str, Any]) -> Skeleton2D:
-    """The bone offsets of a dataset's character, read once from its scene (manifest "scene").
+def dataset_skeleton(folder: str | Path, manifest: DatasetManifest) -> Skeleton2D:
+    """The bone offsets of a dataset's character, read once from its scene (manifest `scene`).
 
     Offsets are taken at each clip's first frame and must agree (a rig that stretches its
     bones cannot be conditioned this way); the view is the capture ring's.
@@ -36,7 +39,7 @@ def dataset_skeleton(folder: str | Path, manifest: dict[str, Any]) -> Skeleton2D
     from rigspace.sdk.posing import CharacterRig
     from rigspace.sdk.stage import open_stage
 
-    scene = Path(str(manifest.get("scene", "")))
+    scene = Path(manifest.scene)
     if not scene.is_file():
         raise DatasetError(
             f"Pose conditioning reads the character's skeleton from the dataset's scene "
@@ -44,33 +47,31 @@ def dataset_skeleton(folder: str | Path, manifest: dict[str, Any]) -> Skeleton2D
             "restore the scene at that path, or train with --conditioning none.",
         )
     stage = open_stage(scene)  # held while the rig is used: prims expire with their stage
-    rig = CharacterRig(stage.GetPrimAtPath(manifest["character"]))
-    joints = list(manifest["joints"])
+    rig = CharacterRig(stage.GetPrimAtPath(manifest.character))
+    joints = list(manifest.joints)
     if list(rig.joints) != joints:
         raise DatasetError(
-            f"The skeleton of {manifest['character']} in {scene} no longer has the dataset's "
+            f"The skeleton of {manifest.character} in {scene} no longer has the dataset's "
             f"joints (dataset {folder}).",
             "re-capture the dataset, or train with --conditioning none.",
         )
     parents = joint_parents(joints)
-    offsets = [
-        bone_offsets(rig.world_transforms(clip["first"]), parents) for clip in manifest["clips"]
-    ]
-    ring = manifest["ring"]
+    offsets = [bone_offsets(rig.world_transforms(clip.first), parents) for clip in manifest.clips]
+    ring = manifest.ring
     spread = float(np.max(np.ptp(np.stack(offsets), axis=0)))
-    if spread > BONE_LENGTH_TOLERANCE * ring["radius"]:
+    if spread > BONE_LENGTH_TOLERANCE * ring.radius:
         raise DatasetError(
-            f"The bones of {manifest['character']} change length between clips (by {spread:.3g} "
+            f"The bones of {manifest.character} change length between clips (by {spread:.3g} "
             "scene units); pose conditioning assumes a rigid skeleton.",
             "train with --conditioning none.",
         )
     return Skeleton2D(
         parents,
         offsets[0],
-        joints.index(manifest["look_at_joint"]),
-        float(ring["radius"]),
-        float(ring["focal_length"]),
-        float(ring["horizontal_aperture"]),
+        joints.index(manifest.look_at_joint),
+        float(ring.radius),
+        float(ring.focal_length),
+        float(ring.horizontal_aperture),
     )
 
 

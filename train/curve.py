@@ -40,10 +40,9 @@ from rigspace.sdk.render import Maps
 from rigspace.train.ablation import save_figure
 from rigspace.train.budget import trained_levels
 from rigspace.train.conditioning import dataset_skeleton
-from rigspace.train.config import TrainConfig
 from rigspace.train.data import depth_scale
 from rigspace.train.evaluate import DatasetTable, compare
-from rigspace.train.loop import build_model, load_checkpoint
+from rigspace.train.loop import build_model, load_checkpoint, read_run
 from rigspace.train.network import Rig2Image, albedo_maps, geometry_maps
 from rigspace.train.predictor import to_maps
 
@@ -149,15 +148,14 @@ def measure(
     from rigspace.train.distributed import resolve_device
 
     folder = run_folder(model_dir)
-    run = json.loads((folder / "run.json").read_text())
-    config = TrainConfig.from_json(run["config"])
+    config = read_run(folder).train_config()
     clock = logged_clock(folder / "log.jsonl")
     sampled = sampled_clock(clock_file) if clock_file else None
     table = DatasetTable(dataset, config.resolution)
     manifest = read_manifest(dataset)
     skeleton = dataset_skeleton(dataset, manifest) if config.conditioning != "none" else None
     scale = depth_scale(manifest)
-    splits = [s for s in SPLITS if manifest["counts"].get(s, 0)]  # a capture may lack clips
+    splits = [s for s in SPLITS if manifest.counts.get(s, 0)]  # a capture may lack clips
     steps = {path: int(load_checkpoint(path)["step"]) for path in checkpoints}
     by_step = {  # copies of one checkpoint: once; the final level faded in (train.budget)
         s: p for p, s in sorted(steps.items()) if config.resolution in trained_levels(config, s)
@@ -261,9 +259,7 @@ def main(argv: list[str] | None = None) -> int:
             f"rigspace curve: none of the {len(paths)} checkpoints is past the final level's "
             "fade-in."
         )
-    resolution = TrainConfig.from_json(
-        json.loads((run_folder(args.model) / "run.json").read_text())["config"]
-    ).resolution
+    resolution = read_run(run_folder(args.model)).train_config().resolution
     plot(
         points,
         args.out,

@@ -12,13 +12,18 @@ from __future__ import annotations
 import sys
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from rigspace.capture.cache import FOLDER as CACHE_FOLDER
 from rigspace.capture.cache import build_cache, open_cache, stale_reason
-from rigspace.capture.dataset import DatasetError, read_charts, read_manifest, read_sample
+from rigspace.capture.dataset import (
+    DatasetError,
+    DatasetManifest,
+    read_charts,
+    read_manifest,
+    read_sample,
+)
 from rigspace.capture.ring import stage_axes
 from rigspace.sdk.conditioning import Skeleton2D, joints2d
 from rigspace.sdk.render import Maps
@@ -28,15 +33,15 @@ from rigspace.train.config import check_oversample
 SPLITS = ("train", "heldout-views", "heldout-clips")
 
 
-def depth_scale(manifest: dict[str, Any]) -> float:
+def depth_scale(manifest: DatasetManifest) -> float:
     """Depth unit for training: half the visible extent at the joint's distance, scene units.
 
     S = radius * tan(half field of view) = radius * (aperture / 2) / focal length. Relative
     depth (depth - joint depth) / S is then about [-1, 1] across the character whatever
     the scene's units, as the paper's 1/s depth scaling at run time expects.
     """
-    ring = manifest["ring"]
-    return float(ring["radius"] * (ring["horizontal_aperture"] / 2.0) / ring["focal_length"])
+    ring = manifest.ring
+    return float(ring.radius * (ring.horizontal_aperture / 2.0) / ring.focal_length)
 
 
 def area_downsample(x: np.ndarray, factor: int) -> np.ndarray:
@@ -157,12 +162,12 @@ class SplitInfo:
     `make_item`, so the two readers yield exactly the same keys and values.
     """
 
-    def __init__(self, manifest: dict[str, Any], split: str, resolution: int | None) -> None:
+    def __init__(self, manifest: DatasetManifest, split: str, resolution: int | None) -> None:
         if split not in SPLITS:
             raise DatasetError(f"Unknown split {split!r}.", f"use one of {', '.join(SPLITS)}.")
         self.manifest = manifest
         self.split = split
-        self.dataset_resolution = int(self.manifest["resolution"])
+        self.dataset_resolution = self.manifest.resolution
         self.resolution = resolution or self.dataset_resolution
         if self.resolution > self.dataset_resolution or self.dataset_resolution % self.resolution:
             raise DatasetError(
@@ -171,7 +176,7 @@ class SplitInfo:
                 f"use --resolution {self.dataset_resolution} or a power of two below it.",
             )
         self.depth_scale = depth_scale(self.manifest)
-        self.joints = list(self.manifest["joints"])
+        self.joints = list(self.manifest.joints)
         self.skeleton: Skeleton2D | None = None
         """Set (train.conditioning.dataset_skeleton) to add each item's `joints2d`."""
         self.charts: tuple[np.ndarray, np.ndarray] | None = None
@@ -221,7 +226,7 @@ class SplitInfo:
         return {key: np.stack([it[key] for it in items]) for key in items[0]}
 
 
-def ensure_cache(folder: str | Path, manifest: dict[str, Any], progress: bool = True) -> str:
+def ensure_cache(folder: str | Path, manifest: DatasetManifest, progress: bool = True) -> str:
     """Build the dataset's decoded cache (capture.cache) unless a fresh one is there; returns
     one line saying what happened. A cache that cannot be written (a read-only folder, a
     full disk) is reported and training reads the EXRs instead."""
@@ -292,12 +297,12 @@ class SampleSet(SplitInfo):
                     f"{self.folder / 'params.npz'} has no {', '.join(missing)} column, which "
                     "--oversample needs to tell a sample's frame and camera.",
                     f"re-capture the dataset with this rigspace (`rigspace capture "
-                    f"{self.manifest.get('scene', 'SCENE')} --out NEW_DIR`), or train with "
+                    f"{self.manifest.scene or 'SCENE'} --out NEW_DIR`), or train with "
                     "--oversample 0.",
                 )
             keys = np.stack([columns["clip"].astype(np.float64), columns["time"]], axis=1)
             _, first, frame_of = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-            up = stage_axes(str(self.manifest.get("up_axis", "Y")))[0]
+            up = stage_axes(self.manifest.up_axis)[0]
             rows = self.rows[first]
             rotations = self.rig[rows][:, : 6 * len(self.joints)]
             features = pose_features(rotations, columns["camera_to_world"][first], up)

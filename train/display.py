@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rigspace.capture.dataset import DatasetManifest
 from rigspace.sdk.model import BundleModel
 from rigspace.sdk.render import Maps
 from rigspace.sdk.texturing import ChartTextures, TextureMismatch, display_colour, region_warper
@@ -37,7 +38,9 @@ from rigspace.train.predictor import MASK_VALID
 MODES = ("runtime", "albedo branch", "bilinear")
 
 
-def scene_textures(model: BundleModel, manifest: dict) -> tuple[ChartTextures | None, str]:
+def scene_textures(
+    model: BundleModel, manifest: DatasetManifest
+) -> tuple[ChartTextures | None, str]:
     """The textures of the dataset's character by the bundle's charts (its scene opened
     read-only), and why there are none ("" when there are)."""
     if not model.charts:
@@ -45,8 +48,8 @@ def scene_textures(model: BundleModel, manifest: dict) -> tuple[ChartTextures | 
     from rigspace.sdk.posing import CharacterRig
     from rigspace.sdk.stage import open_stage
 
-    stage = open_stage(manifest["scene"])
-    rig = CharacterRig(stage.GetPrimAtPath(manifest["character"]))
+    stage = open_stage(manifest.scene)
+    rig = CharacterRig(stage.GetPrimAtPath(manifest.character))
     table = model.chart_table()
     assert table is not None
     try:

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import cv2
 import numpy as np
 
-from rigspace.capture.dataset import PARAMS_FILE, DatasetError, read_manifest
+from rigspace.capture.dataset import PARAMS_FILE, DatasetError, DatasetManifest, read_manifest
 from rigspace.capture.ring import SPLITS, TRAIN
 from rigspace.sdk.render import Maps
 from rigspace.sdk.rotations import rig_inputs
@@ -69,7 +69,7 @@ class DatasetTable:
 
     def __init__(self, folder: str | Path, resolution: int | None = None) -> None:
         self.folder = Path(folder)
-        self.manifest: dict[str, Any] = read_manifest(self.folder)
+        self.manifest: DatasetManifest = read_manifest(self.folder)
         self._params = np.load(self.folder / PARAMS_FILE, allow_pickle=False)
         self._columns: dict[str, np.ndarray] = {}
         self._shard_sets: dict[int, ShardSet] = {}
@@ -108,7 +108,7 @@ class DatasetTable:
 
     @property
     def captured_resolution(self) -> int:
-        return int(self.manifest["resolution"])
+        return self.manifest.resolution
 
     @property
     def resolution(self) -> int:
@@ -121,7 +121,7 @@ class DatasetTable:
             raise DatasetError(f"Unknown split {split!r}.", f"choose one of {', '.join(SPLITS)}.")
         rows = np.flatnonzero(self.column("split") == SPLITS.index(split))
         if rows.size == 0:
-            counts = ", ".join(f"{s} {self.manifest['counts'].get(s, 0)}" for s in SPLITS)
+            counts = ", ".join(f"{s} {self.manifest.counts.get(s, 0)}" for s in SPLITS)
             raise DatasetError(
                 f"Split {split!r} of {self.folder} is empty (samples per split: {counts}).",
                 "capture with held-out views (the ring's heldOutViewsPerRing or "
@@ -309,7 +309,7 @@ def evaluate(
     report: dict[str, Any] = {
         "predictor": predictor.name,
         "dataset": str(table.folder),
-        "dataset_checksum": table.manifest.get("checksum"),
+        "dataset_checksum": table.manifest.checksum or None,
         "split": split,
         "samples": len(per_sample),
         "indices": [int(i) for i in rows],

@@ -45,7 +45,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from rigspace.capture.dataset import CHARTS_FILE, read_manifest
+from rigspace.capture.dataset import CHARTS_FILE, DatasetManifest, read_manifest
 from rigspace.sdk.bundle import CONDITIONED_VERSION, FORMAT, FORMAT_VERSION, ModelManifest
 from rigspace.sdk.capsules import FILE_NAME as CAPSULES
 from rigspace.sdk.capsules import read_capsules
@@ -58,7 +58,7 @@ from rigspace.train.config import TrainConfig
 from rigspace.train.data import SampleSet, depth_scale
 from rigspace.train.graphs import INPUTS, BranchAtLevel, Trunk, output_names
 from rigspace.train.int8check import TOLERANCES, check_int8, rig_feeds
-from rigspace.train.loop import CHECKPOINT, RUN_FILE, TrainingError, build_model
+from rigspace.train.loop import CHECKPOINT, RUN_FILE, RunRecord, TrainingError, build_model
 from rigspace.train.network import Rig2Image
 from rigspace.train.quantize import int8_name
 from rigspace.train.torch_predictor import CHECK_TOLERANCE, WEIGHTS, TorchRunner
@@ -170,9 +170,9 @@ def export_bundle(
     """
     run_folder, out = Path(run_folder), Path(out)
     model, run, step = _trained_run(run_folder)
-    config = TrainConfig.from_json(run["config"])
+    config = run.train_config()
     resolutions = [r for r in model.albedo.resolutions if r <= trained_levels(config, step)[-1]]
-    dataset = Path(run["dataset"])
+    dataset = Path(run.dataset)
     data_manifest = read_manifest(dataset)
     # Capsules are fitted to the character, not trained: the dataset's copy wins; without
     # one, those already in the bundle (added by `python -m rigspace.sdk.capsules`) stay.
@@ -212,7 +212,7 @@ def export_bundle(
             "outputs": ["chart", "uv"],
         }
         written.append(CHARTS_FILE)
-    written.append(add_weights(out, manifest, model, step, run["config"], rows, split, skeleton))
+    written.append(add_weights(out, manifest, model, step, run.config, rows, split, skeleton))
     manifest["files"] = {
         name: {"bytes": (out / name).stat().st_size, "sha256": _sha256(out / name)}
         for name in sorted(written)
@@ -226,7 +226,7 @@ def export_bundle(
     return manifest
 
 
-def _trained_run(run_folder: Path) -> tuple[Rig2Image, dict[str, Any], int]:
+def _trained_run(run_folder: Path) -> tuple[Rig2Image, RunRecord, int]:
     """The run's network at its checkpoint, its run.json and step; a TrainingError when it
     has trained no level yet."""
     if (run_folder / RUN_FILE).is_file() and not (run_folder / CHECKPOINT).is_file():
@@ -235,7 +235,7 @@ def _trained_run(run_folder: Path) -> tuple[Rig2Image, dict[str, Any], int]:
             "train longer: continue it with --resume (and a larger --steps or --minutes).",
         )
     model, run, step = build_model(run_folder)
-    if not trained_levels(TrainConfig.from_json(run["config"]), step):
+    if not trained_levels(run.train_config(), step):
         raise TrainingError(
             f"The run in {run_folder} has trained no level yet (step {step}).",
             "train longer: continue it with --resume (and a larger --steps or --minutes).",
@@ -324,24 +324,24 @@ TEXTURE_OUTPUTS = {
 
 def bundle_manifest(
     model: Rig2Image,
-    run: dict[str, Any],
+    run: RunRecord,
     step: int,
-    data_manifest: dict[str, Any],
+    data_manifest: DatasetManifest,
     trunk: dict[str, str],
     levels: list[dict[str, Any]],
     metrics: dict[str, Any] | None,
 ) -> dict[str, Any]:
     """The manifest's document for these graphs (export_bundle adds the conditioning, the
     int8 check, capsules, texture and files sections)."""
-    config = TrainConfig.from_json(run["config"])
-    ring = data_manifest["ring"]
+    config = run.train_config()
+    ring = data_manifest.ring
     return {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
-        "joints": list(run["joints"]),
-        **({"blend_shapes": list(run["blend_shapes"])} if run.get("blend_shapes") else {}),
+        "joints": list(run.joints),
+        **({"blend_shapes": list(run.blend_shapes)} if run.blend_shapes else {}),
         "rotation_encoding": "rot6d",
-        "look_at_joint": data_manifest["look_at_joint"],
+        "look_at_joint": data_manifest.look_at_joint,
         "maps": ["albedo", "normal", "depth", "mask"],
         "trunk": {"graphs": {"trunk": trunk["fp32"]}, "int8": {"trunk": trunk.get("int8")}},
         "levels": levels,
@@ -356,25 +356,29 @@ def bundle_manifest(
             "units": "scene units",
         },
         "training_camera": {
-            "distance": ring["radius"],
-            "focal_length": ring["focal_length"],
-            "horizontal_aperture": ring["horizontal_aperture"],
-            "resolution": data_manifest["resolution"],
+            "distance": ring.radius,
+            "focal_length": ring.focal_length,
+            "horizontal_aperture": ring.horizontal_aperture,
+            "resolution": data_manifest.resolution,
         },
-        "meters_per_unit": data_manifest["meters_per_unit"],
+        **(
+            {"meters_per_unit": data_manifest.meters_per_unit}
+            if data_manifest.meters_per_unit is not None
+            else {}
+        ),
         "dataset": {
-            "checksum": data_manifest["checksum"],
-            "scene_fingerprint": data_manifest["scene_fingerprint"],
-            "character": data_manifest["character"],
-            "samples": data_manifest["counts"],
+            "checksum": data_manifest.checksum,
+            "scene_fingerprint": data_manifest.scene_fingerprint,
+            "character": data_manifest.character,
+            "samples": dict(data_manifest.counts),
         },
         "training": {
-            "config": run["config"],
+            "config": run.config,
             "steps": step,
             "planned_steps": config.total_steps(),
             "trained_levels": [level["resolution"] for level in levels],
             "planned_levels": list(model.albedo.resolutions),
-            **({"plan": run["plan"]} if run.get("plan") else {}),
+            **({"plan": run.plan} if run.plan else {}),
         },
         "metrics": metrics or {},
     }

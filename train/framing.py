@@ -39,7 +39,7 @@ def centred_extent(mask: np.ndarray) -> float | None:
 def measure(dataset: str, samples: int = 600) -> dict[str, float]:
     """Percentiles of the centred extent over `samples` evenly spaced samples of every split."""
     table = DatasetTable(dataset)
-    counts = table.manifest["counts"]
+    counts = table.manifest.counts
     rows = np.concatenate([table.indices(s) for s in SPLITS if counts.get(s, 0)])
     picks = rows[np.unique(np.linspace(0, len(rows) - 1, min(samples, len(rows))).astype(int))]
     extents = [e for i in picks if (e := centred_extent(table.maps(int(i)).mask)) is not None]

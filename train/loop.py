@@ -35,10 +35,10 @@ import cv2
 import numpy as np
 import torch
 
-from rigspace.capture.dataset import DatasetError, read_manifest
+from rigspace.capture.dataset import DatasetError, DatasetManifest, read_manifest
 from rigspace.sdk.cli import sigterm_as_interrupt
 from rigspace.sdk.errors import RigspaceError
-from rigspace.sdk.fields import TRAINING_RUN, read_checked
+from rigspace.sdk.fields import TRAINING_RUN, problems, read_checked
 from rigspace.train import distributed
 from rigspace.train.budget import Pace, apply_plan, plan_schedule
 from rigspace.train.callbacks import (
@@ -68,6 +68,76 @@ PROBE_STEPS = 3
 
 class TrainingError(RigspaceError):
     """Training cannot start or cannot go on."""
+
+
+RUN_FIX = "restore it, or start the run over in a new --out."
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """What a training run's run.json records: the options and the dataset it trains on (a
+    resumed run must match them, `differences`), the network's input, and a time budget's plan.
+    Read and checked once (read_run); `to_json` is the file's document (run_record's)."""
+
+    config: dict[str, Any]
+    """The training options as written (`train_config` reads them, with the defaults of
+    options added since)."""
+    dataset: str
+    """The dataset (or shards) folder trained on, resolved."""
+    joints: tuple[str, ...]
+    """The dataset's joints: the rig input's order."""
+    dataset_checksum: str = ""
+    """The dataset manifest's checksum ("" when not recorded)."""
+    blend_shapes: tuple[str, ...] = ()
+    """Blend shapes whose weights follow the rotations in the rig input (none: not written)."""
+    charts: int | None = None
+    """The texture head's charts; None for a run without one."""
+    plan: dict[str, Any] | None = None
+    """A time budget's plan (train.budget.Plan.to_json); None without a budget."""
+
+    def train_config(self) -> TrainConfig:
+        return TrainConfig.from_json(self.config)
+
+    @property
+    def planned_steps_per_level(self) -> int | None:
+        """The steps per level the budget planned; None without a plan."""
+        return None if not self.plan else int(self.plan["steps_per_level"])
+
+    @classmethod
+    def from_json(cls, data: Any, path: Path) -> RunRecord:
+        """Check a run.json document (a TrainingError naming `path` and the field) and type it."""
+        wrong = problems(data, TRAINING_RUN) if isinstance(data, dict) else ["it is not an object"]
+        if wrong:
+            raise TrainingError(f"{path}: {'; '.join(wrong)}.", RUN_FIX)
+        return cls(
+            config=copy.deepcopy(data["config"]),
+            dataset=data["dataset"],
+            joints=tuple(data["joints"]),
+            dataset_checksum=data.get("dataset_checksum", ""),
+            blend_shapes=tuple(data.get("blend_shapes") or ()),
+            charts=data.get("charts"),
+            plan=copy.deepcopy(data["plan"]) if data.get("plan") else None,
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        document = {
+            "config": copy.deepcopy(self.config),
+            "dataset": self.dataset,
+            "dataset_checksum": self.dataset_checksum,
+            "joints": list(self.joints),
+            "blend_shapes": list(self.blend_shapes) or None,
+            "charts": self.charts,
+            "plan": copy.deepcopy(self.plan),
+        }
+        return {key: value for key, value in document.items() if value is not None}
+
+    def differences(self, other: RunRecord) -> list[str]:
+        """The fields this record has (a plan aside) that `other` records otherwise, by name;
+        options compared as TrainConfig reads them, so an option added since is its default."""
+        ours = replace(self, plan=None).to_json()
+        theirs = replace(other, config=other.train_config().to_json()).to_json()
+        ours, theirs = json.loads(json.dumps(ours)), json.loads(json.dumps(theirs))
+        return sorted(key for key in ours if theirs.get(key) != ours[key])
 
 
 @dataclass
@@ -153,7 +223,7 @@ def _preview(model, samples: SampleSet, resolution: int, path: Path) -> dict[str
 
 def prepare_run(
     dataset: Path, out: Path, config: TrainConfig, resume: bool
-) -> tuple[dict[str, Any], TrainConfig, dict[str, Any] | None]:
+) -> tuple[DatasetManifest, TrainConfig, RunRecord | None]:
     """Check the dataset and the run folder before any work.
 
     Returns the dataset manifest, the config to train with, and the run.json of the run
@@ -161,17 +231,17 @@ def prepare_run(
     steps per level when resumed with the same options.
     """
     manifest = read_manifest(dataset)
-    if config.texture and manifest.get("charts") is None and not resume:
+    if config.texture and manifest.charts is None and not resume:
         print(
             f"rigspace train: {dataset} has no texture charts (its character has no texture, "
             "or it was captured before texture AOVs): no texture head; the albedo head alone "
             "gives colour",
             file=sys.stderr,
         )
-    if config.resolution > manifest["resolution"]:
+    if config.resolution > manifest.resolution:
         raise TrainingError(
-            f"--resolution {config.resolution} is above the dataset's {manifest['resolution']}.",
-            f"train at {manifest['resolution']} or below, or capture at a higher resolution.",
+            f"--resolution {config.resolution} is above the dataset's {manifest.resolution}.",
+            f"train at {manifest.resolution} or below, or capture at a higher resolution.",
         )
     if out.exists() and not out.is_dir():
         raise TrainingError(f"{out} is a file, not a folder.", "choose a folder for --out.")
@@ -184,12 +254,9 @@ def prepare_run(
             f"{out} already holds a training run.",
             "pass --resume to continue it, or choose a new --out.",
         )
-    if existing.get("plan"):
-        config = replace(config, steps_per_level=int(existing["plan"]["steps_per_level"]))
-    wanted = json.loads(json.dumps(run_record(dataset, manifest, config)))  # tuples -> lists
-    if isinstance(existing.get("config"), dict):  # options added since: their defaults
-        existing["config"] = TrainConfig.from_json(existing["config"]).to_json()
-    differs = sorted(k for k in wanted if existing.get(k) != wanted[k])
+    if existing.planned_steps_per_level is not None:
+        config = replace(config, steps_per_level=existing.planned_steps_per_level)
+    differs = run_record(dataset, manifest, config).differences(existing)
     if differs:
         raise TrainingError(
             f"{out} holds a run with other settings or another dataset ({', '.join(differs)}).",
@@ -198,27 +265,24 @@ def prepare_run(
     return manifest, config, existing
 
 
-def read_run(folder: Path) -> dict[str, Any]:
-    """A run folder's run.json, checked against its spec (sdk.fields.TRAINING_RUN): a damaged
-    or hand-edited file is a TrainingError naming the field, never a traceback."""
-    fix = "restore it, or start the run over in a new --out."
-    return read_checked(folder / RUN_FILE, TRAINING_RUN, TrainingError, fix)
+def read_run(folder: Path) -> RunRecord:
+    """A run folder's run.json, checked against its spec (sdk.fields.TRAINING_RUN) and typed: a
+    damaged or hand-edited file is a TrainingError naming the field, never a traceback."""
+    path = folder / RUN_FILE
+    return RunRecord.from_json(read_checked(path, TRAINING_RUN, TrainingError, RUN_FIX), path)
 
 
-def run_record(dataset: Path, manifest: dict[str, Any], config: TrainConfig) -> dict[str, Any]:
-    """What run.json records of a run (a resumed run must match it)."""
-    record = {
-        "config": config.to_json(),
-        "dataset": str(Path(dataset).resolve()),
-        "dataset_checksum": manifest["checksum"],
-        "joints": manifest["joints"],
-    }
-    if manifest.get("blend_shapes"):  # the input's weights (runs without any record nothing)
-        record["blend_shapes"] = list(manifest["blend_shapes"])
+def run_record(dataset: Path, manifest: DatasetManifest, config: TrainConfig) -> RunRecord:
+    """What run.json records of a run (a resumed run must match it); no plan yet."""
     boxes = chart_boxes(dataset) if config.texture else None
-    if boxes is not None:  # the texture head's size (runs without one record nothing, as before)
-        record["charts"] = len(boxes[0]) - 1
-    return record
+    return RunRecord(
+        config=json.loads(json.dumps(config.to_json())),  # as read back: lists, not tuples
+        dataset=str(Path(dataset).resolve()),
+        dataset_checksum=manifest.checksum,
+        joints=manifest.joints,
+        blend_shapes=manifest.blend_shapes,  # the input's weights (none: not written)
+        charts=None if boxes is None else len(boxes[0]) - 1,  # the texture head's size
+    )
 
 
 def measure_step_seconds(
@@ -382,9 +446,9 @@ class _Run:
 
     dataset: Path
     out: Path
-    manifest: dict[str, Any]
+    manifest: DatasetManifest
     config: TrainConfig
-    existing: dict[str, Any] | None
+    existing: RunRecord | None
     """The run.json of the run being resumed; None for a new run."""
     samples: Any
     held_out: Any
@@ -425,7 +489,7 @@ def _set_up(
         len(samples.joints),
         parents=parents_of(samples.joints),
         charts=0 if boxes is None else len(boxes[0]) - 1,
-        blend_shapes=len(manifest.get("blend_shapes", ())),
+        blend_shapes=len(manifest.blend_shapes),
     )
     model = Rig2Image(shape, config)
     if model.conditioned:  # every item gets joints2d (train.conditioning)
@@ -454,12 +518,13 @@ def _plan(
             print(f"rigspace train: {plan.summary()}", file=sys.stderr)
         record = run_record(run.dataset, run.manifest, config)
         if plan is not None:
-            record["plan"] = plan.to_json()
+            record = replace(record, plan=plan.to_json())
         run.out.mkdir(parents=True, exist_ok=True)
-        (run.out / RUN_FILE).write_text(json.dumps(record, indent=2) + "\n")
+        (run.out / RUN_FILE).write_text(json.dumps(record.to_json(), indent=2) + "\n")
     config, plan = ctx.share(lambda: (config, plan))  # rank 0 planned and wrote run.json
-    planned = plan.to_json() if plan is not None else (run.existing or {}).get("plan") or {}
-    return config, planned
+    if plan is not None:
+        return config, plan.to_json()
+    return config, (run.existing.plan if run.existing else None) or {}
 
 
 def _run(
@@ -580,16 +645,16 @@ def flush_denormal(on: bool) -> bool:
 
 def build_model(
     run_folder: Path, checkpoint: Path | None = None
-) -> tuple[Rig2Image, dict[str, Any], int]:
+) -> tuple[Rig2Image, RunRecord, int]:
     """The trained model of a run folder (or of another `checkpoint` of the run, one kept
     while it trained), its run.json, and the step it reached."""
     run = read_run(run_folder)
-    config = TrainConfig.from_json(run["config"])
+    config = run.train_config()
     shape = Shape(
-        len(run["joints"]),
-        parents=parents_of(run["joints"]),
-        charts=int(run.get("charts", 0)),
-        blend_shapes=len(run.get("blend_shapes", ())),
+        len(run.joints),
+        parents=parents_of(list(run.joints)),
+        charts=run.charts or 0,
+        blend_shapes=len(run.blend_shapes),
     )
     model = Rig2Image(shape, replace(config, channels_last=False))
     state = load_checkpoint(checkpoint or run_folder / CHECKPOINT)

@@ -32,7 +32,7 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from rigspace.capture.dataset import DatasetError
+from rigspace.capture.dataset import DatasetError, DatasetManifest
 from rigspace.capture.pack import FORMAT, FORMAT_VERSION, INDEX_FILE
 from rigspace.sdk.exr import Maps, read_exr
 from rigspace.train.data import Prefetcher, SampleSet, SplitInfo
@@ -83,7 +83,8 @@ class ShardSet(SplitInfo):
     def __init__(self, folder: str | Path, split: str, resolution: int | None = None) -> None:
         self.folder = Path(folder)
         index = read_index(self.folder)
-        super().__init__(index["manifest"], split, resolution)
+        manifest = DatasetManifest.from_json(index["manifest"], self.folder / INDEX_FILE)
+        super().__init__(manifest, split, resolution)
         self.shards = [s for s in index["shards"] if s["split"] == split]
         self.starts = np.cumsum([0] + [s["count"] for s in self.shards])
         self._files: OrderedDict[int, BinaryIO] = OrderedDict()

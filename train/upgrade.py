@@ -15,7 +15,6 @@ checkpoint starts fresh (its shapes changed), so a later --resume restarts its m
 from __future__ import annotations
 
 import functools
-import json
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -23,7 +22,6 @@ from typing import Any
 import torch
 
 from rigspace.train.callbacks import LoopState, ProgressBar, StepLog, run_steps
-from rigspace.train.config import TrainConfig
 from rigspace.train.data import Prefetcher, SampleSet
 from rigspace.train.loop import (
     CHECKPOINT,
@@ -31,6 +29,7 @@ from rigspace.train.loop import (
     TrainingError,
     TrainResult,
     load_checkpoint,
+    read_run,
     save_checkpoint,
 )
 from rigspace.train.loss import downsample, mixed
@@ -63,21 +62,19 @@ def upgrade(
             f"{run_folder} holds no training run (no {RUN_FILE}).",
             "pass --out the model bundle folder that `rigspace train` wrote.",
         )
-    run = json.loads(run_file.read_text())
-    config = replace(TrainConfig.from_json(run["config"]), channels_last=False, bf16=False)
+    run = read_run(run_folder)
+    config = replace(run.train_config(), channels_last=False, bf16=False)
     checkpoint = load_checkpoint(run_folder / CHECKPOINT)
     # A run that has the alpha channel already trains it further (more --steps).
     upgrade_state(checkpoint["model"])
     samples = SampleSet(dataset, "train", config.resolution)
-    if samples.joints != run["joints"]:
+    if samples.joints != list(run.joints):
         raise TrainingError(
             f"{dataset} is not the dataset the run in {run_folder} trained on (other joints).",
-            f"pass the dataset it names: {run['dataset']}.",
+            f"pass the dataset it names: {run.dataset}.",
         )
     torch.manual_seed(config.seed)
-    model = Rig2Image(
-        Shape(len(run["joints"]), blend_shapes=len(run.get("blend_shapes", ()))), config
-    )
+    model = Rig2Image(Shape(len(run.joints), blend_shapes=len(run.blend_shapes)), config)
     model.load_state_dict(checkpoint["model"])
     heads = list(model.albedo.heads)
     for parameter in model.parameters():

@@ -304,8 +304,8 @@ def test_the_sample_character_captures(tmp_path):
     manifest = result.manifest
     assert result.complete and manifest is not None
     # 3 views x 2 elevations, and the ring's 4 held-out views per ring capped at 3.
-    assert manifest["counts"]["train"] == 6 * 6
-    assert manifest["counts"]["heldout-views"] == 6 * 6
+    assert manifest.counts["train"] == 6 * 6
+    assert manifest.counts["heldout-views"] == 6 * 6
     with np.load(result.folder / ds.PARAMS_FILE) as table:
         assert table["rig"].shape[1:] == (22, 6)
         first = read_exr(result.folder / str(table["path"][0]))
@@ -319,7 +319,7 @@ def test_held_out_clips_are_seen_from_training_views_only(tmp_path):
     result = capture(
         previs, "/World/Hero", tmp_path / "ds", overrides, progress=False, warn=warned.append
     )
-    counts = result.manifest["counts"]
+    counts = result.manifest.counts
     assert (counts["heldout-clips"], counts["train"], counts["heldout-views"]) == (240, 0, 0)
     # Only held-out material: said before rendering, and again in the summary.
     assert len(warned) == 1 and "every clip of this capture (wave) is held out" in warned[0]

@@ -45,7 +45,7 @@ def test_ray_capture_equals_one_process_even_when_a_worker_dies_mid_item(
     )
     # One task really died mid-item (its record gone, a sample truncated) and was re-run.
     assert not cluster.exists() and Path(f"{cluster}.fired").is_file()
-    assert result.complete and result.samples_done == dataset.manifest["counts"]["samples"]
+    assert result.complete and result.samples_done == dataset.manifest.counts["samples"]
     ours, theirs = tree(tmp_path / "ds"), tree(dataset.folder)
     assert sorted(ours) == sorted(theirs)
     assert [name for name in ours if ours[name] != theirs[name]] == []

@@ -117,7 +117,7 @@ def test_nothing_in_view_stops_early_with_a_radius_that_works(tmp_path):
     with scene_variant("tiny", tiny_far_scene_text()) as scene:
         overrides = CaptureOverrides(**{**SMALL.__dict__, "radius": radius, "frames": (1.0, 3.0)})
         fixed = capture(scene, CHARACTER, tmp_path / "fixed", overrides, workers=1, progress=False)
-    assert fixed.complete and fixed.manifest["coverage"]["empty_samples"] == 0
+    assert fixed.complete and fixed.manifest.coverage.empty_samples == 0
     with np.load(fixed.folder / ds.PARAMS_FILE) as table:
         assert table["coverage"].min() > 0.05 * 32 * 32
 
@@ -141,7 +141,7 @@ def test_empty_views_are_counted_in_a_warning(tmp_path):
     flat = with_character_ops(SCENE.read_text(), "float3 xformOp:scale = (1, 1, 0.0005)")
     result = capture_variant(tmp_path, "flat", flat)
     assert result.complete
-    assert result.manifest["coverage"]["empty_by_view"] == {"1": 6, "3": 6}
+    assert result.manifest.coverage.empty_by_view == {1: 6, 3: 6}
     (warning,) = result.warnings
     assert warning.startswith("12 of 48 samples show less than 4 pixels of /World/CesiumMan")
     assert "(view 1: 6, view 3: 6)" in warning and "warning: 12 of 48" in result.summary()

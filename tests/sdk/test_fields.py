@@ -110,7 +110,7 @@ def test_a_wrong_type_in_a_dataset_manifest_is_a_named_error(tmp_path, tiny_data
     fields = [f for f in DATASET_MANIFEST if present(manifest, f)]
     assert len(fields) >= len(DATASET_MANIFEST) - 2
     for field in fields:
-        folder = tmp_path / field.path.replace("[]", "")
+        folder = tmp_path / field.path.replace("[]", "-each")  # clips and clips[]: two folders
         folder.mkdir()
         (folder / "manifest.json").write_text(json.dumps(broken(manifest, field)))
         shutil.copy(tiny_dataset / "params.npz", folder / "params.npz")

@@ -107,7 +107,7 @@ def test_capture_runs_on_the_inherited_binding(scene, tmp_path):
     overrides = CaptureOverrides(views=2, elevations=(0.0,), resolution=16, frames=(10.0, 11.0))
     result = capture(scene, HERO, tmp_path / "ds", overrides, workers=1, progress=False)
     assert result.complete and result.settings.animation == ANIM
-    assert result.manifest["counts"]["train"] == 4  # 2 frames x 2 views
+    assert result.manifest.counts["train"] == 4  # 2 frames x 2 views
 
 
 def test_a_skelroot_binding_without_the_api_is_named_in_the_error(tmp_path):

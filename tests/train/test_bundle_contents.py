@@ -229,7 +229,7 @@ def test_a_damaged_sample_names_the_file_and_the_capture_that_re_renders_it(
     row = int(table.indices("train")[3])
     path = table.path(row)
     path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])  # truncated
-    scene = table.manifest["scene"]
+    scene = table.manifest.scene
     fix = f"`rigspace capture {scene} --out {dataset} --resume`"
     assert main(_train_args(dataset, tmp_path / "model", "--steps", "10")) == 2
     err = capsys.readouterr().err

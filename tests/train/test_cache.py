@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -73,7 +74,7 @@ def test_training_items_are_the_same_from_the_cache_and_the_exrs(dataset):
 def test_new_samples_or_params_make_it_stale_and_it_is_not_read(dataset):
     manifest = read_manifest(dataset)
     build_cache(dataset, manifest, paths_of(dataset), progress=False)
-    changed = {**manifest, "checksum": "0" * 64}
+    changed = replace(manifest, checksum="0" * 64)
     assert "samples changed" in stale_reason(dataset, changed)
     assert open_cache(dataset, changed) is None
     params = dataset / "params.npz"

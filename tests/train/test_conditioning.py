@@ -53,7 +53,7 @@ def test_joints2d_is_the_posed_skeleton_seen_by_the_capture_camera(tiny_dataset)
     with np.load(tiny_dataset / "params.npz") as table:
         columns = {k: table[k] for k in ("rig", "time", "camera_to_world", "intrinsics")}
     ours = joints2d(columns["rig"], skeleton).reshape(len(columns["rig"]), -1, 2)
-    size = manifest["resolution"]
+    size = manifest.resolution
     for k in range(len(ours)):
         world = rig.world_transforms(float(columns["time"][k]))[:, :3, 3]
         to_camera = np.linalg.inv(columns["camera_to_world"][k])
@@ -211,7 +211,7 @@ def test_unconditioned_bundles_keep_their_single_input(tiny_run, tmp_path):
 
 
 def test_conditioning_needs_the_dataset_scene(tiny_dataset, tmp_path):
-    manifest = dict(read_manifest(tiny_dataset), scene=str(tmp_path / "gone.usda"))
+    manifest = replace(read_manifest(tiny_dataset), scene=str(tmp_path / "gone.usda"))
     with pytest.raises(DatasetError, match=r"gone\.usda, which does not exist"):
         dataset_skeleton(tiny_dataset, manifest)
 
