@@ -21,6 +21,7 @@ from rigspace.runtime.lights import Light
 from rigspace.runtime.shading import MIN_DISTANCE, SHININESS, SPECULAR, light_uniforms
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.render import RendererSpec
+from rigspace.sdk.render.gl import FULL_SCREEN_VERTEX_SHADER
 
 GL_LIGHTING = ("hardware", "always", "never")
 """Where the engine lights in the fragment shader: "hardware" with the gl renderer on a GPU
@@ -30,13 +31,6 @@ MAX_LIGHTS = 16
 KEPT_TARGETS = 4
 """Texture sets kept per size: the full frame, and the characters' layers of recent frames."""
 
-_VERTEX = """
-#version 330 core
-void main() {  // one triangle over the whole viewport, no vertex buffer
-    vec2 corner = vec2(float((gl_VertexID & 1) << 2) - 1.0, float((gl_VertexID & 2) << 1) - 1.0);
-    gl_Position = vec4(corner, 0.0, 1.0);
-}
-"""
 
 _FRAGMENT = """
 #version 330 core
@@ -146,7 +140,9 @@ class GLShading:
         }
         self._program: Any
         with self._ctx:
-            self._program = self._ctx.program(vertex_shader=_VERTEX, fragment_shader=source)
+            self._program = self._ctx.program(
+                vertex_shader=FULL_SCREEN_VERTEX_SHADER, fragment_shader=source
+            )
             self._vao = self._ctx.vertex_array(self._program, [])
         self._targets: dict[tuple[int, int, int], dict[str, Any]] = {}
 

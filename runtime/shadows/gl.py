@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from rigspace.runtime.lights import DISTANT, Light
+from rigspace.sdk.render.gl import FULL_SCREEN_VERTEX_SHADER
 
 MAX_CAPSULES = 64
 """Capsules per draw; more are drawn in batches whose visibilities multiply. Each count gets
@@ -16,13 +17,6 @@ to a uniform count)."""
 ROW = 1024
 """Receivers per row of the points texture (a frame's candidates fill a few rows)."""
 
-_VERTEX = """
-#version 330 core
-void main() {  // one triangle over the whole viewport, no vertex buffer
-    vec2 corner = vec2(float((gl_VertexID & 1) << 2) - 1.0, float((gl_VertexID & 2) << 1) - 1.0);
-    gl_Position = vec4(corner, 0.0, 1.0);
-}
-"""
 
 _FRAGMENT = """
 #version 330 core
@@ -190,7 +184,9 @@ class GLCapsuleShadows:
             source = _FRAGMENT % {
                 "count": count, "groups": groups, "min_visibility": self._floor
             }  # fmt: skip
-            program = self._ctx.program(vertex_shader=_VERTEX, fragment_shader=source)
+            program = self._ctx.program(
+                vertex_shader=FULL_SCREEN_VERTEX_SHADER, fragment_shader=source
+            )
             self._programs[count, groups] = (program, self._ctx.vertex_array(program, []))
         return self._programs[count, groups]
 

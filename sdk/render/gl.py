@@ -110,7 +110,7 @@ void main() {
 }
 """
 
-RESOLVE_VERTEX_SHADER = """
+FULL_SCREEN_VERTEX_SHADER = """
 #version 330 core
 void main() {  // one triangle over the whole viewport, no vertex buffer
     vec2 corner = vec2(float((gl_VertexID & 1) << 2) - 1.0, float((gl_VertexID & 2) << 1) - 1.0);
@@ -380,7 +380,7 @@ class GLRenderer:
         if self._resolve_program is None:
             source = RESOLVE_FRAGMENT_SHADER % {"samples": self.settings.samples_per_axis}
             self._resolve_program = self._ctx.program(
-                vertex_shader=RESOLVE_VERTEX_SHADER, fragment_shader=source
+                vertex_shader=FULL_SCREEN_VERTEX_SHADER, fragment_shader=source
             )
             self._resolve_vao = self._ctx.vertex_array(self._resolve_program, [])
         if self._resolved_size != (width, height, count):
