@@ -184,6 +184,10 @@ class Engine:
         self.light_prims = light_prims(self.stage)
         spec = choose_renderer(renderer)
         self.renderer = spec.create(RenderSettings(prim_samples))
+        self._spec, self._prim_samples = spec, prim_samples
+        self._mesh_renderer: Any = None
+        """The reference mode's renderer of the characters' meshes (their own: the prims'
+        keeps its uploads while they are drawn apart)."""
         self._init_caches()
         self.shadows = PrimShadows(spec)
         self.gl_shading: GLShading | None = open_gl_shading(spec, gl_lighting)
@@ -285,6 +289,9 @@ class Engine:
         self.live.close()
         self._listener.Revoke()
         self.renderer.close()
+        if self._mesh_renderer is not None:
+            self._mesh_renderer.close()
+            self._mesh_renderer = None
         self.shadows.close()
         if self.gl_shading is not None:
             self.gl_shading.close()
@@ -608,14 +615,6 @@ class Engine:
         mode), the lights, the report's start and the shadow maps."""
         f.camera, f.camera_key = self._camera_at(f.time)
         f.scene_meshes = meshes = self.scene.meshes(f.time)
-        if self.reference:  # the meshes with their charts: the texture AOVs to compare with
-            meshes = meshes + [
-                m
-                for c in self.characters
-                for m in c.rig.posed_meshes(
-                    f.time, charts=True, weights=self._weights_of(c, f.time)
-                )
-            ]
         f.prims, f.reused = self._scene_maps(meshes, f.camera, f.camera_key)
         f.timings["scene"] = clock.perf_counter() - f.start
         f.lights = lights = self._lights_at(f.time)
@@ -650,17 +649,20 @@ class Engine:
 
     def _pose_stage(self, f: _FrameState) -> None:
         """Each character posed (its live pose and weights merged), its shadow capsules, its
-        billboard; those in view become the frame's candidates."""
+        billboard; those in view become the frame's candidates. In the reference mode too:
+        its skinned mesh then stands in for its network's maps (_evaluate_stage), lit,
+        shadowed and composited as they would be, so that the two modes differ only there."""
         for character in self.characters:
             entry: dict[str, Any] = {"path": character.path}
             f.report["characters"].append(entry)
-            if self.reference:
-                entry.update(decision="reference", reason="the skinned mesh, drawn by the renderer")
-                continue
             with f.timed("rig"):
                 candidate = self._pose_one(f, character, entry)
             if candidate is not None:
                 f.candidates.append(candidate)
+                if self.reference:
+                    entry.update(
+                        decision="reference", reason="the skinned mesh, drawn by the renderer"
+                    )
 
     def _pose_one(
         self, f: _FrameState, character: NeuralCharacter, entry: dict[str, Any]
@@ -690,6 +692,10 @@ class Engine:
     def _evaluate_stage(self, f: _FrameState) -> None:
         """Each candidate's branches, its reuse of the last layer when pose, weights and view
         hold, and one network call per (model, level, branches) for the rest."""
+        if self.reference:
+            with f.timed("network"):  # the stage that makes the characters' maps
+                self._mesh_layers(f)
+            return
         pending: dict[tuple[int, int, tuple[str, ...]], list[_Candidate]] = {}
         for c in f.candidates:
             branches, why = self._branches(c, f.candidates, f.prims.mask, bool(f.lights))
@@ -722,6 +728,22 @@ class Engine:
                     c.entry.update(decision="evaluated", batch=len(group))
         for c in f.candidates:
             self._describe(c, self._layers[c.character.path].layer)
+
+    def _mesh_layers(self, f: _FrameState) -> None:
+        """The reference mode's layers: each candidate's skinned mesh (with its texture charts,
+        the uv and chart AOVs to compare with) drawn alone over the whole frame."""
+        if self._mesh_renderer is None:
+            self._mesh_renderer = self._spec.create(RenderSettings(self._prim_samples))
+        for c in f.candidates:
+            meshes = c.character.rig.posed_meshes(
+                f.time, charts=True, weights=self._weights_of(c.character, f.time)
+            )
+            maps = self._mesh_renderer.render(meshes, f.camera)
+            layer = Layer(0, 0, maps.albedo, maps.mask, maps.depth, maps.normal, 0, BOTH,
+                          uv=maps.uv, chart=maps.chart)  # fmt: skip
+            self._layers[c.character.path] = _CachedLayer(
+                c.world[c.character.order], c.view, layer, weights=c.weights
+            )
 
     def _reused_composite(self, f: _FrameState) -> Frame:
         """The last frame's images with this frame's report: nothing it shows has changed."""
@@ -833,14 +855,13 @@ class Engine:
 
     def coverage_of(self, path: str, time: float) -> np.ndarray | None:
         """(H, W) a character's own coverage at `time`, before any depth test: its layer's in
-        the last frame (None when it was not drawn), or in the reference mode its skinned
-        mesh drawn alone (what `--reference` measures the network's silhouette against)."""
+        the last frame, rendered at `time` (None when it was not drawn); in the reference mode
+        its skinned mesh's, drawn alone (what `--reference` measures the network's silhouette
+        against)."""
         character = next((c for c in self.characters if c.path == path), None)
         if character is None:
             return None
         camera, _ = self._camera_at(time)
-        if self.reference:
-            return self.renderer.render(character.rig.posed_meshes(time), camera).mask
         cached = self._layers.get(path)
         if cached is None:
             return None

@@ -147,8 +147,31 @@ def test_reference_engine_draws_the_mesh_not_the_network():
     finally:
         e.close()
     assert frame.report["characters"][0]["decision"] == "reference"
-    assert frame.report["scene_prims"]["meshes"] == 6  # five prims and the character's mesh
+    assert frame.report["scene_prims"]["meshes"] == 5  # the prims; the mesh is the layer
     assert frame.maps.mask.max() == 1
+
+
+def test_the_reference_differs_from_the_network_only_in_the_character():
+    """The skinned mesh stands in for the network's maps and nothing else: it casts the same
+    capsule shadow, so the set around the character is the same image in both modes."""
+    frames, coverage = {}, {}
+    for reference in (False, True):
+        e = Engine(PREVIS, width=320, height=180, reference=reference)
+        try:
+            frame = e.render(1000.0)
+            frames[reference] = np.array(frame.beauty)
+            coverage[reference] = e.coverage_of(e.characters[0].path, 1000.0)
+            assert frame.report["shadows"]["casters"] == 1
+        finally:
+            e.close()
+    outside = (coverage[False] == 0) & (coverage[True] == 0)
+    gap = np.abs(frames[True] - frames[False]).max(axis=-1)[outside]
+    assert outside.sum() > 0.9 * outside.size and gap.max() < 1e-4
+    # What is compared holds the character's shadow on the ground (darker than the lit
+    # ground around it), so a reference without it would fail above.
+    assert (
+        frames[True].sum(axis=-1)[outside] < 0.5 * np.median(frames[True].sum(axis=-1))
+    ).sum() > 50
 
 
 def test_nan_animation_skips_the_character_for_that_frame_only(monkeypatch, capsys):
