@@ -28,8 +28,8 @@ GL_LIGHTING = ("hardware", "always", "never")
 (the default), "always" with the gl renderer (Mesa's llvmpipe too: the tests), "never"."""
 MAX_LIGHTS = 16
 """Lights per draw; more are shaded in batches whose colours add (shading is linear in them)."""
-KEPT_TARGETS = 4
-"""Texture sets kept per size: the full frame, and the characters' layers of recent frames."""
+GROWTH = 1.25
+"""The textures grow to this much more than the region that outgrew them."""
 
 
 _FRAGMENT = """
@@ -144,7 +144,9 @@ class GLShading:
                 vertex_shader=FULL_SCREEN_VERTEX_SHADER, fragment_shader=source
             )
             self._vao = self._ctx.vertex_array(self._program, [])
-        self._targets: dict[tuple[int, int, int], dict[str, Any]] = {}
+        self._targets: dict[str, Any] = {}
+        self._size = (0, 0, 0)
+        """(width, height, shadow layers) the textures hold."""
 
     def shade(
         self,
@@ -164,12 +166,13 @@ class GLShading:
         shadowed = [] if visibility is None else [v for v in visibility if v is not None]
         with self._ctx:
             textures = self._textures(w, h, max(len(shadowed), 1))
-            for name, array in (("albedo", albedo), ("normal", normal)):
-                textures[name].write(np.ascontiguousarray(array, np.float32))
-            textures["depth"].write(np.ascontiguousarray(depth, np.float32))
-            textures["mask"].write(np.ascontiguousarray(mask, np.float32))
+            corner = (0, 0, w, h)
+            for name, array in (("albedo", albedo), ("normal", normal), ("depth", depth),
+                                ("mask", mask)):  # fmt: skip
+                textures[name].write(np.ascontiguousarray(array, np.float32), viewport=corner)
             if shadowed:
-                textures["shadow"].write(np.ascontiguousarray(np.stack(shadowed), np.float32))
+                stacked = np.ascontiguousarray(np.stack(shadowed), np.float32)
+                textures["shadow"].write(stacked, viewport=(0, 0, 0, w, h, len(shadowed)))
             layers, next_layer = [], 0
             for v in visibility or [None] * len(lights):
                 layers.append(-1 if v is None else next_layer)
@@ -211,12 +214,21 @@ class GLShading:
         return np.frombuffer(data, np.float32).reshape(h, w, 3)
 
     def _textures(self, w: int, h: int, layers: int) -> dict[str, Any]:
-        key = (w, h, layers)
-        if key in self._targets:
-            self._targets[key] = self._targets.pop(key)  # the most recently used goes last
-            return self._targets[key]
-        while len(self._targets) >= KEPT_TARGETS:
-            _release(self._targets.pop(next(iter(self._targets))))
+        """The textures and target, grown (never shrunk) to hold a w x h region and `layers`
+        shadow layers: regions are written into and read from their lower-left w x h corner,
+        so a character whose layer changes size every frame allocates nothing."""
+        size = self._size
+        if w > size[0] or h > size[1] or layers > size[2]:
+            # Room for some growth at once: a character walking closer grows a little a frame.
+            grown = (max(w, size[0], int(w * GROWTH)), max(h, size[1], int(h * GROWTH)),
+                     max(layers, size[2]))  # fmt: skip
+            if self._targets:
+                _release(self._targets)
+            self._targets = self._allocate(*grown)
+            self._size = grown
+        return self._targets
+
+    def _allocate(self, w: int, h: int, layers: int) -> dict[str, Any]:
         ctx = self._ctx
         target = ctx.texture((w, h), 4, dtype="f4")
         textures: dict[str, Any] = {
@@ -230,13 +242,12 @@ class GLShading:
         }
         for name in ("albedo", "normal", "depth", "mask", "shadow"):
             textures[name].filter = (ctx.NEAREST, ctx.NEAREST)  # read by texelFetch only
-        self._targets[key] = textures
         return textures
 
     def close(self) -> None:
         with self._ctx:
-            for textures in self._targets.values():
-                _release(textures)
+            if self._targets:
+                _release(self._targets)
             self._targets = {}
             self._vao.release()
             self._program.release()

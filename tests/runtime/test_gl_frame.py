@@ -98,6 +98,33 @@ def test_the_compiled_shading_lights_a_region_as_numpy_does(copies, shadowed):
     assert np.all(compiled(*gbuffer, camera, [], (100, 40)) == 0)
 
 
+def test_one_shader_lights_regions_of_changing_sizes_without_mixing_them():
+    """Its textures grow and are reused: a smaller region is written into a corner of the
+    larger textures, and nothing of the last region leaks into the next."""
+    from rigspace.runtime.gl_shading import GLShading
+
+    _needs_gl()
+    rng = np.random.default_rng(7)
+    camera = Camera.look_at((0.3, 1.5, 5.0), (0, 1, 0), width=320, height=200,
+                            focal_length=35.0, horizontal_aperture=36.0)  # fmt: skip
+    lights = _lights()
+    shader = GLShading()
+    try:
+        for (h, w), shadowed in (((70, 90), True), ((30, 50), False), ((100, 120), True),
+                                 ((20, 20), True), ((100, 120), False)):  # fmt: skip
+            gbuffer = _gbuffer(rng, h, w)
+            visibility = None
+            if shadowed:
+                visibility = [None if light.kind == AMBIENT else
+                              rng.random((h, w)).astype(np.float32) for light in lights]  # fmt: skip
+            reference = shade(*gbuffer, camera, lights, (10, 20), visibility)
+            on_gl = shader.shade(*gbuffer, camera, lights, (10, 20), visibility)
+            assert on_gl.shape == (h, w, 3)
+            assert np.abs(on_gl - reference).max() < GL_TOLERANCE * reference.max(), (h, w)
+    finally:
+        shader.close()
+
+
 def test_a_previs_frame_lit_by_the_shader_matches_numpy():
     _needs_gl()
 
