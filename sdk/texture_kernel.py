@@ -60,7 +60,7 @@ def _bilinear(texels, levels, image, level, s, t, wrap_s, wrap_t, rgb):
 @nb.njit(cache=True, nogil=True)
 def sample_region(
     inverse, x0, y0, coverage, best, probabilities, coordinates, threshold, lod_bias, max_taps,
-    center, half, image, transform, wrap, bounds, texels, levels, level_count, out, used, st_out,
+    minor_taps, center, half, image, transform, wrap, bounds, texels, levels, level_count, out, used, st_out,
     chart_out,
 ):  # fmt: skip
     """See rigspace.sdk.texturing (the module doc and sample_region_reference)."""
@@ -180,7 +180,9 @@ def sample_region(
             # anisotropic box filter of the pixel.
             length_x = math.sqrt(dsx * dsx + dtx * dtx)
             length_y = math.sqrt(dsy * dsy + dty * dty)
-            cell = max(1.0, max(length_x, length_y) / max_taps)
+            cell = max(
+                1.0, min(length_x, length_y) / minor_taps, max(length_x, length_y) / max_taps
+            )
             taps_x = min(max_taps, max(1, math.ceil(length_x / cell - 1e-9)))
             taps_y = min(max_taps, max(1, math.ceil(length_y / cell - 1e-9)))
             lod = min(max(math.log2(cell) + lod_bias, 0.0), level_count[img] - 1.0)
