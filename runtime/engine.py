@@ -6,12 +6,15 @@
 Per frame: the camera at t; the scene's other prims drawn by the renderer plugin into a
 G-buffer (reused while neither they nor the camera move); per neural character the pose,
 its billboard, and (when visible) its network maps in the billboard's region, reused when
-pose and camera repeat; each layer lit by the scene's lights (runtime/shading.py) and
+pose and camera repeat; each layer lit by the scene's lights (runtime/shading.py's maths,
+compiled in shading_kernel.py, or in a fragment shader on a GPU: gl_shading.py) and
 shadowed (runtime/shadows/__init__.py: prims by shadow maps, characters by their capsules, onto
 each other); then a depth test composites the character over or under the prims, with its
-coverage as alpha at its edges, and a DomeLight fills what nothing covers. Every decision
-and every stage's time goes into the frame's report. A stage without lights renders unlit
-(beauty = albedo) and unshadowed. Imports no torch.
+coverage as alpha at its edges (composite_kernel.py), and a DomeLight fills what nothing
+covers. In the reference mode each character's skinned mesh stands in for its network's
+maps, and for nothing else. Every decision and every stage's time goes into the frame's
+report. A stage without lights renders unlit (beauty = albedo) and unshadowed. Imports no
+torch.
 """
 
 from __future__ import annotations
