@@ -23,6 +23,7 @@ import itertools
 import sys
 import time as clock
 from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -193,6 +194,11 @@ class Engine:
         keeps its uploads while they are drawn apart)."""
         self._init_caches()
         self.shadows = PrimShadows(spec)
+        self._network = ThreadPoolExecutor(max_workers=1, thread_name_prefix="rigspace-network")
+        """Runs the frame's network calls while the frame's thread lights the prims."""
+        self.overlap = True
+        """Light the prims while the networks run (False: one after the other, the same
+        images; 256x256 previs frame on 2 cores: 26.1 -> 23.5 ms, 512x512: 54 -> 49 ms)."""
         self.gl_shading: GLShading | None = open_gl_shading(spec, gl_lighting)
         """The fragment shader that lights the prims and the characters' layers; None: numpy."""
         self._compiled: CompiledPasses | None = None
@@ -291,6 +297,7 @@ class Engine:
     def close(self) -> None:
         self.live.close()
         self._listener.Revoke()
+        self._network.shutdown(wait=True)
         self.renderer.close()
         if self._mesh_renderer is not None:
             self._mesh_renderer.close()
@@ -583,6 +590,10 @@ class Engine:
         self._scene_stage(f)
         self._pose_stage(f)
         self._evaluate_stage(f)
+        beauty = None
+        if f.pending and self.overlap:  # the prims lit while the networks run (a new frame)
+            beauty = self._light_prims_stage(f)
+        self._finish_evaluation(f)
         f.report["counts"] = _counts(f.report["characters"])
         if self.live.active:
             f.report["live"] = self.live.report()
@@ -595,10 +606,11 @@ class Engine:
             tuple((path, posed.key) for path, posed in f.casters),
             tuple((c.character.path, self._layers[c.character.path].serial) for c in f.candidates),
         )
-        if self._frame is not None and self._frame[0] == frame_key:
+        if beauty is None and self._frame is not None and self._frame[0] == frame_key:
             return self._reused_composite(f)
         f.report["composite_reused"] = False
-        beauty = self._light_prims_stage(f)
+        if beauty is None:
+            beauty = self._light_prims_stage(f)
         frame = self._composite_stage(f, beauty)
         self._frame = (frame_key, frame)
         self._frame_at = time
@@ -718,10 +730,20 @@ class Engine:
             for c in (c for group in pending.values() for c in group):
                 c.rig = c.character.parameters(c.world, c.billboard, f.camera, c.weights)
         # One network call per (model, level, branches): characters sharing a bundle batch.
+        # They run on the network thread while this one lights the prims (render).
+        f.pending = [
+            (level, branches, group, self._network.submit(
+                group[0].character.model.predict,
+                np.concatenate([c.rig for c in group]), level, branches,
+            ))
+            for (_, level, branches), group in pending.items()
+        ]  # fmt: skip
+
+    def _finish_evaluation(self, f: _FrameState) -> None:
+        """The network calls' maps (waited for) resampled into the frame: the layers."""
         with f.timed("network"):
-            for (_, level, branches), group in pending.items():
-                model = group[0].character.model
-                out = model.predict(np.concatenate([c.rig for c in group]), level, branches)
+            for level, branches, group, call in f.pending:
+                out = call.result()
                 for k, c in enumerate(group):
                     mine = {name: value[k : k + 1] for name, value in out.items()}
                     layer = c.character.resample(mine, c.billboard, f.camera, level, branches)
@@ -729,8 +751,9 @@ class Engine:
                         c.world[c.character.order], c.view, layer, weights=c.weights
                     )
                     c.entry.update(decision="evaluated", batch=len(group))
-        for c in f.candidates:
-            self._describe(c, self._layers[c.character.path].layer)
+        if not self.reference:
+            for c in f.candidates:
+                self._describe(c, self._layers[c.character.path].layer)
 
     def _mesh_layers(self, f: _FrameState) -> None:
         """The reference mode's layers: each candidate's skinned mesh (with its texture charts,
@@ -977,6 +1000,10 @@ class _FrameState:
     report: dict[str, Any] = field(default_factory=dict)
     casters: list[tuple[str, PosedCapsules]] = field(default_factory=list)
     candidates: list[_Candidate] = field(default_factory=list)
+    pending: list[tuple[int, tuple[str, ...], list[_Candidate], Future]] = field(
+        default_factory=list
+    )
+    """The network calls under way: (level, branches, the characters, the call)."""
 
     @contextmanager
     def timed(self, stage: str) -> Iterator[None]:

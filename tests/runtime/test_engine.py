@@ -387,3 +387,18 @@ def test_max_level_caps_the_level_of_detail():
     finally:
         e.close()
     assert hero["level"] == 32 and hero["level_reason"].startswith("capped by max_level 32")
+
+
+def test_lighting_the_prims_while_the_network_runs_changes_no_pixel():
+    images = {}
+    for overlap in (True, False):
+        e = Engine(PREVIS, width=160, height=90)
+        e.overlap = overlap
+        try:
+            frames = [e.render(t) for t in (300.0, 310.0, 900.0)]
+            images[overlap] = [np.array(f.beauty) for f in frames]
+            assert all(f.report["counts"]["evaluated"] == 1 for f in frames)
+        finally:
+            e.close()
+    for a, b in zip(images[True], images[False], strict=True):
+        assert np.array_equal(a, b)
