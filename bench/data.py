@@ -11,6 +11,7 @@ in alternating blocks, so a busy machine slows both alike; medians of the blocks
 
 from __future__ import annotations
 
+import copy
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -93,6 +94,7 @@ def batches(samples: Any, kept: int = 2048, batch: int = 256, repeats: int = 3) 
         from rigspace.train.resident import ResidentBatches
     except ImportError:
         return {"batches": {"skipped": "needs torch (the train extra)"}}
+    samples = copy.copy(samples)  # the caller's split keeps its rows
     samples.rows = samples.rows[:kept]
     start = time.perf_counter()
     resident = ResidentBatches(samples, batch, seed=0, device=torch.device("cpu"),

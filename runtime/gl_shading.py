@@ -18,7 +18,13 @@ from typing import Any
 import numpy as np
 
 from rigspace.runtime.lights import Light
-from rigspace.runtime.shading import MIN_DISTANCE, SHININESS, SPECULAR, light_uniforms
+from rigspace.runtime.shading import (
+    MIN_DISTANCE,
+    SHININESS,
+    SPECULAR,
+    light_uniforms,
+    shadow_layers,
+)
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.render import RendererSpec
 from rigspace.sdk.render.gl import FULL_SCREEN_VERTEX_SHADER
@@ -122,8 +128,8 @@ def open_gl_shading(renderer: RendererSpec, where: str) -> GLShading | None:
 
 
 class GLShading:
-    """An EGL context of its own with the shading program; the textures of the last few
-    region sizes are kept (a frame's full-screen prims and its characters' layers)."""
+    """An EGL context of its own with the shading program, and one set of textures grown to
+    the largest region lit so far (a frame's full-screen prims, its characters' layers)."""
 
     def __init__(self) -> None:
         import moderngl
@@ -163,7 +169,7 @@ class GLShading:
         h, w = mask.shape
         if h == 0 or w == 0 or not lights:
             return np.zeros((h, w, 3), np.float32)
-        shadowed = [] if visibility is None else [v for v in visibility if v is not None]
+        shadowed, layers = shadow_layers(visibility, len(lights))
         with self._ctx:
             textures = self._textures(w, h, max(len(shadowed), 1))
             corner = (0, 0, w, h)
@@ -173,10 +179,6 @@ class GLShading:
             if shadowed:
                 stacked = np.ascontiguousarray(np.stack(shadowed), np.float32)
                 textures["shadow"].write(stacked, viewport=(0, 0, 0, w, h, len(shadowed)))
-            layers, next_layer = [], 0
-            for v in visibility or [None] * len(lights):
-                layers.append(-1 if v is None else next_layer)
-                next_layer += v is not None
             uniforms = light_uniforms(lights, camera)
             out = np.zeros((h, w, 3), np.float32)
             for first in range(0, len(lights), MAX_LIGHTS):

@@ -173,3 +173,18 @@ def light_uniforms(
         else:
             raise ValueError(f"unknown light kind {light.kind!r}")
     return out
+
+
+def shadow_layers(
+    visibility: Sequence[np.ndarray | None] | None, count: int
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """The shadowed lights' factors as layers, for the compiled kernel and the fragment
+    shader: the arrays given (in light order), and per each of `count` lights its layer among
+    them, -1 for an unshadowed one."""
+    stacked: list[np.ndarray] = []
+    layers = np.full(count, -1, np.int64)
+    for index, factor in enumerate(visibility or ()):
+        if factor is not None:
+            layers[index] = len(stacked)
+            stacked.append(factor)
+    return stacked, layers

@@ -13,7 +13,13 @@ import numba as nb
 import numpy as np
 
 from rigspace.runtime.lights import Light
-from rigspace.runtime.shading import MIN_DISTANCE, SHININESS, SPECULAR, light_uniforms
+from rigspace.runtime.shading import (
+    MIN_DISTANCE,
+    SHININESS,
+    SPECULAR,
+    light_uniforms,
+    shadow_layers,
+)
 from rigspace.sdk.camera import Camera
 
 _NO_SHADOW = np.ones((0, 0, 0), np.float32)
@@ -39,12 +45,8 @@ def shade(
     radiance = np.array([u[1] for u in uniforms], np.float64).reshape(-1, 3)
     vectors = np.array([u[2] for u in uniforms], np.float64).reshape(-1, 3)
     areas = np.array([u[3] for u in uniforms], np.float64)
-    layers = np.full(len(lights), -1, np.int64)
-    shadows = _NO_SHADOW
-    if visibility is not None and any(v is not None for v in visibility):
-        stacked = [v for v in visibility if v is not None]
-        shadows = np.ascontiguousarray(np.stack(stacked), np.float32)
-        layers[[i for i, v in enumerate(visibility) if v is not None]] = np.arange(len(stacked))
+    stacked, layers = shadow_layers(visibility, len(lights))
+    shadows = np.ascontiguousarray(np.stack(stacked), np.float32) if stacked else _NO_SHADOW
     lens = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
     shade_region(
         np.ascontiguousarray(albedo, np.float32), np.ascontiguousarray(normal, np.float32),

@@ -65,23 +65,18 @@ def decode_all(
     workers = workers or len(os.sched_getaffinity(0))
     bar = tqdm(total=n, unit="item", desc="rigspace train: items into memory",
                disable=not progress, file=sys.stderr, dynamic_ncols=True)  # fmt: skip
-    with bar:
-        if workers <= 1:
-            results: Any = map(_decode_here(samples), chunks)
-            _fill(out, results, bar)
-        else:
-            _decoding = samples  # inherited by the forked workers, never pickled
-            try:
+    _decoding = samples  # read by _decode here, or inherited by the forked workers (no pickle)
+    try:
+        with bar:
+            if workers <= 1:
+                _fill(out, map(_decode, chunks), bar)
+            else:
                 context = multiprocessing.get_context("fork")
                 with ProcessPoolExecutor(workers, mp_context=context) as pool:
                     _fill(out, pool.map(_decode, chunks), bar)
-            finally:
-                _decoding = None
+    finally:
+        _decoding = None
     return out
-
-
-def _decode_here(samples: SampleSet):
-    return lambda ks: (int(ks[0]), samples.batch(ks))
 
 
 def _fill(out: dict[str, torch.Tensor], results, bar) -> None:
