@@ -22,7 +22,7 @@ from __future__ import annotations
 import itertools
 import sys
 import time as clock
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -195,7 +195,7 @@ class Engine:
         self._init_caches()
         self.shadows = PrimShadows(spec)
         self._network = ThreadPoolExecutor(max_workers=1, thread_name_prefix="rigspace-network")
-        """Runs the frame's network calls while the frame's thread lights the prims."""
+        """Runs the frame's network calls while the frame's thread draws and lights the prims."""
         self.overlap = True
         """Light the prims while the networks run (False: one after the other, the same
         images; 256x256 previs frame on 2 cores: 26.1 -> 23.5 ms, 512x512: 54 -> 49 ms)."""
@@ -323,10 +323,11 @@ class Engine:
         self,
         c: _Candidate,
         candidates: list[_Candidate],
-        scene_mask: np.ndarray,
+        scene_mask: Callable[[], np.ndarray],
         lit: bool,
     ) -> tuple[tuple[str, ...], str]:
-        """The branches a character needs this frame, and why (the unlit mode's decision)."""
+        """The branches a character needs this frame, and why (the unlit mode's decision).
+        `scene_mask` draws the prims' coverage when asked: only an unlit character asks."""
         if lit:
             return BOTH, "lights reach it: normals and depth are shaded"
         if c.character.textures is not None and c.character.model.texture_branch != "albedo":
@@ -336,7 +337,7 @@ class Engine:
         if not c.character.model.albedo_has_alpha:
             return BOTH, "its bundle (format 1) takes coverage from the geometry branch"
         x0, y0, w, h = c.region
-        if np.any(scene_mask[y0 : y0 + h, x0 : x0 + w] > 0):
+        if np.any(scene_mask()[y0 : y0 + h, x0 : x0 + w] > 0):
             return BOTH, "a scene prim overlaps its billboard: depth-tested"
         if any(_overlaps(c.region, o.region) for o in candidates if o is not c):
             return BOTH, "another character overlaps its billboard: depth-tested"
@@ -576,9 +577,10 @@ class Engine:
         change nothing (the frame cache): they are read-only; copy them to edit.
 
         The frame is a sequence of named stages over one per-frame context (`_FrameState`):
-        the scene's prims and lights (`_scene_stage`), the characters' poses and billboards
-        (`_pose_stage`), their network evaluations (`_evaluate_stage`), the prims' shadows and
-        lighting (`_light_prims_stage`), the characters' lighting and compositing
+        the camera, the prims' meshes and the lights (`_scene_stage`), the characters' poses
+        and billboards (`_pose_stage`), their network evaluations sent off (`_evaluate_stage`),
+        the prims' G-buffer and shadow maps (`_prims_stage`, drawn while the networks run),
+        the prims' shadows and lighting (`_light_prims_stage`), the characters' lighting and compositing
         (`_composite_stage`). Each stage's time is added to the report's seconds by `timed`."""
         f = _FrameState(time, clock.perf_counter())
         self.live.open()
@@ -590,6 +592,7 @@ class Engine:
         self._scene_stage(f)
         self._pose_stage(f)
         self._evaluate_stage(f)
+        self._prims_stage(f)  # drawn while the networks run, unless a decision needed them
         beauty = None
         if f.pending and self.overlap:  # the prims lit while the networks run (a new frame)
             beauty = self._light_prims_stage(f)
@@ -626,17 +629,16 @@ class Engine:
             self._prims, self._lit_prims = None, None
 
     def _scene_stage(self, f: _FrameState) -> None:
-        """The camera, the prims' G-buffer (with the characters' meshes in the reference
-        mode), the lights, the report's start and the shadow maps."""
+        """The camera, the prims' meshes, the lights and the report's start. The prims'
+        G-buffer is drawn later (_prims_stage), while the networks run."""
         f.camera, f.camera_key = self._camera_at(f.time)
         f.scene_meshes = meshes = self.scene.meshes(f.time)
-        f.prims, f.reused = self._scene_maps(meshes, f.camera, f.camera_key)
         f.timings["scene"] = clock.perf_counter() - f.start
         f.lights = lights = self._lights_at(f.time)
         f.report = {
             "time": f.time,
             "camera": str(self.camera_prim.GetPath()),
-            "scene_prims": {"meshes": len(meshes), "reused": f.reused},
+            "scene_prims": {"meshes": len(meshes)},
             "lights": len(lights),
             "lighting_on": "numba" if self.gl_shading is None else self.gl_shading.renderer,
             "characters": [],
@@ -655,12 +657,22 @@ class Engine:
             + light.orientation.tobytes()
             for light in lights
         )
+
+    def _prims_stage(self, f: _FrameState) -> Maps:
+        """The prims' G-buffer (the last frame's while prims and camera hold) and the
+        shadow maps of the lights; once a frame, whichever stage asks first."""
+        if f.prims is not None:
+            return f.prims
+        with f.timed("scene"):
+            f.prims, f.reused = self._scene_maps(f.scene_meshes, f.camera, f.camera_key)
+        f.report["scene_prims"]["reused"] = f.reused
         with f.timed("shadows"):
-            self._update_shadow_maps(f.scene_meshes, lights)
+            self._update_shadow_maps(f.scene_meshes, f.lights)
         f.report["shadows"] = {"maps_drawn": self.shadows.drawn, "casters": 0}
         if self._no_shadow:
             f.report["shadows"]["without_capsules"] = [p for p, _ in self._no_shadow]
             self._no_shadow = []
+        return f.prims
 
     def _pose_stage(self, f: _FrameState) -> None:
         """Each character posed (its live pose and weights merged), its shadow capsules, its
@@ -713,7 +725,9 @@ class Engine:
             return
         pending: dict[tuple[int, int, tuple[str, ...]], list[_Candidate]] = {}
         for c in f.candidates:
-            branches, why = self._branches(c, f.candidates, f.prims.mask, bool(f.lights))
+            branches, why = self._branches(
+                c, f.candidates, lambda: self._prims_stage(f).mask, bool(f.lights)
+            )
             cached = self._layers.get(c.character.path)
             c.entry["mode"] = "lit" if "geometry" in branches else "unlit"
             c.entry["mode_reason"] = why
@@ -730,7 +744,7 @@ class Engine:
             for c in (c for group in pending.values() for c in group):
                 c.rig = c.character.parameters(c.world, c.billboard, f.camera, c.weights)
         # One network call per (model, level, branches): characters sharing a bundle batch.
-        # They run on the network thread while this one lights the prims (render).
+        # They run on the network thread while this one draws and lights the prims (render).
         f.pending = [
             (level, branches, group, self._network.submit(
                 group[0].character.model.predict,
@@ -786,7 +800,7 @@ class Engine:
         """The prims lit and shadowed (the maps' and the capsules' shadows): the beauty the
         characters are composited over. Still prims and lights reuse their lighting and only
         find the capsules' shadows again."""
-        prims, camera, lights = f.prims, f.camera, f.lights
+        prims, camera, lights = self._prims_stage(f), f.camera, f.lights
         lit_key = f.light_key + self.shadows.key
         lit_reused = f.reused and self._lit_prims is not None and self._lit_prims[0] == lit_key
         if lit_reused and self._lit_prims is not None:
@@ -827,7 +841,7 @@ class Engine:
     def _composite_stage(self, f: _FrameState, beauty: np.ndarray) -> Frame:
         """Each character's layer lit (cached while its lights and the other casters hold)
         and composited into the beauty and the AOVs by depth; the DomeLight behind all."""
-        prims, camera, lights = f.prims, f.camera, f.lights
+        prims, camera, lights = self._prims_stage(f), f.camera, f.lights
         albedo, normal = prims.albedo.copy(), prims.normal.copy()
         depth, mask = prims.depth.copy(), prims.mask.copy()
         # Texture AOVs (uv, chart) when anything has them: the reference mode's meshes, or a
@@ -992,7 +1006,8 @@ class _FrameState:
     camera_key: bytes = b""
     scene_meshes: list = field(default_factory=list)
     """The set's meshes (the shadow casters), without the reference mode's characters."""
-    prims: Maps = field(init=False)
+    prims: Maps | None = None
+    """The prims' G-buffer, once _prims_stage has drawn it."""
     reused: bool = False
     """Whether the prims' G-buffer is the last frame's."""
     lights: list = field(default_factory=list)

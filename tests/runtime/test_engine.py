@@ -402,3 +402,27 @@ def test_lighting_the_prims_while_the_network_runs_changes_no_pixel():
             e.close()
     for a, b in zip(images[True], images[False], strict=True):
         assert np.array_equal(a, b)
+
+
+def test_the_prims_are_drawn_once_a_frame_whichever_stage_asks_first(tmp_path):
+    # Lit: after the networks are sent off (drawn while they run). Unlit: when the branch
+    # decision reads the prims' coverage behind the character. Never twice in a frame.
+    for scene, reason in (
+        (PREVIS, "lights reach it: normals and depth are shaded"),
+        (_overlay(tmp_path, "/World/Lights"), "a scene prim overlaps its billboard: depth-tested"),
+    ):
+        e = Engine(scene, width=160, height=90, aovs=("beauty",))
+        draws: list = []
+
+        def counted(meshes, camera, draws=draws, draw=e.renderer.render):
+            draws.append(camera)
+            return draw(meshes, camera)
+
+        e.renderer.render = counted
+        try:
+            frames = [e.render(t) for t in (700.0, 701.0, 702.0)]
+        finally:
+            e.close()
+        assert {f.report["characters"][0]["mode_reason"] for f in frames} == {reason}
+        drawn = [not f.report["scene_prims"]["reused"] for f in frames]
+        assert drawn[0] and len(draws) == sum(drawn)
