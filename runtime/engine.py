@@ -744,23 +744,34 @@ class Engine:
             for c in (c for group in pending.values() for c in group):
                 c.rig = c.character.parameters(c.world, c.billboard, f.camera, c.weights)
         # One network call per (model, level, branches): characters sharing a bundle batch.
-        # They run on the network thread while this one draws and lights the prims (render).
+        # They run on the network thread, with the resampling of their maps into the frame,
+        # while this one draws and lights the prims (render).
         f.pending = [
-            (level, branches, group, self._network.submit(
-                group[0].character.model.predict,
-                np.concatenate([c.rig for c in group]), level, branches,
-            ))
+            (group, self._network.submit(self._evaluate, group, level, branches, f.camera))
             for (_, level, branches), group in pending.items()
+        ]
+
+    @staticmethod
+    def _evaluate(
+        group: list[_Candidate], level: int, branches: tuple[str, ...], camera: Camera
+    ) -> list[Layer]:
+        """One network call for characters sharing a bundle, level and branches, and each
+        one's maps resampled into the frame (on the network thread)."""
+        model = group[0].character.model
+        out = model.predict(np.concatenate([c.rig for c in group]), level, branches)
+        return [
+            c.character.resample(
+                {name: value[k : k + 1] for name, value in out.items()},
+                c.billboard, camera, level, branches,
+            )
+            for k, c in enumerate(group)
         ]  # fmt: skip
 
     def _finish_evaluation(self, f: _FrameState) -> None:
-        """The network calls' maps (waited for) resampled into the frame: the layers."""
+        """The network calls' layers (waited for), kept for the frames that reuse them."""
         with f.timed("network"):
-            for level, branches, group, call in f.pending:
-                out = call.result()
-                for k, c in enumerate(group):
-                    mine = {name: value[k : k + 1] for name, value in out.items()}
-                    layer = c.character.resample(mine, c.billboard, f.camera, level, branches)
+            for group, call in f.pending:
+                for c, layer in zip(group, call.result(), strict=True):
                     self._layers[c.character.path] = _CachedLayer(
                         c.world[c.character.order], c.view, layer, weights=c.weights
                     )
@@ -1015,10 +1026,8 @@ class _FrameState:
     report: dict[str, Any] = field(default_factory=dict)
     casters: list[tuple[str, PosedCapsules]] = field(default_factory=list)
     candidates: list[_Candidate] = field(default_factory=list)
-    pending: list[tuple[int, tuple[str, ...], list[_Candidate], Future]] = field(
-        default_factory=list
-    )
-    """The network calls under way: (level, branches, the characters, the call)."""
+    pending: list[tuple[list[_Candidate], Future]] = field(default_factory=list)
+    """The network calls under way: (the characters, the call making their layers)."""
 
     @contextmanager
     def timed(self, stage: str) -> Iterator[None]:
