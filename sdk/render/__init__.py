@@ -288,13 +288,15 @@ def maps_from_samples(
     s = samples_per_axis
     if chart is not None:
         chart = np.where(hit, chart, 0).astype(np.int32)
-    if s == 1:  # one sample per pixel: nothing to reduce
-        depth = np.where(hit, depth, np.float32(np.inf)).astype(np.float32)
-        normal = np.where(hit[..., None], normal, np.float32(0)).astype(np.float32)
-        maps = Maps(albedo.astype(np.float32), normal, depth, hit.astype(np.float32))
+    if s == 1:  # one sample per pixel: nothing to reduce (np.where makes the arrays owned)
+        depth = np.where(hit, depth, np.float32(np.inf)).astype(np.float32, copy=False)
+        normal = np.where(hit[..., None], normal, np.float32(0)).astype(np.float32, copy=False)
+        maps = Maps(np.array(albedo, np.float32), normal, depth, hit.astype(np.float32))
         if uv is not None and chart is not None:
             maps.chart = chart
-            maps.uv = np.where(chart[..., None] > 0, uv, np.float32(0)).astype(np.float32)
+            maps.uv = np.where(chart[..., None] > 0, uv, np.float32(0)).astype(
+                np.float32, copy=False
+            )
         return maps
     h, w = hit.shape[0] // s, hit.shape[1] // s
     count = np.float32(s * s)

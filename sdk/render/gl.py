@@ -518,6 +518,10 @@ class GLRenderer:
             fbo.read_into(fine[1], components=4, attachment=1, dtype="f4")
             if charted:
                 fbo.read_into(fine[2], components=4, attachment=2, dtype="f4")
+        if s == 1:
+            maps = _unpack_one_sample(fine, charted)
+            self.last_timings = {"draw": drawn - started, "readback": time.perf_counter() - drawn}
+            return maps
         # GL's rows run bottom-up: flip (a view) so row 0 is the top.
         albedo, geometry = fine[0, ::-1], fine[1, ::-1]
         surface = fine[2, ::-1] if charted else None
@@ -669,3 +673,21 @@ SPEC = RendererSpec(
     unavailable=unavailable,
     cost_grows_with_triangles=software,
 )
+
+
+def _unpack_one_sample(fine: np.ndarray, charted: bool) -> Maps:
+    """maps_from_samples at one sample per pixel over the read-back attachments (compiled)."""
+    from rigspace.sdk.render.unpack_kernel import unpack, unpack_surface
+
+    h, w = fine.shape[1:3]
+    maps = Maps(
+        np.empty((h, w, 3), np.float32),
+        np.empty((h, w, 3), np.float32),
+        np.empty((h, w), np.float32),
+        np.empty((h, w), np.float32),
+    )
+    unpack(fine[0], fine[1], maps.albedo, maps.normal, maps.depth, maps.mask)
+    if charted:
+        maps.uv, maps.chart = np.empty((h, w, 2), np.float32), np.empty((h, w), np.int32)
+        unpack_surface(fine[2], fine[0], maps.uv, maps.chart)
+    return maps

@@ -110,3 +110,32 @@ def test_the_gl_resolve_pass_equals_maps_from_samples(rig, samples):
             assert gpu.uv is None and reference.uv is None
     with pytest.raises(ValueError, match="resolve 'cuda'"):
         gl_module.GLRenderer(RenderSettings(2), "cuda")
+
+
+def test_the_compiled_one_sample_unpack_equals_maps_from_samples(rig):
+    """At one sample per pixel the gl renderer unpacks its read-back in a compiled pass;
+    maps_from_samples over the same attachments is the reference, bit for bit."""
+    from rigspace.sdk.render import gl as gl_module
+    from rigspace.sdk.render import maps_from_samples
+
+    if gl_module.unavailable() is not None:
+        pytest.skip(f"the gl renderer cannot run here: {gl_module.unavailable()}")
+    camera = Camera.look_at([3.0, 1.2, 4.0], [0, 1.0, 0], width=80, height=64,
+                            focal_length=35, horizontal_aperture=20.955)  # fmt: skip
+    for charts in (True, False):
+        with gl_module.GLRenderer(RenderSettings(1), "numpy") as renderer:
+            maps = renderer.render(rig.posed_meshes(6.0, charts=charts), camera)
+            fine = renderer._fine[:, ::-1].copy()  # as read back, row 0 at the top
+        surface = fine[2] if charts else None
+        reference = maps_from_samples(
+            1, fine[0, ..., 3] > 0, fine[0, ..., :3], fine[1, ..., :3], fine[1, ..., 3],
+            None if surface is None else surface[..., :2],
+            None if surface is None else np.rint(surface[..., 2]).astype(np.int32),
+        )  # fmt: skip
+        assert 0.05 < (reference.mask > 0).mean() < 0.95
+        for name in ("albedo", "normal", "depth", "mask", "uv", "chart"):
+            got, want = getattr(maps, name), getattr(reference, name)
+            assert (got is None and want is None) or np.array_equal(got, want), name
+            assert got is None or got.dtype == want.dtype, name
+        if charts:
+            assert (reference.chart > 0).sum() > 300
