@@ -247,6 +247,37 @@ class NeuralCharacter:
         out = self.model.predict(rig, level, branches)
         return self.resample(out, billboard, camera, level, branches)
 
+    def finish_geometry(
+        self,
+        coverage: np.ndarray,
+        normal_w: np.ndarray,
+        offset_w: np.ndarray,
+        billboard: Billboard,
+        camera: Camera,
+        origin: tuple[int, int],
+        kernel: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Mask, normals and depth over the region from the warped coverage and the normals
+        and depth offsets warped premultiplied by it (compiled; `kernel` False: numpy's
+        geometry_reference, which the kernel is tested against)."""
+        args = (coverage, normal_w, offset_w, billboard, camera, origin,
+                self.model.depth_scale * billboard.side / self.view.side)  # fmt: skip
+        if not kernel:
+            return geometry_reference(*args)
+        from rigspace.runtime.resample_kernel import finish_geometry
+
+        h, w = coverage.shape
+        mask = np.empty((h, w), np.float32)
+        normal = np.empty((h, w, 3), np.float32)
+        depth = np.empty((h, w), np.float32)
+        finish_geometry(
+            coverage, normal_w, offset_w, np.ascontiguousarray(billboard.rotation, np.float64),
+            float(-billboard.rotation[:, 2] @ billboard.joint_camera), args[-1], origin[0],
+            origin[1], camera.cx, camera.cy, camera.fx, camera.fy, COVERAGE_EPSILON, mask,
+            normal, depth,
+        )  # fmt: skip
+        return mask, normal, depth
+
     def resample(self, out, billboard: Billboard, camera: Camera, level: int, branches) -> Layer:
         out = {name: value[0] for name, value in out.items()}  # the batch of one
         x0, y0, w, h = billboard.region(camera)
@@ -257,24 +288,11 @@ class NeuralCharacter:
         info: dict = {}
         if "geometry" in branches:
             coverage = warp(out["mask"])[..., 0]
-            mask = np.clip(coverage, 0.0, 1.0)
-            weight = np.maximum(coverage, COVERAGE_EPSILON)[..., None]
-            has = coverage > COVERAGE_EPSILON
-            normal_v = warp(out["normal"] * out["mask"]) / weight
-            normal_r = normal_v @ billboard.rotation.T  # virtual camera frame -> render frame
-            length = np.linalg.norm(normal_r, axis=-1, keepdims=True)
-            # A zero-length prediction (int8 graphs round all three components to zero on a
-            # few covered pixels) faces the camera rather than shading black.
-            facing = np.array([0.0, 0.0, 1.0], dtype=normal_r.dtype)
-            valid = length > COVERAGE_EPSILON
-            normal_r = np.where(valid, normal_r, facing)
-            normal = np.where(has[..., None], normal_r / np.where(valid, length, 1.0), 0.0)
-            scale = billboard.side / self.view.side
-            offset = warp(out["depth"] * out["mask"])[..., 0] / weight[..., 0]
-            offset = offset * self.model.depth_scale * scale
-            plane = billboard.plane_depth(camera, offset, origin=(x0, y0))
-            depth = np.where(has, plane, np.inf).astype(np.float32)
-            normal = normal.astype(np.float32)
+            normal_w = warp(out["normal"] * out["mask"])
+            offset_w = warp(out["depth"] * out["mask"])[..., 0]
+            mask, normal, depth = self.finish_geometry(
+                coverage, normal_w, offset_w, billboard, camera, (x0, y0)
+            )
         if mask is None and "alpha" in out:  # the unlit mode: coverage from the albedo branch
             mask = np.clip(warp(out["alpha"])[..., 0], 0.0, 1.0)
         if mask is None:
@@ -292,3 +310,32 @@ class NeuralCharacter:
         else:
             sharp = sharpen_coverage(mask, magnification(homography, (x0, y0, w, h)))
         return Layer(x0, y0, albedo, sharp, depth, normal, level, tuple(branches), info, uv, chart)
+
+
+def geometry_reference(
+    coverage: np.ndarray,
+    normal_w: np.ndarray,
+    offset_w: np.ndarray,
+    billboard: Billboard,
+    camera: Camera,
+    origin: tuple[int, int],
+    offset_scale: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """NeuralCharacter.finish_geometry in numpy (the reference its kernel is tested against):
+    normals and depth divided back by the coverage, so empty pixels never bleed in; normals
+    rotated into the render camera's frame; depth the billboard plane plus the offset."""
+    mask = np.clip(coverage, 0.0, 1.0)
+    weight = np.maximum(coverage, COVERAGE_EPSILON)[..., None]
+    has = coverage > COVERAGE_EPSILON
+    normal_r = (normal_w / weight) @ billboard.rotation.T  # virtual camera -> render camera
+    length = np.linalg.norm(normal_r, axis=-1, keepdims=True)
+    # A zero-length prediction (int8 graphs round all three components to zero on a few
+    # covered pixels) faces the camera rather than shading black.
+    facing = np.array([0.0, 0.0, 1.0], dtype=normal_r.dtype)
+    valid = length > COVERAGE_EPSILON
+    normal_r = np.where(valid, normal_r, facing)
+    normal = np.where(has[..., None], normal_r / np.where(valid, length, 1.0), 0.0)
+    offset = offset_w / weight[..., 0] * offset_scale
+    plane = billboard.plane_depth(camera, offset, origin=origin)
+    depth = np.where(has, plane, np.inf).astype(np.float32)
+    return mask.astype(np.float32), normal.astype(np.float32), depth

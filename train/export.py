@@ -107,6 +107,14 @@ def _export(
         opset_version=OPSET,
         dynamo=False,  # the TorchScript exporter: no onnxscript needed, stable graphs
     )
+    if "chart" in names:  # the texture head's softmax in the form onnxruntime runs fast
+        import onnx
+
+        from rigspace.train.graph_rewrite import fast_channel_softmax
+
+        graph = onnx.load(str(path))
+        fast_channel_softmax(graph)
+        onnx.save(graph, str(path))
 
 
 def quantize_int8(

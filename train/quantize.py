@@ -169,11 +169,11 @@ def pose_nodes(fp32: Path) -> list[str]:
 
 
 def softmax_nodes(fp32: Path) -> list[str]:
-    """The nodes of the texture head's written-out softmax (graphs.channel_softmax: from the
-    chart logits' convolution to the `chart` output), kept in float: probabilities in uint8
-    steps would blur the chart borders the runtime draws at display size. onnxruntime's
-    default registry leaves these operators alone today; named, they stay so if it grows.
-    Empty without a texture head."""
+    """The nodes of the texture head's softmax (from the chart logits' convolution to the
+    `chart` output; in graph_rewrite's fast form its sum is a convolution too), kept in
+    float: probabilities in uint8 steps would blur the chart borders the runtime draws at
+    display size, and a quantised sum would miss its weights of one. Empty without a
+    texture head."""
     import onnx
 
     graph = onnx.load(str(fp32)).graph
@@ -182,8 +182,10 @@ def softmax_nodes(fp32: Path) -> list[str]:
     pending = [o.name for o in graph.output if o.name == "chart"]
     while pending:
         node = producer.get(pending.pop())
-        if node is None or node.op_type == "Conv" or node.name in nodes:
+        if node is None or node.name in nodes:
             continue
+        if node.op_type == "Conv" and not node.name.startswith("channel_softmax"):
+            continue  # the logits' own convolution
         nodes.append(node.name)
         pending.extend(i for i in node.input if i in producer)
     return nodes

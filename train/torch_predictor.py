@@ -53,7 +53,9 @@ def weights_from_graphs(folder, manifest: ModelManifest) -> dict[str, np.ndarray
         head = [
             (values[node.input[1]], values[node.input[2]])
             for node in graph.node
-            if node.op_type == "Conv" and not node.input[1].startswith("model.")
+            # (not the texture head's softmax, whose sum graph_rewrite makes a Conv)
+            if node.op_type == "Conv"
+            and not node.input[1].startswith(("model.", "channel_softmax"))
         ]
         if branch != "trunk" and head:
             state[f"{branch}.heads.{index}.weight"] = np.concatenate([w for w, _ in head])

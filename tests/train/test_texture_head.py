@@ -179,15 +179,19 @@ def test_a_textured_run_learns_and_exports_its_head(textured_run, tiny_dataset, 
         logits, coords = texture_maps(heads["albedo"][-1], k)
     np.testing.assert_allclose(out["uv"], coords.numpy(), atol=1e-4)
     np.testing.assert_allclose(out["chart"], torch.softmax(logits, 1).numpy(), atol=1e-5)
-    # The softmax is written out in the graph (onnxruntime's Softmax node over the channel
-    # axis was most of the head's time): nothing for the bundle rewrite to do.
+    # The softmax is in the fast form (onnxruntime's Softmax node and channel reductions
+    # over NCHW were most of the head's time): nothing for the bundle rewrite to do.
     graph = onnx.load(str(tmp_path / "model" / "albedo_32.onnx"))
-    assert "Softmax" not in {n.op_type for n in graph.graph.node}
+    ops = {n.op_type for n in graph.graph.node}
+    assert not {"Softmax", "ReduceMax", "ReduceSum"} & ops
     assert graph_rewrite.rewrite_bundle(tmp_path / "model", dry_run=True) == []
-    # The softmax's five nodes stay in float in the int8 graphs.
+    # The softmax's nodes, its summing convolution among them, stay in float in the int8
+    # graphs; the logits' own convolution does not.
     kept = softmax_nodes(tmp_path / "model" / "albedo_32.onnx")
     ops = {n.op_type for n in graph.graph.node if n.name in kept}
-    assert {"Div", "Exp", "ReduceMax", "ReduceSum", "Sub"} <= ops and "Conv" not in ops
+    assert ops == {"Split", "Max", "Sub", "Exp", "Conv", "Div"}
+    kept_convs = [n for n in graph.graph.node if n.op_type == "Conv" and n.name in kept]
+    assert len(kept_convs) == 1 and kept_convs[0].input[1].endswith("/ones")
 
 
 def test_the_int8_graphs_keep_the_chart_softmax_in_float(textured_run, tmp_path):
@@ -200,6 +204,10 @@ def test_the_int8_graphs_keep_the_chart_softmax_in_float(textured_run, tmp_path)
         node = producer[node.input[0]]
     assert path[0] == "Div" and "Exp" in path
     assert not {"QuantizeLinear", "DequantizeLinear"} & set(path)
+    # The sum's convolution reads the exponentials and its weights of one unquantised.
+    (summing,) = [n for n in graph.node if n.name.startswith("channel_softmax") and
+                  n.op_type == "Conv"]  # fmt: skip
+    assert producer[summing.input[0]].op_type == "Exp" and summing.input[1] not in producer
 
 
 def test_an_older_bundle_s_channel_softmax_is_rewritten_to_the_same_outputs(tmp_path):
@@ -229,7 +237,8 @@ def test_an_older_bundle_s_channel_softmax_is_rewritten_to_the_same_outputs(tmp_
     after = (bundle / "albedo_8.onnx").read_bytes()
     recorded = json.loads((bundle / "manifest.json").read_text())["files"]["albedo_8.onnx"]
     assert recorded == {"bytes": len(after), "sha256": hashlib.sha256(after).hexdigest()}
-    assert "Softmax" not in {n.op_type for n in onnx.load_from_string(after).graph.node}
+    ops = [n.op_type for n in onnx.load_from_string(after).graph.node]
+    assert ops == ["Split", "Max", "Sub", "Exp", "Conv", "Div"]
     logits = np.random.default_rng(0).normal(0, 10, (3, 7, 5, 4)).astype(np.float32)
     run = [ort.InferenceSession(g, providers=["CPUExecutionProvider"]).run(None, {"logits": logits})[0]
            for g in (before, after)]  # fmt: skip
