@@ -224,16 +224,6 @@ class TextureMismatch(RigspaceError):
     """The scene's meshes are not the ones a bundle's texture charts were made for."""
 
 
-def _most_likely(probabilities: np.ndarray, kernel: bool = True) -> np.ndarray:
-    """(R, R) most likely chart (0: none) from (K+1, R, R) probabilities (compiled, or
-    numpy's argmax: the same, the first of equal ones)."""
-    if kernel:
-        from rigspace.sdk.texture_kernel import most_likely
-
-        return most_likely(probabilities)
-    return probabilities.argmax(axis=0).astype(np.int32)
-
-
 @dataclass
 class TextureSample:
     """sample_textures' result over a frame region (h, w)."""
@@ -273,7 +263,13 @@ def sample_textures(
             "re-export the bundle with `rigspace train` (its graphs and charts.json disagree).",
         )
     probabilities = np.ascontiguousarray(probabilities, np.float32)
-    best = _most_likely(probabilities, kernel)
+    # The most likely chart per network pixel (0: none; the first of equal ones): the kernel
+    # finds it where it first reads it (-1: not yet), a few thousand of the R * R pixels.
+    best = (
+        np.full(probabilities.shape[1:], -1, np.int32)
+        if kernel
+        else probabilities.argmax(axis=0).astype(np.int32)
+    )
     result = TextureSample(
         np.zeros((h, w, 3), np.float32),
         np.zeros((h, w), np.bool_),

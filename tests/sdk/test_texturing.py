@@ -278,13 +278,13 @@ def test_characters_of_one_asset_share_their_mip_chains():
     assert other.texels is not first.texels and not np.array_equal(other.texels, first.texels)
 
 
-def test_the_compiled_most_likely_chart_is_numpy_s_argmax_ties_included():
-    from rigspace.sdk.texturing import _most_likely
+def test_the_kernel_s_most_likely_chart_is_numpy_s_argmax_ties_included():
+    from rigspace.sdk.texture_kernel import _argmax
 
     rng = np.random.default_rng(5)
     probabilities = rng.random((29, 40, 30)).astype(np.float32)
     probabilities[:, :5] = 0.25  # every chart tied: the first wins, as numpy's argmax
     probabilities[3, 5:8] = probabilities[7, 5:8] = 2.0  # two tied at the top
-    compiled, reference = _most_likely(probabilities), _most_likely(probabilities, kernel=False)
-    assert compiled.dtype == np.int32 and np.array_equal(compiled, reference)
+    compiled = np.array([[_argmax(probabilities, i, j) for j in range(30)] for i in range(40)])
+    assert np.array_equal(compiled, probabilities.argmax(axis=0))
     assert np.all(compiled[:5] == 0) and np.all(compiled[5:8] == 3)
