@@ -629,16 +629,15 @@ class Engine:
             self._prims, self._lit_prims = None, None
 
     def _scene_stage(self, f: _FrameState) -> None:
-        """The camera, the prims' meshes, the lights and the report's start. The prims'
-        G-buffer is drawn later (_prims_stage), while the networks run."""
+        """The camera, the lights and the report's start. The prims' meshes and G-buffer
+        come later (_prims_stage), while the networks run."""
         f.camera, f.camera_key = self._camera_at(f.time)
-        f.scene_meshes = meshes = self.scene.meshes(f.time)
         f.timings["scene"] = clock.perf_counter() - f.start
         f.lights = lights = self._lights_at(f.time)
         f.report = {
             "time": f.time,
             "camera": str(self.camera_prim.GetPath()),
-            "scene_prims": {"meshes": len(meshes)},
+            "scene_prims": {},
             "lights": len(lights),
             "lighting_on": "numba" if self.gl_shading is None else self.gl_shading.renderer,
             "characters": [],
@@ -659,13 +658,14 @@ class Engine:
         )
 
     def _prims_stage(self, f: _FrameState) -> Maps:
-        """The prims' G-buffer (the last frame's while prims and camera hold) and the
-        shadow maps of the lights; once a frame, whichever stage asks first."""
+        """The prims' meshes, their G-buffer (the last frame's while prims and camera hold)
+        and the lights' shadow maps; once a frame, whichever stage asks first."""
         if f.prims is not None:
             return f.prims
         with f.timed("scene"):
+            f.scene_meshes = self.scene.meshes(f.time)
             f.prims, f.reused = self._scene_maps(f.scene_meshes, f.camera, f.camera_key)
-        f.report["scene_prims"]["reused"] = f.reused
+        f.report["scene_prims"] = {"meshes": len(f.scene_meshes), "reused": f.reused}
         with f.timed("shadows"):
             self._update_shadow_maps(f.scene_meshes, f.lights)
         f.report["shadows"] = {"maps_drawn": self.shadows.drawn, "casters": 0}
