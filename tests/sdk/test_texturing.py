@@ -92,6 +92,18 @@ def test_kernel_matches_the_numpy_reference(seed):
     assert np.abs(got.st - ref.st).max() < KERNEL_TOLERANCE
 
 
+def test_two_threads_sample_exactly_what_one_does(monkeypatch):
+    from rigspace.sdk import texturing
+
+    case = _random_case(3)
+    assert np.count_nonzero(case[3]) >= texturing.SPLIT_PIXELS  # the two-thread path
+    split = sample_textures(*case)
+    monkeypatch.setattr(texturing, "SPLIT_PIXELS", 10**9)
+    whole = sample_textures(*case)
+    for name in ("colour", "used", "st", "chart"):
+        assert np.array_equal(getattr(split, name), getattr(whole, name)), name
+
+
 def test_magnified_linear_coordinates_read_the_texture_exactly():
     """A chart whose coordinates are a linear ramp over the network image, magnified 4x: every
     frame pixel reads the texture at its own st, exactly (mip level 0), as the renderers would."""
