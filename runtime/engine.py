@@ -577,11 +577,12 @@ class Engine:
         change nothing (the frame cache): they are read-only; copy them to edit.
 
         The frame is a sequence of named stages over one per-frame context (`_FrameState`):
-        the camera, the prims' meshes and the lights (`_scene_stage`), the characters' poses
-        and billboards (`_pose_stage`), their network evaluations sent off (`_evaluate_stage`),
-        the prims' G-buffer and shadow maps (`_prims_stage`, drawn while the networks run),
-        the prims' shadows and lighting (`_light_prims_stage`), the characters' lighting and compositing
-        (`_composite_stage`). Each stage's time is added to the report's seconds by `timed`."""
+        the camera and the lights (`_scene_stage`), the characters' poses and billboards
+        (`_pose_stage`), their network evaluations sent to the network thread, which also
+        resamples their maps (`_evaluate_stage`), the prims' meshes, G-buffer and shadow maps
+        (`_prims_stage`, drawn meanwhile), the prims' shadows and lighting
+        (`_light_prims_stage`), the characters' lighting and compositing (`_composite_stage`).
+        Each stage's time is added to the report's seconds by `timed`."""
         f = _FrameState(time, clock.perf_counter())
         self.live.open()
         if self._frame is not None and self._frame_at == time and not self.live.active:
