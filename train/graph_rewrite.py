@@ -123,7 +123,8 @@ def _fast_reductions(model) -> int:
         exp = consumer(sub.output[0], "Exp") if sub is not None else None
         reduce_sum = consumer(exp.output[0], "ReduceSum") if exp is not None else None
         if (
-            not channels or len(shapes[x]) != 4 or reduce_sum is None
+            sub is None or exp is None or reduce_sum is None
+            or not channels or len(shapes[x]) != 4
             or list(sub.input) != [x, reduce_max.output[0]]
             or not _over_channels(reduce_max, constants)
             or not _over_channels(reduce_sum, constants)
