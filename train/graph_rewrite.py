@@ -21,11 +21,12 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import os
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from rigspace.capture.dataset import write_atomic
 
 AGREEMENT = 1e-5
 """Largest output difference a rewritten graph may show against the original (5e-7 seen)."""
@@ -151,9 +152,10 @@ def _fast_reductions(model) -> int:
                 graph.node.insert(index + offset, node)
         used = {name for node in graph.node for name in node.input}
         for name in {*reduce_max.input[1:], *reduce_sum.input[1:]} - used:  # their axes
-            for kept in (graph.initializer, graph.node):
-                for item in [i for i in kept if name in (i.name, *getattr(i, "output", ()))]:
-                    kept.remove(item)
+            for tensor in [t for t in graph.initializer if t.name == name]:
+                graph.initializer.remove(tensor)
+            for constant in [n for n in graph.node if list(n.output) == [name]]:
+                graph.node.remove(constant)
         for node, name in ((sub, "shifted"), (exp, "exp")):
             node.name = node.name or f"{tag}/{name}"
         division = consumer(exp.output[0], "Div")
@@ -184,8 +186,7 @@ def _largest_difference(before: bytes, after: bytes) -> float:
 
 def rewrite_bundle(folder: str | Path, dry_run: bool = False) -> list[str]:
     """Rewrite the bundle's graphs whose channel softmax is not in the fast form; returns
-    their names. With
-    `dry_run`, only says which would change."""
+    their names. With `dry_run`, only says which would change."""
     import onnx
 
     folder = Path(folder)
@@ -211,14 +212,10 @@ def rewrite_bundle(folder: str | Path, dry_run: bool = False) -> list[str]:
         gap = _largest_difference(before, after)
         if not gap <= AGREEMENT:
             raise SystemExit(f"{path}: the rewritten graph differs by {gap:.3g}; left unchanged.")
-        tmp = path.with_name(f".{name}.{os.getpid()}.tmp")
-        tmp.write_bytes(after)
-        os.replace(tmp, path)
+        write_atomic(path, after)
         manifest["files"][name] = {"bytes": len(after), "sha256": hashlib.sha256(after).hexdigest()}
     if changed and not dry_run:
-        tmp = manifest_path.with_name(f".manifest.json.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(manifest, indent=2) + "\n")
-        os.replace(tmp, manifest_path)
+        write_atomic(manifest_path, (json.dumps(manifest, indent=2) + "\n").encode())
     return changed
 
 
