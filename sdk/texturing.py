@@ -285,12 +285,13 @@ def sample_textures(
     if not textures.any_texture or not np.all(np.isfinite(inverse)):
         return result
     coverage = np.ascontiguousarray(coverage, np.float32)
+    coordinates = np.ascontiguousarray(coordinates, np.float32)
 
     def rows(i0: int, i1: int) -> tuple:
         """The sampler's arguments for rows [i0, i1) of the region (views: the same pixels)."""
         return (
-            inverse, int(x0), int(y0) + i0, coverage[i0:i1], best, probabilities,
-            np.ascontiguousarray(coordinates, np.float32), np.float32(CHART_CONFIDENCE),
+            inverse, int(x0), int(y0) + i0, coverage[i0:i1], best, probabilities, coordinates,
+            np.float32(CHART_CONFIDENCE),
             np.float64(lod_bias), np.int64(MAX_TAPS), np.int64(MINOR_TAPS), textures.center,
             textures.half, textures.image, textures.transform, textures.wrap, textures.bounds,
             textures.texels, textures.levels, textures.level_count, result.colour[i0:i1],
