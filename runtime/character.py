@@ -260,10 +260,11 @@ class NeuralCharacter:
         """Mask, normals and depth over the region from the warped coverage and the normals
         and depth offsets warped premultiplied by it (compiled; `kernel` False: numpy's
         geometry_reference, which the kernel is tested against)."""
-        args = (coverage, normal_w, offset_w, billboard, camera, origin,
-                self.model.depth_scale * billboard.side / self.view.side)  # fmt: skip
+        offset_scale = self.model.depth_scale * billboard.side / self.view.side
         if not kernel:
-            return geometry_reference(*args)
+            return geometry_reference(
+                coverage, normal_w, offset_w, billboard, camera, origin, offset_scale
+            )
         from rigspace.runtime.resample_kernel import finish_geometry
 
         h, w = coverage.shape
@@ -272,7 +273,7 @@ class NeuralCharacter:
         depth = np.empty((h, w), np.float32)
         finish_geometry(
             coverage, normal_w, offset_w, np.ascontiguousarray(billboard.rotation, np.float64),
-            float(-billboard.rotation[:, 2] @ billboard.joint_camera), args[-1], origin[0],
+            float(-billboard.rotation[:, 2] @ billboard.joint_camera), offset_scale, origin[0],
             origin[1], camera.cx, camera.cy, camera.fx, camera.fy, COVERAGE_EPSILON, mask,
             normal, depth,
         )  # fmt: skip

@@ -302,8 +302,8 @@ class GLRenderer:
         quarter of the data at 2x2 (1920x1080 on llvmpipe: 106 ms against numpy's 224 ms),
         or "numpy", maps_from_samples over the samples read back (the reference). "auto":
         the pass, but for one sample per pixel on a software rasteriser, where there is
-        nothing to average and numpy's few passes cost less than another draw (256x256:
-        0.7 ms less)."""
+        nothing to average and the read-back, unpacked in one compiled pass
+        (unpack_kernel.py, maps_from_samples' rules), costs less than another draw."""
         import moderngl
 
         if resolve not in RESOLVES:
