@@ -32,7 +32,7 @@ def finish_geometry(
                 normal[i, j, 0] = normal[i, j, 1] = normal[i, j, 2] = 0.0
                 depth[i, j] = np.inf
                 continue
-            weight = max(c, epsilon)
+            weight = c  # above epsilon here: the reference's max(c, epsilon)
             v0, v1, v2 = (
                 normal_w[i, j, 0] / weight,
                 normal_w[i, j, 1] / weight,
