@@ -34,6 +34,7 @@ graph (train.int8check), and the dataset's capsules.json (rigspace.sdk.capsules)
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import shutil
@@ -97,24 +98,27 @@ def _export(
     inputs: list[str],
     names: list[str],
 ) -> None:
+    exported = io.BytesIO()
     torch.onnx.export(
         wrapper,
         example,
-        str(path),
+        exported,
         input_names=inputs,
         output_names=names,
         dynamic_axes={name: {0: "n"} for name in [*inputs, *names]},
         opset_version=OPSET,
         dynamo=False,  # the TorchScript exporter: no onnxscript needed, stable graphs
     )
+    data = exported.getvalue()
     if "chart" in names:  # the texture head's softmax in the form onnxruntime runs fast
         import onnx
 
         from rigspace.train.graph_rewrite import fast_channel_softmax
 
-        graph = onnx.load(str(path))
+        graph = onnx.load_from_string(data)
         fast_channel_softmax(graph)
-        onnx.save(graph, str(path))
+        data = graph.SerializeToString()
+    path.write_bytes(data)
 
 
 def quantize_int8(
