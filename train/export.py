@@ -34,7 +34,6 @@ graph (train.int8check), and the dataset's capsules.json (rigspace.sdk.capsules)
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import os
 import shutil
@@ -98,27 +97,24 @@ def _export(
     inputs: list[str],
     names: list[str],
 ) -> None:
-    exported = io.BytesIO()
     torch.onnx.export(
         wrapper,
         example,
-        exported,
+        str(path),
         input_names=inputs,
         output_names=names,
         dynamic_axes={name: {0: "n"} for name in [*inputs, *names]},
         opset_version=OPSET,
         dynamo=False,  # the TorchScript exporter: no onnxscript needed, stable graphs
     )
-    data = exported.getvalue()
     if "chart" in names:  # the texture head's softmax in the form onnxruntime runs fast
         import onnx
 
         from rigspace.train.graph_rewrite import fast_channel_softmax
 
-        graph = onnx.load_from_string(data)
+        graph = onnx.load(str(path))
         fast_channel_softmax(graph)
-        data = graph.SerializeToString()
-    path.write_bytes(data)
+        onnx.save(graph, str(path))
 
 
 def quantize_int8(
