@@ -191,7 +191,7 @@ def synthetic_bundle(folder: Path, resolution: int) -> Path:
     manifest = json.loads((SAMPLE / "manifest.json").read_text())
     levels, r = [], TRUNK
     while r <= resolution:
-        graphs = {b: f"{b}_{r}.onnx" for b in ("albedo", "geometry")}
+        graphs = {b: f"{b}_{r}.onnx" for b in model.branch_names}
         levels.append({"resolution": r, "graphs": graphs, "int8": {}})
         r *= 2
     manifest |= {"levels": levels, "files": {}}

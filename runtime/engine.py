@@ -326,11 +326,26 @@ class Engine:
         scene_mask: Callable[[], np.ndarray],
         lit: bool,
     ) -> tuple[tuple[str, ...], str]:
-        """The branches a character needs this frame, and why (the unlit mode's decision).
-        `scene_mask` draws the prims' coverage when asked: only an unlit character asks."""
+        """The branches a character needs this frame, and why (the unlit mode's decision);
+        a texture head on a branch of its own runs beside them where the scene has the
+        character's textures. `scene_mask` draws the prims' coverage when asked: only an
+        unlit character asks."""
+        branches, why = self._map_branches(c, candidates, scene_mask, lit)
+        if c.character.textures is not None and c.character.model.texture_branch == "texture":
+            branches = (*branches, "texture")
+        return branches, why
+
+    def _map_branches(
+        self,
+        c: _Candidate,
+        candidates: list[_Candidate],
+        scene_mask: Callable[[], np.ndarray],
+        lit: bool,
+    ) -> tuple[tuple[str, ...], str]:
+        """The map branches (albedo, geometry) of _branches, and why."""
         if lit:
             return BOTH, "lights reach it: normals and depth are shaded"
-        if c.character.textures is not None and c.character.model.texture_branch != "albedo":
+        if c.character.textures is not None and c.character.model.texture_branch == "geometry":
             return BOTH, "its texture head is on the geometry branch"
         if {"normal", "depth"} & set(self.aovs):
             return BOTH, "the normal or depth AOV is asked for"

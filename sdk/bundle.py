@@ -23,7 +23,11 @@ CONDITIONED_VERSION = 3
 """Written for a pose-conditioned model (manifest `conditioning`): its graphs also read
 `joints2d`, so a rigspace that reads only versions 1-2 refuses it by name instead of failing
 inside onnxruntime on a missing input."""
-READABLE_VERSIONS = (1, 2, 3)
+TEXTURE_BRANCH_VERSION = 4
+"""Written for a model whose texture head is a branch of its own (manifest texture.branch
+"texture": texture_<R>.onnx graphs beside albedo and geometry), so a rigspace that reads
+only versions 1-3 refuses it by name instead of drawing it untextured."""
+READABLE_VERSIONS = (1, 2, 3, 4)
 ENCODINGS = ("rot6d", "quaternion")
 
 

@@ -127,6 +127,7 @@ BUNDLE_MANIFEST = (
     Field("levels[].graphs", "object", required=True),
     Field("levels[].graphs.albedo", "text"),
     Field("levels[].graphs.geometry", "text"),
+    Field("levels[].graphs.texture", "text"),
     Field("levels[].int8", "object"),
     Field("depth", "object"),
     Field("depth.scale", "positive", required=True),

@@ -97,7 +97,19 @@ class BundleModel:
         self.charts = manifest.texture.charts if manifest.texture else 0
         """K texture charts the texture head predicts (0: no texture head)."""
         self.texture_branch = manifest.texture.branch if manifest.texture else "albedo"
-        """The branch whose graphs give the texture head's chart and uv outputs."""
+        """The branch whose graphs give the texture head's chart and uv outputs: albedo,
+        geometry, or texture (a branch of its own, bundle format 4)."""
+        top = self.levels[max(self.levels)]
+        self.branch_names: tuple[str, ...] = tuple(
+            b for b in ("albedo", "geometry", "texture") if b in top
+        )
+        """The branches the bundle's graphs give (`predict`'s default: all of them)."""
+        if manifest.texture and self.texture_branch not in self.branch_names:
+            raise BundleError(
+                f"{self.manifest.path}: its texture head is on the {self.texture_branch} "
+                f"branch, which has no graphs (levels list {', '.join(self.branch_names)}).",
+                "re-export the bundle with `rigspace train`.",
+            )
         self.skeleton = Skeleton2D.of_conditioning(manifest.conditioning)
         """The skeleton a pose-conditioned bundle projects (None: the rig is the only input)."""
 
@@ -220,13 +232,14 @@ class BundleModel:
         return self.runner.run(graph, feeds)
 
     def predict(
-        self, rig: np.ndarray, resolution: int, branches: tuple[str, ...] = ("albedo", "geometry")
+        self, rig: np.ndarray, resolution: int, branches: tuple[str, ...] | None = None
     ) -> dict[str, np.ndarray]:
-        """Maps at `resolution` for (N, joints * 6) rig parameters, only of `branches`."""
+        """Maps at `resolution` for (N, joints * 6) rig parameters, only of `branches` (None:
+        every branch the bundle has, branch_names)."""
         joints2d = self.joints2d(rig)
         features = self.features(rig, joints2d)
         out: dict[str, np.ndarray] = {}
-        for branch in branches:
+        for branch in self.branch_names if branches is None else branches:
             out.update(self.branch(features, branch, resolution, joints2d))
         return out
 

@@ -125,8 +125,9 @@ class TrainConfig:
         default="albedo",
         metadata={
             "help": "the branch whose heads carry the texture head: albedo (an unlit frame runs "
-            "the albedo branch alone and is still textured) or geometry (the branch that knows "
-            "where the surface is)"
+            "the albedo branch alone and is still textured), geometry (the branch that knows "
+            "where the surface is) or texture (a branch of its own, so neither map pays for it; "
+            "a frame runs it beside the albedo branch)"
         },
     )
     chart_weight: float = field(
@@ -186,7 +187,7 @@ class TrainConfig:
             "mask_loss": MASK_LOSSES,
             "conditioning": ("none", "joints2d", "bones2d"),
             "conditioning_mode": CONDITIONING_MODES,
-            "texture_branch": ("albedo", "geometry"),
+            "texture_branch": ("albedo", "geometry", "texture"),
         }
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:

@@ -23,7 +23,9 @@ frame even when both branches are needed. Graph inputs and outputs:
     mask    float32 (N, 1, R, R)      coverage, [0, 1]
     alpha   float32 (N, 1, R, R)      coverage from the albedo branch, [0, 1]
     chart   float32 (N, K+1, R, R)    texture chart probabilities (softmax; 0: no chart), from
-                                      the albedo branch of a model with a texture head
+                                      the branch that carries the texture head (manifest
+                                      texture.branch: albedo, geometry, or texture_<R>.onnx,
+                                      a branch of its own)
     uv      float32 (N, 2K, R, R)     per chart its (u, v) within its uv box, [-1, 1]
     MODEL/charts.json               the texture charts (rigspace.sdk.charts), with a head
 
@@ -46,7 +48,13 @@ import torch
 from torch import nn
 
 from rigspace.capture.dataset import CHARTS_FILE, DatasetManifest, read_manifest
-from rigspace.sdk.bundle import CONDITIONED_VERSION, FORMAT, FORMAT_VERSION, ModelManifest
+from rigspace.sdk.bundle import (
+    CONDITIONED_VERSION,
+    FORMAT,
+    FORMAT_VERSION,
+    TEXTURE_BRANCH_VERSION,
+    ModelManifest,
+)
 from rigspace.sdk.capsules import FILE_NAME as CAPSULES
 from rigspace.sdk.capsules import read_capsules
 from rigspace.sdk.conditioning import Skeleton2D
@@ -197,6 +205,8 @@ def export_bundle(
         manifest["format_version"] = CONDITIONED_VERSION
         manifest["conditioning"] = _conditioning(config, skeleton)
         manifest["inputs"]["joints2d"] = JOINTS2D_INPUT
+    if model.texture is not None:  # the texture head's own graphs: readers from version 4
+        manifest["format_version"] = TEXTURE_BRANCH_VERSION
     rows, split = check_rows(dataset)  # the int8 graphs' and the weights' check
     if int8:
         manifest["int8_check"] = {
@@ -291,7 +301,7 @@ def _write_graphs(
         levels = []
         for resolution in resolutions:
             entry: dict[str, Any] = {"resolution": resolution, "graphs": {}, "int8": {}}
-            for branch in ("albedo", "geometry"):
+            for branch in model.branch_names:
                 names = write(branch, resolution, f"{branch}_{resolution}")
                 entry["graphs"][branch] = names["fp32"]
                 if "int8" in names:

@@ -25,9 +25,14 @@ class Trunk(nn.Module):
         return self.model.features(rig, joints2d)
 
 
-HEAD_GROUPS = {"albedo": ((0, 3), (3, 4)), "geometry": ((0, 1), (1, 4), (4, 5))}
+HEAD_GROUPS: dict[str, tuple[tuple[int, int], ...]] = {
+    "albedo": ((0, 3), (3, 4)),
+    "geometry": ((0, 1), (1, 4), (4, 5)),
+    "texture": (),
+}
 """Channels of each branch's 1x1 head that make one output: albedo, alpha; depth, normal,
-mask (network.ALBEDO_CHANNELS, GEOMETRY_CHANNELS)."""
+mask (network.ALBEDO_CHANNELS, GEOMETRY_CHANNELS); the texture branch has only the texture
+head's (head_groups)."""
 
 
 class BranchAtLevel(nn.Module):
@@ -60,6 +65,8 @@ class BranchAtLevel(nn.Module):
         own = len(HEAD_GROUPS[self.name])
         if self.name == "albedo":
             outputs: tuple = (torch.sigmoid(parts[0]), torch.sigmoid(parts[1]))
+        elif self.name == "texture":
+            outputs = ()
         else:
             outputs = (parts[0], F.normalize(parts[1], dim=1, eps=1e-6), torch.sigmoid(parts[2]))
         if len(parts) > own:  # the texture head: chart probabilities and coordinates
@@ -103,5 +110,6 @@ OUTPUTS = {
     "trunk": ["features"],
     "albedo": ["albedo", "alpha"],
     "geometry": ["depth", "normal", "mask"],
+    "texture": [],
 }
-INPUTS = {"trunk": "rig", "albedo": "features", "geometry": "features"}
+INPUTS = {"trunk": "rig", "albedo": "features", "geometry": "features", "texture": "features"}

@@ -124,11 +124,15 @@ def drift(fp32: dict[str, np.ndarray], int8: dict[str, np.ndarray]) -> dict[str,
 def texture_drift(
     fp32: dict[str, np.ndarray], int8: dict[str, np.ndarray]
 ) -> dict[str, float | None]:
-    """The texture head's drift where fp32's coverage (alpha or mask, the graph's own) covers:
-    the share of pixels whose most likely chart agrees, and the mean |uv| difference of fp32's
-    chart's pair there."""
-    coverage = fp32["alpha"] if "alpha" in fp32 else fp32["mask"]
-    covered = coverage[:, 0] >= MASK_VALID
+    """The texture head's drift where fp32's coverage (alpha or mask, the graph's own; a
+    texture branch's own graph has neither: the probability of some chart) covers: the share
+    of pixels whose most likely chart agrees, and the mean |uv| difference of fp32's chart's
+    pair there."""
+    if "alpha" in fp32 or "mask" in fp32:
+        coverage = (fp32["alpha"] if "alpha" in fp32 else fp32["mask"])[:, 0]
+    else:
+        coverage = 1.0 - fp32["chart"][:, 0]
+    covered = coverage >= MASK_VALID
     chart = fp32["chart"].argmax(axis=1)
     charted = covered & (chart > 0)
     if not charted.any():

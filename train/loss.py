@@ -142,22 +142,29 @@ def texture_loss(
 
 
 def level_loss(
-    albedo_head: torch.Tensor, geometry_head: torch.Tensor, target: dict, config: TrainConfig
+    albedo_head: torch.Tensor,
+    geometry_head: torch.Tensor,
+    target: dict,
+    config: TrainConfig,
+    texture_head: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
-    """The loss terms of one level's head outputs against targets of the same size."""
+    """The loss terms of one level's head outputs against targets of the same size
+    (`texture_head`: the texture branch's, when the texture head has a branch of its own)."""
     a = config.l1_weight
     texture = None
     branch = config.texture_branch
-    charts = head_charts(albedo_head if branch == "albedo" else geometry_head, branch)
+    heads = {"albedo": albedo_head, "geometry": geometry_head, "texture": texture_head}
+    head = heads[branch]
+    charts = 0 if head is None else head_charts(head, branch)
     if charts:  # split the texture head off once (see texture_loss on slicing)
-        head = albedo_head if branch == "albedo" else geometry_head
+        assert head is not None
         own, logits, coords = torch.split(
             head, [BRANCH_CHANNELS[branch], charts + 1, 2 * charts], dim=1
         )
         texture = (logits, coords)
         if branch == "albedo":
             albedo_head = own
-        else:
+        elif branch == "geometry":
             geometry_head = own
     depth, normal, _ = geometry_maps(geometry_head)
     inside = (target["mask"] > 0.5).float()  # depth and normals where the target has surface
@@ -188,15 +195,21 @@ def total_loss(
     a usable output for the runtime's level of detail.
     """
     albedo_levels, geometry_levels = heads["albedo"], heads["geometry"]
-    textured = albedo_levels if config.texture_branch == "albedo" else geometry_levels
-    charts = head_charts(textured[-1], config.texture_branch)
+    texture_levels = heads.get("texture")
+    textured = heads.get(config.texture_branch) or albedo_levels
+    charts = (
+        head_charts(textured[-1], config.texture_branch) if config.texture_branch in heads else 0
+    )
     top = fade(albedo_levels, alpha), fade(geometry_levels, alpha)
-    terms = level_loss(*top, targets_for(batch, top[0].shape[-1], charts), config)
+    top_texture = None if texture_levels is None else fade(texture_levels, alpha)
+    terms = level_loss(*top, targets_for(batch, top[0].shape[-1], charts), config, top_texture)
     loss = torch.stack(list(terms.values())).sum()
-    for albedo_head, geometry_head in zip(albedo_levels[:-1], geometry_levels[:-1], strict=True):
-        lower = level_loss(
-            albedo_head, geometry_head, targets_for(batch, albedo_head.shape[-1], charts), config
-        )
+    for k, (albedo_head, geometry_head) in enumerate(
+        zip(albedo_levels[:-1], geometry_levels[:-1], strict=True)
+    ):
+        target = targets_for(batch, albedo_head.shape[-1], charts)
+        texture_head = None if texture_levels is None else texture_levels[k]
+        lower = level_loss(albedo_head, geometry_head, target, config, texture_head)
         loss = loss + config.lower_level_weight * torch.stack(list(lower.values())).sum()
     # The terms stay tensors (the caller reads them all at once: one device sync a step).
     return loss, {k: v.detach() for k, v in terms.items()}

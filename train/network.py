@@ -20,9 +20,11 @@ are computed from a small `joints2d` input (rigspace.sdk.conditioning), so with 
 network, its parameters and its checkpoints are the paper's.
 
 Texture head (config.texture, not in the paper; after Textured Neural Avatars, Shysheya et
-al. 2019): for a character with K texture charts (rigspace.sdk.charts) one branch's heads
-(config.texture_branch, the albedo branch by default) also predict, per pixel, the chart (K + 1 logits, 0: no chart) and, for every chart,
-the texture coordinates within it (2K channels, the chart's uv box mapped to [-1, 1]). Each
+al. 2019): for a character with K texture charts (rigspace.sdk.charts) heads predict, per
+pixel, the chart (K + 1 logits, 0: no chart) and, for every chart, the texture coordinates
+within it (2K channels, the chart's uv box mapped to [-1, 1]). config.texture_branch says
+whose heads: the albedo branch's (the default), the geometry branch's, or a third branch of
+their own from the trunk ("texture"), so that neither map pays for the head's channels. Each
 chart's coordinate field is continuous wherever that chart is seen, so no output ever has
 to jump at a seam: the loss reads only the target chart's pair (train/loss.py) and the
 runtime samples the material's own texture where the classifier picks a chart
@@ -149,12 +151,17 @@ class Branch(nn.Module):
         return outs
 
 
+BOTH = ("albedo", "geometry")
+"""The two map branches every network has."""
 ALBEDO_CHANNELS = 4  # premultiplied RGB 3, coverage (alpha) 1
 GEOMETRY_CHANNELS = 5  # depth 1, normal 3, mask 1
 
 
-BRANCH_CHANNELS = {"albedo": ALBEDO_CHANNELS, "geometry": GEOMETRY_CHANNELS}
-"""Each branch's own head channels, before a texture head's."""
+BRANCH_CHANNELS = {"albedo": ALBEDO_CHANNELS, "geometry": GEOMETRY_CHANNELS, "texture": 0}
+"""Each branch's own head channels, before a texture head's (the texture branch has none)."""
+TEXTURE_BRANCHES = ("albedo", "geometry", "texture")
+"""Where a texture head can be (config.texture_branch): on one of the two map branches, or a
+branch of its own."""
 
 
 def texture_channels(charts: int) -> int:
@@ -191,10 +198,27 @@ class Rig2Image(nn.Module):
         """K texture charts the texture head predicts (0: no texture head)."""
         self.texture_branch = config.texture_branch
         """The branch whose heads carry the texture head (config.texture_branch)."""
+        if self.texture_branch not in TEXTURE_BRANCHES:
+            raise ValueError(
+                f"texture_branch must be one of {', '.join(TEXTURE_BRANCHES)}, "
+                f"got {self.texture_branch!r}"
+            )
         texture = texture_channels(self.charts)
-        on_albedo = self.texture_branch == "albedo"
-        self.albedo = Branch(config, ALBEDO_CHANNELS + (texture if on_albedo else 0), extra)
-        self.geometry = Branch(config, GEOMETRY_CHANNELS + (0 if on_albedo else texture), extra)
+
+        def head(branch: str) -> int:
+            return BRANCH_CHANNELS[branch] + (texture if branch == self.texture_branch else 0)
+
+        self.albedo = Branch(config, head("albedo"), extra)
+        self.geometry = Branch(config, head("geometry"), extra)
+        self.texture = (
+            Branch(config, texture, extra) if self.texture_branch == "texture" and texture else None
+        )
+        """The texture head's own branch (config.texture_branch "texture"), else None."""
+
+    @property
+    def branch_names(self) -> tuple[str, ...]:
+        """The branches this network has: albedo, geometry, and texture when it has its own."""
+        return ("albedo", "geometry", "texture") if self.texture is not None else BOTH
 
     @property
     def conditioned(self) -> bool:
@@ -233,13 +257,15 @@ class Rig2Image(nn.Module):
         self,
         rig: torch.Tensor,
         resolution: int,
-        branches: tuple[str, ...] = ("albedo", "geometry"),
+        branches: tuple[str, ...] | None = None,
         joints2d: torch.Tensor | None = None,
     ) -> dict[str, list[torch.Tensor]]:
-        """Pre-activation head outputs per branch, one per level from 8x8 to `resolution`."""
+        """Pre-activation head outputs per branch (default: every branch it has), one per
+        level from 8x8 to `resolution`."""
         maps = self.condition_maps(joints2d, resolution)
         x = self._trunk(rig, maps)
-        return {name: getattr(self, name)(x, resolution, maps) for name in branches}
+        names = self.branch_names if branches is None else branches
+        return {name: getattr(self, name)(x, resolution, maps) for name in names}
 
 
 def fade(levels: list[torch.Tensor], alpha: float) -> torch.Tensor:

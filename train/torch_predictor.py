@@ -42,9 +42,13 @@ def weights_from_graphs(folder, manifest: ModelManifest) -> dict[str, np.ndarray
     if manifest.trunk is None:
         raise KeyError("trunk")
     files = [(manifest.trunk.fp32["trunk"], "trunk", 0)]
-    for branch in ("albedo", "geometry"):
-        levels = sorted(manifest.levels, key=lambda level: level.resolution)
-        files += [(level.files.fp32[branch], branch, k) for k, level in enumerate(levels)]
+    levels = sorted(manifest.levels, key=lambda level: level.resolution)
+    for branch in ("albedo", "geometry", "texture"):  # the texture branch: where it has one
+        files += [
+            (level.files.fp32[branch], branch, k)
+            for k, level in enumerate(levels)
+            if branch in level.files.fp32
+        ]
     state: dict[str, np.ndarray] = {}
     for file, branch, index in files:
         graph = onnx.load(str(folder / file)).graph

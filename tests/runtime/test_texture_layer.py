@@ -75,6 +75,34 @@ def test_a_textured_bundle_colours_from_the_scenes_textures(textured, capsys):
     assert frame.maps.mask.max() > 0.5
 
 
+def test_a_texture_head_on_its_own_branch_colours_lit_and_unlit_frames(textured, tmp_path, capsys):
+    """A bundle whose texture head is a branch of its own (format 4): the frame runs it beside
+    the map branches and colours from the scene's textures, lit (both map branches) and unlit
+    (the albedo branch alone), as the head on the albedo branch does."""
+    folder = tmp_path / "own"
+    shutil.copytree(textured.parent, folder, ignore=shutil.ignore_patterns("model"))
+    config = replace(TINY, texture_branch="texture")
+    train(folder / "ds", folder / "model" / "training", config, progress=False)
+    manifest = export_bundle(folder / "model" / "training", folder / "model", int8=False)
+    assert manifest["texture"]["branch"] == "texture"
+    scene = _with_model(folder / textured.name)
+    _, entry, err = _frame(scene, capsys)
+    assert entry["branches"] == ["albedo", "geometry", "texture"]
+    share = float(entry["colour"].split("% ")[0].split()[-1]) / 100
+    assert "its textures" in entry["colour"] and 0.2 < share < 1.0
+    assert "samples no texture" not in err
+
+    def unlit(stage):  # no light and nothing beside it: the unlit mode
+        for prim in list(stage.Traverse()):
+            if prim.GetTypeName().endswith("Light"):
+                stage.RemovePrim(prim.GetPath())
+
+    _, entry, _ = _frame(_with_model(scene, unlit), capsys)
+    if entry["mode"] == "unlit":
+        assert entry["branches"] == ["albedo", "texture"]
+    assert "its textures" in entry["colour"]
+
+
 def test_a_character_with_other_uvs_falls_back_with_a_warning(textured, tmp_path, capsys):
     folder = tmp_path / "other"
     shutil.copytree(textured.parent, folder)

@@ -111,6 +111,8 @@ def test_the_loss_reads_only_the_target_charts_coordinates():
             "bf16": True,
         },
         {"mask_loss": "soft-iou", "edge_weight": 2.0},
+        {"texture_branch": "geometry"},
+        {"texture_branch": "texture", "conditioning": "bones2d", "conditioning_mode": "add"},
     ],
 )
 def test_forward_loss_and_backward_on_the_meta_device(overrides):
@@ -267,3 +269,75 @@ def test_a_damaged_chart_table_is_a_named_error(textured_run, tiny_dataset, tmp_
     (model / "charts.json").write_text("{not json")
     with pytest.raises(BundleError, match=r"texture charts charts\.json cannot be read"):
         BundleModel(model).chart_table()
+
+
+@pytest.fixture(scope="module")
+def own_branch_run(tmp_path_factory, tiny_dataset):
+    run = tmp_path_factory.mktemp("texture_branch") / "run"
+    config = replace(TINY, steps_per_level=20, texture_branch="texture")
+    assert loop.train(tiny_dataset, run, config, progress=False).stopped == "done"
+    return run
+
+
+def test_a_head_on_its_own_branch_leaves_the_maps_branches_their_own_channels(tiny_dataset):
+    charts = 5
+    model = Rig2Image(Shape(19, charts=charts), replace(TINY, texture_branch="texture"))
+    assert model.branch_names == ("albedo", "geometry", "texture")
+    assert model.albedo.heads[-1].out_channels == 4  # albedo and alpha only
+    assert model.geometry.heads[-1].out_channels == 5
+    assert model.texture is not None
+    assert model.texture.heads[-1].out_channels == texture_channels(charts)
+    plain = Rig2Image(
+        Shape(19, charts=charts), replace(TINY, texture_branch="texture", texture=False)
+    )
+    assert plain.texture is None and plain.branch_names == ("albedo", "geometry")
+    with pytest.raises(ValueError, match="texture_branch must be one of"):
+        Rig2Image(Shape(19, charts=charts), replace(TINY, texture_branch="colour"))
+
+
+def test_a_head_on_its_own_branch_exports_its_own_graphs(own_branch_run, tiny_dataset, tmp_path):
+    """texture_<R>.onnx beside albedo and geometry (bundle format 4), giving chart and uv as
+    the torch branch does; the albedo graphs give albedo and alpha only."""
+    manifest = export_bundle(own_branch_run, tmp_path / "model", int8=True)
+    assert manifest["format_version"] == 4 and manifest["texture"]["branch"] == "texture"
+    top = manifest["levels"][-1]
+    assert set(top["graphs"]) == {"albedo", "geometry", "texture"}
+    assert set(top["int8"]) == {"albedo", "geometry", "texture"}
+    model = BundleModel(tmp_path / "model")
+    assert model.branch_names == ("albedo", "geometry", "texture")
+    rows = SampleSet(tiny_dataset, "heldout-views")
+    rig = rows.rig[rows.rows[:2]]
+    assert set(model.predict(rig, 32, ("albedo",))) == {"albedo", "alpha"}
+    out = model.predict(rig, 32)  # every branch by default
+    k = manifest["texture"]["charts"]
+    assert out["chart"].shape == (2, k + 1, 32, 32) and out["uv"].shape == (2, 2 * k, 32, 32)
+    trained, _, _ = loop.build_model(own_branch_run)
+    joints2d = model.joints2d(rig)
+    with torch.no_grad():
+        heads = trained(
+            torch.from_numpy(rig), 32, ("texture",),
+            joints2d=None if joints2d is None else torch.from_numpy(joints2d),
+        )  # fmt: skip
+        logits, coords = texture_maps(heads["texture"][-1], k, "texture")
+    np.testing.assert_allclose(out["uv"], coords.numpy(), atol=1e-4)
+    np.testing.assert_allclose(out["chart"], torch.softmax(logits, 1).numpy(), atol=1e-5)
+    assert graph_rewrite.rewrite_bundle(tmp_path / "model", dry_run=True) == []
+    # The torch predictor reads the texture branch's weights back from its graphs too.
+    from rigspace.train.torch_predictor import weights_from_graphs
+
+    state = weights_from_graphs(tmp_path / "model", model.manifest)
+    assert state["texture.heads.0.weight"].shape[0] == texture_channels(k)
+
+
+def test_a_rigspace_that_reads_only_versions_1_to_3_refuses_the_texture_branch(
+    own_branch_run, tmp_path
+):
+    from rigspace.sdk import bundle
+
+    export_bundle(own_branch_run, tmp_path / "model", int8=False)
+    assert 4 in bundle.READABLE_VERSIONS
+    manifest = json.loads((tmp_path / "model" / "manifest.json").read_text())
+    del manifest["levels"][-1]["graphs"]["texture"]
+    (tmp_path / "model" / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(bundle.BundleError, match="on the texture branch, which has no graphs"):
+        BundleModel(tmp_path / "model")
