@@ -403,11 +403,18 @@ def reference_summary(reports: list[dict]) -> str:
         )
     beauty, albedo = [c["psnr"] for c in rows], [c["albedo_psnr"] for c in rows]
     ious = [c["mask_iou"] for c in rows if c.get("mask_iou") is not None]
+    flips = [(c["flip"], c["flip_ceiling"]) for c in rows if c.get("flip") is not None]
     return (
         f"reference: character region, median over {len(rows)} character frames: beauty "
         f"PSNR {np.median(beauty):.2f} dB (min {min(beauty):.2f}), albedo PSNR "
         f"{np.median(albedo):.2f} dB (the region holds the prims behind it too)"
         + (f", mask IoU {np.median(ious):.3f} (its own coverage)" if ious else "")
+        + (
+            f", beauty FLIP {np.median([f for f, _ in flips]):.4f} (0 is identical; the "
+            f"reference squeezed to the network's size scores {np.median([c for _, c in flips]):.4f})"
+            if flips
+            else ""
+        )
         + (f"; {empty} frames had nothing to compare (under a pixel)" if empty else "")
     )
 
@@ -473,6 +480,7 @@ def compare_regions(frame, truth, coverage: dict | None = None) -> list[dict]:
             "region": entry["region"],
             "psnr": _psnr(frame.beauty[region], truth.beauty[region]),
             "albedo_psnr": _psnr(frame.maps.albedo[region], truth.maps.albedo[region]),
+            **region_flip(frame.beauty[region], truth.beauty[region], entry),
         }
         neural, mesh = (coverage or {}).get(entry["path"], (None, None))
         if neural is not None and mesh is not None:
@@ -481,6 +489,19 @@ def compare_regions(frame, truth, coverage: dict | None = None) -> list[dict]:
             result["mask_iou"] = float(np.logical_and(a, b).sum() / union) if union else None
         results.append(result)
     return results
+
+
+def region_flip(beauty, truth, entry: dict) -> dict:
+    """FLIP of a character's region (rigspace.sdk.flip: its sRGB beauty against the
+    reference's), and the ceiling it is measured against: the reference's region squeezed to
+    the network's level (its billboard's size_px drawn at `level` pixels) and stretched back,
+    what the best image of the network's size would score (0 when the level is not below the
+    size on screen)."""
+    from rigspace.sdk.flip import mean_flip, squeezed
+
+    factor = float(entry.get("size_px", 0.0)) / max(int(entry.get("level") or 1), 1)
+    ceiling = mean_flip(squeezed(truth, factor), truth) if factor > 1.0 else 0.0
+    return {"flip": mean_flip(beauty, truth), "flip_ceiling": ceiling}
 
 
 def _psnr(a, b) -> float:

@@ -148,6 +148,18 @@ class ChartTextures:
     def texels(self) -> np.ndarray:
         return self.packed.texels
 
+    def texels_per_st(self) -> np.ndarray:
+        """(K+1, 2) float64 texels of each chart's texture per unit of s and t (its largest mip
+        level): how far a coordinate error lands on the texture; nan for chart 0 and charts
+        whose material has no texture."""
+        out = np.full((self.charts + 1, 2), np.nan)
+        for k in range(1, self.charts + 1):
+            image = int(self.image[k])
+            if image >= 0:
+                size = self.packed.levels[image, 0, 1:3].astype(np.float64)  # width, height
+                out[k] = np.abs(self.transform[k, :2].astype(np.float64)) * size
+        return out
+
     @property
     def levels(self) -> np.ndarray:
         return self.packed.levels

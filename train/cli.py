@@ -397,6 +397,14 @@ def run_eval(args: argparse.Namespace) -> int:
         )
     ]
     print(f"the model runs on {predictors[0].model.runner.description}", file=sys.stderr)
+    if predictors[0].model.charts:  # the texture head's placement, in texels of the textures
+        from rigspace.train.display import scene_textures
+
+        textures, why = scene_textures(predictors[0].model, table.manifest)
+        if textures is not None:
+            predictors[0].attach_textures(textures)
+        else:
+            note(f"the texture head's placement is not measured: {why}")
     if args.split == "heldout-clips" and not args.no_baselines:
         # Held-out clips were never captured from training views: nothing to interpolate.
         print(

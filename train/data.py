@@ -92,6 +92,29 @@ def chart_boxes(folder: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
     return center, half
 
 
+def texels_per_coordinate(folder: str | Path, manifest: DatasetManifest) -> np.ndarray | None:
+    """(K+1, 2) texels of each chart's texture per unit of the texture head's coordinates
+    ([-1, 1] over the chart's uv box): how far a coordinate error lands on the texture. From
+    the textures of the dataset's character (its scene opened read-only); nan for charts
+    without a texture; None when the dataset has no charts or its scene's textures cannot be
+    read (the training log then leaves the texel error out)."""
+    from rigspace.sdk.errors import RigspaceError
+    from rigspace.sdk.posing import CharacterRig
+    from rigspace.sdk.stage import open_stage
+    from rigspace.sdk.texturing import ChartTextures, TextureMismatch
+
+    table = read_charts(folder)
+    if not table or not table.get("charts"):
+        return None
+    try:
+        stage = open_stage(manifest.scene)
+        rig = CharacterRig(stage.GetPrimAtPath(manifest.character))
+        textures = ChartTextures.build(table, {rig.mesh_name(m): m for m in rig.mesh_sources()})
+    except (RigspaceError, TextureMismatch, OSError):
+        return None
+    return textures.texels_per_st() * textures.half.astype(np.float64)
+
+
 def chart_targets(
     chart: np.ndarray, uv: np.ndarray, boxes: tuple[np.ndarray, np.ndarray], factor: int
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -71,6 +71,8 @@ class DisplayPredictor:
         self.mode = mode
         self.level = max(self.model.resolutions)
         self.textures = textures if mode == "runtime" else None
+        self.texels_per_st = None if self.textures is None else self.textures.texels_per_st()
+        """Where the runtime read the textures is measured against the captured uv AOV."""
         self.name = mode
         self.footprint_bytes = self.model.footprint_bytes() + (
             self.textures.texture_bytes() if self.textures is not None else 0
@@ -88,12 +90,18 @@ class DisplayPredictor:
         maps = []
         for k in range(len(indices)):
             one = {name: value[k] for name, value in out.items()}
+            uv = chart = None
             coverage = np.clip(warp(one["mask"])[..., 0], 0.0, 1.0)
             if self.mode == "bilinear":
                 albedo = np.clip(warp(one["albedo"]), 0.0, 1.0)
                 mask = coverage
             else:
-                albedo, mask, _ = display_colour(one, homography, region, coverage, self.textures)
+                albedo, mask, info = display_colour(
+                    one, homography, region, coverage, self.textures
+                )
+                sample = info.get("sample")
+                if sample is not None:  # where the runtime read the textures: its uv AOV
+                    uv, chart = sample.st, sample.chart
             weight = np.maximum(coverage, 1e-6)[..., None]
             normal = warp(one["normal"] * one["mask"]) / weight
             length = np.linalg.norm(normal, axis=-1, keepdims=True)
@@ -107,6 +115,8 @@ class DisplayPredictor:
                     normal=np.where(valid[..., None], normal, 0.0).astype(np.float32),
                     depth=depth.astype(np.float32),
                     mask=mask.astype(np.float32),
+                    uv=uv,
+                    chart=chart,
                 )
             )
         return maps

@@ -17,8 +17,15 @@ from rigspace.capture.dataset import PARAMS_FILE, DatasetError, DatasetManifest,
 from rigspace.capture.ring import SPLITS, TRAIN
 from rigspace.sdk.render import Maps
 from rigspace.sdk.rotations import rig_inputs
-from rigspace.train.data import read_sample, targets_at
-from rigspace.train.metrics import MASK_THRESHOLD, METRICS, map_metrics, psnr
+from rigspace.train.data import chart_targets, read_sample, targets_at
+from rigspace.train.metrics import (
+    MASK_THRESHOLD,
+    METRICS,
+    TEXTURE_METRICS,
+    map_metrics,
+    psnr,
+    texture_metrics,
+)
 from rigspace.train.stream import ShardSet, is_shards
 
 if TYPE_CHECKING:
@@ -28,6 +35,12 @@ HEIGHT_SAMPLES = 16
 """Training samples (evenly spaced) whose masks estimate the character's height."""
 PREDICT_BATCH = 32
 """Samples per predict() call: bounds the maps held at once, whatever the split's size."""
+FLIP_SAMPLES = 24
+"""Samples (evenly spaced among those evaluated) whose albedo FLIP is measured: FLIP takes
+about half a second for a 512x512 image on one core, the other metrics milliseconds."""
+OPTIONAL_METRICS = ("albedo_flip", *TEXTURE_METRICS)
+"""Metrics a report has when some sample has them: FLIP (FLIP_SAMPLES of the samples), and
+the texture head's placement (a predictor with `texels_per_st`, maps with charts)."""
 
 # Error-map images: each map becomes a tile at least TILE_MIN pixels wide (nearest upscaling).
 TILE_MIN = 128
@@ -202,11 +215,21 @@ def downsample_maps(maps: Maps, factor: int) -> Maps:
         factor,
     )
     covered = coverage[0] > 0
+    chart = uv = None
+    if maps.chart is not None and maps.uv is not None:
+        # Each box's commonest chart and its own mean st (train.data.chart_targets over boxes
+        # of centre 0 and half-size 1, so the coordinates stay st): never across a seam.
+        k = int(maps.chart.max(initial=0)) + 1
+        identity = (np.zeros((k, 2), np.float32), np.ones((k, 2), np.float32))
+        small, st = chart_targets(maps.chart.astype(np.int64), maps.uv, identity, factor)
+        chart, uv = small.astype(np.int32), np.moveaxis(st, 0, -1).astype(np.float32)
     return Maps(
         albedo=np.moveaxis(albedo, 0, -1).astype(np.float32),
         normal=np.where(covered[..., None], np.moveaxis(normal, 0, -1), 0.0).astype(np.float32),
         depth=np.where(covered, depth[0], np.inf).astype(np.float32),
         mask=coverage[0].astype(np.float32),
+        uv=uv,
+        chart=chart,
     )
 
 
@@ -288,6 +311,8 @@ def evaluate(
     rows = table.indices(split) if indices is None else np.asarray(indices, dtype=np.int64)
     rows = evenly_spaced(rows, limit) if indices is None else rows
     height = table.character_height
+    flip_rows = set(evenly_spaced(rows, FLIP_SAMPLES).tolist())
+    texels_per_st = getattr(predictor, "texels_per_st", None)
     per_sample: list[dict[str, Any]] = []
     kept: dict[int, tuple[dict[str, Any], Maps, Maps]] = {}  # worst so far: record, pred, truth
     seconds = 0.0
@@ -301,6 +326,10 @@ def evaluate(
             target = table.maps(int(index))
             record.update(map_metrics(pred, target, height))
             record.update(region_metrics(pred, target, regions))
+            if int(index) in flip_rows:
+                record["albedo_flip"] = albedo_flip(pred, target)
+            if texels_per_st is not None:
+                record.update(texture_metrics(pred, target, texels_per_st))
             per_sample.append(record)
             kept[int(index)] = (record, pred, target)
         # Keep only the worst so far, so memory stays at `worst` samples' maps.
@@ -317,8 +346,8 @@ def evaluate(
         "seconds_per_sample": seconds / max(len(per_sample), 1),
         "footprint_bytes": getattr(predictor, "footprint_bytes", None),
         "metrics": {
-            key: _summary(np.array([s[key] for s in per_sample], dtype=np.float64))
-            for key in METRICS
+            key: _summary(np.array([s.get(key, math.nan) for s in per_sample], np.float64))
+            for key in (*METRICS, *(k for k in OPTIONAL_METRICS if any(k in s for s in per_sample)))
         },
         "regions": {r.name: _region_summary(r, per_sample) for r in regions},
         "per_sample": per_sample,
@@ -349,6 +378,15 @@ def _write_worst(
         write_png(path, error_map_image(pred, target, height, title))
         entry["image"] = str(path)
     (out / f"{prefix}_report.json").write_text(to_json(report))
+
+
+def albedo_flip(pred: Maps, target: Maps) -> float:
+    """Mean FLIP (rigspace.sdk.flip) of the albedo, premultiplied over black as stored, over
+    the character's box (either mask's pixels): nan when neither covers a pixel."""
+    from rigspace.sdk.flip import mean_flip, region_of
+
+    box = region_of(pred.mask, target.mask)
+    return math.nan if box is None else mean_flip(pred.albedo[box], target.albedo[box])
 
 
 def _region_summary(region: Region, per_sample: list[dict[str, Any]]) -> dict[str, Any]:
@@ -424,6 +462,10 @@ def compare(
         row: dict[str, Any] = {"predictor": name}
         row.update({key: report["metrics"][key]["mean"] for key in METRICS})
         row["normal_median_deg"] = report["metrics"]["normal_median_deg"]["median"]
+        for key in OPTIONAL_METRICS:
+            if key in report["metrics"]:  # a median's and a percentile's: their median
+                summary = report["metrics"][key]
+                row[key] = summary["median" if key.startswith("uv_texels") else "mean"]
         row["seconds_per_sample"] = report["seconds_per_sample"]
         row["footprint_bytes"] = report["footprint_bytes"]
         for region, summary in report["regions"].items():
@@ -460,10 +502,14 @@ COLUMNS = (
     ("depth_mae_pct", "depth MAE (% height)", "{:.2f}"),
     ("normal_mean_deg", "normal mean (deg)", "{:.2f}"),
     ("normal_median_deg", "normal median (deg)", "{:.2f}"),
+    ("albedo_flip", "albedo FLIP", "{:.4f}"),
+    ("chart_accuracy", "chart right", "{:.3f}"),
+    ("uv_texels_median", "uv error median (texels)", "{:.2f}"),
+    ("uv_texels_p90", "uv error p90 (texels)", "{:.2f}"),
     ("seconds_per_sample", "ms/sample", "ms"),
     ("footprint_bytes", "footprint (MiB)", "MiB"),
 )
-"""format_table's columns: key, header, format."""
+"""format_table's columns: key, header, format (an optional metric's only when a row has it)."""
 
 
 def _cell(value: Any, fmt: str) -> str:
@@ -480,15 +526,23 @@ def _cell(value: Any, fmt: str) -> str:
 
 def format_table(result: dict[str, Any]) -> str:
     """A compare() result as a Markdown table (means over the samples; normal median: median)."""
+    columns = [
+        c for c in COLUMNS if c[0] not in OPTIONAL_METRICS or any(c[0] in r for r in result["rows"])
+    ]
     lines = [
         f"{result['split']}: {result['samples']} samples of {result['dataset']}"
         + (f" (targets {result['targets']})" if result.get("targets") else ""),
         "",
-        "| " + " | ".join(header for _, header, _ in COLUMNS) + " |",
-        "|" + "|".join("---" for _ in COLUMNS) + "|",
+        "| " + " | ".join(header for _, header, _ in columns) + " |",
+        "|" + "|".join("---" for _ in columns) + "|",
     ]
     for row in result["rows"]:
-        lines.append("| " + " | ".join(_cell(row[k], f) for k, _, f in COLUMNS) + " |")
+        lines.append("| " + " | ".join(_cell(row.get(k), f) for k, _, f in columns) + " |")
+    if any("albedo_flip" in r for r in result["rows"]):
+        lines.append(
+            f"\nalbedo FLIP: mean over the character's box of {min(FLIP_SAMPLES, result['samples'])} "
+            "of the samples (evenly spaced); 0 is identical"
+        )
     first: dict[str, Any] = next(iter(result.get("reports", {}).values()), {})
     for name, region in first.get("regions", {}).items():
         values = ", ".join(

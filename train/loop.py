@@ -53,7 +53,7 @@ from rigspace.train.callbacks import (
 )
 from rigspace.train.conditioning import dataset_skeleton, parents_of
 from rigspace.train.config import TrainConfig
-from rigspace.train.data import SampleSet, chart_boxes, ensure_cache
+from rigspace.train.data import SampleSet, chart_boxes, ensure_cache, texels_per_coordinate
 from rigspace.train.loss import targets_for
 from rigspace.train.network import Rig2Image, Shape, albedo_maps, geometry_maps, texture_maps
 from rigspace.train.resident import ResidentBatches, resident_or_not
@@ -179,8 +179,12 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
         ) from exc
 
 
-def _preview(model, samples: SampleSet, resolution: int, path: Path) -> dict[str, float]:
-    """Prediction | ground truth | error for a few held-out samples; returns quick metrics."""
+def _preview(
+    model, samples: SampleSet, resolution: int, path: Path, texel_scale: np.ndarray | None = None
+) -> dict[str, float]:
+    """Prediction | ground truth | error for a few held-out samples; returns quick metrics
+    (with a texture head: the share of covered pixels whose chart is right, and where it is,
+    the coordinates' error in texels, median and 90th percentile, given `texel_scale`)."""
     ks = np.linspace(0, len(samples) - 1, min(4, len(samples))).astype(int)
     batch = samples.batch(ks)
     with torch.no_grad():
@@ -195,10 +199,14 @@ def _preview(model, samples: SampleSet, resolution: int, path: Path) -> dict[str
     quick: dict[str, float] = {}
     if model.charts and "chart" in target:  # how often the texture head names the right chart
         branch = model.texture_branch
-        logits, _ = texture_maps(heads[branch][-1], model.charts, branch)
+        logits, coords = texture_maps(heads[branch][-1], model.charts, branch)
         covered = target_mask[:, 0] > 0.5
-        right = logits.argmax(dim=1).numpy() == target["chart"][:, 0].numpy()
+        chart = target["chart"][:, 0].numpy()
+        right = logits.argmax(dim=1).numpy() == chart
         quick["chart_accuracy"] = float(right[covered].mean()) if covered.any() else math.nan
+        if texel_scale is not None:
+            quick |= texel_error(coords.numpy(), target["uv"].numpy(), chart, right & covered,
+                                 texel_scale)  # fmt: skip
     mse = float(np.mean((albedo - target_albedo) ** 2))
     inter = np.logical_and(mask > 0.5, target_mask > 0.5).sum()
     union = np.logical_or(mask > 0.5, target_mask > 0.5).sum()
@@ -453,6 +461,9 @@ class _Run:
     samples: Any
     held_out: Any
     model: Rig2Image
+    texel_scale: np.ndarray | None = None
+    """(K+1, 2) texels per unit of the texture head's coordinates, chart by chart
+    (data.texels_per_coordinate): the preview's coordinate error in texels; None without."""
 
     @property
     def previews(self) -> Any:
@@ -494,11 +505,13 @@ def _set_up(
     model = Rig2Image(shape, config)
     if model.conditioned:  # every item gets joints2d (train.conditioning)
         samples.skeleton = held_out.skeleton = dataset_skeleton(dataset, manifest)
+    texel_scale = None
     if model.charts:  # every item gets its texture head's targets (chart, uv)
         samples.charts = held_out.charts = boxes
+        texel_scale = texels_per_coordinate(dataset, manifest) if ctx.is_main else None
     if config.channels_last:
         model = model.to(memory_format=torch.channels_last)
-    return _Run(dataset, out, manifest, config, existing, samples, held_out, model)
+    return _Run(dataset, out, manifest, config, existing, samples, held_out, model, texel_scale)
 
 
 def _plan(
@@ -626,7 +639,28 @@ def _postfix(record: dict[str, Any]) -> dict[str, Any]:
 
 def _preview_step(state: LoopState, resolution: int, *, run: _Run, ctx: Any) -> dict[str, float]:
     path = run.out / "previews" / f"level_{resolution}.png"
-    return _preview(ctx.on_cpu(state.model), run.previews, resolution, path)
+    return _preview(ctx.on_cpu(state.model), run.previews, resolution, path, run.texel_scale)
+
+
+def texel_error(
+    coords: np.ndarray, target: np.ndarray, chart: np.ndarray, where: np.ndarray, scale: np.ndarray
+) -> dict[str, float]:
+    """The coordinates' error in texels (median, 90th percentile) where `where` holds and the
+    chart has a texture: `coords` (N, 2K, R, R) the head's, `target` (N, 2, R, R) the target
+    chart's pair, `chart` (N, R, R), `scale` (K+1, 2) texels per coordinate unit."""
+    pair = np.maximum(chart - 1, 0)[:, None]
+    predicted = np.concatenate(
+        [np.take_along_axis(coords[:, c::2], pair, 1) for c in (0, 1)], axis=1
+    )
+    texels = np.moveaxis((predicted - target), 1, -1) * scale[chart]
+    keep = where & np.isfinite(texels).all(axis=-1)
+    if not keep.any():
+        return {}
+    distance = np.linalg.norm(texels[keep], axis=-1)
+    return {
+        "uv_texels_median": float(np.median(distance)),
+        "uv_texels_p90": float(np.percentile(distance, 90)),
+    }
 
 
 def _save(state: LoopState, *, ctx: Any) -> Path:

@@ -170,3 +170,39 @@ def map_metrics(pred: Maps, target: Maps, character_height: float) -> dict[str, 
         "normal_mean_deg": mean_deg,
         "normal_median_deg": median_deg,
     }
+
+
+TEXTURE_METRICS = ("chart_accuracy", "uv_texels_median", "uv_texels_p90")
+"""The keys of texture_metrics: how well a texture head places the texture."""
+
+
+def texture_metrics(pred: Maps, target: Maps, texels_per_st: np.ndarray) -> dict[str, float]:
+    """Where the target shows a chart whose texture the scene has (coverage >= MASK_THRESHOLD):
+    the share of those pixels whose predicted chart is the target's, and where it is, how far
+    the predicted texture coordinates land from the true ones in texels of that chart's
+    texture (`texels_per_st`: (K+1, 2) texels per unit of s and t, nan for a chart without a
+    texture; ChartTextures.texels_per_st): the median and the 90th percentile. nan where the
+    maps carry no charts or no such pixel exists."""
+    nothing = dict.fromkeys(TEXTURE_METRICS, math.nan)
+    if pred.chart is None or pred.uv is None or target.chart is None or target.uv is None:
+        return nothing
+    if pred.chart.shape != target.chart.shape:
+        raise ValueError(
+            f"predicted charts have shape {pred.chart.shape}, the ground truth {target.chart.shape}."
+        )
+    chart = np.asarray(target.chart, np.int64)
+    scale = np.asarray(texels_per_st, np.float64)
+    textured = np.isfinite(scale[np.clip(chart, 0, len(scale) - 1)]).all(axis=-1)
+    shown = (target.mask >= MASK_THRESHOLD) & (chart > 0) & (chart < len(scale)) & textured
+    if not shown.any():
+        return nothing
+    right = shown & (np.asarray(pred.chart) == chart)
+    out = {"chart_accuracy": float(right.sum() / shown.sum())}
+    if not right.any():
+        return out | {"uv_texels_median": math.nan, "uv_texels_p90": math.nan}
+    delta = (_f64(pred.uv)[right] - _f64(target.uv)[right]) * scale[chart[right]]
+    texels = np.linalg.norm(delta, axis=-1)
+    return out | {
+        "uv_texels_median": float(np.median(texels)),
+        "uv_texels_p90": float(np.percentile(texels, 90)),
+    }

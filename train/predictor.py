@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from rigspace.sdk.model import BundleModel
 from rigspace.sdk.render import Maps
+from rigspace.sdk.texturing import ChartTextures
 from rigspace.train.evaluate import DatasetTable
 
 MASK_VALID = 0.5
@@ -69,8 +71,35 @@ class BundlePredictor:
                 "evaluate on a dataset captured at one of the model's resolutions.",
             )
 
+    texels_per_st: np.ndarray | None = None
+    """Set by attach_textures: the texel scale evaluate() measures the head's placement in."""
+    textures: ChartTextures | None = None
+
+    def attach_textures(self, textures: ChartTextures) -> None:
+        """Give the maps the texture head's chart and st (where it says the pixel lands on the
+        character's textures), so an evaluation measures them (metrics.texture_metrics)."""
+        self.textures, self.texels_per_st = textures, textures.texels_per_st()
+
     def predict(self, indices: np.ndarray) -> list[Maps]:
         rig = self.table.rig_inputs(indices)
         joint_depth = -self.table.column("joint_camera")[indices][:, 2]
         out = self.model.predict(rig, self.table.resolution)
-        return to_maps(out, joint_depth, self.model.depth_scale)
+        maps = to_maps(out, joint_depth, self.model.depth_scale)
+        if self.textures is None or "chart" not in out:
+            return maps
+        return [
+            replace(m, **dict(zip(("chart", "uv"), head_st(out, k, self.textures), strict=True)))
+            for k, m in enumerate(maps)
+        ]
+
+
+def head_st(
+    out: dict[str, np.ndarray], k: int, textures: ChartTextures
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sample k's most likely chart (H, W) and its predicted st (H, W, 2) from a texture head's
+    outputs (0 and 0 where no chart is the most likely)."""
+    chart = out["chart"][k].argmax(axis=0)
+    pair = np.maximum(chart - 1, 0)[None]
+    coords = np.stack([np.take_along_axis(out["uv"][k][c::2], pair, 0)[0] for c in (0, 1)], axis=-1)
+    st = textures.center[chart] + coords * textures.half[chart]
+    return chart.astype(np.int32), np.where(chart[..., None] > 0, st, 0.0).astype(np.float32)

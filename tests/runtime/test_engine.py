@@ -136,6 +136,9 @@ def test_reference_mode_compares_the_network_with_the_mesh(tmp_path):
     assert hero["psnr"] > 15
     # The character's own silhouette against its skinned mesh's, in its region (floor).
     assert 0.7 < hero["mask_iou"] <= 1.0
+    # FLIP beside PSNR, and its ceiling: the mesh's region squeezed to the network's level.
+    # At 160x90 the character is smaller than its level (no ceiling to speak of: 0).
+    assert 0.0 < hero["flip"] < 0.5 and hero["flip_ceiling"] == 0.0
     image = cv2.imread(str(out / "compare_000700.0.png"))
     assert image.shape == (90, 3 * 160, 3)
 
