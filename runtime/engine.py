@@ -326,23 +326,8 @@ class Engine:
         scene_mask: Callable[[], np.ndarray],
         lit: bool,
     ) -> tuple[tuple[str, ...], str]:
-        """The branches a character needs this frame, and why (the unlit mode's decision);
-        a texture head on a branch of its own runs beside them where the scene has the
-        character's textures. `scene_mask` draws the prims' coverage when asked: only an
-        unlit character asks."""
-        branches, why = self._map_branches(c, candidates, scene_mask, lit)
-        if c.character.textures is not None and c.character.model.texture_branch == "texture":
-            branches = (*branches, "texture")
-        return branches, why
-
-    def _map_branches(
-        self,
-        c: _Candidate,
-        candidates: list[_Candidate],
-        scene_mask: Callable[[], np.ndarray],
-        lit: bool,
-    ) -> tuple[tuple[str, ...], str]:
-        """The map branches (albedo, geometry) of _branches, and why."""
+        """The map branches a character needs this frame, and why (the unlit mode's decision).
+        `scene_mask` draws the prims' coverage when asked: only an unlit character asks."""
         if lit:
             return BOTH, "lights reach it: normals and depth are shaded"
         if c.character.textures is not None and c.character.model.texture_branch == "geometry":
@@ -744,6 +729,7 @@ class Engine:
             branches, why = self._branches(
                 c, f.candidates, lambda: self._prims_stage(f).mask, bool(f.lights)
             )
+            branches += _texture_branch(c.character)
             cached = self._layers.get(c.character.path)
             c.entry["mode"] = "lit" if "geometry" in branches else "unlit"
             c.entry["mode_reason"] = why
@@ -1019,6 +1005,13 @@ class Engine:
             region=[int(layer.x0), int(layer.y0), *map(int, layer.mask.shape[::-1])],
             **({"texture_ms": layer.info["texture_ms"]} if "texture_ms" in layer.info else {}),
         )
+
+
+def _texture_branch(character: NeuralCharacter) -> tuple[str, ...]:
+    """("texture",) when the character's texture head is a branch of its own and the scene
+    has its textures (the frame runs it beside the map branches), else ()."""
+    own = character.model.texture_branch == "texture"
+    return ("texture",) if own and character.textures is not None else ()
 
 
 @dataclass

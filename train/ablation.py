@@ -43,8 +43,7 @@ from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.model import BundleModel
 from rigspace.sdk.render import Maps
 from rigspace.train.config import preset
-from rigspace.train.data import targets_at
-from rigspace.train.evaluate import DatasetTable, evaluate
+from rigspace.train.evaluate import OPTIONAL_METRICS, DatasetTable, downsample_maps, evaluate
 from rigspace.train.export import export_bundle
 from rigspace.train.loop import RUN_FILE, build_model, train
 from rigspace.train.network import Rig2Image
@@ -58,6 +57,9 @@ ADD32_BCE: dict[str, Any] = {
 }
 """The sample model's form (bones2d maps up to 32x32, projected and added; cross-entropy
 mask): the base of the variants named bones2d-add32+bce..."""
+
+SAMPLE_RECIPE: dict[str, Any] = {**ADD32_BCE, "depth_weight": 2.0, "texture": True}
+"""The committed sample model's options (docs/training.md): the base of the capacity variants."""
 
 VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "paper": ("the paper's input (rotations only), small widths, L2/L1 mask loss", {}),
@@ -166,6 +168,27 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
         "sample-form+texture with the sample model's weights (chart 0.25, coordinates 4)",
         {**ADD32_BCE, "depth_weight": 2.0, "texture": True},
     ),
+    # Capacity (issue 32): the texture head on its own branch, and width at 64 and 128.
+    "sample-recipe": (
+        "the committed sample model's recipe: sample-form+texture-uv4",
+        SAMPLE_RECIPE,
+    ),
+    "sample-recipe-own": (
+        "sample-recipe with the texture head on a branch of its own",
+        {**SAMPLE_RECIPE, "texture_branch": "texture"},
+    ),
+    "sample-recipe-width24": (
+        "sample-recipe, 24 channels at 64x64 and 128x128 (1.5x; min width 24)",
+        {**SAMPLE_RECIPE, "min_width": 24},
+    ),
+    "sample-recipe-width32": (
+        "sample-recipe, 32 channels at 64x64 and 128x128 (2x; min width 32)",
+        {**SAMPLE_RECIPE, "min_width": 32},
+    ),
+    "sample-recipe-own-width32": (
+        "sample-recipe-own, 32 channels at 64x64 and 128x128 (2x; min width 32)",
+        {**SAMPLE_RECIPE, "texture_branch": "texture", "min_width": 32},
+    ),
 }
 SPLITS = ("heldout-views", "heldout-clips")
 TIMING_REPEATS = 30
@@ -194,22 +217,9 @@ class DownsampledTable(DatasetTable):
         return self._full.character_height  # from the full-resolution maps and intrinsics
 
     def maps(self, index: int) -> Maps:
-        full = super().maps(index)
-        mask = full.mask[None]
-        depth = np.where(mask > 0, full.depth[None], 0.0).astype(np.float32)
-        albedo, mask, normal, depth = targets_at(
-            np.moveaxis(full.albedo, -1, 0),
-            mask,
-            np.moveaxis(full.normal, -1, 0),
-            depth,
-            self._factor,
-        )
-        return Maps(
-            albedo=np.moveaxis(albedo, 0, -1).astype(np.float32),
-            normal=np.moveaxis(normal, 0, -1).astype(np.float32),
-            depth=np.where(mask[0] > 0, depth[0], np.inf).astype(np.float32),
-            mask=mask[0].astype(np.float32),
-        )
+        """The captured maps box-downsampled as training does (evaluate.downsample_maps), the
+        chart and uv AOVs with them (each box's commonest chart and its own mean st)."""
+        return downsample_maps(super().maps(index), self._factor)
 
 
 def mflop(model: Rig2Image, resolution: int) -> float:
@@ -287,6 +297,11 @@ def display_metrics(
                     "mask_iou": report["metrics"]["mask_iou"]["mean"],
                     "ms": 1e3 * report["seconds_per_sample"],
                     "samples": report["samples"],
+                    **{
+                        key: summary["median" if key.startswith("uv_texels") else "mean"]
+                        for key, summary in report["metrics"].items()
+                        if key in OPTIONAL_METRICS
+                    },
                 }
             out[str(size)] = entry
     return out
@@ -326,10 +341,19 @@ def run_variant(
     model, _, _ = build_model(folder / "run")
     table = DownsampledTable(dataset, resolution)
     predictor = BundlePredictor(bundle, table)
+    if predictor.model.charts:  # where the head lands on the textures, in texels
+        from rigspace.train.display import scene_textures
+
+        textures, _ = scene_textures(predictor.model, table.manifest)
+        if textures is not None:
+            predictor.attach_textures(textures)
     metrics = {}
     for split in SPLITS:
         report = evaluate(predictor, table, split, limit=limit)
-        metrics[split] = {k: v["mean"] for k, v in report["metrics"].items()}
+        metrics[split] = {
+            k: v["median" if k.startswith("uv_texels") else "mean"]
+            for k, v in report["metrics"].items()
+        }
         metrics[split]["samples"] = report["samples"]
     rig = table.rig_inputs(table.indices("heldout-views")[:1])
     record = {
@@ -384,6 +408,10 @@ COLUMNS = (
     ("mask_iou", "IoU", "{:.3f}"),
     ("depth_mae_pct", "depth %h", "{:.2f}"),
     ("normal_median_deg", "normal med deg", "{:.1f}"),
+    ("albedo_flip", "FLIP", "{:.3f}"),
+    ("chart_accuracy", "chart right", "{:.3f}"),
+    ("uv_texels_median", "uv texels med", "{:.2f}"),
+    ("uv_texels_p90", "uv texels p90", "{:.2f}"),
 )
 
 CLIP_COLUMNS = ("albedo_psnr", "mask_iou", "depth_mae_pct")
@@ -521,12 +549,14 @@ ARCHITECTURE = (
     "min_width",
     "latent",
     "fc_layers",
+    "texture",
+    "texture_branch",
 )
 """The options that change the graphs (and so the cost); losses, sampling and seeds do not."""
 
 
 def cost(dataset: Path, names: list[str], resolution: int = 128, rounds: int = 8) -> str:
-    """MFLOP and ms of one evaluation (trunk and both branches, batch 1, one onnxruntime
+    """MFLOP and ms of one evaluation (trunk and every branch, batch 1, one onnxruntime
     thread) at `resolution`, fp32 and int8, of each distinct architecture among `names`,
     with no training: cost depends on the graphs' shapes, not their weights (seeded random
     weights here). int8 is the export's graph without its accuracy sweep: the trunk whole,
@@ -565,14 +595,16 @@ def _cost_inputs(dataset: Path) -> tuple[DatasetManifest, np.ndarray, Any]:
     """(the dataset's manifest, 64 evenly spaced training rig rows, the network's Shape)."""
     from rigspace.capture.dataset import read_manifest
     from rigspace.train.conditioning import parents_of
-    from rigspace.train.data import SampleSet
+    from rigspace.train.data import SampleSet, chart_boxes
     from rigspace.train.network import Shape
 
     manifest = read_manifest(dataset)
     train_rows = SampleSet(dataset, "train")
     picks = np.linspace(0, len(train_rows) - 1, 64).astype(int)
     rig = train_rows.rig[train_rows.rows[picks]].astype(np.float32)
-    shape = Shape(len(train_rows.joints), parents=parents_of(train_rows.joints))
+    boxes = chart_boxes(dataset)  # a variant with a texture head costs its K charts' channels
+    charts = 0 if boxes is None else len(boxes[0]) - 1
+    shape = Shape(len(train_rows.joints), parents=parents_of(train_rows.joints), charts=charts)
     return manifest, rig, shape
 
 
@@ -605,7 +637,7 @@ def _export_graphs(
         feeds["features"] = model.features(tensors["rig"], tensors.get("joints2d")).numpy()
     folder.mkdir()
     graphs: dict[str, tuple[Any, dict[str, np.ndarray]]] = {}
-    for branch in ("trunk", "albedo", "geometry"):
+    for branch in ("trunk", *model.branch_names):
         fp32 = folder / f"{branch}.onnx"
         int8 = folder / f"{branch}.int8.onnx"
         with torch.no_grad():
@@ -628,9 +660,7 @@ def _time_graphs(
     for _ in range(rounds):
         for key in graphs:
             for precision in ("fp32", "int8"):
-                evaluation = [
-                    graphs[key][f"{b}.{precision}"] for b in ("trunk", "albedo", "geometry")
-                ]
+                evaluation = [v for k, v in graphs[key].items() if k.endswith(f".{precision}")]
                 for graph, feed in evaluation:
                     graph.run(None, feed)  # warm
                 times = []
