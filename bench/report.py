@@ -120,8 +120,10 @@ def _texture(rows: list[dict[str, Any]]) -> list[str]:
         "## The character at the size it is seen (textures against the albedo branch)",
         "",
         "The previs shot against its skinned mesh (`--reference`): per frame the character "
-        "region's albedo and beauty PSNR and its own coverage's IoU (medians over the frames), "
-        "and milliseconds per frame (the texture sampler's own: `sampler ms`).",
+        "region's albedo and beauty PSNR, its beauty FLIP (0 is identical; in brackets the "
+        "ceiling, the mesh's region squeezed to the network's level and back) and its own "
+        "coverage's IoU (medians over the frames), and milliseconds per frame (the texture "
+        "sampler's own: `sampler ms`).",
         "",
         *table(rows),
     ]

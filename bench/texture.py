@@ -3,8 +3,9 @@
 The previs shot at display sizes (640x360, 1920x1080): per frame, the network's frame with
 the texture head's colour (`rigspace render`'s default), the same with the albedo branch
 alone (`--no-textures`) and the skinned mesh drawn by the renderer (`--reference`), rendered
-one after the other at each time; the character region's albedo and beauty PSNR and its own
-coverage's IoU against the mesh's, and each frame's milliseconds (total, network stage, and
+one after the other at each time; the character region's albedo and beauty PSNR, its beauty
+FLIP (and the ceiling: the mesh's region squeezed to the network's level and back, runtime
+cli's region_flip) and its own coverage's IoU against the mesh's, and each frame's milliseconds (total, network stage, and
 the texture sampler's own). The two network modes differ only in the colour of the pixels
 the textures cover: their time difference is the sampler's cost per character.
 """
@@ -82,6 +83,8 @@ def _row(width: int, height: int, mode: str, records: list[dict[str, Any]]) -> d
         "beauty_psnr": _median([r["psnr"] for r in regions]),
         "beauty_psnr_min": min((r["psnr"] for r in regions), default=None),
         "mask_iou": _median([r.get("mask_iou") for r in regions]),
+        "beauty_flip": _median([r.get("flip") for r in regions]),
+        "flip_ceiling": _median([r.get("flip_ceiling") for r in regions]),
         "total_ms": _median([r["total_ms"] for r in records]),
         "network_ms": _median([r["network_ms"] for r in records]),
         "texture_ms": _median([r["texture_ms"] for r in records]),
@@ -93,13 +96,14 @@ def table(rows: list[dict[str, Any]]) -> list[str]:
         return "-" if value is None else f"{value:.{digits}f}"
 
     lines = [
-        "| size | colour | character px | albedo dB | beauty dB (min) | mask IoU | frame ms | network ms | sampler ms |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| size | colour | character px | albedo dB | beauty dB (min) | beauty FLIP (ceiling) | mask IoU | frame ms | network ms | sampler ms |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r['size']} | {r['mode']} | {f(r['character_px'], 0)} | {f(r['albedo_psnr'])} | "
-            f"{f(r['beauty_psnr'])} ({f(r['beauty_psnr_min'])}) | {f(r['mask_iou'], 3)} | "
+            f"{f(r['beauty_psnr'])} ({f(r['beauty_psnr_min'])}) | "
+            f"{f(r.get('beauty_flip'), 4)} ({f(r.get('flip_ceiling'), 4)}) | {f(r['mask_iou'], 3)} | "
             f"{f(r['total_ms'], 1)} | {f(r['network_ms'], 1)} | {f(r['texture_ms'])} |"
         )
     return lines

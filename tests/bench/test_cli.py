@@ -28,6 +28,8 @@ def test_quick_bench_writes_json_markdown_and_plots(tmp_path):
     assert max(rows["far away"]["levels"]) < min(rows["full, still camera"]["levels"])
     assert rows["unlit and unoccluded"]["branches"] == ["albedo"]
     assert result["stability"]["stress"]["violations"] == {}
+    textured = [r for r in result["texture"] if r["mode"] == "textures"]
+    assert textured and all(0 < r["beauty_flip"] < 1 for r in textured)  # FLIP beside PSNR
     variants = {r["variant"] for r in result["pareto"]["rows"]}
     assert {"fp32 level 128", "int8 level 8", "gl 2x2"} <= variants
     text = (out / "README.md").read_text()
