@@ -192,18 +192,6 @@ def violations(out: dict[str, np.ndarray], tol: Tolerance = TOLERANCE) -> dict[s
     return {problem: rows for problem, rows in found.items() if rows.any()}
 
 
-def check_maps(out: dict[str, np.ndarray], tol: Tolerance = TOLERANCE) -> list[str]:
-    """Problems found in a batch of network maps (NCHW), each naming the map and the samples:
-    non-finite values, coverage (mask, alpha) or albedo outside [0, 1], normals not of unit
-    length where the mask is set. Empty when every map is in its documented range."""
-    problems = []
-    for problem, rows in violations(out, tol).items():
-        which = np.flatnonzero(rows)
-        shown = ", ".join(map(str, which[:5])) + (", ..." if len(which) > 5 else "")
-        problems.append(f"{problem} in {len(which)} of {len(rows)} samples ({shown})")
-    return problems
-
-
 # --- stress and drift --------------------------------------------------------------------------
 
 

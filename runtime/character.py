@@ -231,22 +231,6 @@ class NeuralCharacter:
         rotations = rig_parameters(world[self.order], virtual)[None]
         return rig_inputs(rotations, None if weights is None else np.asarray(weights)[None])
 
-    def evaluate(
-        self,
-        world: np.ndarray,
-        billboard: Billboard,
-        camera: Camera,
-        branches: tuple[str, ...],
-        level: int | None = None,
-        weights: np.ndarray | None = None,
-    ) -> Layer:
-        """The character's maps in the frame, for a visible billboard (`weights`: its blend
-        shape weights, model order, when the model reads any)."""
-        level = level or self.model.level_for(billboard.size_px)
-        rig = self.parameters(world, billboard, camera, weights)
-        out = self.model.predict(rig, level, branches)
-        return self.resample(out, billboard, camera, level, branches)
-
     def finish_geometry(
         self,
         coverage: np.ndarray,

@@ -26,6 +26,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -199,6 +200,15 @@ class Engine:
         self.overlap = True
         """Light the prims while the networks run (False: one after the other, the same
         images; 256x256 previs frame on 2 cores: 26.1 -> 23.5 ms, 512x512: 54 -> 49 ms)."""
+        self.report_cpu = False
+        """Also report each stage's CPU seconds (`report["cpu_seconds"]`, beside `seconds`):
+        the process's, all threads, while the stage ran (a profiling aid: the shadow timing
+        tool, `python -m rigspace.runtime.shadows.timing`)."""
+        self.shadow_passes: dict[str, Callable[[], Any]] | None = None
+        """None, or a dict that each frame fills with its shadow passes, each a call that runs
+        the pass again on the same inputs with the shadow backend in use then: "prims" (the
+        prims' shadows from the maps and the capsules) and "layer" (a character layer's, the
+        frame's last). The shadow timing tool repeats them."""
         self.gl_shading: GLShading | None = open_gl_shading(spec, gl_lighting)
         """The fragment shader that lights the prims and the characters' layers; None: numpy."""
         self._compiled: CompiledPasses | None = None
@@ -417,6 +427,10 @@ class Engine:
         the union of their windows, measured slower: the capsules' small window grew to the
         maps' and more pixels were evaluated.) The same passes run compiled in shadow_pass.py
         unless the capsules go to the fragment shader or the backend's kernel is "numpy"."""
+        if self.shadow_passes is not None:
+            self.shadow_passes["prims"] = partial(
+                self._prim_shadows, prims, camera, lights, meshes, casters, maps
+            )
         box = self._scene_box(meshes)
         if self._compiled is not None and self.shadows.capsule_backend == "numpy":
             return shadow_pass.prim_shadows(self.shadows, prims, camera, lights, box, casters, maps)
@@ -531,6 +545,10 @@ class Engine:
     ) -> list[np.ndarray | None] | None:
         """Per light, a character layer's (h, w) shadow factor: the prims' shadow maps and the
         other characters' capsules (its own capsules would shadow its own surface)."""
+        if self.shadow_passes is not None:
+            self.shadow_passes["layer"] = partial(
+                self._layer_visibility, layer, camera, lights, others, meshes
+            )
         if not self._shadowing(lights) or layer.depth is None or layer.normal is None:
             return None
         if self._compiled is not None and self.shadows.capsule_backend == "numpy":
@@ -583,7 +601,7 @@ class Engine:
         (`_prims_stage`, drawn meanwhile), the prims' shadows and lighting
         (`_light_prims_stage`), the characters' lighting and compositing (`_composite_stage`).
         Each stage's time is added to the report's seconds by `timed`."""
-        f = _FrameState(time, clock.perf_counter())
+        f = _FrameState(time, clock.perf_counter(), cpu=self.report_cpu)
         self.live.open()
         if self._frame is not None and self._frame_at == time and not self.live.active:
             # The same time code and no edit to the stage since (the listener clears _frame):
@@ -618,7 +636,7 @@ class Engine:
         frame = self._composite_stage(f, beauty)
         self._frame = (frame_key, frame)
         self._frame_at = time
-        f.report["seconds"] = _seconds(f.timings, f.start)
+        f.report.update(f.seconds())
         return frame
 
     def _refresh_if_edited(self) -> None:
@@ -803,7 +821,7 @@ class Engine:
         assert self._frame is not None
         f.report["composite_reused"] = True
         f.report["scene_prims"]["lit_reused"] = True
-        f.report["seconds"] = _seconds(f.timings, f.start)
+        f.report.update(f.seconds())
         self._frame_at = f.time
         last = self._frame[1]
         f.report["background"] = last.report.get("background")
@@ -1021,7 +1039,10 @@ class _FrameState:
     time: float
     start: float
     """perf_counter() when the frame began (the report's total)."""
+    cpu: bool = False
+    """Whether `timed` also adds the process's CPU seconds to `cpu_timings` (report_cpu)."""
     timings: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
+    cpu_timings: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
     camera: Camera = field(init=False)
     camera_key: bytes = b""
     scene_meshes: list = field(default_factory=list)
@@ -1042,10 +1063,21 @@ class _FrameState:
     def timed(self, stage: str) -> Iterator[None]:
         """Add the time the block takes to the report's seconds of `stage`."""
         began = clock.perf_counter()
+        cpu = clock.process_time() if self.cpu else 0.0
         try:
             yield
         finally:
             self.timings[stage] += clock.perf_counter() - began
+            if self.cpu:
+                self.cpu_timings[stage] += clock.process_time() - cpu
+
+    def seconds(self) -> dict[str, Any]:
+        """The report's timings: `seconds` per stage and in total, and with `cpu` the stages'
+        `cpu_seconds`."""
+        timings = {"seconds": _seconds(self.timings, self.start)}
+        if self.cpu:
+            timings["cpu_seconds"] = {k: round(v, 6) for k, v in self.cpu_timings.items()}
+        return timings
 
 
 @dataclass

@@ -171,11 +171,6 @@ def lights_at(
     return lights
 
 
-def scene_lights(stage: Usd.Stage, time: float) -> list[Light]:
-    """Every visible, active UsdLux light of the stage at `time`."""
-    return lights_at(light_prims(stage), time)
-
-
 TEXTURE_FORMATS = ("automatic", "latlong")
 """DomeLight texture parameterisations read here (automatic: taken as latlong)."""
 _Z_POLE_TO_Y = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])

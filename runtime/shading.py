@@ -24,18 +24,6 @@ MIN_DISTANCE = 1e-6
 """Guards the inverse-square falloff of a point light sitting on a surface (scene units)."""
 
 
-def camera_positions(
-    depth: np.ndarray, camera: Camera, origin: tuple[int, int] = (0, 0)
-) -> np.ndarray:
-    """(H, W, 3) camera-space points of each pixel centre at its depth (0 where empty).
-
-    `origin` (x0, y0) places a region's pixel (0, 0) at that pixel of the camera's image.
-    """
-    h, w = depth.shape
-    rows, cols = np.indices((h, w)).reshape(2, -1)
-    return pixel_positions(depth.reshape(-1), rows, cols, camera, origin).reshape(h, w, 3)
-
-
 def pixel_positions(
     depth: np.ndarray,
     rows: np.ndarray,

@@ -3,15 +3,23 @@
 from __future__ import annotations
 
 import json
+import os
 import random
 import socket
+import tempfile
 from pathlib import Path
 
 import pytest
+from hypothesis.configuration import set_hypothesis_home_dir
 
 import rigspace.sdk  # noqa: F401  (registers the schemas before any stage is opened)
 
 REPO = Path(__file__).resolve().parents[1]
+
+# Tests write only under the temporary folder: Hypothesis keeps its example database (a
+# failing example is replayed on the next run) and caches there, not in .hypothesis/ of the
+# working directory (the checkout).
+set_hypothesis_home_dir(Path(tempfile.gettempdir()) / f"rigspace-hypothesis-{os.getuid()}")
 SHARED_ASSETS = REPO.parent / "shared" / "assets"
 CESIUM_MAN = REPO / "samples" / "assets" / "CesiumMan" / "CesiumMan.usdz"
 

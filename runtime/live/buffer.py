@@ -357,9 +357,6 @@ class LiveBuffer:
             self._latency.append(seconds)
 
     # -- frame side ----------------------------------------------------------------------
-    def status_at(self, now: float) -> str:
-        return self._status(now, self._last_seen)
-
     def _status(self, now: float, last_seen: float) -> str:
         if math.isnan(last_seen):
             return WAITING

@@ -25,7 +25,7 @@ from rigspace.runtime.live.buffer import LivePose
 from rigspace.runtime.live.decoders.vmc import HUMAN_BODY_BONES, ROOT
 from rigspace.runtime.live.source_frame import quat_slerp
 from rigspace.sdk.errors import RigspaceError
-from rigspace.sdk.rotations import matrix_from_quat, quat_from_matrix, quat_multiply
+from rigspace.sdk.rotations import matrix_from_quat, quat_from_matrix
 
 
 class RetargetError(RigspaceError):
@@ -241,14 +241,6 @@ def hierarchy_levels(parents: np.ndarray) -> list[np.ndarray]:
             "The source hierarchy has a cycle.", "give every bone a parent chain to a root."
         )
     return [np.flatnonzero(depth == d) for d in range(int(depth.max(initial=-1)) + 1)]
-
-
-def compose_world(local: np.ndarray, parents: np.ndarray, levels: list[np.ndarray]) -> np.ndarray:
-    """(N, 4) local rotations -> world rotations down the hierarchy (one product per level)."""
-    world = local.copy()
-    for level in levels[1:]:
-        world[level] = quat_multiply(world[parents[level]], local[level])
-    return world
 
 
 def _parent_indices(names: Sequence[str], parents: Mapping[str, str]) -> np.ndarray:
@@ -488,10 +480,6 @@ class Retargeter:
                 m[level] = m[self._need_parents[level]] @ m[level]
         return m[self._map_in_need]
 
-    def _world_deltas(self, rotations: np.ndarray) -> np.ndarray:
-        rest_inverse = np.swapaxes(self._source_rest_world[self.map_source], 1, 2)
-        return self._a @ (self._mapped_world(rotations) @ rest_inverse) @ self._a.T
-
     def _desired(self, rotations: np.ndarray) -> np.ndarray:
         """(M, 3, 3) each mapped joint's desired world rotation: A W R_src^-1 A^T R_target,
         with everything right of W fixed per calibration."""
@@ -519,10 +507,6 @@ class Retargeter:
                 self._structure.clear()
             self._structure[key] = found
         return found
-
-    def world_deltas(self, rotations: np.ndarray) -> np.ndarray:
-        """(B, 4) source rotations -> (M, 4) stage-frame world deltas of the mapped bones."""
-        return quat_from_matrix(self._world_deltas(rotations))
 
     def apply(self, stage_local: np.ndarray, pose: LivePose) -> np.ndarray:
         """Merge `pose` into the stage's (J, 4, 4) local transforms (row-vector, as
@@ -694,36 +678,6 @@ def source_hierarchy(source, preset: Preset) -> np.ndarray:
     if parents:
         return np.asarray(parents, dtype=np.int64)
     return _parent_indices(source.bones, preset.parents)
-
-
-def for_preset(
-    source,
-    skeleton_prim,
-    preset: str | Preset,
-    stage_meters_per_unit: float,
-    rest_pose: np.ndarray | None = None,
-) -> Retargeter:
-    """A Retargeter from a started or unstarted source onto a USD skeleton with a preset's map,
-    basis and units (`stage_meters_per_unit`: UsdGeom.GetStageMetersPerUnit of the stage)."""
-    if isinstance(preset, str):
-        if preset not in PRESETS:
-            raise RetargetError(
-                f"There is no retargeting preset {preset!r}.",
-                f"use one of {', '.join(sorted(PRESETS))}, or author a bone map.",
-            )
-        preset = PRESETS[preset]
-    joints, rest = target_skeleton(skeleton_prim)
-    return Retargeter(
-        source.bones,
-        source_hierarchy(source, preset),
-        source.space,
-        joints,
-        rest,
-        preset.bone_map,
-        preset.basis,
-        preset.meters_per_unit / stage_meters_per_unit,
-        rest_pose,
-    )
 
 
 @dataclass(frozen=True)

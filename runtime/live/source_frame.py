@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Protocol
 
 import numpy as np
 
@@ -74,23 +73,6 @@ class DecodeCounters:
         return asdict(self)
 
 
-class Decoder(Protocol):
-    """Sans-IO: bytes in, frames out; no sockets, no threads, never raises on input."""
-
-    bones: tuple[str, ...]
-    space: str
-    """"local" (rotations relative to the parent bone) or "world" (orientation sensors)."""
-    counters: DecodeCounters
-
-    def feed(self, data: bytes, received: float) -> list[SourceFrame]:
-        """Frames completed by `data`, received at local monotonic time `received`."""
-        ...
-
-    def reset(self) -> None:
-        """Forget partial input (after a reconnect the next bytes start a new stream)."""
-        ...
-
-
 def unit_quaternions(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(k, 4) -> (normalised (k, 4), valid (k,) mask): finite and of norm 1 within UNIT_TOLERANCE."""
     q = np.asarray(q, dtype=np.float64)
@@ -99,11 +81,6 @@ def unit_quaternions(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ok = np.isfinite(norm) & (np.abs(norm - 1.0) <= UNIT_TOLERANCE)
     safe = np.where(ok, norm, 1.0)
     return np.where(ok[:, None], q / safe[:, None], 0.0), ok
-
-
-def quat_conjugate(q: np.ndarray) -> np.ndarray:
-    """Inverse of unit quaternions (w, x, y, z)."""
-    return np.asarray(q) * np.array([1.0, -1.0, -1.0, -1.0])
 
 
 def quat_slerp(a: np.ndarray, b: np.ndarray, t: np.ndarray | float) -> np.ndarray:

@@ -254,11 +254,6 @@ REPLAY = SourceSpec(
 )
 
 
-def source_specs(extra: dict[str, Callable[[], Any]] | None = None) -> dict[str, SourceSpec]:
-    """Every source plugin (entry-point group rigspace.sources, plus `extra`), by URL scheme."""
-    return {spec.scheme: spec for spec in discover(SOURCES, extra)}
-
-
 def open_source(
     url: str, name: str = "", extra: dict[str, Callable[[], Any]] | None = None
 ) -> Source:

@@ -1,24 +1,24 @@
 """Measure the shadow stage on the previs scene: compiled kernels against numpy, split by sub-step.
 
-`python -m rigspace.runtime.shadows.timing [--frames N] [--sizes 256x256 640x360] [--kernels
-numba numpy]`: per size, two engines (ShadowBackend kernel "numba" and "numpy", or those named)
-render the same frames of
-samples/scenes/previs.usda with the sample character, one frame each in turn in one
+`python -m rigspace.runtime.shadows.timing [--scene S] [--frames N] [--sizes 256x256 640x360]
+[--kernels numba numpy]`: per size, two engines (ShadowBackend kernel "numba" and "numpy", or
+those named) render the same frames of the previs scene (samples/scenes/previs.usda of the
+source checkout, or --scene) with the sample character, one frame each in turn in one
 process (so that load on a shared machine falls on both alike); printed per engine: the
 median frame and stage milliseconds from the engine's own report, the shadow stage's
-fraction of the frame, its split into sub-steps (each one's own time, callees excluded),
-and the first frame's time (for numba, loading or compiling the kernels); then the same
-fraction in CPU time (the process's, all threads: the shadow stage's engine methods
-against the whole render), which a loaded machine distorts less than the wall clock;
-then the prims' shadow passes and the character layer's of one frame run again and
-again on the same inputs, both ways: the best and the median CPU milliseconds of the
-thread they run in, the least noisy comparison on a shared machine.
+fraction of the frame, its split into sub-steps (each one's own time, callees excluded:
+the shadows package's functions below are wrapped while a frame renders), and the first
+frame's time (for numba, loading or compiling the kernels); then the same fraction in CPU
+time (the process's, all threads: the report's shadows `cpu_seconds`, Engine.report_cpu,
+against the whole render), which a loaded machine distorts less than the wall clock; then
+the prims' shadow passes and the character layer's of one frame (Engine.shadow_passes) run
+again and again on the same inputs, both ways: the best and the median CPU milliseconds of
+the thread they run in, the least noisy comparison on a shared machine.
 """
 
 from __future__ import annotations
 
 import argparse
-import functools
 import statistics
 import time as clock
 from collections.abc import Callable, Sequence
@@ -34,13 +34,15 @@ from rigspace.runtime.shadows import kernels as shadow_kernels
 from rigspace.runtime.shadows import passes as shadow_pass
 
 KERNELS = ("numba", "numpy")
-SCENE = Path(__file__).resolve().parents[1] / "samples" / "scenes" / "previs.usda"
+SCENE = Path(__file__).resolve().parents[2] / "samples" / "scenes" / "previs.usda"
+"""The previs scene of the source checkout (runtime/shadows/ -> the repository root): the
+installed package has no samples/, so there --scene is needed."""
 TIMES = np.linspace(100.0, 1400.0, 64)
 """The frames rendered (the first a warm-up): bench/frame_stages.py's."""
+PASSES = {"prims": "prims' passes", "layer": "layer"}
+"""Engine.shadow_passes' names, and what the lines call them."""
 
 # Sub-step: the functions whose own time it is (module or class, attribute).
-SHADOW_STAGE = ("_update_shadow_maps", "_prim_shadows", "_layer_visibility", "_capsule_reshade")
-"""The Engine methods whose time the engine counts as its shadows stage."""
 
 SUBSTEPS: dict[str, list[tuple[object, str]]] = {
     "draw maps": [(shadows.PrimShadows, "_render")],
@@ -91,26 +93,8 @@ class _Timers:
         return timed
 
 
-def _cpu_wrap(engine: Engine) -> list[float]:
-    """Wrap the engine's shadow-stage methods (on the instance) to add their process CPU
-    seconds to the list's one entry."""
-    spent = [0.0]
-    for name in SHADOW_STAGE:
-        method = getattr(engine, name)
-
-        def timed(*args, method=method, **kwargs):
-            start = clock.process_time()
-            try:
-                return method(*args, **kwargs)
-            finally:
-                spent[0] += clock.process_time() - start
-
-        setattr(engine, name, timed)
-    return spent
-
-
 def measure(
-    sizes: Sequence[tuple[int, int]], frames: int, kernels: Sequence[str] = KERNELS
+    scene: Path, sizes: Sequence[tuple[int, int]], frames: int, kernels: Sequence[str] = KERNELS
 ) -> list[str]:
     """The lines printed: per size and kernel, the frame, the shadow stage and its split."""
     lines = []
@@ -120,25 +104,24 @@ def measure(
         try:
             for kernel in kernels:
                 engine = Engine(
-                    SCENE, width=width, height=height, prim_samples=1,
+                    scene, width=width, height=height, prim_samples=1,
                     shadow_backend=ShadowBackend(kernel),
                 )  # fmt: skip
+                engine.report_cpu = True  # the report's cpu_seconds per stage
                 start = clock.perf_counter()
                 engine.render(float(times[0]))  # warm-up (numba: load or compile the kernels)
                 runs[kernel] = (engine, [], clock.perf_counter() - start, _Timers())
             for t in times[1:]:
                 for _kernel, (engine, reports, _, timers) in runs.items():
                     timers.wrap()
-                    cpu = _cpu_wrap(engine)
                     start = clock.process_time()
                     try:
-                        seconds = engine.render(float(t)).report["seconds"]
+                        report = engine.render(float(t)).report
                     finally:
                         timers.unwrap()
-                        for name in SHADOW_STAGE:
-                            delattr(engine, name)
+                    seconds = report["seconds"]
                     seconds["cpu"] = clock.process_time() - start
-                    seconds["cpu shadows"] = cpu[0]
+                    seconds["cpu shadows"] = report["cpu_seconds"]["shadows"]
                     reports.append(seconds)
         finally:
             for engine, _, _, _ in runs.values():
@@ -169,42 +152,37 @@ def measure(
     return lines
 
 
-def _recording(engine: Engine, recorded: dict, name: str, *args):
-    recorded[name] = args
-    return getattr(Engine, name)(engine, *args)
-
-
 def passes(
-    sizes: Sequence[tuple[int, int]], repeats: int = 15, kernels: Sequence[str] = KERNELS
+    scene: Path,
+    sizes: Sequence[tuple[int, int]],
+    repeats: int = 15,
+    kernels: Sequence[str] = KERNELS,
 ) -> list[str]:
-    """Lines: per size, the prims' passes (Engine._prim_shadows, its maps drawn) and the
-    character layer's (Engine._layer_visibility) of the frame at time 600 again and again
-    on the same inputs, numba against numpy (best and median CPU milliseconds of this
-    thread, where both run: the process's would count onnxruntime's threads spinning
-    after the frame's inference)."""
+    """Lines: per size, the prims' passes (their maps drawn) and the character layer's of
+    the frame at time 600 (Engine.shadow_passes) again and again on the same inputs, numba
+    against numpy (best and median CPU milliseconds of this thread, where both run: the
+    process's would count onnxruntime's threads spinning after the frame's inference)."""
     lines = []
     for width, height in sizes:
-        engine = Engine(SCENE, width=width, height=height, prim_samples=1)
-        recorded: dict[str, tuple] = {}
-        for name in ("_prim_shadows", "_layer_visibility"):
-            setattr(engine, name, functools.partial(_recording, engine, recorded, name))
+        engine = Engine(scene, width=width, height=height, prim_samples=1)
         found: dict[tuple[str, str], tuple[float, float]] = {}
         try:
             engine.render(500.0)
-            recorded.clear()
+            engine.shadow_passes = {}  # the next frame's passes, kept to run again
             engine.render(600.0)
-            for name, args in recorded.items():
+            recorded = dict(engine.shadow_passes)
+            for name, run in recorded.items():
                 for kernel in kernels:
                     engine.use_shadow_backend(ShadowBackend(kernel))
                     spent = []
                     for _ in range(repeats):
                         start = clock.thread_time()
-                        getattr(Engine, name)(engine, *args)
+                        run()
                         spent.append(clock.thread_time() - start)
                     found[name, kernel] = (1e3 * min(spent), 1e3 * statistics.median(spent))
         finally:
             engine.close()
-        for name, what in (("_prim_shadows", "prims' passes"), ("_layer_visibility", "layer")):
+        for name, what in PASSES.items():
             mine = {k: found[name, k] for k in kernels if (name, k) in found}
             if not mine:
                 continue
@@ -220,6 +198,10 @@ def passes(
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--scene", type=Path, default=SCENE,
+        help="the previs scene (default: samples/scenes/previs.usda of the source checkout)",
+    )  # fmt: skip
     parser.add_argument("--frames", type=int, default=12, help="frames after the warm-up")
     parser.add_argument("--sizes", nargs="+", default=["256x256", "640x360"])
     parser.add_argument(
@@ -227,8 +209,16 @@ def main() -> None:
         help="which ways to measure (numba alone: half the time, for before/after runs)",
     )  # fmt: skip
     args = parser.parse_args()
+    if not args.scene.is_file():
+        parser.error(
+            f"no scene at {args.scene}: pass --scene PATH to the previs scene (samples/ comes "
+            "with the source checkout, not with the installed package)"
+        )
     sizes = [(int(w), int(h)) for w, h in (s.split("x") for s in args.sizes)]
-    for line in [*measure(sizes, args.frames, args.kernels), *passes(sizes, 15, args.kernels)]:
+    for line in [
+        *measure(args.scene, sizes, args.frames, args.kernels),
+        *passes(args.scene, sizes, 15, args.kernels),
+    ]:
         print(line, flush=True)
 
 

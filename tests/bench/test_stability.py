@@ -24,7 +24,6 @@ from rigspace.bench.stability import (
     Tolerance,
     adversarial,
     camera_frames,
-    check_maps,
     drift,
     euler_xyz,
     generate,
@@ -34,9 +33,10 @@ from rigspace.bench.stability import (
     rigs,
     scaled,
     stress,
+    violations,
 )
 from rigspace.runtime.character import COVERAGE_EPSILON, NeuralCharacter
-from rigspace.runtime.lights import scene_lights
+from rigspace.runtime.lights import light_prims, lights_at
 from rigspace.runtime.shading import shade
 from rigspace.sdk.bundle import BundleError
 from rigspace.sdk.camera import Camera
@@ -52,6 +52,7 @@ from rigspace.sdk.rotations import (
 )
 from rigspace.sdk.stage import open_stage
 from tests.conftest import REPO
+from tests.runtime.conftest import evaluate_layer
 
 PREVIS = REPO / "samples" / "scenes" / "previs.usda"
 JOINTS = 22
@@ -234,7 +235,8 @@ def test_maps_are_continuous_across_gimbal_lock(fp32, seed, sign):
         assert np.abs(a[name] - b[name]).max() < GIMBAL_MAP_TOLERANCE, name
 
 
-def test_check_maps_names_each_problem():
+def test_violations_name_each_problem_and_its_samples():
+    """What `stress` counts per problem: each map's problems and which samples show them."""
     good = {
         "albedo": np.full((2, 3, 4, 4), 0.5, np.float32),
         "mask": np.ones((2, 1, 4, 4), np.float32),
@@ -242,17 +244,19 @@ def test_check_maps_names_each_problem():
         "depth": np.zeros((2, 1, 4, 4), np.float32),
     }
     good["normal"][:, 2] = 1
-    assert check_maps(good) == []
+    assert violations(good) == {}
     bad = {name: value.copy() for name, value in good.items()}
     bad["depth"][1, 0, 0, 0] = np.nan
     bad["mask"][0, 0, 1, 1] = 1.5
     bad["normal"][0, :, 2, 2] = 0
     bad["alpha"] = np.full((2, 1, 4, 4), -0.1, np.float32)
-    problems = "\n".join(check_maps(bad))
-    assert "depth: NaN or Inf in 1 of 2 samples (1)" in problems
-    assert "mask: outside [0, 1] in 1 of 2 samples (0)" in problems
-    assert "normal: not unit where mask >= 0.5 in 1 of 2 samples (0)" in problems
-    assert "alpha: outside [0, 1] in 2 of 2 samples" in problems
+    found = {problem: rows.tolist() for problem, rows in violations(bad).items()}
+    assert found == {
+        "depth: NaN or Inf": [False, True],
+        "mask: outside [0, 1]": [True, False],
+        "normal: not unit where mask >= 0.5": [True, False],
+        "alpha: outside [0, 1]": [True, True],
+    }
 
 
 def test_drift_reports_each_map(fp32, int8):
@@ -330,7 +334,7 @@ def test_billboard_is_finite_or_skipped_and_its_maps_are_in_range(
     assert np.all(np.isfinite(billboard.corners)) and np.isfinite(billboard.size_px)
     assert np.abs(r.T @ r - np.eye(3)).max() < 1e-9 and np.linalg.det(r) > 0
     level = min(hero.model.level_for(billboard.size_px), 32)
-    check_layer(hero.evaluate(world, billboard, camera, ("albedo", "geometry"), level))
+    check_layer(evaluate_layer(hero, world, billboard, camera, ("albedo", "geometry"), level))
 
 
 # --- lights and units -----------------------------------------------------------------------------
@@ -374,12 +378,13 @@ def test_shading_is_finite_and_non_negative_from_dark_to_blinding(
     hero, seed, intensity, meters_per_unit, touching, normalize
 ):
     world, camera, billboard = framed(hero, seed)
-    layer = hero.evaluate(world, billboard, camera, ("albedo", "geometry"), 16)
+    layer = evaluate_layer(hero, world, billboard, camera, ("albedo", "geometry"), 16)
     joint = world[hero.look_at][:3, 3]
     lamp = (
         joint if touching else joint + np.array([60.0, 150.0, 80.0])
     )  # on the character, or above
-    lights = scene_lights(lit_stage(meters_per_unit, intensity, lamp, 5.0, normalize), 0)
+    stage = lit_stage(meters_per_unit, intensity, lamp, 5.0, normalize)  # alive while read
+    lights = lights_at(light_prims(stage), 0)
     lit = shade(layer.albedo, layer.normal, layer.depth, layer.mask, camera, lights,
                 origin=(layer.x0, layer.y0))  # fmt: skip
     assert np.all(np.isfinite(lit)) and lit.min() >= 0
@@ -402,9 +407,10 @@ def test_a_scene_scaled_by_k_with_meters_per_unit_over_k_draws_the_same_frame(
     for scale, mpu in ((1.0, 0.01), (k, meters_per_unit)):
         world, camera, billboard = framed(hero, seed, scale)
         assert billboard.visible
-        layer = hero.evaluate(world, billboard, camera, ("albedo", "geometry"), 16)
+        layer = evaluate_layer(hero, world, billboard, camera, ("albedo", "geometry"), 16)
         lamp = world[hero.look_at][:3, 3] + scale * np.array([60.0, 150.0, 80.0])
-        lights = scene_lights(lit_stage(mpu, 3.0, lamp, 5.0 * scale, normalize), 0)
+        stage = lit_stage(mpu, 3.0, lamp, 5.0 * scale, normalize)  # alive while read
+        lights = lights_at(light_prims(stage), 0)
         lit = shade(layer.albedo, layer.normal, layer.depth, layer.mask, camera, lights,
                     origin=(layer.x0, layer.y0))  # fmt: skip
         frames.append((billboard, layer, lit, scale))

@@ -1,11 +1,9 @@
-"""Shared capture fixtures: a small CesiumMan capture and scene variants written beside it."""
+"""Shared capture fixtures: a small CesiumMan capture and scene variants in a test's tmp_path."""
 
 from __future__ import annotations
 
-import contextlib
 import json
-import os
-from collections.abc import Iterator
+import re
 from pathlib import Path
 
 import pytest
@@ -22,6 +20,8 @@ SMALL = CaptureOverrides(
 )
 ROTATION_TOLERANCE = 1e-4  # float32 parameters of float64 transforms
 IMAGE_TOLERANCE = 0.02  # mean abs albedo difference between views of a rotated character
+RELATIVE_ASSET = re.compile(r"@(\.\.?/[^@]+)@")
+"""An asset path relative to the scene's folder (`@../assets/...@`)."""
 
 
 def small_capture(out: Path, **kwargs) -> CaptureResult:
@@ -51,15 +51,15 @@ def with_character_ops(text: str, *ops: str) -> str:
     )
 
 
-@contextlib.contextmanager
-def scene_variant(name: str, text: str) -> Iterator[Path]:
-    """A variant of the CesiumMan scene written beside it (same asset paths), removed after."""
-    scene = SCENE.parent / f".{name}_{os.getpid()}.usda"
-    scene.write_text(text)
-    try:
-        yield scene
-    finally:
-        scene.unlink()
+def scene_variant(folder: Path, name: str, text: str) -> Path:
+    """A variant of the CesiumMan scene written into `folder` (a test's tmp_path, never the
+    source tree), its relative asset paths made absolute so that they still resolve."""
+    absolute = RELATIVE_ASSET.sub(lambda m: f"@{(SCENE.parent / m[1]).resolve()}@", text)
+    assert absolute != text, "the scene's relative asset paths changed: update RELATIVE_ASSET"
+    scene = folder / "scenes" / f"{name}.usda"
+    scene.parent.mkdir(exist_ok=True)
+    scene.write_text(absolute)
+    return scene
 
 
 def capture_variant(tmp_path: Path, name: str, text: str, **kwargs) -> CaptureResult:
@@ -67,5 +67,5 @@ def capture_variant(tmp_path: Path, name: str, text: str, **kwargs) -> CaptureRe
     kwargs.setdefault("workers", 1)
     kwargs.setdefault("progress", False)
     kwargs.setdefault("warn", lambda text: None)
-    with scene_variant(name, text) as scene:
-        return capture(scene, CHARACTER, tmp_path / name, SMALL, **kwargs)
+    scene = scene_variant(tmp_path, name, text)
+    return capture(scene, CHARACTER, tmp_path / name, SMALL, **kwargs)

@@ -114,9 +114,9 @@ def test_nothing_in_view_stops_early_with_a_radius_that_works(tmp_path):
     # The suggested radius frames the character.
     radius = float(re.search(r"pass --radius ([0-9.e+-]+),", caught.value.fix).group(1))
     assert 0.1 < radius < 1.0
-    with scene_variant("tiny", tiny_far_scene_text()) as scene:
-        overrides = CaptureOverrides(**{**SMALL.__dict__, "radius": radius, "frames": (1.0, 3.0)})
-        fixed = capture(scene, CHARACTER, tmp_path / "fixed", overrides, workers=1, progress=False)
+    scene = scene_variant(tmp_path, "tiny", tiny_far_scene_text())
+    overrides = CaptureOverrides(**{**SMALL.__dict__, "radius": radius, "frames": (1.0, 3.0)})
+    fixed = capture(scene, CHARACTER, tmp_path / "fixed", overrides, workers=1, progress=False)
     assert fixed.complete and fixed.manifest.coverage.empty_samples == 0
     with np.load(fixed.folder / ds.PARAMS_FILE) as table:
         assert table["coverage"].min() > 0.05 * 32 * 32
@@ -124,14 +124,14 @@ def test_nothing_in_view_stops_early_with_a_radius_that_works(tmp_path):
 
 def test_nothing_in_view_never_loses_an_existing_folder(tmp_path):
     text = tiny_far_scene_text()
-    with scene_variant("kept", text) as scene:
-        out = tmp_path / "kept"
-        with pytest.raises(CaptureError, match=f"{out} is kept as it was"):
-            capture(scene, CHARACTER, out, SMALL, shard=(0, 2), workers=1, progress=False)
-        records = sorted(p.name for p in (out / "items").glob("*.npz"))
-        assert records and (out / ds.SETTINGS_FILE).is_file()
-        with pytest.raises(CaptureError, match="shows nothing"):
-            capture(scene, CHARACTER, out, SMALL, resume=True, workers=1, progress=False)
+    scene = scene_variant(tmp_path, "kept", text)
+    out = tmp_path / "kept"
+    with pytest.raises(CaptureError, match=f"{out} is kept as it was"):
+        capture(scene, CHARACTER, out, SMALL, shard=(0, 2), workers=1, progress=False)
+    records = sorted(p.name for p in (out / "items").glob("*.npz"))
+    assert records and (out / ds.SETTINGS_FILE).is_file()
+    with pytest.raises(CaptureError, match="shows nothing"):
+        capture(scene, CHARACTER, out, SMALL, resume=True, workers=1, progress=False)
     assert set(records) <= {p.name for p in (out / "items").glob("*.npz")}
 
 

@@ -10,7 +10,7 @@ import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
 from rigspace.runtime.engine import Engine
-from rigspace.runtime.lights import background, scene_lights
+from rigspace.runtime.lights import background, light_prims, lights_at
 from rigspace.sdk.camera import Camera
 
 WIDTH, HEIGHT = 32, 18
@@ -112,13 +112,13 @@ def test_the_texture_mean_is_the_ambient_light_and_a_rotated_dome_turns_the_sky(
     stage = Usd.Stage.CreateNew(str(tmp_path / "dome.usda"))
     dome = UsdLux.DomeLight.Define(stage, "/Sky")
     dome.CreateTextureFileAttr(Sdf.AssetPath("sky.png"))
-    (light,) = scene_lights(stage, 0)
+    (light,) = lights_at(light_prims(stage), 0)
     # The upper half is green: the mean over the sphere, rows weighted by solid angle.
     assert light.radiance[1] == pytest.approx(0.5, abs=0.02)
     camera = Camera(np.eye(4), WIDTH, HEIGHT, 35.0, 36.0)  # looks along -Z
     ahead = background(light, camera)[HEIGHT // 2 - 2, WIDTH // 2, 0]
     dome.AddRotateYOp().Set(180.0)  # the dome's +Z (longitude 0) now lies along -Z
-    (turned,) = scene_lights(stage, 0)
+    (turned,) = lights_at(light_prims(stage), 0)
     behind = background(turned, camera)[HEIGHT // 2 - 2, WIDTH // 2, 0]
     assert ahead == pytest.approx(((0 * 30 / 255 + 0.055) / 1.055) ** 2.4, abs=1e-3)
     assert behind == pytest.approx(((4 * 30 / 255 + 0.055) / 1.055) ** 2.4, abs=1e-3)

@@ -15,6 +15,7 @@ from rigspace.sdk.stage import open_stage  # noqa: E402
 from rigspace.train.config import preset  # noqa: E402
 from rigspace.train.export import export_bundle  # noqa: E402
 from rigspace.train.loop import train  # noqa: E402
+from tests.runtime.conftest import evaluate_layer  # noqa: E402
 from tests.train.conftest import CHARACTER, SCENE  # noqa: E402
 
 
@@ -41,7 +42,7 @@ def test_layer_sits_on_the_joint_at_its_depth(hero):
                             focal_length=35, horizontal_aperture=20.955)  # fmt: skip
     billboard = hero.place(world, camera)
     assert billboard.visible
-    layer = hero.evaluate(world, billboard, camera, ("albedo", "geometry"))
+    layer = evaluate_layer(hero, world, billboard, camera, ("albedo", "geometry"))
     assert layer.level == hero.model.level_for(billboard.size_px)
     h, w = layer.mask.shape
     assert 0 <= layer.x0 and layer.x0 + w <= 96 and 0 <= layer.y0 and layer.y0 + h <= 64
@@ -62,7 +63,7 @@ def test_small_on_screen_picks_a_small_level(hero):
                          focal_length=35, horizontal_aperture=20.955)  # fmt: skip
     billboard = hero.place(world, far)
     assert billboard.size_px < 8  # the smallest level that covers it is 8x8
-    assert hero.evaluate(world, billboard, far, ("albedo", "geometry")).level == 8
+    assert evaluate_layer(hero, world, billboard, far, ("albedo", "geometry")).level == 8
 
 
 def test_rig_parameters_at_a_ring_camera_equal_the_captured_ones(hero, tiny_dataset):

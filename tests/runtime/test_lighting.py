@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from pxr import Gf, Usd, UsdGeom, UsdLux
 
-from rigspace.runtime.lights import AMBIENT, DISTANT, POINT, scene_lights
+from rigspace.runtime.lights import AMBIENT, DISTANT, POINT, light_prims, lights_at
 from rigspace.runtime.shading import SPECULAR, shade
 from rigspace.sdk.camera import Camera
 from tests.conftest import REPO
@@ -28,7 +28,7 @@ def test_distant_light_shines_along_its_minus_z_with_exposure_and_color():
     sun.CreateExposureAttr(1.0)
     sun.CreateColorAttr(Gf.Vec3f(1.0, 0.5, 0.25))
     sun.AddRotateXOp().Set(-90.0)  # -Z turned to point down
-    (light,) = scene_lights(s, 0)
+    (light,) = lights_at(light_prims(s), 0)
     assert light.kind == DISTANT
     assert np.allclose(light.direction, [0, -1, 0], atol=1e-6)
     assert np.allclose(light.radiance, [4.0, 2.0, 1.0])
@@ -43,19 +43,19 @@ def test_lights_follow_time_samples_and_visibility():
     op = lamp.AddTranslateOp()
     op.Set(Gf.Vec3d(0, 0, 0), 0)
     op.Set(Gf.Vec3d(0, 4, 0), 10)
-    (at_10,) = scene_lights(s, 10)
+    (at_10,) = lights_at(light_prims(s), 10)
     assert at_10.kind == POINT and np.allclose(at_10.position, [0, 4, 0])
     assert np.allclose(at_10.radiance, 3.0) and at_10.area == pytest.approx(np.pi * 0.25)
     UsdGeom.Imageable(lamp.GetPrim()).MakeInvisible()
-    assert scene_lights(s, 10) == []
+    assert lights_at(light_prims(s), 10) == []
     UsdLux.DomeLight.Define(s, "/Sky").CreateIntensityAttr(0.2)
-    (sky,) = scene_lights(s, 0)
+    (sky,) = lights_at(light_prims(s), 0)
     assert sky.kind == AMBIENT and np.allclose(sky.radiance, 0.2)
 
 
 def test_previs_scene_lights():
     s = Usd.Stage.Open(str(REPO / "samples" / "scenes" / "previs.usda"))
-    kinds = sorted(light.kind for light in scene_lights(s, 0))
+    kinds = sorted(light.kind for light in lights_at(light_prims(s), 0))
     assert kinds in ([DISTANT, POINT], [AMBIENT, DISTANT, POINT])  # a sun, a lamp, a sky
 
 
@@ -78,7 +78,7 @@ def test_head_on_distant_light_is_albedo_times_radiance_plus_a_highlight():
     albedo, normal, depth, mask, camera = facing_plane()
     s = stage()
     UsdLux.DistantLight.Define(s, "/Sun").CreateIntensityAttr(2.0)  # shines along -Z: head on
-    lit = shade(albedo, normal, depth, mask, camera, scene_lights(s, 0))
+    lit = shade(albedo, normal, depth, mask, camera, lights_at(light_prims(s), 0))
     centre = lit[4, 4]
     # n.l = 1 and n.h ~ 1 near the centre: diffuse 0.5 * 2, specular ~ 0.04 * 2.
     assert np.allclose(centre, 0.5 * 2 + SPECULAR * 2, atol=2e-3)
@@ -89,7 +89,7 @@ def test_no_lights_is_black_and_coverage_scales_everything():
     assert np.all(shade(albedo, normal, depth, mask, camera, []) == 0)
     s = stage()
     UsdLux.DomeLight.Define(s, "/Sky").CreateIntensityAttr(1.0)
-    half = shade(albedo * 0.5, normal, depth, mask * 0.5, camera, scene_lights(s, 0))
+    half = shade(albedo * 0.5, normal, depth, mask * 0.5, camera, lights_at(light_prims(s), 0))
     assert np.allclose(half, 0.25, atol=SHADE_TOLERANCE)  # premultiplied in, premultiplied out
 
 
@@ -104,7 +104,9 @@ def test_point_light_falls_off_with_the_square_and_ignores_units(meters_per_unit
         lamp.CreateRadiusAttr(0.1 * unit)
         lamp.CreateIntensityAttr(100.0)
         lamp.AddTranslateOp().Set(Gf.Vec3d(0, 0, -(3.0 - distance_m) * unit))
-        results.append(shade(albedo, normal, depth, mask, camera, scene_lights(s, 0))[4, 4])
+        results.append(
+            shade(albedo, normal, depth, mask, camera, lights_at(light_prims(s), 0))[4, 4]
+        )
     near, far = results
     assert np.allclose(near / far, 4.0, rtol=0.05)
     expected = 0.5 * 100 * np.pi * 0.01 / 1.0  # albedo * radiance * area / d^2, metres
@@ -112,7 +114,7 @@ def test_point_light_falls_off_with_the_square_and_ignores_units(meters_per_unit
 
 
 def test_shading_only_covered_pixels_equals_shading_every_pixel():
-    from rigspace.runtime.shading import camera_positions, shade_pixels
+    from rigspace.runtime.shading import pixel_positions, shade_pixels
 
     rng = np.random.default_rng(0)
     h, w = 12, 16
@@ -131,10 +133,10 @@ def test_shading_only_covered_pixels_equals_shading_every_pixel():
     lamp = UsdLux.SphereLight.Define(s, "/Lamp")
     lamp.AddTranslateOp().Set(Gf.Vec3d(1, 1, 1))
     UsdLux.DomeLight.Define(s, "/Sky").CreateIntensityAttr(0.1)
-    lights = scene_lights(s, 0)
+    lights = lights_at(light_prims(s), 0)
     fast = shade(albedo, normal, depth, mask, camera, lights)
-    every = shade_pixels(
-        albedo, normal, camera_positions(depth, camera), mask, camera.world_to_camera, lights
-    )
+    rows, cols = np.indices((h, w)).reshape(2, -1)
+    points = pixel_positions(depth.reshape(-1), rows, cols, camera).reshape(h, w, 3)
+    every = shade_pixels(albedo, normal, points, mask, camera.world_to_camera, lights)
     assert np.allclose(fast, every, atol=SHADE_TOLERANCE)
     assert np.all(fast[mask == 0] == 0)

@@ -14,6 +14,7 @@ from rigspace.sdk.render import RenderSettings, choose_renderer
 from rigspace.sdk.stage import open_stage
 from rigspace.train.metrics import mask_iou, psnr
 from tests.conftest import REPO
+from tests.runtime.conftest import evaluate_layer
 
 MODEL = REPO / "samples" / "models" / "sample"
 PREVIS = REPO / "samples" / "scenes" / "previs.usda"
@@ -54,7 +55,7 @@ def test_the_model_draws_what_the_mesh_draws(hero):
     camera = Camera.look_at(joint + offset, joint, width=128, height=128,
                             focal_length=35, horizontal_aperture=20.955, near=10, far=5000)  # fmt: skip
     billboard = hero.place(world, camera)
-    layer = hero.evaluate(world, billboard, camera, ("albedo", "geometry"))
+    layer = evaluate_layer(hero, world, billboard, camera, ("albedo", "geometry"))
     assert layer.level == 128 and (layer.x0, layer.y0) == (0, 0)
     renderer = choose_renderer("auto").create(RenderSettings())
     truth = renderer.render(hero.rig.posed_meshes(time), camera)

@@ -992,3 +992,66 @@ def test_the_character_layer_blended_matches_every_pixel_evaluated_by_numpy(tmp_
             shadowed += int((b[~under] < 0.99).sum())
     assert hidden < 0.1 * covered, (hidden, covered)  # the feet: 1,515 of 153,310 here
     assert shadowed > 500  # the roof's shadow (and the crate's) fall on the character
+
+
+# -- the shadow timing tool (runtime/shadows/timing.py) and the Engine settings it drives ---------
+
+
+def test_the_engine_keeps_a_frames_shadow_passes_to_run_again():
+    """Engine.shadow_passes: the frame's passes run again on the same inputs, the same each
+    time, and with the numpy backend the prims' match within the kernels' tolerance (the
+    layer's differ at the feet: test_the_character_layer_blended_matches_every_pixel...);
+    Engine.report_cpu adds each stage's CPU seconds."""
+    engine = Engine(PREVIS, width=96, height=54, prim_samples=1)
+    try:
+        assert "cpu_seconds" not in engine.render(500.0).report
+        assert engine.shadow_passes is None
+        engine.shadow_passes, engine.report_cpu = {}, True
+        frame = engine.render(600.0)
+        assert set(engine.shadow_passes) == {"prims", "layer"}
+        cpu = frame.report["cpu_seconds"]
+        assert set(cpu) == set(frame.report["seconds"]) - {"total"}
+        assert cpu["shadows"] > 0 and min(cpu.values()) >= 0
+        runs = dict(engine.shadow_passes)
+        (mapped, hidden), layer = runs["prims"](), runs["layer"]()
+        again = runs["layer"]()
+        engine.use_shadow_backend(ShadowBackend("numpy"))
+        (mapped_ref, hidden_ref), layer_ref = runs["prims"](), runs["layer"]()
+    finally:
+        engine.close()
+    assert layer is not None and layer_ref is not None and again is not None
+    for mine, theirs in zip(layer, again, strict=True):
+        assert (mine is None and theirs is None) or np.array_equal(mine, theirs)
+    for mine, theirs in zip(layer, layer_ref, strict=True):
+        assert (mine is None) == (theirs is None)
+    compared = 0
+    for mine, theirs in zip([*mapped, *hidden], [*mapped_ref, *hidden_ref], strict=True):
+        assert (mine is None) == (theirs is None)
+        if mine is not None:
+            assert np.abs(mine - theirs).max() < KERNEL_TOLERANCE
+            compared += 1
+    assert compared >= 2  # the sun's and the lamp's maps at least
+
+
+def test_the_shadow_timing_tool_prints_its_lines(monkeypatch, capsys):
+    from rigspace.runtime.shadows import timing
+
+    argv = ["timing", "--frames", "1", "--sizes", "64x36", "--kernels", "numba"]
+    monkeypatch.setattr("sys.argv", argv)
+    timing.main()
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("64x36 numba: frame ") and "of the frame" in lines[0]
+    assert lines[1].startswith("    CPU time: frame ")
+    assert lines[2].startswith("    shadows per frame (mean): ")
+    assert lines[3].startswith("64x36 prims' passes, thread CPU ms best (median) of 15: numba ")
+    assert lines[4].startswith("64x36 layer, thread CPU ms best (median) of 15: numba ")
+    assert len(lines) == 5
+
+
+def test_the_shadow_timing_tool_names_a_missing_scene(monkeypatch, capsys, tmp_path):
+    from rigspace.runtime.shadows import timing
+
+    monkeypatch.setattr("sys.argv", ["timing", "--scene", str(tmp_path / "none.usda")])
+    with pytest.raises(SystemExit):
+        timing.main()
+    assert "pass --scene PATH to the previs scene" in capsys.readouterr().err

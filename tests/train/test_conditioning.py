@@ -26,6 +26,7 @@ from rigspace.train.export import export_bundle  # noqa: E402
 from rigspace.train.loop import build_model, train  # noqa: E402
 from rigspace.train.loss import coverage_loss, edge_weights  # noqa: E402
 from rigspace.train.network import Rig2Image, UpBlock  # noqa: E402
+from tests.runtime.conftest import evaluate_layer  # noqa: E402
 from tests.train.conftest import CHARACTER, SCENE  # noqa: E402
 
 TOLERANCE = 1e-5
@@ -186,7 +187,7 @@ def test_runtime_renders_a_conditioned_character(hero):
     camera = Camera.look_at(joint + np.array([0.5, 0.2, 3.0]), joint, width=64, height=64,
                             focal_length=35, horizontal_aperture=20.955)  # fmt: skip
     billboard = hero.place(world, camera)
-    layer = hero.evaluate(world, billboard, camera, ("albedo", "geometry"))
+    layer = evaluate_layer(hero, world, billboard, camera, ("albedo", "geometry"))
     assert layer.albedo is not None and np.isfinite(layer.albedo).all()
     assert np.isfinite(layer.mask).all() and np.isfinite(layer.depth).any()
     # Even a 40-step model puts more coverage on the character's centre than on the edges.
@@ -194,7 +195,7 @@ def test_runtime_renders_a_conditioned_character(hero):
     centre = layer.mask[int(y) - layer.y0, int(x) - layer.x0]
     border = np.concatenate([layer.mask[0], layer.mask[-1], layer.mask[:, 0], layer.mask[:, -1]])
     assert centre > 2 * border.mean()
-    unlit = hero.evaluate(world, billboard, camera, ("albedo",))
+    unlit = evaluate_layer(hero, world, billboard, camera, ("albedo",))
     assert np.allclose(unlit.albedo, layer.albedo)
 
 

@@ -11,14 +11,21 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdSkel, Vt
 
+from rigspace.runtime.live.binding import open_binding
 from rigspace.runtime.live.buffer import LiveBuffer, LivePose
 from rigspace.runtime.live.decoders.bvh import read_bvh
 from rigspace.runtime.live.decoders.vmc import VmcDecoder, encode_frame
-from rigspace.runtime.live.retarget import PRESETS, Retargeter, for_preset, target_skeleton
+from rigspace.runtime.live.retarget import (
+    PRESETS,
+    Retargeter,
+    source_hierarchy,
+    target_skeleton,
+)
 from rigspace.runtime.live.send import humanoid_clip, send_vmc, serve_bvh
 from rigspace.runtime.live.source_frame import quat_angle
 from rigspace.runtime.live.sources import open_source
 from rigspace.sdk.rotations import quat_from_matrix
+from rigspace.sdk.schema import LiveBinding
 from tests.runtime.live.conftest import CMU_CLIP, SAMPLE_CHARACTER, wait_for
 
 MATCH_RAD = 1e-3  # the issue's bar for the received take against the clip
@@ -43,7 +50,12 @@ def test_cmu_over_vmc_matches_the_clip_retargeted_directly(scene):
     clip = humanoid_clip(skeleton, rotations, roots, frame_time, align=False)
     source = open_source("vmc://127.0.0.1:0", "suit")
     buffer = LiveBuffer(source.bones)
-    via_vmc = for_preset(source, skel, "unity", 0.01)  # the plain convention, no rest alignment
+    # The plain convention, no rest alignment: the unity preset's map, basis and units.
+    u = PRESETS["unity"]
+    via_vmc = Retargeter(
+        source.bones, source_hierarchy(source, u), source.space, joints, rest, u.bone_map,
+        u.basis, u.meters_per_unit / 0.01,
+    )  # fmt: skip
     p = PRESETS["cmu"]
     direct = Retargeter(
         skeleton.names, skeleton.parents, "local", joints, rest, p.bone_map, p.basis,
@@ -123,9 +135,13 @@ def test_humanoid_clip_is_a_humanoid(scene):
 def two_paths(skel, skeleton, joints, rest) -> tuple[Retargeter, Retargeter]:
     """The receiver of the humanoid over VMC (aligned to the T-pose, open_binding's default)
     and the BVH retargeted straight onto the character (rest-aligned), in stage cm."""
-    source = open_source("vmc://127.0.0.1:0", "suit")
-    via_vmc = for_preset(source, skel, "unity", 0.01)
-    via_vmc.align_rest(PRESETS["unity"].rest_positions_for(source.bones))
+    suit = LiveBinding(
+        name="suit", url="vmc://127.0.0.1:0", enabled=True, source_bones=(), target_joints=(),
+        source_up_axis="Y", source_handedness="right", source_meters_per_unit=1.0, rest_pose=(),
+        smoothing="none", smoothing_strength=0.5, buffering="latest", buffer_seconds=0.05,
+        timeout_seconds=0.5,
+    )  # fmt: skip
+    via_vmc = open_binding(suit, skel, 0.01).retargeter  # the unity preset, T-pose aligned
     p = PRESETS["cmu"]
     direct = Retargeter(
         skeleton.names, skeleton.parents, "local", joints, rest, p.bone_map, p.basis,

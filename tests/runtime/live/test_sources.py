@@ -10,16 +10,16 @@ import pytest
 from rigspace.runtime.live.buffer import LiveBuffer
 from rigspace.runtime.live.decoders.bvh import read_bvh
 from rigspace.runtime.live.source_frame import quat_angle
-from rigspace.runtime.live.sources import open_source, source_specs
+from rigspace.runtime.live.sources import open_source
 from rigspace.runtime.live.transports import LiveSourceError, ReplaySource
-from rigspace.sdk.plugins import SourceSpec
+from rigspace.sdk.plugins import SOURCES, SourceSpec, discover
 from tests.runtime.live.conftest import CMU_CLIP
 
 
 def test_built_in_sources_come_from_entry_points():
-    specs = source_specs()
-    assert {"vmc", "bvh+tcp", "serial", "replay"} <= set(specs)
-    assert all(isinstance(s, SourceSpec) and s.doc for s in specs.values())
+    found = discover(SOURCES)  # what open_source looks a scheme up in
+    assert {"vmc", "bvh+tcp", "serial", "replay"} <= set(found.specs)
+    assert all(isinstance(s, SourceSpec) and s.doc for s in found)
 
 
 def test_unknown_scheme_names_the_url_and_the_known_schemes():

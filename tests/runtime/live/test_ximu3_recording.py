@@ -13,10 +13,10 @@ from pxr import Usd, UsdSkel, Vt
 
 from rigspace.runtime.live.buffer import LiveBuffer
 from rigspace.runtime.live.retarget import Retargeter, source_basis, target_skeleton
-from rigspace.runtime.live.source_frame import quat_angle, quat_conjugate
+from rigspace.runtime.live.source_frame import quat_angle
 from rigspace.runtime.live.sources import open_source
 from rigspace.sdk.rotations import quat_from_matrix, quat_multiply
-from tests.runtime.live.conftest import SAMPLE_CHARACTER, wait_for
+from tests.runtime.live.conftest import SAMPLE_CHARACTER, quat_conjugate, wait_for
 
 RECORDING = Path(__file__).resolve().parents[3] / "samples" / "device_streams" / "ximu3_lower_body"
 SENSORS = {
