@@ -129,6 +129,8 @@ class PosedFrame:
     """The look-at joint's world position: the ring cameras aim at it."""
     weights: np.ndarray
     """The blend shape weights posed (empty for a rig without shapes)."""
+    region: list[DrawMesh] | None = None
+    """A region's capture: its triangles of `meshes` (capture/regions.py), else None."""
 
 
 ROW_FIELDS = (
@@ -150,6 +152,13 @@ class ItemWorker:
         spec = choose_renderer(settings.renderer)
         self.renderer = spec.create(RenderSettings(settings.samples_per_axis))
         self.lens = settings.lens
+        self.region = None
+        """A region's capture (capture/regions.py): its triangles, cut once."""
+        if settings.region:
+            from rigspace.capture.regions import RegionMeshes
+
+            joints = tuple(self.rig.joints.index(j) for j in settings.region_joints)
+            self.region = RegionMeshes(self.rig, joints)
 
     def run(self, item: ds.WorkItem) -> ItemDone:
         return self.run_batch([item])[0]
@@ -185,7 +194,8 @@ class ItemWorker:
         weights = self.settings.frame_weights(self.rig, clip, t)
         # Blend shapes, then skinning; texture AOVs (sdk/charts.py).
         meshes = self.rig.posed_meshes(t, charts=True, weights=weights)
-        return PosedFrame(t, meshes, world, world[self.joint][:3, 3], weights)
+        region = None if self.region is None else self.region.of(meshes)
+        return PosedFrame(t, meshes, world, world[self.joint][:3, 3], weights, region)
 
     def _sample(
         self,
@@ -200,6 +210,10 @@ class ItemWorker:
         start = time.perf_counter()
         camera = view.camera(joint_position, self.lens)
         maps = self.renderer.render(frame.meshes, camera)
+        if frame.region is not None:  # the region's surface where it is the nearest
+            from rigspace.capture.regions import visible_region
+
+            maps = visible_region(maps, self.renderer.render(frame.region, camera))
         timings["render"] += time.perf_counter() - start
         for phase, seconds in getattr(self.renderer, "last_timings", {}).items():
             timings[f"render.{phase}"] = timings.get(f"render.{phase}", 0.0) + seconds
@@ -552,8 +566,10 @@ def capture(
     progress: bool = True,
     warn: Warn = print_warning,
     runner: Runner | None = None,
+    region: str | None = None,
 ) -> CaptureResult:
-    """Capture a neural character's dataset (see the module and capture/dataset.py docs).
+    """Capture a neural character's dataset (see the module and capture/dataset.py docs), or
+    with `region` the dataset of one of its regions (capture/regions.py).
 
     `runner` renders the unfinished items and yields each one's ItemDone as it commits:
     local_items (this machine's processes) by default, capture/ray_capture.py's on Ray.
@@ -566,6 +582,10 @@ def capture(
         warn(text)
 
     settings, rig = resolve_settings(scene, character, overrides, warn=note)
+    if region is not None:
+        from rigspace.capture.regions import find_region, region_settings
+
+        settings = region_settings(settings, rig, find_region(rig.character, region), note)
     # A concrete name, so the dataset records it (and every worker renders with it).
     renderer = choose_renderer(settings.renderer, rig.triangle_count)
     settings = replace(settings, renderer=renderer.name)

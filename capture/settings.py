@@ -144,7 +144,12 @@ class CaptureSettings:
     """The character's blend shapes (CharacterRig.blend_shapes): the weight vector's order."""
     blend_draws: tuple[tuple[str, str, float, float], ...] = ()
     """(clip, shape, low, high): a shape whose weight the clip does not move, drawn per frame
-    within the ring's blendShapeRanges (`frame_weights`)."""
+    within the ring's blendShapeRanges (`frame_weights`); for a region, every one of its
+    shapes in every clip, whatever the clip does (capture/regions.py)."""
+    region: str = ""
+    """The RigspaceRegionAPI instance this dataset captures ("": the whole character)."""
+    region_joints: tuple[str, ...] = ()
+    """A region's joints: its surface is the points whose largest skinning weight is on one."""
 
     @property
     def lens(self) -> Lens:
@@ -171,7 +176,8 @@ class CaptureSettings:
         data["clips"] = [asdict(c) for c in self.clips]
         if self.every == 1:  # as captures before the option recorded it (resume compares)
             del data["every"]
-        for key in ("blend_shapes", "blend_draws"):  # likewise, for a rig without blend shapes
+        # likewise, for a rig without blend shapes, and for the whole character
+        for key in ("blend_shapes", "blend_draws", "region", "region_joints"):
             if not data[key]:
                 del data[key]
         return data
@@ -189,6 +195,7 @@ class CaptureSettings:
             values[key] = tuple(values[key])
         values["blend_shapes"] = tuple(values.get("blend_shapes", ()))
         values["blend_draws"] = tuple(tuple(d) for d in values.get("blend_draws", ()))
+        values["region_joints"] = tuple(values.get("region_joints", ()))
         return cls(**values)
 
     def frame_weights(self, rig: CharacterRig, clip: str, time: float) -> np.ndarray:
@@ -197,8 +204,8 @@ class CaptureSettings:
         (clip, time, shape), so every view of the frame, a resumed capture and another worker
         all draw the same weight."""
         weights = rig.blend_weights(time)
-        for name, shape, low, high in self.blend_draws:
-            if name == clip:
+        for name, shape, low, high in self.blend_draws:  # a region's: every clip ("*")
+            if name in (clip, "*"):
                 key = f"{clip}|{time:.6f}|{shape}".encode()
                 u = int.from_bytes(hashlib.sha256(key).digest()[:8], "little") / 2.0**64
                 weights[self.blend_shapes.index(shape)] = low + (high - low) * u
@@ -516,7 +523,7 @@ def resolve_settings(
     radius = _resolve_radius(rig, joint, clips, defaults, overrides, (near, far))
     _check_work_options(overrides)
     _warn_all_held_out(clips, warn)
-    draws = _blend_draws(rig, ring, clips, every=overrides.every)
+    draws = _blend_draws(rig, ring, clips, every=overrides.every, warn=warn)
     settings = CaptureSettings(
         scene=str(Path(scene).resolve()),
         scene_fingerprint=scene_fingerprint(stage),
@@ -557,13 +564,17 @@ def _blend_draws(
     ring: schema.CaptureRing | None,
     clips: tuple[Clip, ...],
     every: int = 1,
+    warn: Warn = print_warning,
 ) -> tuple[tuple[str, str, float, float], ...]:
     """(clip, shape, low, high) for each shape with an authored range (blendShapeNames /
-    blendShapeRanges, validated by inspect's rules) that the clip leaves still."""
+    blendShapeRanges, validated by inspect's rules) that the clip leaves still; a range on a
+    shape a clip moves is not used in that clip, and `warn` says so (weight and pose stay
+    tied there)."""
     if ring is None or not ring.blend_shape_names or not rig.blend_shapes:
         return ()
     samples = animation_time_samples(rig)
     draws = []
+    animated: dict[str, list[str]] = {}
     for clip in clips:
         times = clip.times(samples=samples)[::every]
         weights = np.array([rig.blend_weights(float(t)) for t in times])
@@ -571,4 +582,14 @@ def _blend_draws(
         for name, (low, high) in zip(ring.blend_shape_names, ring.blend_shape_ranges, strict=True):
             if still[rig.blend_shapes.index(name)]:
                 draws.append((clip.name, name, float(low), float(high)))
+            else:
+                animated.setdefault(name, []).append(clip.name)
+    for name, moved in animated.items():
+        warn(
+            f"blend shape {name} has a capture range (rigspace:captureRing:blendShapeRanges), "
+            f"but clip{'s' if len(moved) > 1 else ''} {', '.join(moved)} animate{'' if len(moved) > 1 else 's'} "
+            "it: there its captured weight follows the animation, tied to the pose. To draw it "
+            "apart from the pose, capture a region that names it (rigspace:region:NAME:"
+            "blendShapes), or a clip that leaves it still"
+        )
     return tuple(draws)

@@ -156,6 +156,29 @@ class CharacterRig:
         """The skinned meshes' parts (topology, uvs and albedo), in skinning order."""
         return [part for m in self._meshes for part in m.parts]
 
+    def dominant_joints(self) -> list[np.ndarray]:
+        """Per posed mesh (posed_meshes order), (N,) int: the skeleton index (`joints`) of the
+        joint with the largest skinning weight on each of its points (-1: no joint weighs
+        on it). A rigidly deformed mesh gives every point its one influence set's."""
+        out = []
+        for mesh in self._meshes:
+            query = mesh.query
+            indices, weights = query.ComputeJointInfluences()
+            n = max(query.GetNumInfluencesPerComponent(), 1)
+            idx = np.asarray(indices, dtype=np.int64).reshape(-1, n)
+            w = np.asarray(weights, dtype=np.float64).reshape(-1, n)
+            local = idx[np.arange(len(idx)), w.argmax(axis=1)]
+            local[w.max(axis=1) <= 0] = -1
+            order = query.GetJointOrder()
+            if order:  # the mesh's own skel:joints order -> the skeleton's
+                lookup = np.array([self.joints.index(str(j)) for j in order] + [-1])
+                local = lookup[local]
+            points = len(mesh.parts[0].rest_points)
+            if query.IsRigidlyDeformed() or len(local) == 1:
+                local = np.full(points, local[0] if len(local) else -1)
+            out += [local] * len(mesh.parts)
+        return out
+
     # -- time range ---------------------------------------------------------------------
 
     def time_range(self) -> tuple[float, float] | None:

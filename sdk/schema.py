@@ -18,6 +18,8 @@ from rigspace.usd_schemas import (
     LIVE_BINDING_API,
     LIVE_NAMESPACE,
     NEURAL_CHARACTER,
+    REGION_API,
+    REGION_NAMESPACE,
 )
 
 CAPTURE_NS = "rigspace:captureRing:"
@@ -245,6 +247,58 @@ def read_live_bindings(prim: Usd.Prim) -> list[LiveBinding]:
             )
         )
     return bindings
+
+
+@dataclass(frozen=True)
+class Region:
+    """One instance of the multiple-apply RigspaceRegionAPI: a part of the character (the
+    face, a hand) captured, trained and drawn at its own resolution around its own joint."""
+
+    name: str
+    joint: str
+    """The joint its cameras look at and follow ("" when not authored: an error)."""
+    joints: tuple[str, ...] = ()
+    """Joints whose skinned surface is the region (empty: `joint` and those below it)."""
+    blend_shapes: tuple[str, ...] = ()
+    """Shapes drawn independently of the pose in its capture (empty: those that move it)."""
+    blend_shape_range: tuple[float, float] = (0.0, 1.0)
+    size: float = 0.0
+    """Side in scene units of the square its cameras frame at the joint (0: derived)."""
+    resolution: int = 64
+    views_per_ring: int = 0
+    """0: the capture ring's."""
+    elevations: tuple[float, ...] = ()
+    """Empty: the capture ring's."""
+
+
+def region_names(prim: Usd.Prim) -> list[str]:
+    prefix = REGION_API + ":"
+    return [s[len(prefix) :] for s in prim.GetAppliedSchemas() if s.startswith(prefix)]
+
+
+def read_regions(prim: Usd.Prim) -> list[Region]:
+    """The character's regions in their authored order (schema fallbacks where unauthored)."""
+    regions = []
+    for name in region_names(prim):
+
+        def get(prop, default=None, _name=name):
+            return _get(prim, f"{REGION_NAMESPACE}:{_name}:{prop}", default)
+
+        low, high = get("blendShapeRange", (0.0, 1.0))
+        regions.append(
+            Region(
+                name=name,
+                joint=str(get("joint", "")),
+                joints=tuple(str(j) for j in get("joints", ())),
+                blend_shapes=tuple(str(b) for b in get("blendShapes", ())),
+                blend_shape_range=(float(low), float(high)),
+                size=float(get("size", 0.0)),
+                resolution=int(get("resolution", 64)),
+                views_per_ring=int(get("viewsPerRing", 0)),
+                elevations=tuple(float(e) for e in get("elevations", ())),
+            )
+        )
+    return regions
 
 
 def skeleton_joints(skeleton_prim: Usd.Prim) -> list[str]:

@@ -14,12 +14,16 @@ NEURAL_CHARACTER = "RigspaceNeuralCharacter"
 CAPTURE_RING_API = "RigspaceCaptureRingAPI"
 LIVE_BINDING_API = "RigspaceLiveBindingAPI"
 LIVE_NAMESPACE = "rigspace:live"
+REGION_API = "RigspaceRegionAPI"
+REGION_NAMESPACE = "rigspace:region"
 
 __all__ = [
     "CAPTURE_RING_API",
     "LIVE_BINDING_API",
     "LIVE_NAMESPACE",
     "NEURAL_CHARACTER",
+    "REGION_API",
+    "REGION_NAMESPACE",
     "PLUGIN_NAME",
     "SchemaRegistrationError",
     "ensure_registered",

@@ -1,0 +1,203 @@
+"""Regions (capture/regions.py): a part of the character captured around its own joint, at its
+own resolution, its surface alone where visible, its blend shapes drawn apart from the pose."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from pxr import Sdf, Usd
+
+from rigspace.capture.pipeline import ItemWorker, capture
+from rigspace.capture.regions import (
+    find_region,
+    region_joints,
+    region_points,
+    region_reach,
+    region_settings,
+    region_triangles,
+    visible_region,
+)
+from rigspace.capture.settings import (
+    CaptureError,
+    CaptureOverrides,
+    fit_radius,
+    resolve_settings,
+)
+from rigspace.sdk import schema
+from rigspace.sdk.render import Maps
+from tests.blendshapes import ANIMATED, CHARACTER, weights_at, write_blendshape_character
+
+SMALL = CaptureOverrides(views=4, elevations=(0.0,), resolution=32, frames_per_item=4, every=3)
+
+
+def _with_region(scene, name="face", **values):
+    """The scene with RigspaceRegionAPI:`name` on the character, its attributes `values`."""
+    stage = Usd.Stage.Open(str(scene))
+    prim = stage.GetPrimAtPath(CHARACTER)
+    prim.ApplyAPI("RigspaceRegionAPI", name)
+    kinds = {
+        "joint": Sdf.ValueTypeNames.Token,
+        "joints": Sdf.ValueTypeNames.TokenArray,
+        "blendShapes": Sdf.ValueTypeNames.TokenArray,
+        "blendShapeRange": Sdf.ValueTypeNames.Float2,
+        "size": Sdf.ValueTypeNames.Float,
+        "resolution": Sdf.ValueTypeNames.Int,
+    }
+    for key, value in values.items():
+        prim.CreateAttribute(f"rigspace:region:{name}:{key}", kinds[key]).Set(value)
+    stage.GetRootLayer().Save()
+    return scene
+
+
+@pytest.fixture(scope="module")
+def face_scene(tmp_path_factory):
+    scene = write_blendshape_character(tmp_path_factory.mktemp("face"))
+    return _with_region(scene, joint="head", resolution=32)
+
+
+def _settings(scene, warned=None):
+    warn = warned.append if warned is not None else lambda _: None
+    body, rig = resolve_settings(scene, CHARACTER, SMALL, warn=warn)
+    return body, rig, region_settings(body, rig, find_region(rig.character, "face"), warn)
+
+
+def test_a_region_rings_its_own_joint_at_its_own_resolution(face_scene):
+    warned: list[str] = []
+    body, rig, settings = _settings(face_scene, warned)
+    assert schema.read_regions(rig.character)[0].joint == "head"
+    assert settings.look_at_joint == "neck/head" and settings.region == "face"
+    assert settings.region_joints == ("neck/head",)  # the joint and those below it: none
+    assert settings.resolution == 32 and settings.views_per_ring == body.views_per_ring
+    # Its ring frames how far the head's points reach from the head joint over the clip.
+    head = region_joints(rig, schema.Region("face", "head"))
+    reach = region_reach(rig, head[0], region_points(rig, head), body.clips)
+    assert 0.5 < reach < 1.3  # the upper half of a 2-unit cylinder of radius 0.5, and the brow
+    assert settings.radius == pytest.approx(
+        fit_radius(reach, body.focal_length, body.horizontal_aperture)
+    )
+    near, far = settings.clipping_range
+    assert 0 < near < settings.radius < far
+    # The shapes that move the head's points (blink on it, brow on the second mesh) are drawn
+    # in every clip apart from the animation; smile, jawOpen and frown move the neck's points.
+    assert settings.blend_draws == (("*", "blink", 0.0, 1.0), ("*", "brow", 0.0, 1.0))
+    assert any("region face: the weights of blink, brow are drawn" in w for w in warned)
+    # The body capture says that the ring's range on smile is not used (the clip moves it).
+    assert any("blend shape smile has a capture range" in w for w in warned)
+
+
+def test_a_region_is_the_points_its_joints_weigh_most(face_scene):
+    _, rig, _ = _settings(face_scene)
+    head = region_joints(rig, schema.Region("face", "head"))
+    points = region_points(rig, head)
+    posed = rig.posed_meshes(0.0)
+    for mesh, inside in zip(posed, points, strict=True):
+        # The cylinder's upper half is skinned mostly to the head (tests/blendshapes.py).
+        assert np.all(mesh.points[inside][:, 1] > 0.9)
+        kept = region_triangles(mesh.triangles, inside)
+        assert np.all(inside[mesh.triangles[kept]].sum(axis=1) >= 2)
+    everything = region_points(rig, region_joints(rig, schema.Region("all", "neck")))
+    assert all(p.all() for p in everything)  # the root and all below it: every point
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        ({"joint": "tail"}, "Region 'face': .*tail"),
+        ({"joint": "head", "resolution": 48}, "resolution is 48"),
+        ({"joint": "head", "blendShapes": ["grin"]}, "names grin, which the character"),
+        ({"joint": "head", "blendShapeRange": (1.0, 0.0)}, r"blendShapeRange is \(1, 0\)"),
+        ({"resolution": 32}, "names no joint"),
+    ],
+)
+def test_bad_region_values_are_named_before_any_work(tmp_path, values, message):
+    scene = _with_region(write_blendshape_character(tmp_path / "face"), **values)
+    body, rig = resolve_settings(scene, CHARACTER, SMALL, warn=lambda _: None)
+    with pytest.raises(CaptureError, match=message):
+        region_settings(body, rig, find_region(rig.character, "face"), lambda _: None)
+    with pytest.raises(CaptureError, match=r"has no region 'hand' .*its regions: face"):
+        find_region(rig.character, "hand")
+    out = tmp_path / "ds"
+    with pytest.raises(CaptureError, match=message):
+        capture(scene, CHARACTER, out, SMALL, workers=1, progress=False,
+                warn=lambda _: None, region="face")  # fmt: skip
+    assert not out.exists()  # nothing written
+
+
+def test_the_region_keeps_its_surface_where_it_is_the_nearest():
+    """A surface in front of the region (a hand before the face) hides it; where the region is
+    the nearest surface its own maps stay; elsewhere the pixel is empty."""
+    h, w = 4, 6
+    region = Maps(
+        albedo=np.full((h, w, 3), 0.5, np.float32),
+        normal=np.tile(np.array([0, 0, 1], np.float32), (h, w, 1)),
+        depth=np.full((h, w), 10.0, np.float32),
+        mask=np.ones((h, w), np.float32),
+    )
+    region.mask[:, 5] = 0.0  # no region surface in the last column
+    region.depth[:, 5] = np.inf
+    whole = Maps(
+        albedo=np.ones((h, w, 3), np.float32),
+        normal=region.normal.copy(),
+        depth=np.full((h, w), 10.0, np.float32),
+        mask=np.ones((h, w), np.float32),
+    )
+    whole.depth[:, :2] = 7.0  # something nearer over the first two columns
+    out = visible_region(whole, region)
+    assert np.all(out.mask[:, :2] == 0) and np.all(np.isinf(out.depth[:, :2]))
+    assert np.all(out.mask[:, 2:5] == 1) and np.all(out.albedo[:, 2:5] == 0.5)
+    assert np.all(out.mask[:, 5] == 0)
+
+
+@pytest.fixture(scope="module")
+def captured_face(face_scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("face_ds") / "face"
+    result = capture(face_scene, CHARACTER, out, SMALL, workers=1, progress=False,
+                     warn=lambda _: None, region="face")  # fmt: skip
+    assert result.complete
+    return out
+
+
+def test_a_region_dataset_shows_its_surface_alone(face_scene, captured_face):
+    settings = json.loads((captured_face / "capture.json").read_text())
+    assert settings["region"] == "face" and settings["look_at_joint"] == "neck/head"
+    _, _, region = _settings(face_scene)
+    worker = ItemWorker(region, captured_face)
+    try:
+        frame = worker._pose("talk", 6.0)
+        assert frame.region is not None
+        assert sum(len(m.triangles) for m in frame.region) < sum(
+            len(m.triangles) for m in frame.meshes
+        )
+        view = region.views()[0]
+        camera = view.camera(frame.joint_position, worker.lens)
+        whole = worker.renderer.render(frame.meshes, camera)
+        shown = visible_region(whole, worker.renderer.render(frame.region, camera))
+    finally:
+        worker.close()
+    inside = shown.mask > 0
+    assert 0 < inside.sum() < (whole.mask > 0).sum()  # the head, not the whole cylinder
+    assert np.all(whole.mask[inside] > 0)
+    assert np.all(shown.depth[inside] <= whole.depth[inside] * 1.001)
+
+
+def test_a_region_s_shapes_are_drawn_apart_from_the_animation(captured_face):
+    manifest = json.loads((captured_face / "manifest.json").read_text())
+    names = manifest["blend_shapes"]
+    with np.load(captured_face / "params.npz") as table:
+        blend, times = table["blend"], table["time"]
+    frames = np.unique(times)
+    drawn = {name: [] for name in ("blink", "brow")}
+    for t in frames:
+        row = blend[times == t][0]
+        animated = dict(zip(ANIMATED, weights_at(float(t)), strict=True))
+        for name in drawn:
+            drawn[name].append(row[names.index(name)])
+        assert row[names.index("jawOpen")] == pytest.approx(animated["jawOpen"], abs=1e-6)
+    for name, values in drawn.items():
+        values = np.array(values)
+        assert values.min() >= 0 and values.max() <= 1 and len(np.unique(values)) == len(frames)
+        animation = np.array([dict(zip(ANIMATED, weights_at(float(t)), strict=True))[name]
+                              for t in frames])  # fmt: skip
+        assert not np.allclose(values, animation, atol=1e-3)  # not the clip's weights
