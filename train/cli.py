@@ -9,10 +9,14 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rigspace.sdk.cli import CommandSpec
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.predictors import add_device_argument, add_predictor_argument
+
+if TYPE_CHECKING:
+    from rigspace.sdk.model import BundleModel
 
 TRAINING = "training"
 """Subfolder of a model bundle holding the run: run.json, checkpoint.pt, log, previews."""
@@ -320,6 +324,7 @@ def run_display(args: argparse.Namespace) -> int:
         device=args.device,
     )
     level = max(model.resolutions)
+    warn_damaged_graphs(Path(args.model), model, level)
     sizes = display_sizes(level, full.resolution)
     if not sizes:
         raise RigspaceError(
@@ -378,7 +383,6 @@ def run_eval(args: argparse.Namespace) -> int:
 
     if args.errors:
         check_folder(Path(args.errors), "--errors")  # before the evaluation, not after it
-    warn_damaged_graphs(Path(args.model))
     if args.display:
         return run_display(args)
     table = DatasetTable(Path(args.dataset))
@@ -396,6 +400,7 @@ def run_eval(args: argparse.Namespace) -> int:
             Path(args.model), table, int8=args.int8, predictor=args.predictor, device=args.device
         )
     ]
+    warn_damaged_graphs(Path(args.model), predictors[0].model, table.resolution)
     print(f"the model runs on {predictors[0].model.runner.description}", file=sys.stderr)
     if args.split == "heldout-clips" and not args.no_baselines:
         # Held-out clips were never captured from training views: nothing to interpolate.
@@ -432,12 +437,15 @@ def run_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def warn_damaged_graphs(model: Path) -> None:
+def warn_damaged_graphs(model: Path, loaded: BundleModel, resolution: int) -> None:
     """eval loads one level; a missing or damaged graph of another one (which the runtime
     loads when the character is drawn at that size) is said before the measurement, not left
-    for the next render to find. A bundle eval cannot read at all is left to its own error."""
+    for the next render to find. What eval measures (the trunk and the level at `resolution`)
+    is loaded first: a problem there, like a manifest eval cannot read, is eval's own error,
+    said once (not also as this warning)."""
     from rigspace.sdk.model import graphs_problem
 
+    loaded.preload([resolution])
     if (model / "manifest.json").is_file():
         problem = graphs_problem(model)
         if problem:

@@ -277,6 +277,33 @@ def test_eval_warns_of_a_damaged_graph_at_a_level_it_does_not_use(
     assert "warning" not in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("damage", ["format_version", "measured level"])
+def test_eval_says_a_problem_with_what_it_measures_once_as_its_error(
+    bundle_at_16, tiny_dataset, tmp_path, capsys, damage
+):
+    """A manifest eval cannot read, or a damaged graph of the level it measures, stops eval:
+    its error, not also a warning with the same text before it."""
+    from rigspace.sdk.cli import main
+
+    bundle = tmp_path / "bundle"
+    shutil.copytree(bundle_at_16, bundle)
+    path = bundle / "manifest.json"
+    manifest = json.loads(path.read_text())
+    if damage == "format_version":
+        manifest["format_version"] = str(manifest["format_version"])
+        path.write_text(json.dumps(manifest))
+        said = 'format_version must be an integer (one of 1, 2, 3); it is "2" (a string)'
+    else:
+        (level16,) = [lv for lv in manifest["levels"] if lv["resolution"] == 16]
+        graph = bundle / level16["graphs"]["albedo"]
+        graph.write_bytes(graph.read_bytes()[:500])
+        said = f"Model file {graph} cannot be loaded"
+    args = ["eval", str(bundle), str(tiny_dataset), "--limit", "2", "--no-baselines"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count(said) == 1 and "error: " in err and "warning" not in err, err
+
+
 def test_region_metrics_measure_the_region_pixels_from_the_truths_uv_and_chart():
     """A region is found from the ground truth's texture coordinates: the error inside it
     counts, the error outside it does not; a region out of view is nan, not 0."""
