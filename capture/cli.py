@@ -80,13 +80,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     # Imported here so `rigspace --help` stays fast and loads no renderer.
     from rigspace.capture.pipeline import capture, parse_shard
-    from rigspace.capture.settings import CaptureOverrides
+    from rigspace.capture.settings import CaptureError, CaptureOverrides
     from rigspace.sdk import schema
     from rigspace.sdk.stage import open_stage
+    from rigspace.sdk.validation import require_readable
 
     character = args.character
     if character is None:
-        found = [str(p.GetPath()) for p in schema.neural_characters(open_stage(args.scene))]
+        stage = open_stage(args.scene)
+        require_readable(stage, "capture", exception=CaptureError)  # a character may be in it
+        found = [str(p.GetPath()) for p in schema.neural_characters(stage)]
         if len(found) != 1:
             raise RigspaceError(
                 f"{args.scene} has {len(found)} neural characters ({', '.join(found) or 'none'}).",
