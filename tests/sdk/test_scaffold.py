@@ -156,3 +156,32 @@ def test_capture_warns_when_the_look_at_joint_is_far_from_the_characters_middle(
     said.clear()
     resolve_settings(tmp_path / "shot.usda", derived.character, warn=said.append)
     assert not [w for w in said if "look-at joint" in w]  # init's choice is the middle
+
+
+def test_a_non_finite_derived_value_is_named_and_nothing_is_written(tmp_path, capsys):
+    """A mesh point at NaN made the radius and clipping range NaN: init wrote the scene, then
+    its own check refused it, and a rerun was refused because the file existed."""
+    asset = robot(tmp_path, name="nan.usda")
+    asset.write_text(
+        asset.read_text().replace("(0.2, 0, 0), (0.2, 1.8, 0)", "(nan, 0, 0), (0.2, 1.8, 0)")
+    )
+    scene = tmp_path / "shot" / "nan_shot.usda"
+    assert main(["init", str(asset), "--out", str(scene)]) == 2
+    err = capsys.readouterr().err
+    assert "skinned point position that is NaN or infinite at time code 1" in err, err
+    assert not scene.exists() and not list(tmp_path.glob("shot/*"))  # no temporary left
+    asset.write_text(ROBOT.format(extra=""))  # fixed: the same command goes through
+    assert main(["init", str(asset), "--out", str(scene)]) == 0
+    assert "radius" in capsys.readouterr().out and scene.is_file()
+    assert [p.name for p in scene.parent.iterdir()] == [scene.name]
+
+
+def test_a_scene_init_would_write_invalid_is_not_written(tmp_path, monkeypatch):
+    """Whatever inspect's capture rules refuse is refused before the file exists."""
+    from rigspace.sdk import scaffold
+
+    monkeypatch.setattr(scaffold, "RESOLUTION", 100)  # not a power of two: capture refuses it
+    scene = tmp_path / "shot.usda"
+    with pytest.raises(SceneError, match="resolution"):
+        init_scene(robot(tmp_path), scene)
+    assert not scene.exists() and [p.name for p in tmp_path.iterdir()] == ["robot.usda"]
