@@ -312,24 +312,35 @@ def frame_times(frames: tuple[float, float] | None, step: float, stage) -> np.nd
             f"render at most {MAX_FRAMES:,} at once: a shorter range or a larger --step.",
         )
     if stage.HasAuthoredTimeCodeRange():
+        # Compared as capture compares them (sdk.timecodes): a drifted export's range
+        # 1.0000000521-3023.0001577 holds --frames 1:3023.
+        before = _beyond(start, first)
+        after = _beyond(last, end)
         where = f"the stage's time range {start:g}-{end:g}"
-        if last < start or first > end:
+        if _beyond(start, last) or _beyond(first, end):
             raise RigspaceError(
                 f"{flag} lies outside {where}.", f"choose frames within {start:g}:{end:g}."
             )
-        if first < start or last > end:
-            outside = [f"{first:g}-{start:g}"] if first < start else []
-            outside += [f"{end:g}-{last:g}"] if last > end else []
+        if before or after:
+            outside = [f"{first:g}-{start:g}"] if before else []
+            outside += [f"{end:g}-{last:g}"] if after else []
             print(
                 f"rigspace render: warning: {flag} reaches past {where}: frames "
                 f"{' and '.join(outside)} show the stage held at its "
-                f"{'first or last' if len(outside) == 2 else 'first' if first < start else 'last'}"
+                f"{'first or last' if len(outside) == 2 else 'first' if before else 'last'}"
                 " time sample.",
                 file=sys.stderr,
             )
     # Counted, then spaced: arange(first, last + eps, step) loses the frame when last + eps
     # rounds to last (1e12) and a frame to rounding when (last - first) / step is whole.
     return first + step * np.arange(int(count + 1e-9))
+
+
+def _beyond(a: float, b: float) -> bool:
+    """Whether time code `a` lies after `b` by more than the time codes' tolerance."""
+    from rigspace.sdk.timecodes import same_time
+
+    return a > b and not bool(same_time(a, b))
 
 
 def check_reference_poses(truth, times) -> None:

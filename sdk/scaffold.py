@@ -19,7 +19,8 @@ and render with `--model`, which draws the trained bundle without editing the sc
 An existing --out is never overwritten, and nothing is written unless the whole scene is
 valid: it is authored in memory, checked with inspect's capture rules (a derived value that
 is not finite, from an animation or mesh that gives NaN, is a named error before that), and
-then written in one step.
+then written in one step. Time codes within the tolerance of a whole number (sdk.timecodes:
+an exporter's float drift, 1.0000000521) are written as that number.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from rigspace.sdk import schema, validation
 from rigspace.sdk.cli import CommandSpec
 from rigspace.sdk.errors import SceneError
 from rigspace.sdk.stage import open_stage
+from rigspace.sdk.timecodes import whole
 
 FOCAL_LENGTH = 35.0
 APERTURE = 20.955
@@ -194,7 +196,8 @@ def _author(
         leaf[0]
     )  # provisional: the rig reads it; set below
     rig = CharacterRig(prim)
-    span, look, jp, extent = _animated_extent(rig, asset, skeleton)
+    samples, look, jp, extent = _animated_extent(rig, asset, skeleton)
+    span = (whole(samples[0]), whole(samples[1]))  # an exporter's float drift is not written
     half_fov = math.atan(APERTURE / 2 / FOCAL_LENGTH)
     radius = MARGIN * extent / math.sin(half_fov)  # the whole sphere of that radius in view
     near = max((radius - extent) * 0.5, radius * 1e-3)

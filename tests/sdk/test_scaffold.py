@@ -185,3 +185,22 @@ def test_a_scene_init_would_write_invalid_is_not_written(tmp_path, monkeypatch):
     with pytest.raises(SceneError, match="resolution"):
         init_scene(robot(tmp_path), scene)
     assert not scene.exists() and [p.name for p in tmp_path.iterdir()] == ["robot.usda"]
+
+
+def test_time_codes_drifted_by_the_exporter_are_written_whole(tmp_path):
+    """An export with samples at 1.0000000521 and 24.0000012517 (float32 drift): the scene's
+    range and clip are 1-24, not startTimeCode = 1.0000000521540642."""
+    asset = robot(tmp_path, name="drift.usda")
+    asset.write_text(
+        asset.read_text()
+        .replace("{ 1: [", "{ 1.0000000521540642: [")
+        .replace("24: [(1,0,0,0), (0.96", "24.00000125169754: [(1,0,0,0), (0.96")
+    )
+    scene = tmp_path / "shot.usda"
+    derived = init_scene(asset, scene)
+    text = scene.read_text()
+    assert "startTimeCode = 1\n" in text and "endTimeCode = 24\n" in text
+    assert "clipRanges = [(1, 24)]" in text and derived.clip == ("Anim", 1.0, 24.0)
+    stage = Usd.Stage.Open(str(scene))
+    ring = schema.read_capture_ring(stage.GetPrimAtPath(derived.character))
+    assert [tuple(r) for r in ring.clip_ranges] == [(1.0, 24.0)]
