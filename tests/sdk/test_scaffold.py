@@ -135,6 +135,10 @@ def test_the_command_prints_what_it_found_and_the_next_commands(tmp_path, capsys
     out = capsys.readouterr().out
     assert "look-at joint   hips: nearest the skinned meshes' centre" in out
     assert f"rigspace render {scene} --model {tmp_path / 'shot_model'}" in out
+    # A budget: the preset alone is 4,000 steps a level, hours on a CPU.
+    train = next(line for line in out.splitlines() if "rigspace train" in line)
+    assert f"rigspace train {tmp_path / 'shot_data'} --out {tmp_path / 'shot_model'}" in train
+    assert "--minutes 60" in train
     assert main(["inspect", str(scene)]) == 0
 
 
