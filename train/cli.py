@@ -51,7 +51,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         "--out", required=True, help="model bundle folder (training state in its training/)"
     )
     parser.add_argument(
-        "--preset", default="small", help="tiny (seconds), small (the sample model), paper (GPU)"
+        "--preset",
+        default="small",
+        help="tiny (seconds), small (the sample model; the default), paper (GPU)",
     )
     budget = parser.add_mutually_exclusive_group()
     budget.add_argument("--steps", type=int, help="stop after this many steps (checkpointed)")
