@@ -427,6 +427,7 @@ def run_eval(args: argparse.Namespace) -> int:
         out_dir=args.errors,
         regions=regions,
     )
+    _warn_draws_nothing(result, predictors[0].name)
     if args.record:
         fallbacks = sorted(predictors[0].model.int8_fallbacks)
         record_metrics(
@@ -437,6 +438,15 @@ def run_eval(args: argparse.Namespace) -> int:
     else:
         print(format_table(result))
     return 0
+
+
+def _warn_draws_nothing(result: dict, name: str) -> None:
+    """Say when the model's mask is empty on every sample (train.evaluate.draws_nothing)."""
+    from rigspace.train.evaluate import draws_nothing
+
+    said = draws_nothing(result["reports"][name])
+    if said:
+        print(f"rigspace eval: warning: the {said}", file=sys.stderr)
 
 
 def warn_damaged_graphs(model: Path, loaded: BundleModel, resolution: int) -> None:
