@@ -143,6 +143,13 @@ spare for noise, which the pace spends (the probe's step is the fastest of three
 is an average); the rest covers the final checkpoint."""
 
 
+MAX_FADE_STRIDE = 4
+"""A fade-in the pace strides through still trains at least this share of its steps (1/4):
+fewer, and alpha jumps to 1 in a few steps, a block barely trained; the level is then left
+to the budget, not exported, as one the run does not reach (the plan's MIN_STEPS_PER_LEVEL
+judges a fade-in of a dozen steps not worth exporting alike)."""
+
+
 class Pace:
     """Keeps a run with a time budget on course for its final level while it trains.
 
@@ -158,7 +165,8 @@ class Pace:
       about 186 steps at 32x32, all inside the block's fade-in, and exported levels 8 and 16.
       When the steps that fit into PACE_SHARE of the time left cannot hold the rest of the
       fade-in, it strides: every `fade_stride`th step of it is trained, so alpha still rises
-      step by step and reaches 1 in the steps that fit.
+      step by step and reaches 1 in the steps that fit, as long as the fade-in keeps at least
+      1/MAX_FADE_STRIDE of its steps (else the level is beyond reach, and left to the budget).
     - Past a level's fade-in, the target is the highest later level whose block can still
       fade in (the levels between given just their fade and a measured rate); none: this
       level trains on until the budget ends, the best the run can reach (`out_of_reach`
@@ -180,7 +188,7 @@ class Pace:
         """Whether the last look found no later level reachable at the current rate."""
         self.fade_stride = 1
         """The stride of the current fade-in (1: every step; more: the budget needs it)."""
-        self._level, self._seen, self._scale = -1, 0, 1.0
+        self._level, self._seen, self._scale, self._faded = -1, 0, 1.0, 0
         self._jumped_to: int | None = None
         self._recent: deque[tuple[int, float]] = deque(maxlen=PACE_WINDOW + 1)
 
@@ -198,7 +206,7 @@ class Pace:
         per_level = self.config.steps_per_level
         level = min(step // per_level, len(self.probe) - 1)  # past the plan: the final level
         if level != self._level:
-            self._level, self._seen = level, 0
+            self._level, self._seen, self._faded = level, 0, 0
             self._recent.clear()
         self.fade_stride = 1
         self._seen += 1
@@ -211,7 +219,7 @@ class Pace:
         fade = fade_steps(self.config)
         left = PACE_SHARE * (self.deadline - now)
         if level > 0 and local < fade:
-            return self._through_fade(step, level, fade - local, left)
+            return self._through_fade(step, level, fade, fade - local, left)
         measured = len(self._recent) > PACE_WINDOW
         if level == len(self.probe) - 1 or not measured or local <= (0 if level == 0 else fade):
             return step
@@ -228,12 +236,17 @@ class Pace:
             return step
         return (level + 1) * per_level
 
-    def _through_fade(self, step: int, level: int, to_go: int, left: float) -> int:
+    def _through_fade(self, step: int, level: int, fade: int, to_go: int, left: float) -> int:
         """`step`, or a later step of the fade-in when the `to_go` steps to its end (the first
-        step at alpha 1 included) do not fit into `left` seconds at the current rate."""
+        step at alpha 1 included) do not fit into `left` seconds at the current rate; `step`
+        too when so few fit that the fade-in would train under 1/MAX_FADE_STRIDE of its steps
+        (the budget then ends it: the level is beyond reach)."""
+        self._faded += 1  # this call's step trains, whichever it is
         need = to_go + 1
         fits = max(1, math.floor(left / max(self._scale * self.probe[level], 1e-9)))
-        self.fade_stride = math.ceil(need / fits)
-        if self.fade_stride == 1:
+        stride = math.ceil(need / fits)
+        if stride == 1 or self._faded - 1 + fits < (fade + 1) / MAX_FADE_STRIDE:
+            self.fade_stride = 1
             return step
-        return min(step + self.fade_stride - 1, step + to_go)
+        self.fade_stride = stride
+        return min(step + stride - 1, step + to_go)

@@ -128,7 +128,7 @@ def test_a_fade_in_ends_within_the_budget_however_slow_the_level_runs():
     """A level counts only once its block has faded in: a final level that runs slower than
     the probe said (here 6x, and only there) strides through the rest of its fade-in so that
     alpha reaches 1 before the budget ends, instead of the budget ending the fade-in and the
-    bundle losing the level its plan promised."""
+    bundle losing the level its plan promised; not so far that the fade-in is a few steps."""
     config = replace(TINY, steps_per_level=100)  # levels 16, 32; fade 50 (steps 100-150)
     probe = {16: 0.01, 32: 0.02}
     assert plan_schedule(config, probe, 6.0).reaches_final
@@ -140,6 +140,10 @@ def test_a_fade_in_ends_within_the_budget_however_slow_the_level_runs():
     # On the probe's pace nothing strides: every step of the fade-in trains.
     step, trained = _run_paced(Pace(config, probe, deadline=6.0), 6.0, [0.01, 0.02], 100)
     assert set(range(100, 151)) <= set(trained) and step > 200
+    # Time for a few steps only, on the measured pace (20x the probe's): a fade-in of 7 of its
+    # 51 steps is no fade-in; the budget ends it, and the level is not counted.
+    step, trained = _run_paced(Pace(config, probe, deadline=23.0), 23.0, [0.2, 0.4], 100)
+    assert trained_levels(config, step) == [16] and trained[-1] - trained[0] == len(trained) - 1
     # The middle level's fade-in too (the final one then may not be reached at all).
     three = replace(config, resolution=64)  # 16, 32, 64
     rates = {16: 0.01, 32: 0.02, 64: 0.04}
