@@ -38,19 +38,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--frames", type=time_range, metavar="A:B", help="capture time codes A to B as one clip"
     )
     choose.add_argument("--clips", nargs="+", help="capture only these clips of the ring")
+    # The defaults of these are CaptureOverrides' and said in the help; None here tells a flag
+    # given from one left out, which --resume takes from the capture's capture.json.
     parser.add_argument(
         "--renderer",
-        default="auto",
-        help="gl, embree, or auto (gl when EGL works; embree for a character of over 250,000 "
-        "triangles where GL is a software rasteriser)",
+        help="gl, embree, or auto (default auto: gl when EGL works; embree for a character of "
+        "over 250,000 triangles where GL is a software rasteriser)",
     )
     parser.add_argument(
-        "--samples", type=int, default=2, help="anti-aliasing: s x s samples per pixel (default 2)"
+        "--samples", type=int, help="anti-aliasing: s x s samples per pixel (default 2)"
     )
     parser.add_argument(
         "--every",
         type=int,
-        default=1,
         metavar="N",
         help="capture every Nth frame of each clip (default 1: all; a small evaluation set, "
         "e.g. at a high --resolution)",
@@ -58,13 +58,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--frames-per-item",
         type=int,
-        default=16,
-        help="frames per work item (the unit of sharding)",
+        help="frames per work item, the unit of sharding (default 16)",
     )
     parser.add_argument(
         "--shard", default="0/1", metavar="i/n", help="capture only work items i, i+n, ..."
     )
-    parser.add_argument("--resume", action="store_true", help="continue a capture in --out")
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the capture in --out with the settings its capture.json saved (the "
+        "character and every flag above left out)",
+    )
     parser.add_argument("--workers", type=int, help="processes (default: one per core)")
     parser.add_argument(
         "--ray",
@@ -79,32 +83,44 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # Imported here so `rigspace --help` stays fast and loads no renderer.
+    from rigspace.capture.dataset import saved_flags
     from rigspace.capture.pipeline import capture, parse_shard
-    from rigspace.capture.settings import CaptureOverrides
+    from rigspace.capture.settings import CaptureError, CaptureOverrides
     from rigspace.sdk import schema
     from rigspace.sdk.stage import open_stage
+    from rigspace.sdk.validation import require_readable
 
+    flags = {
+        "views": args.views,
+        "elevations": tuple(args.elevations) if args.elevations else None,
+        "resolution": args.resolution,
+        "radius": args.radius,
+        "frames": args.frames,
+        "clips": tuple(args.clips) if args.clips else None,
+        "renderer": args.renderer,
+        "samples_per_axis": args.samples,
+        "frames_per_item": args.frames_per_item,
+        "every": args.every,
+    }
+    given = {name: value for name, value in flags.items() if value is not None}
     character = args.character
+    saved = saved_flags(args.out) if args.resume else None
+    if saved is not None:  # what the capture was started with, for every flag left out
+        if "frames" in given or "clips" in given:  # the other one of the two is not kept
+            saved = {k: v for k, v in saved.items() if k not in ("frames", "clips")}
+        character = character or saved["character"]
+        given = {**{k: v for k, v in saved.items() if k in flags}, **given}
     if character is None:
-        found = [str(p.GetPath()) for p in schema.neural_characters(open_stage(args.scene))]
+        stage = open_stage(args.scene)
+        require_readable(stage, "capture", exception=CaptureError)  # a character may be in it
+        found = [str(p.GetPath()) for p in schema.neural_characters(stage)]
         if len(found) != 1:
             raise RigspaceError(
                 f"{args.scene} has {len(found)} neural characters ({', '.join(found) or 'none'}).",
                 "pass --character with the prim path.",
             )
         character = found[0]
-    overrides = CaptureOverrides(
-        views=args.views,
-        elevations=tuple(args.elevations) if args.elevations else None,
-        resolution=args.resolution,
-        radius=args.radius,
-        frames=args.frames,
-        clips=tuple(args.clips) if args.clips else None,
-        renderer=args.renderer,
-        samples_per_axis=args.samples,
-        frames_per_item=args.frames_per_item,
-        every=args.every,
-    )
+    overrides = CaptureOverrides(**given)  # a flag left out: its default
     if args.ray is not None:
         from rigspace.capture.ray_capture import capture_on_ray
 

@@ -67,30 +67,57 @@ def _number(x: float) -> str:
     return short if float(short) == x else repr(x)
 
 
+def saved_flags(folder: str | Path) -> dict[str, Any] | None:
+    """The flag values that give exactly the settings of the capture in `folder`, from its
+    capture.json, by CaptureOverrides field (and `character`, `scene`): what `--resume`
+    takes for each flag it is not given, and resume_command writes. None when there is no
+    readable capture.json."""
+    try:
+        settings = json.loads((Path(folder) / SETTINGS_FILE).read_text())
+        clips = settings["clips"]
+        flags: dict[str, Any] = {
+            "scene": str(settings["scene"]),
+            "character": str(settings["character"]),
+            "views": int(settings["views_per_ring"]),
+            "elevations": tuple(float(e) for e in settings["elevations"]),
+            "resolution": int(settings["resolution"]),
+            "radius": float(settings["radius"]),
+        }
+        if [c["name"] for c in clips] == ["frames"]:
+            flags["frames"] = (float(clips[0]["first"]), float(clips[0]["last"]))
+        else:
+            flags["clips"] = tuple(str(c["name"]) for c in clips)
+        flags["renderer"] = str(settings["renderer"])
+        flags["samples_per_axis"] = int(settings["samples_per_axis"])
+        flags["frames_per_item"] = int(settings["frames_per_item"])
+        flags["every"] = int(settings.get("every", 1))
+    except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError):
+        return None
+    return flags
+
+
 def resume_command(folder: str | Path) -> str:
     """The command line that resumes (and repairs) the capture in `folder`, from its
-    capture.json: the flags that give exactly its settings; "rigspace capture ... --resume"
-    when there is no readable capture.json."""
+    capture.json: the flags that give exactly its settings (saved_flags); "rigspace capture
+    ... --resume" when there is no readable capture.json."""
     folder = Path(folder)
-    try:
-        settings = json.loads((folder / SETTINGS_FILE).read_text())
-        clips = settings["clips"]
-        args = ["rigspace", "capture", settings["scene"], "--character", settings["character"]]
-        args += ["--out", str(folder), "--views", str(settings["views_per_ring"])]
-        args += ["--elevations", *(_number(e) for e in settings["elevations"])]
-        args += ["--resolution", str(settings["resolution"])]
-        args += ["--radius", _number(settings["radius"])]
-        if [c["name"] for c in clips] == ["frames"]:
-            args += ["--frames", f"{_number(clips[0]['first'])}:{_number(clips[0]['last'])}"]
-        else:
-            args += ["--clips", *(c["name"] for c in clips)]
-        args += ["--renderer", settings["renderer"], "--samples", str(settings["samples_per_axis"])]
-        args += ["--frames-per-item", str(settings["frames_per_item"])]
-        if settings.get("every", 1) != 1:
-            args += ["--every", str(settings["every"])]
-        args += ["--resume"]
-    except (OSError, ValueError, KeyError, TypeError, IndexError):
+    flags = saved_flags(folder)
+    if flags is None:
         return "rigspace capture ... --resume"
+    args = ["rigspace", "capture", flags["scene"], "--character", flags["character"]]
+    args += ["--out", str(folder), "--views", str(flags["views"])]
+    args += ["--elevations", *(_number(e) for e in flags["elevations"])]
+    args += ["--resolution", str(flags["resolution"])]
+    args += ["--radius", _number(flags["radius"])]
+    if "frames" in flags:
+        args += ["--frames", f"{_number(flags['frames'][0])}:{_number(flags['frames'][1])}"]
+    else:
+        args += ["--clips", *flags["clips"]]
+    args += ["--renderer", flags["renderer"], "--samples", str(flags["samples_per_axis"])]
+    args += ["--frames-per-item", str(flags["frames_per_item"])]
+    if flags["every"] != 1:
+        args += ["--every", str(flags["every"])]
+    args += ["--resume"]
     return shlex.join(args)
 
 
@@ -737,6 +764,6 @@ def read_sample(folder: Path, manifest: DatasetManifest, relative: str) -> Maps:
         raise DatasetError(
             f"Sample {path} of the dataset is {state} ({reason}).",
             f"re-render it: repeat the capture with --resume (`rigspace capture {scene} --out "
-            f"{folder} --resume`, with the original capture's other flags), which re-renders "
+            f"{folder} --resume`: the settings come from its capture.json), which re-renders "
             "missing and damaged samples.",
         ) from exc

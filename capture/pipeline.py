@@ -316,7 +316,8 @@ def prepare_folder(folder: Path, settings: CaptureSettings, resume: bool, sharde
             raise CaptureError(
                 f"--out {folder} holds a dataset captured with different settings "
                 f"({', '.join(differs)}).",
-                "capture into a new folder, or repeat the original command to resume it.",
+                "capture into a new folder, or resume it with --resume and none of the flags "
+                "that differ (it takes the settings its capture.json saved).",
             )
         if not (resume or sharded):
             raise CaptureError(
@@ -509,8 +510,8 @@ def _render_items(
         kept = len(list((folder / "items").glob("*.npz")))
         print(
             f"rigspace capture: interrupted: {kept} work items are kept in {folder}; finish "
-            f"them with `rigspace capture {scene} --out {folder} --resume` (and the other "
-            "options you gave)",
+            f"them with `rigspace capture {scene} --out {folder} --resume` (the settings "
+            "come from its capture.json)",
             file=sys.stderr,
         )
         raise

@@ -26,7 +26,12 @@ from rigspace.sdk import schema, timecodes
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.stage import meters_per_unit, open_stage, up_axis
-from rigspace.sdk.validation import MAX_RESOLUTION, MIN_RESOLUTION, require_valid
+from rigspace.sdk.validation import (
+    MAX_RESOLUTION,
+    MIN_RESOLUTION,
+    require_readable,
+    require_valid,
+)
 
 BOUNDS_MARGIN = 1.1
 """Radius derived from the bounds leaves 10% room around the character's farthest point."""
@@ -504,6 +509,7 @@ def resolve_settings(
     """
     overrides = overrides or CaptureOverrides()
     stage = open_stage(scene)
+    require_readable(stage, "capture", exception=CaptureError)  # before the character is sought
     prim = _character_prim(stage, character)
     rig = CharacterRig(prim)  # no skeleton, no animation, no skin weights: SceneError
     require_valid(stage, "capture", [prim], exception=CaptureError, warn=warn)  # inspect's checks

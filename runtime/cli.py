@@ -160,7 +160,8 @@ def run(args: argparse.Namespace) -> int:
         if video is not None:
             video.close()
     cv2.imwrite(str(out / "contact_sheet.png"), contact_sheet(thumbs))
-    warnings = never_drawn(reports, [c.path for c in engine.characters])
+    paths = [c.path for c in engine.characters]
+    warnings = never_drawn(reports, paths) + draws_nothing(reports, paths)
     for warning in warnings:
         print(f"rigspace render: warning: {warning}", file=sys.stderr)
     _write_report(out, args, engine, warnings, reports)
@@ -207,6 +208,10 @@ def _render_frames(engine, truth, video, times, out: Path, aovs) -> tuple[list[d
                 out / f"compare_{t:08.1f}.png",
                 coverages(engine, truth, float(t)),
             )
+        for entry in frame.report["characters"]:  # what each drawn character covers
+            if entry.get("decision") in ("evaluated", "reused"):
+                coverage = engine.coverage_of(entry["path"], float(t))
+                entry["covered_px"] = 0 if coverage is None else int((coverage >= 0.5).sum())
         reports.append(frame.report)
     return reports, thumbs
 
@@ -272,6 +277,31 @@ def never_drawn(reports: list[dict], characters: list[str]) -> list[str]:
     return warnings
 
 
+def draws_nothing(reports: list[dict], characters: list[str]) -> list[str]:
+    """A sentence per neural character whose network covered no pixel (coverage >= 0.5) in
+    any frame it drew at MIN_DRAWN_PX or more: the shot shows the set where the character
+    should be, a model that is untrained or not this character's."""
+    warnings = []
+    for path in characters:
+        drawn = [
+            e
+            for r in reports
+            for e in r["characters"]
+            if e.get("path") == path and "covered_px" in e and e.get("size_px", 0) >= MIN_DRAWN_PX
+        ]
+        if drawn and not any(e["covered_px"] for e in drawn):
+            n = len(drawn)
+            warnings.append(
+                f"{path}: the model draws nothing: its mask is empty on {n} of {n} frames it "
+                "was drawn in (no pixel's coverage reaches 0.5; untrained, or the wrong bundle "
+                "for this character?)."
+            )
+    return warnings
+
+
+MIN_DRAWN_PX = 8.0
+"""A billboard this many pixels across or more, drawn by a trained network, covers pixels:
+an empty mask there is the model's, not the size's."""
 FIRST_FRAME_NOTE = 10.0
 """Seconds a first frame may take before render says why it was slow (a first run)."""
 MAX_FRAMES = 1_000_000
@@ -312,24 +342,35 @@ def frame_times(frames: tuple[float, float] | None, step: float, stage) -> np.nd
             f"render at most {MAX_FRAMES:,} at once: a shorter range or a larger --step.",
         )
     if stage.HasAuthoredTimeCodeRange():
+        # Compared as capture compares them (sdk.timecodes): a drifted export's range
+        # 1.0000000521-3023.0001577 holds --frames 1:3023.
+        before = _beyond(start, first)
+        after = _beyond(last, end)
         where = f"the stage's time range {start:g}-{end:g}"
-        if last < start or first > end:
+        if _beyond(start, last) or _beyond(first, end):
             raise RigspaceError(
                 f"{flag} lies outside {where}.", f"choose frames within {start:g}:{end:g}."
             )
-        if first < start or last > end:
-            outside = [f"{first:g}-{start:g}"] if first < start else []
-            outside += [f"{end:g}-{last:g}"] if last > end else []
+        if before or after:
+            outside = [f"{first:g}-{start:g}"] if before else []
+            outside += [f"{end:g}-{last:g}"] if after else []
             print(
                 f"rigspace render: warning: {flag} reaches past {where}: frames "
                 f"{' and '.join(outside)} show the stage held at its "
-                f"{'first or last' if len(outside) == 2 else 'first' if first < start else 'last'}"
+                f"{'first or last' if len(outside) == 2 else 'first' if before else 'last'}"
                 " time sample.",
                 file=sys.stderr,
             )
     # Counted, then spaced: arange(first, last + eps, step) loses the frame when last + eps
     # rounds to last (1e12) and a frame to rounding when (last - first) / step is whole.
     return first + step * np.arange(int(count + 1e-9))
+
+
+def _beyond(a: float, b: float) -> bool:
+    """Whether time code `a` lies after `b` by more than the time codes' tolerance."""
+    from rigspace.sdk.timecodes import same_time
+
+    return a > b and not bool(same_time(a, b))
 
 
 def check_reference_poses(truth, times) -> None:

@@ -171,6 +171,7 @@ class Engine:
         self.aovs = tuple(aovs)
         self.max_level = max_level
         self.stage: Usd.Stage = open_stage(scene)
+        validation.require_readable(self.stage, "render")  # before the camera and characters
         if models:
             use_models(self.stage, models)
         self.width, self.height = width, height

@@ -52,7 +52,13 @@ def source(text: str) -> tuple[str, str]:
 def add_view_arguments(parser: argparse.ArgumentParser) -> None:
     """--camera, --resolution and --renderer: what a command draws the stage with."""
     parser.add_argument("--camera", help="Camera prim path (default: the stage's first camera)")
-    parser.add_argument("--resolution", type=resolution, default=(640, 360), metavar="WxH")
+    parser.add_argument(
+        "--resolution",
+        type=resolution,
+        default=(640, 360),
+        metavar="WxH",
+        help="image width x height in pixels (default 640x360)",
+    )
     parser.add_argument(
         "--renderer", default="auto", help="renderer for the scene prims: gl, embree, auto"
     )

@@ -150,6 +150,15 @@ def _typed(data: Any, file: Path) -> ModelManifest:
             "point rigspace:model at a folder written by `rigspace train`.",
         )
     version = data.get("format_version")
+    if not isinstance(version, int) or isinstance(version, bool):
+        # "3", 3.0 and true compare equal to a readable version, or look like one: name the type.
+        got = "missing" if version is None else f"{json.dumps(version)} ({_json_type(version)})"
+        raise BundleError(
+            f"{file}: format_version must be an integer (one of "
+            f"{', '.join(map(str, READABLE_VERSIONS))}); it is {got}.",
+            "re-export the bundle with `rigspace train`, or write the version as a bare "
+            f'number ("format_version": {FORMAT_VERSION}, not "{FORMAT_VERSION}").',
+        )
     if version not in READABLE_VERSIONS:
         raise BundleError(
             f"{file} has bundle format version {version!r}; this rigspace reads versions "
@@ -227,3 +236,18 @@ def _sections(
         conditioning=data.get("conditioning") or None,
         torch=data.get("torch") if isinstance(data.get("torch"), dict) else None,
     )
+
+
+def _json_type(value: Any) -> str:
+    """The JSON name of a decoded value's type ("a string", "a boolean", ...)."""
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, str):
+        return "a string"
+    if isinstance(value, float):
+        return "a decimal number"
+    if isinstance(value, list):
+        return "a list"
+    if isinstance(value, dict):
+        return "an object"
+    return type(value).__name__

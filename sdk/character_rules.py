@@ -200,6 +200,20 @@ def _owner_is_character(prim: Usd.Prim, api: str) -> Iterator[Issue]:
         )
 
 
+def unreadable_layer_issues(stage: Usd.Stage) -> Iterator[Issue]:
+    """An UnreadableLayer error per layer of the stage USD cannot read (sdk.stage.
+    unreadable_layers): the stage rule's findings, and what capture and render refuse before
+    they look for a character or a camera such a layer may hold (validation.require_readable)."""
+    name = stage.GetRootLayer().identifier
+    for asset, why in unreadable_layers(stage):
+        yield error(
+            "UnreadableLayer",
+            f"Stage {name} uses the layer @{asset}@, which USD cannot read: {why} Whatever it "
+            "holds (a character, its skeleton, its meshes, a camera) is missing from the scene. "
+            "Fix: restore or re-export that file, or remove the reference to it.",
+        )
+
+
 def check_stage(root: Usd.Prim) -> Iterator[Issue]:
     """Units and up axis, read from the root layer (USD reads them nowhere else)."""
     stage = root.GetStage()
@@ -219,13 +233,7 @@ def check_stage(root: Usd.Prim) -> Iterator[Issue]:
                 "normalisation, capture distances and depth are in these units). Fix: author "
                 "metersPerUnit in the root layer (0.01 for centimetres, 1 for metres).",
             )
-    for asset, why in unreadable_layers(stage):
-        yield error(
-            "UnreadableLayer",
-            f"Stage {name} uses the layer @{asset}@, which USD cannot read: {why} Whatever it "
-            "holds (a character, its skeleton, its meshes) is missing from the scene. Fix: "
-            "restore or re-export that file, or remove the reference to it.",
-        )
+    yield from unreadable_layer_issues(stage)
     if not stage.HasAuthoredMetadata("upAxis"):
         yield warning(
             "UpAxisAssumed",

@@ -17,6 +17,7 @@ import functools
 import hashlib
 import json
 import warnings
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -243,12 +244,15 @@ class BundleModel:
             out.update(self.branch(features, branch, resolution, joints2d))
         return out
 
-    def preload(self) -> None:
-        """Load every graph now, so a missing or damaged file fails before a sequence starts."""
+    def preload(self, resolutions: Iterable[int] | None = None) -> None:
+        """Load every graph now (or the trunk and the levels at `resolutions`), so a missing or
+        damaged file fails before a sequence starts."""
         self.runner.load(self._trunk_file)
-        for level in self.levels.values():
-            for name in level.values():
-                self.runner.load(name)
+        wanted = self.levels if resolutions is None else set(resolutions)
+        for resolution, level in self.levels.items():
+            if resolution in wanted:
+                for name in level.values():
+                    self.runner.load(name)
 
     def footprint_bytes(self) -> int:
         files = {self._trunk_file, *(g for level in self.levels.values() for g in level.values())}

@@ -16,7 +16,11 @@ and derives every value from the asset, printing each with how it was found:
 
 The scene then passes `rigspace inspect`, and the next commands are printed (capture, train,
 and render with `--model`, which draws the trained bundle without editing the scene).
-An existing --out is never overwritten.
+An existing --out is never overwritten, and nothing is written unless the whole scene is
+valid: it is authored in memory, checked with inspect's capture rules (a derived value that
+is not finite, from an animation or mesh that gives NaN, is a named error before that), and
+then written in one step. Time codes within the tolerance of a whole number (sdk.timecodes:
+an exporter's float drift, 1.0000000521) are written as that number.
 """
 
 from __future__ import annotations
@@ -30,10 +34,11 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdSkel
 
-from rigspace.sdk import schema
+from rigspace.sdk import schema, validation
 from rigspace.sdk.cli import CommandSpec
 from rigspace.sdk.errors import SceneError
 from rigspace.sdk.stage import open_stage
+from rigspace.sdk.timecodes import whole
 
 FOCAL_LENGTH = 35.0
 APERTURE = 20.955
@@ -44,6 +49,12 @@ SAMPLES = 24
 """Animation frames the extent is measured at (evenly spaced over the clip)."""
 VIEWS, ELEVATIONS, RESOLUTION, HELD_OUT = 12, (0.0, 20.0), 128, 4
 """The capture ring's defaults (the sample scene's)."""
+TRAIN_MINUTES = 60
+"""The time budget the printed train command suggests. Without one the small preset trains
+4,000 steps a level, 16,000 to 128x128: about two hours on 2 CPU cores (the sample model's
+steps took 0.2, 0.3, 0.5 and 0.9 s at 16 to 128), with no word of it at the start. With
+--minutes the run times its steps first, plans them to reach 128x128 in the budget (an hour:
+about 1,500 a level there) and says so, or says which level it reaches."""
 
 
 @dataclass
@@ -135,15 +146,38 @@ def init_scene(
     character = Sdf.Path("/World").AppendChild(character_name)
     asset_prim = character.AppendChild("Asset")
     skeleton_in_scene = asset_prim.AppendPath(skel_path.MakeRelativePath(root.GetPath()))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    stage = Usd.Stage.CreateNew(str(out))
-    try:
-        derived = _author(stage, source, asset, out, root, character, asset_prim, skeleton_in_scene)
-        stage.GetRootLayer().Save()
-    except BaseException:
-        out.unlink(missing_ok=True)  # nothing half-written is left behind
-        raise
+    # Authored in memory under --out's path (so the asset's relative reference resolves and
+    # the checks name --out), and written only once it is valid.
+    layer = Sdf.Layer.New(Sdf.FileFormat.FindByExtension(out.suffix[1:]), str(out))
+    stage = Usd.Stage.Open(layer)
+    derived = _author(stage, source, asset, out, root, character, asset_prim, skeleton_in_scene)
+    validation.require_valid(stage, "capture")  # what inspect and capture check
+    _write_new(layer, out)
     return derived
+
+
+def _write_new(layer: Sdf.Layer, out: Path) -> None:
+    """Write `layer` to `out` in one step, never over a file: beside it first, then linked
+    into place (a hard link fails where `out` appeared meanwhile)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.stem}.{os.getpid()}.tmp{out.suffix}")
+    try:
+        if not layer.Export(str(tmp)):
+            raise SceneError(f"--out {out} cannot be written.", "choose a writable folder.")
+        try:
+            os.link(tmp, out)
+        except FileExistsError:
+            raise SceneError(
+                f"--out {out} exists: init never overwrites a file.", "choose a new scene path."
+            ) from None
+        except OSError:  # a file system without hard links
+            if out.exists():
+                raise SceneError(
+                    f"--out {out} exists: init never overwrites a file.", "choose a new scene path."
+                ) from None
+            os.replace(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def _author(
@@ -168,19 +202,24 @@ def _author(
         leaf[0]
     )  # provisional: the rig reads it; set below
     rig = CharacterRig(prim)
-    span, look, jp, extent = _animated_extent(rig, asset, skeleton)
+    samples, look, jp, extent = _animated_extent(rig, asset, skeleton)
+    span = (whole(samples[0]), whole(samples[1]))  # an exporter's float drift is not written
     half_fov = math.atan(APERTURE / 2 / FOCAL_LENGTH)
     radius = MARGIN * extent / math.sin(half_fov)  # the whole sphere of that radius in view
     near = max((radius - extent) * 0.5, radius * 1e-3)
     far = (radius + extent) * 4
+    target = jp[:, look].mean(axis=0)
+    # The shot is 16:9: its narrower vertical field sets the distance that frames it whole.
+    distance = MARGIN * extent / math.sin(math.atan(APERTURE * 9 / 16 / 2 / FOCAL_LENGTH))
+    _require_finite(
+        asset,
+        {"ring radius": radius, "clipping range": (near, far), "shot camera distance": distance},
+    )
     prim.GetAttribute("rigspace:lookAtJoint").Set(leaf[look])
     clip_name = _prim_name(rig.animation.GetName())
     _author_capture_ring(prim, radius, near, far, clip_name, span)
     stage.SetStartTimeCode(span[0])
     stage.SetEndTimeCode(span[1])
-    target = jp[:, look].mean(axis=0)
-    # The shot is 16:9: its narrower vertical field sets the distance that frames it whole.
-    distance = MARGIN * extent / math.sin(math.atan(APERTURE * 9 / 16 / 2 / FOCAL_LENGTH))
     camera = _camera(stage, up, target, distance, max(near, 1e-3 * distance), far + distance)
     _lights(stage, up)
     root_offset = float(np.linalg.norm(jp[:, look] - jp[:, 0], axis=1).mean())
@@ -260,8 +299,35 @@ def _animated_extent(
             "bind the character's meshes to its skeleton (UsdSkelBindingAPI).",
         )
     look, jp, points = found
+    for k, t in enumerate(times):
+        what = "joint" if not np.all(np.isfinite(jp[k])) else "skinned point"
+        if what == "joint" or not np.all(np.isfinite(points[k])):
+            raise SceneError(
+                f"The animation of {skeleton} in {asset} gives a {what} position that is NaN or "
+                f"infinite at time code {t:g}, so init cannot measure the character to frame it "
+                "(its ring radius and clipping range would be NaN).",
+                "fix the SkelAnimation's (or the meshes') values there and export again.",
+            )
     extent = max(float(np.linalg.norm(p - jp[k, look], axis=1).max()) for k, p in enumerate(points))
+    if not extent > 0:
+        raise SceneError(
+            f"The skinned meshes of {asset} have no extent around {skeleton}'s joints (every "
+            "point at the look-at joint), so init cannot frame the character.",
+            "export the character's meshes with their points and skin weights.",
+        )
     return span, look, jp, extent
+
+
+def _require_finite(asset: Path, values: dict[str, float | tuple[float, ...]]) -> None:
+    """A SceneError naming the first derived value that is not a finite number > 0."""
+    for name, value in values.items():
+        numbers = value if isinstance(value, tuple) else (value,)
+        if not all(math.isfinite(v) and v > 0 for v in numbers):
+            shown = ", ".join(f"{v:g}" for v in numbers)
+            raise SceneError(
+                f"init derived a {name} of {shown} from {asset}; it must be finite and > 0.",
+                "check the asset's units, skeleton and animation with `rigspace inspect` on it.",
+            )
 
 
 def _author_capture_ring(
@@ -354,12 +420,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rigspace.sdk import validation
-
     derived = init_scene(args.asset, args.out, args.skeleton, args.name)
     out = Path(args.out)
-    stage = open_stage(out)
-    validation.require_valid(stage, "capture")  # what inspect and capture check
     stem = out.with_suffix("")
     name, first, last = derived.clip
     print(f"wrote {out}: {derived.character} references {args.asset}")
@@ -381,7 +443,10 @@ def run(args: argparse.Namespace) -> int:
     print("next:")
     print(f"  rigspace inspect {out}")
     print(f"  rigspace capture {out} --out {stem}_data")
-    print(f"  rigspace train {stem}_data --out {stem}_model")
+    print(
+        f"  rigspace train {stem}_data --out {stem}_model --minutes {TRAIN_MINUTES}"
+        "  # it says first which level the budget reaches"
+    )
     print(f"  rigspace render {out} --model {stem}_model --out {stem}_frames")
     return 0
 

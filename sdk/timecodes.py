@@ -5,8 +5,8 @@ A real exporter wrote a 3,023-frame animation's samples at 1.0000000521, 2.00000
 those with `<` refuses `--frames 1:120`, and posing at 2.0 instead of 2.0000001043 reads
 an interpolated (or, with held interpolation, the previous) pose. Every comparison of
 time codes goes through `same_time`, every requested time is snapped to the authored
-samples with `snap`, and every requested range is fitted to the animated one with
-`clamp_range`.
+samples with `snap`, every requested range is fitted to the animated one with
+`clamp_range`, and a time code written for people (init's scene range) is made `whole`.
 """
 
 from __future__ import annotations
@@ -49,6 +49,13 @@ def snap(times: ArrayLike, samples: ArrayLike) -> np.ndarray:
     left = np.clip(right - 1, 0, s.size - 1)
     nearest = np.where(np.abs(s[left] - t) <= np.abs(s[right] - t), s[left], s[right])
     return np.where(same_time(t, nearest), nearest, t)
+
+
+def whole(t: float) -> float:
+    """`t` as the nearest whole number when within TOLERANCE of it (an exporter's drift:
+    1.0000000521 is frame 1), else unchanged: what a time code written for people reads as."""
+    nearest = float(round(t)) if np.isfinite(t) else t
+    return nearest if bool(same_time(t, nearest)) else float(t)
 
 
 def clamp_range(first: float, last: float, lo: float, hi: float) -> tuple[float, float] | None:

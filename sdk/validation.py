@@ -32,6 +32,7 @@ from rigspace.sdk.character_rules import (
     character_animation,
     character_skeleton,
     resolve_character,
+    unreadable_layer_issues,
 )
 from rigspace.sdk.errors import RigspaceError, SceneError
 from rigspace.sdk.issues import (
@@ -77,6 +78,7 @@ __all__ = [
     "character_animation",
     "character_skeleton",
     "error",
+    "require_readable",
     "require_valid",
     "resolve_character",
     "rules",
@@ -334,6 +336,23 @@ def require_valid(
                 elif (stage.GetRootLayer().identifier, issue.message) not in _warned:
                     _warned.add((stage.GetRootLayer().identifier, issue.message))
                     print(f"rigspace {purpose}: warning: {issue.message}", file=sys.stderr)
+    _refuse(stage, purpose, errors, exception)
+
+
+def require_readable(
+    stage: Usd.Stage, purpose: str, *, exception: type[RigspaceError] = SceneError
+) -> None:
+    """Refuse a stage with a layer USD cannot read (a sublayer, reference or payload: inspect's
+    UnreadableLayer, in its words), before `purpose` looks for what such a layer may hold. USD
+    composes around it, so a character or a camera in it looks simply absent: capture said
+    "0 neural characters ... pass --character" and render "The stage has no Camera prim"."""
+    _refuse(stage, purpose, list(unreadable_layer_issues(stage)), exception)
+
+
+def _refuse(
+    stage: Usd.Stage, purpose: str, errors: list[Issue], exception: type[RigspaceError]
+) -> None:
+    """Raise the error of a lone issue, or one `exception` listing them; nothing for none."""
     if len(errors) == 1:
         raise errors[0].as_error(exception)
     if errors:

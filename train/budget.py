@@ -143,21 +143,40 @@ spare for noise, which the pace spends (the probe's step is the fastest of three
 is an average); the rest covers the final checkpoint."""
 
 
+MAX_FADE_STRIDE = 4
+"""A fade-in the pace strides through still trains at least this share of its steps (1/4):
+fewer, and alpha jumps to 1 in a few steps, a block barely trained; the level is then left
+to the budget, not exported, as one the run does not reach (the plan's MIN_STEPS_PER_LEVEL
+judges a fade-in of a dozen steps not worth exporting alike)."""
+
+
 class Pace:
     """Keeps a run with a time budget on course for its final level while it trains.
 
     The plan's step times come from a few probe steps; a shared machine can run several
     times slower later (measured here: 1.7 s a step against the probe's 0.16 s while other
-    work ran). At each step past a level's fade-in, the rate of its last PACE_WINDOW steps,
-    scaled by the probe's ratios between levels, projects the later levels' times. The
-    target is the highest later level whose block can still fade in (the levels between
-    given just their fade and a measured rate); none: this level trains on until the budget
-    ends, the best the run can reach (`out_of_reach` says so). Else, once the levels up to
-    the target need what is left of the budget for their planned steps (PACE_SHARE of it),
-    this level ends: the step jumps to the next level's first step. So a level is shortened
-    only as much as the later ones need, only when the run is behind, and never for a level
-    it cannot reach. Batches are a pure function of the step, so skipping steps changes
-    nothing else; the final level is never cut (the budget stops it).
+    work ran). The rate of a level's last PACE_WINDOW steps, scaled by the probe's ratios
+    between levels, projects the later levels' times (before a level has its own window,
+    the last level's measured scale stands in). Two decisions follow from it:
+
+    - A block's fade-in always ends within the budget. A level counts as trained only once
+      its block has fully faded in (trained_levels), so a budget that ends a fade-in loses
+      the level whole: a `--minutes 3` run whose plan said "the run reaches 32x32" trained
+      about 186 steps at 32x32, all inside the block's fade-in, and exported levels 8 and 16.
+      When the steps that fit into PACE_SHARE of the time left cannot hold the rest of the
+      fade-in, it strides: every `fade_stride`th step of it is trained, so alpha still rises
+      step by step and reaches 1 in the steps that fit, as long as the fade-in keeps at least
+      1/MAX_FADE_STRIDE of its steps (else the level is beyond reach, and left to the budget).
+    - Past a level's fade-in, the target is the highest later level whose block can still
+      fade in (the levels between given just their fade and a measured rate); none: this
+      level trains on until the budget ends, the best the run can reach (`out_of_reach`
+      says so). Else, once the levels up to the target need what is left of the budget for
+      their planned steps (PACE_SHARE of it), this level ends: the step jumps to the next
+      level's first step. So a level is shortened only as much as the later ones need,
+      only when the run is behind, and never for a level it cannot reach. The final level
+      is never ended early (the budget stops it).
+
+    Batches are a pure function of the step, so skipping steps changes nothing else.
     """
 
     def __init__(
@@ -167,31 +186,46 @@ class Pace:
         self.probe = [float(seconds_per_step[r]) for r in config.levels()]
         self.out_of_reach = False
         """Whether the last look found no later level reachable at the current rate."""
-        self._level, self._seen = -1, 0
+        self.fade_stride = 1
+        """The stride of the current fade-in (1: every step; more: the budget needs it)."""
+        self._level, self._seen, self._scale, self._faded = -1, 0, 1.0, 0
+        self._jumped_to: int | None = None
         self._recent: deque[tuple[int, float]] = deque(maxlen=PACE_WINDOW + 1)
 
     def next_step(self, step: int, now: float) -> int:
-        """The step to train next: `step`, or the next level's first step when behind."""
-        per_level = self.config.steps_per_level
-        level = step // per_level
-        if level >= len(self.probe) - 1:
+        """The step to train next: `step`, or a later one when behind (the next level's first
+        step, or a later step of a fade-in)."""
+        if step == self._jumped_to:  # the step this pace jumped to: judged already, trained now
+            self._jumped_to = None
             return step
+        ahead = self._judge(step, now)
+        self._jumped_to = ahead if ahead != step else None
+        return ahead
+
+    def _judge(self, step: int, now: float) -> int:
+        per_level = self.config.steps_per_level
+        level = min(step // per_level, len(self.probe) - 1)  # past the plan: the final level
         if level != self._level:
-            self._level, self._seen = level, 0
+            self._level, self._seen, self._faded = level, 0, 0
             self._recent.clear()
+        self.fade_stride = 1
         self._seen += 1
         if self._seen > PACE_WARMUP:
-            self._recent.append((step, now))
+            self._recent.append((self._seen, now))  # steps trained, not step numbers: strides
+        if len(self._recent) > PACE_WINDOW:
+            (first, began), (last, latest) = self._recent[0], self._recent[-1]
+            self._scale = (latest - began) / (last - first) / self.probe[level]
         local = step - level * per_level
         fade = fade_steps(self.config)
-        if len(self._recent) <= PACE_WINDOW or local <= (0 if level == 0 else fade):
-            return step
-        (first, began), (last, latest) = self._recent[0], self._recent[-1]
-        scale = (latest - began) / (last - first) / self.probe[level]
         left = PACE_SHARE * (self.deadline - now)
+        if level > 0 and local < fade:
+            return self._through_fade(step, level, fade, fade - local, left)
+        measured = len(self._recent) > PACE_WINDOW
+        if level == len(self.probe) - 1 or not measured or local <= (0 if level == 0 else fade):
+            return step
         # Fewest steps that pass a level: its fade-in, and the pace's own measuring.
         passing = max(fade + 1, PACE_WARMUP + PACE_WINDOW + 1)
-        reach, target = 0.0, level
+        scale, reach, target = self._scale, 0.0, level
         for j in range(level + 1, len(self.probe)):
             if reach + scale * (fade + 1) * self.probe[j] > left:
                 break
@@ -201,3 +235,18 @@ class Pace:
         if self.out_of_reach or later < left:
             return step
         return (level + 1) * per_level
+
+    def _through_fade(self, step: int, level: int, fade: int, to_go: int, left: float) -> int:
+        """`step`, or a later step of the fade-in when the `to_go` steps to its end (the first
+        step at alpha 1 included) do not fit into `left` seconds at the current rate; `step`
+        too when so few fit that the fade-in would train under 1/MAX_FADE_STRIDE of its steps
+        (the budget then ends it: the level is beyond reach)."""
+        self._faded += 1  # this call's step trains, whichever it is
+        need = to_go + 1
+        fits = max(1, math.floor(left / max(self._scale * self.probe[level], 1e-9)))
+        stride = math.ceil(need / fits)
+        if stride == 1 or self._faded - 1 + fits < (fade + 1) / MAX_FADE_STRIDE:
+            self.fade_stride = 1
+            return step
+        self.fade_stride = stride
+        return min(step + stride - 1, step + to_go)

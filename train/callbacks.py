@@ -91,6 +91,7 @@ class Pacer:
         self.agree = agree  # rank 0's view decides for every rank (train.distributed)
         self.extends = True
         self._said_extended = self._said_reach = False
+        self._said_stride: set[int] = set()
 
     def before(self, state: LoopState) -> int | None:
         """None to stop now, else the step to train next (state.step, or later when behind)."""
@@ -111,11 +112,19 @@ class Pacer:
                 "slower than planned: at this rate the budget reaches no level after "
                 f"{schedule(self.config, state.step).resolution}, which trains on until it ends"
             )
-        if ahead != state.step:
+        where = schedule(self.config, state.step)
+        if self.pace is not None and self.pace.fade_stride > 1:
+            if where.level not in self._said_stride:
+                self._said_stride.add(where.level)
+                say(
+                    f"slower than planned: the {where.resolution}x{where.resolution} block "
+                    f"fades in with a stride of {self.pace.fade_stride} steps from step "
+                    f"{state.step} so that it is fully in (the level trained) within the budget"
+                )
+        elif ahead != state.step:
             say(
-                f"slower than planned: level {schedule(self.config, state.step).resolution} "
-                f"ends at step {state.step} (of {ahead}) so that the run reaches the final "
-                "level within the budget"
+                f"slower than planned: level {where.resolution} ends at step {state.step} (of "
+                f"{ahead}) so that the run reaches the final level within the budget"
             )
         return int(ahead)
 

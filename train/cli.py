@@ -9,10 +9,14 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rigspace.sdk.cli import CommandSpec
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.predictors import add_device_argument, add_predictor_argument
+
+if TYPE_CHECKING:
+    from rigspace.sdk.model import BundleModel
 
 TRAINING = "training"
 """Subfolder of a model bundle holding the run: run.json, checkpoint.pt, log, previews."""
@@ -47,7 +51,9 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         "--out", required=True, help="model bundle folder (training state in its training/)"
     )
     parser.add_argument(
-        "--preset", default="small", help="tiny (seconds), small (the sample model), paper (GPU)"
+        "--preset",
+        default="small",
+        help="tiny (seconds), small (the sample model; the default), paper (GPU)",
     )
     budget = parser.add_mutually_exclusive_group()
     budget.add_argument("--steps", type=int, help="stop after this many steps (checkpointed)")
@@ -320,6 +326,7 @@ def run_display(args: argparse.Namespace) -> int:
         device=args.device,
     )
     level = max(model.resolutions)
+    warn_damaged_graphs(Path(args.model), model, level)
     sizes = display_sizes(level, full.resolution)
     if not sizes:
         raise RigspaceError(
@@ -378,7 +385,6 @@ def run_eval(args: argparse.Namespace) -> int:
 
     if args.errors:
         check_folder(Path(args.errors), "--errors")  # before the evaluation, not after it
-    warn_damaged_graphs(Path(args.model))
     if args.display:
         return run_display(args)
     table = DatasetTable(Path(args.dataset))
@@ -396,6 +402,7 @@ def run_eval(args: argparse.Namespace) -> int:
             Path(args.model), table, int8=args.int8, predictor=args.predictor, device=args.device
         )
     ]
+    warn_damaged_graphs(Path(args.model), predictors[0].model, table.resolution)
     print(f"the model runs on {predictors[0].model.runner.description}", file=sys.stderr)
     if predictors[0].model.charts:  # the texture head's placement, in texels of the textures
         from rigspace.train.display import scene_textures
@@ -428,6 +435,7 @@ def run_eval(args: argparse.Namespace) -> int:
         out_dir=args.errors,
         regions=regions,
     )
+    _warn_draws_nothing(result, predictors[0].name)
     if args.record:
         fallbacks = sorted(predictors[0].model.int8_fallbacks)
         record_metrics(
@@ -440,12 +448,24 @@ def run_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def warn_damaged_graphs(model: Path) -> None:
+def _warn_draws_nothing(result: dict, name: str) -> None:
+    """Say when the model's mask is empty on every sample (train.evaluate.draws_nothing)."""
+    from rigspace.train.evaluate import draws_nothing
+
+    said = draws_nothing(result["reports"][name])
+    if said:
+        print(f"rigspace eval: warning: the {said}", file=sys.stderr)
+
+
+def warn_damaged_graphs(model: Path, loaded: BundleModel, resolution: int) -> None:
     """eval loads one level; a missing or damaged graph of another one (which the runtime
     loads when the character is drawn at that size) is said before the measurement, not left
-    for the next render to find. A bundle eval cannot read at all is left to its own error."""
+    for the next render to find. What eval measures (the trunk and the level at `resolution`)
+    is loaded first: a problem there, like a manifest eval cannot read, is eval's own error,
+    said once (not also as this warning)."""
     from rigspace.sdk.model import graphs_problem
 
+    loaded.preload([resolution])
     if (model / "manifest.json").is_file():
         problem = graphs_problem(model)
         if problem:

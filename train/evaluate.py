@@ -315,7 +315,7 @@ def evaluate(
     texels_per_st = getattr(predictor, "texels_per_st", None)
     per_sample: list[dict[str, Any]] = []
     kept: dict[int, tuple[dict[str, Any], Maps, Maps]] = {}  # worst so far: record, pred, truth
-    seconds = 0.0
+    seconds, empty = 0.0, 0
     for start in range(0, len(rows), PREDICT_BATCH):
         batch = rows[start : start + PREDICT_BATCH]
         begin = time.perf_counter()
@@ -332,6 +332,7 @@ def evaluate(
                 record.update(texture_metrics(pred, target, texels_per_st))
             per_sample.append(record)
             kept[int(index)] = (record, pred, target)
+            empty += not np.any(pred.mask >= MASK_THRESHOLD)
         # Keep only the worst so far, so memory stays at `worst` samples' maps.
         worst_now = _worst_first([k[0] for k in kept.values()])[:worst]
         kept = {r["index"]: kept[r["index"]] for r in worst_now}
@@ -345,6 +346,7 @@ def evaluate(
         "character_height": height,
         "seconds_per_sample": seconds / max(len(per_sample), 1),
         "footprint_bytes": getattr(predictor, "footprint_bytes", None),
+        "empty_masks": empty,
         "metrics": {
             key: _summary(np.array([s.get(key, math.nan) for s in per_sample], np.float64))
             for key in (*METRICS, *(k for k in OPTIONAL_METRICS if any(k in s for s in per_sample)))
@@ -359,6 +361,19 @@ def evaluate(
     if out_dir is not None:
         _write_worst(report, kept, Path(out_dir), height)
     return report
+
+
+def draws_nothing(report: dict[str, Any]) -> str | None:
+    """The sentence for a predictor whose mask is empty (no pixel at MASK_THRESHOLD) on every
+    sample of an evaluate() report, else None: its IoU 0 and SSIM near 0 measure no image."""
+    n = report["samples"]
+    if not n or report.get("empty_masks", 0) < n:
+        return None
+    return (
+        f"{report['predictor']} draws nothing: its mask is empty on {n} of {n} samples (no "
+        f"pixel's coverage reaches {MASK_THRESHOLD:g}), so its metrics measure an empty image "
+        "(untrained, or the wrong bundle for this character?)"
+    )
 
 
 def _write_worst(

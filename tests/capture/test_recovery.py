@@ -224,3 +224,21 @@ def test_the_resume_command_in_read_manifest_repairs_the_dataset(tmp_path, datas
     assert main(shlex.split(command)[1:]) == 0  # the same settings: no "different settings"
     assert "repaired 1 damaged work item(s)" in capsys.readouterr().out
     assert checksum(out) == checksum(dataset.folder)
+
+
+def test_resume_alone_takes_the_settings_from_capture_json(tmp_path, dataset, capsys):
+    """`rigspace capture SCENE --out DS --resume` with none of the original flags (views,
+    elevations, resolution, frames, frames per item): it refused the capture as one "captured
+    with different settings"; it continues it with the settings capture.json saved. A flag
+    given still has to match them."""
+    out = tmp_path / "unfinished"
+    shutil.copytree(dataset.folder, out)
+    (out / ds.MANIFEST_FILE).unlink()
+    with np.load(out / ds.PARAMS_FILE) as table:
+        (out / str(table["path"][7])).unlink()
+    assert main(["capture", str(SCENE), "--out", str(out), "--resume"]) == 0
+    assert "repaired 1 damaged work item(s)" in capsys.readouterr().out
+    assert checksum(out) == checksum(dataset.folder)
+    assert main(["capture", str(SCENE), "--out", str(out), "--resume", "--views", "5"]) == 2
+    err = capsys.readouterr().err
+    assert "different settings (" in err and "views_per_ring)" in err and "--resume and none" in err

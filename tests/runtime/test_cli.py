@@ -11,6 +11,7 @@ import pytest
 from pxr import Gf, Usd, UsdGeom
 
 from rigspace.sdk.cli import main
+from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.stage import overlay_layer
 from tests.conftest import REPO
 
@@ -40,6 +41,26 @@ def test_frames_inside_the_stage_do_not_warn(tmp_path, capsys):
     out = tmp_path / "ok"
     args = ["render", str(PREVIS), "--out", str(out), "--frames", "0:1619", "--step", "1619"]
     assert main([*args, *SMALL]) == 0
+    assert "warning" not in capsys.readouterr().err
+
+
+def test_a_drifted_stage_range_holds_its_whole_frames(capsys):
+    """An exporter wrote 1.0000000521-3023.0001577 (float32 drift); capture reads those as
+    frames 1-3023 (sdk.timecodes), and render compares --frames with the same tolerance: no
+    warning that 1:3023 reaches past the range. A frame past it by more still warns."""
+    from rigspace.runtime.cli import frame_times
+
+    stage = Usd.Stage.CreateInMemory()
+    stage.SetStartTimeCode(1.0000000521540642)
+    stage.SetEndTimeCode(3023.0001577)
+    times = frame_times((1.0, 3023.0), 1.0, stage)
+    assert len(times) == 3023 and "warning" not in capsys.readouterr().err
+    frame_times((0.0, 3024.0), 1.0, stage)
+    err = capsys.readouterr().err
+    assert "frames 0-1 and 3023-3024 show the stage held at its first or last" in err
+    with pytest.raises(RigspaceError, match="lies outside"):
+        frame_times((3025.0, 3030.0), 1.0, stage)
+    frame_times((3023.0, 3023.0), 1.0, stage)  # the last frame itself: inside, no warning
     assert "warning" not in capsys.readouterr().err
 
 

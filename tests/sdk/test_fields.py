@@ -152,3 +152,30 @@ def test_a_wrong_type_in_run_json_or_capture_json_is_a_named_error(tmp_path, tin
         with pytest.raises(CaptureError, match="Fix:") as info:
             prepare_folder(folder, CaptureSettings.from_json(settings), True, False)
         assert field.path.split("[")[0] in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("value", "said"),
+    [
+        ("3", '"3" (a string)'),
+        (2.0, "2.0 (a decimal number)"),
+        (True, "true (a boolean)"),
+        (None, "missing"),
+    ],
+)
+def test_a_format_version_that_is_not_an_integer_says_so(tmp_path, value, said):
+    """A version "3" is not version 3 (nor 2.0 version 2, nor true version 1): the error says it
+    must be an integer and what the manifest holds, not that this rigspace reads 1, 2, 3."""
+    data = copy.deepcopy(SAMPLE_MANIFEST)
+    if value is None:
+        del data["format_version"]
+    else:
+        data["format_version"] = value
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    (bundle / "manifest.json").write_text(json.dumps(data))
+    with pytest.raises(BundleError) as info:
+        read_manifest(bundle)
+    text = str(info.value)
+    assert f"format_version must be an integer (one of 1, 2, 3); it is {said}." in text
+    assert "Fix:" in text

@@ -172,3 +172,30 @@ def test_an_unreadable_layer_is_named_by_inspect_and_refused_by_capture(tmp_path
     assert "@./gone.usda@, which USD cannot read: it does not exist." in out
     with pytest.raises(SceneError, match=r"trunc\.usda"):
         validation.require_valid(open_stage(scene), "capture")
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["capture", "--out", "{tmp}/ds"],
+        ["capture", "--character", "/World/Hero", "--out", "{tmp}/ds"],
+        ["render", "--out", "{tmp}/frames"],
+    ],
+    ids=["capture", "capture --character", "render"],
+)
+def test_capture_and_render_name_an_unreadable_sublayer_as_inspect_does(tmp_path, capsys, command):
+    """The shot's character and camera live in a sublayer USD cannot read: USD composes
+    around it, and capture said "0 neural characters ... pass --character" (or "There is no
+    prim /World/Hero"), render "The stage has no Camera prim". Both name the layer now."""
+    scene = tmp_path / "scene.usda"
+    scene.write_text(
+        '#usda 1.0\n(\n    defaultPrim = "World"\n    metersPerUnit = 1\n    upAxis = "Y"\n'
+        "    subLayers = [@./shot.usda@]\n)\n"
+        'def Xform "World"\n{\n}\n'
+    )
+    argv = [command[0], str(scene), *(a.format(tmp=tmp_path) for a in command[1:])]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "@./shot.usda@, which USD cannot read: it does not exist." in err, err
+    assert "neural characters" not in err and "no Camera prim" not in err
+    assert not (tmp_path / "ds").exists() and not (tmp_path / "frames").exists()

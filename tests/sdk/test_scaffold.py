@@ -135,6 +135,10 @@ def test_the_command_prints_what_it_found_and_the_next_commands(tmp_path, capsys
     out = capsys.readouterr().out
     assert "look-at joint   hips: nearest the skinned meshes' centre" in out
     assert f"rigspace render {scene} --model {tmp_path / 'shot_model'}" in out
+    # A budget: the preset alone is 4,000 steps a level, hours on a CPU.
+    train = next(line for line in out.splitlines() if "rigspace train" in line)
+    assert f"rigspace train {tmp_path / 'shot_data'} --out {tmp_path / 'shot_model'}" in train
+    assert "--minutes 60" in train
     assert main(["inspect", str(scene)]) == 0
 
 
@@ -156,3 +160,51 @@ def test_capture_warns_when_the_look_at_joint_is_far_from_the_characters_middle(
     said.clear()
     resolve_settings(tmp_path / "shot.usda", derived.character, warn=said.append)
     assert not [w for w in said if "look-at joint" in w]  # init's choice is the middle
+
+
+def test_a_non_finite_derived_value_is_named_and_nothing_is_written(tmp_path, capsys):
+    """A mesh point at NaN made the radius and clipping range NaN: init wrote the scene, then
+    its own check refused it, and a rerun was refused because the file existed."""
+    asset = robot(tmp_path, name="nan.usda")
+    asset.write_text(
+        asset.read_text().replace("(0.2, 0, 0), (0.2, 1.8, 0)", "(nan, 0, 0), (0.2, 1.8, 0)")
+    )
+    scene = tmp_path / "shot" / "nan_shot.usda"
+    assert main(["init", str(asset), "--out", str(scene)]) == 2
+    err = capsys.readouterr().err
+    assert "skinned point position that is NaN or infinite at time code 1" in err, err
+    assert not scene.exists() and not list(tmp_path.glob("shot/*"))  # no temporary left
+    asset.write_text(ROBOT.format(extra=""))  # fixed: the same command goes through
+    assert main(["init", str(asset), "--out", str(scene)]) == 0
+    assert "radius" in capsys.readouterr().out and scene.is_file()
+    assert [p.name for p in scene.parent.iterdir()] == [scene.name]
+
+
+def test_a_scene_init_would_write_invalid_is_not_written(tmp_path, monkeypatch):
+    """Whatever inspect's capture rules refuse is refused before the file exists."""
+    from rigspace.sdk import scaffold
+
+    monkeypatch.setattr(scaffold, "RESOLUTION", 100)  # not a power of two: capture refuses it
+    scene = tmp_path / "shot.usda"
+    with pytest.raises(SceneError, match="resolution"):
+        init_scene(robot(tmp_path), scene)
+    assert not scene.exists() and [p.name for p in tmp_path.iterdir()] == ["robot.usda"]
+
+
+def test_time_codes_drifted_by_the_exporter_are_written_whole(tmp_path):
+    """An export with samples at 1.0000000521 and 24.0000012517 (float32 drift): the scene's
+    range and clip are 1-24, not startTimeCode = 1.0000000521540642."""
+    asset = robot(tmp_path, name="drift.usda")
+    asset.write_text(
+        asset.read_text()
+        .replace("{ 1: [", "{ 1.0000000521540642: [")
+        .replace("24: [(1,0,0,0), (0.96", "24.00000125169754: [(1,0,0,0), (0.96")
+    )
+    scene = tmp_path / "shot.usda"
+    derived = init_scene(asset, scene)
+    text = scene.read_text()
+    assert "startTimeCode = 1\n" in text and "endTimeCode = 24\n" in text
+    assert "clipRanges = [(1, 24)]" in text and derived.clip == ("Anim", 1.0, 24.0)
+    stage = Usd.Stage.Open(str(scene))
+    ring = schema.read_capture_ring(stage.GetPrimAtPath(derived.character))
+    assert [tuple(r) for r in ring.clip_ranges] == [(1.0, 24.0)]

@@ -72,3 +72,10 @@ def test_a_clip_sampled_off_the_integer_grid_is_captured_at_its_own_samples():
     np.testing.assert_array_equal(clip.times(samples=dense), np.arange(41.0))
     sparse = np.arange(0, 41, 10.0)  # keys every 10 frames: every frame, interpolated
     np.testing.assert_array_equal(clip.times(samples=sparse), np.arange(41.0))
+
+
+def test_whole_takes_a_drifted_time_code_to_its_frame_and_leaves_others():
+    assert timecodes.whole(1.0000000521540642) == 1.0
+    assert timecodes.whole(3023.0001577) == 3023.0
+    assert timecodes.whole(2.5) == 2.5 and timecodes.whole(0.9867) == 0.9867
+    assert timecodes.whole(-4.0000000001) == -4.0

@@ -6,9 +6,11 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import time
 import warnings
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -19,7 +21,7 @@ from rigspace.sdk.bundle import read_manifest  # noqa: E402
 from rigspace.sdk.capsules import CapsuleError, read_capsules  # noqa: E402
 from rigspace.sdk.cli import main  # noqa: E402
 from rigspace.sdk.model import BundleModel  # noqa: E402
-from rigspace.train import loop  # noqa: E402
+from rigspace.train import callbacks, loop  # noqa: E402
 from rigspace.train.budget import (  # noqa: E402
     MIN_STEPS_PER_LEVEL,
     PACE_WARMUP,
@@ -95,8 +97,8 @@ def test_a_run_slower_than_planned_ends_a_level_early_to_reach_the_final_one():
     # are more than the 39.7 s left, though its fade-in (20 s) still fits.
     assert all(slow.next_step(s, 8.0 + 0.2 * (s - 100)) == s for s in range(100, 151))
     assert slow.next_step(151, 8.0 + 0.2 * 51) == 200 and not slow.out_of_reach
-    # The final level is never cut: the budget stops it.
-    assert all(slow.next_step(s, 20.0 + s) == s for s in range(200, 300))
+    # The final level is never ended early, nor past the plan: the budget stops it.
+    assert all(slow.next_step(s, 20.0 + 0.05 * (s - 200)) == s for s in range(200, 400))
     # Twice slower: level 16 goes on until the time left is what 32 and 64 need (12 s).
     behind = Pace(config, probe, deadline=13.5)
     cut = next(s for s in range(100) if behind.next_step(s, 0.02 * s) != s)
@@ -105,6 +107,108 @@ def test_a_run_slower_than_planned_ends_a_level_early_to_reach_the_final_one():
     stuck = Pace(config, probe, deadline=100.0)
     assert all(stuck.next_step(s, 1.0 * s) == s for s in range(60))
     assert stuck.out_of_reach
+
+
+def _run_paced(pace: Pace, deadline: float, seconds: dict[int, float], steps_per_level: int):
+    """Steps a run takes under `pace` until `deadline` when a step at each level takes
+    `seconds[level]`: (the step it stopped at, the steps it trained)."""
+    t, step, trained = 0.0, 0, []
+    while t <= deadline:
+        ahead = pace.next_step(step, t)
+        if ahead != step:
+            step = ahead
+            continue
+        trained.append(step)
+        t += seconds[min(step // steps_per_level, len(seconds) - 1)]
+        step += 1
+    return step, trained
+
+
+def test_a_fade_in_ends_within_the_budget_however_slow_the_level_runs():
+    """A level counts only once its block has faded in: a final level that runs slower than
+    the probe said (here 6x, and only there) strides through the rest of its fade-in so that
+    alpha reaches 1 before the budget ends, instead of the budget ending the fade-in and the
+    bundle losing the level its plan promised; not so far that the fade-in is a few steps."""
+    config = replace(TINY, steps_per_level=100)  # levels 16, 32; fade 50 (steps 100-150)
+    probe = {16: 0.01, 32: 0.02}
+    assert plan_schedule(config, probe, 6.0).reaches_final
+    step, trained = _run_paced(Pace(config, probe, deadline=6.0), 6.0, [0.01, 0.12], 100)
+    assert trained_levels(config, step) == [16, 32]
+    assert 150 in trained  # the first step at alpha 1 is one that trained
+    fade = [s for s in trained if 100 <= s <= 150]
+    assert fade[0] == 100 and len(fade) < 51 and max(np.diff(fade)) == 2  # every 2nd step
+    # On the probe's pace nothing strides: every step of the fade-in trains.
+    step, trained = _run_paced(Pace(config, probe, deadline=6.0), 6.0, [0.01, 0.02], 100)
+    assert set(range(100, 151)) <= set(trained) and step > 200
+    # Time for a few steps only, on the measured pace (20x the probe's): a fade-in of 7 of its
+    # 51 steps is no fade-in; the budget ends it, and the level is not counted.
+    step, trained = _run_paced(Pace(config, probe, deadline=23.0), 23.0, [0.2, 0.4], 100)
+    assert trained_levels(config, step) == [16] and trained[-1] - trained[0] == len(trained) - 1
+    # The middle level's fade-in too (the final one then may not be reached at all).
+    three = replace(config, resolution=64)  # 16, 32, 64
+    rates = {16: 0.01, 32: 0.02, 64: 0.04}
+    step, trained = _run_paced(Pace(three, rates, deadline=5.0), 5.0, [0.01, 0.12, 0.5], 100)
+    assert trained_levels(three, step)[:2] == [16, 32]
+
+
+class _Clock:
+    """The training loop's monotonic clock (train.loop, train.callbacks), moved on only by
+    training steps, `seconds[resolution]` each: a run with a time budget takes the same steps
+    on any machine, however loaded."""
+
+    def __init__(self, seconds: dict[int, float]) -> None:
+        self.now, self.seconds = 1000.0, seconds
+
+    def monotonic(self) -> float:
+        return self.now
+
+
+@pytest.fixture
+def step_clock(monkeypatch):
+    """install(seconds per step by resolution, probe=the plan's measured rates): the budget's
+    clock ticks per training step, and the probe measures `probe` (default: the same)."""
+
+    def install(seconds: dict[int, float], probe: dict[int, float] | None = None) -> _Clock:
+        clock = _Clock(seconds)
+        fake = SimpleNamespace(monotonic=clock.monotonic, perf_counter=time.perf_counter)
+        monkeypatch.setattr(loop, "time", fake)
+        monkeypatch.setattr(callbacks, "time", fake)
+        measured = dict(probe or seconds)
+        monkeypatch.setattr(loop, "measure_step_seconds", lambda *args, **kwargs: measured)
+        real = loop._train_step
+
+        def step(state, **kwargs):
+            record = real(state, **kwargs)
+            clock.now += seconds[record["resolution"]]
+            return record
+
+        monkeypatch.setattr(loop, "_train_step", step)
+        return clock
+
+    return install
+
+
+@pytest.mark.slow
+def test_a_budget_that_promised_the_final_level_exports_it(
+    tmp_path, tiny_dataset, capsys, step_clock
+):
+    """The issue's run: the plan says the run reaches 32x32, the final level then runs six
+    times slower than the probe measured, and the budget ended its fade-in: it trained about
+    186 steps at 32x32 and exported 8 and 16 only. Its fade-in now strides to alpha 1."""
+    step_clock({16: 0.01, 32: 0.12}, probe={16: 0.01, 32: 0.02})
+    config = replace(TINY, steps_per_level=100)
+    model = tmp_path / "model"
+    result = loop.train(tiny_dataset, model / "training", config, minutes=0.1, progress=False)
+    assert result.stopped == "time budget"
+    manifest = export_bundle(model / "training", model, int8=False)
+    assert levels(manifest) == [8, 16, 32]
+    assert manifest["training"]["trained_levels"] == [8, 16, 32]
+    err = capsys.readouterr().err
+    assert "the run reaches 32x32" in err
+    assert "the 32x32 block fades in with a stride of 2 steps" in err
+    records = [json.loads(line) for line in (model / "training" / "log.jsonl").open()]
+    faded = [r for r in records if r.get("resolution") == 32 and r["fade"] == 1.0]
+    assert faded and all(r["fade"] <= 1.0 for r in records if "fade" in r)
 
 
 @pytest.mark.slow
@@ -144,13 +248,17 @@ def test_a_time_budget_plans_the_schedule_before_training(tmp_path, tiny_dataset
 
 
 @pytest.mark.slow
-def test_a_budget_left_over_trains_the_final_level_on(tmp_path, tiny_dataset, capsys):
-    """The tiny preset's 40 steps take a second or two; a 24-second budget (room for a busy
-    CI machine) is not left unused: the final level trains on (fade 1) until it ends, and so
-    does a resumed finished run."""
+def test_a_budget_left_over_trains_the_final_level_on(tmp_path, tiny_dataset, capsys, step_clock):
+    """The tiny preset's 40 steps take 3 s of a 6-second budget (on the step clock: the same
+    on any machine); the rest is not left unused: the final level trains on (fade 1) until
+    it ends, and so does a resumed finished run."""
+    clock = step_clock({16: 0.05, 32: 0.1})
     run = tmp_path / "model" / "training"
-    result = loop.train(tiny_dataset, run, TINY, minutes=0.4, progress=False)
+    began = clock.now
+    result = loop.train(tiny_dataset, run, TINY, minutes=0.1, progress=False)
     assert result.stopped == "time budget" and result.step > TINY.total_steps()
+    assert clock.now - began == pytest.approx(6.0, abs=0.1)  # 20 x 0.05 + 50 x 0.1
+    assert result.step == pytest.approx(70, abs=1)
     assert "the final level (32x32) trains on until it ends" in capsys.readouterr().err
     assert trained_levels(TINY, result.step) == [16, 32]
     records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
@@ -158,7 +266,7 @@ def test_a_budget_left_over_trains_the_final_level_on(tmp_path, tiny_dataset, ca
     assert extra and all(r["resolution"] == 32 and r["fade"] == 1.0 for r in extra)
     assert torch.load(run / loop.CHECKPOINT, weights_only=True)["step"] == result.step
     again = loop.train(tiny_dataset, run, TINY, minutes=0.05, resume=True, progress=False)
-    assert again.stopped == "time budget" and again.step > result.step
+    assert again.stopped == "time budget" and again.step == pytest.approx(result.step + 30, abs=1)
     # A step budget is exact: no extension.
     fixed = loop.train(tiny_dataset, tmp_path / "fixed", TINY, steps=40, progress=False)
     assert fixed.step == 40

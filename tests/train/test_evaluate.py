@@ -274,7 +274,99 @@ def test_eval_warns_of_a_damaged_graph_at_a_level_it_does_not_use(
     assert (
         main(["eval", str(bundle_at_16), str(tiny_dataset), "--limit", "2", "--no-baselines"]) == 0
     )
-    assert "warning" not in capsys.readouterr().err
+    # (The 40-step tiny model's level 16 draws nothing on these two samples: said, too.)
+    assert "cannot be loaded" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("damage", ["format_version", "measured level"])
+def test_eval_says_a_problem_with_what_it_measures_once_as_its_error(
+    bundle_at_16, tiny_dataset, tmp_path, capsys, damage
+):
+    """A manifest eval cannot read, or a damaged graph of the level it measures, stops eval:
+    its error, not also a warning with the same text before it."""
+    from rigspace.sdk.cli import main
+
+    bundle = tmp_path / "bundle"
+    shutil.copytree(bundle_at_16, bundle)
+    path = bundle / "manifest.json"
+    manifest = json.loads(path.read_text())
+    if damage == "format_version":
+        manifest["format_version"] = str(manifest["format_version"])
+        path.write_text(json.dumps(manifest))
+        said = 'format_version must be an integer (one of 1, 2, 3); it is "2" (a string)'
+    else:
+        (level16,) = [lv for lv in manifest["levels"] if lv["resolution"] == 16]
+        graph = bundle / level16["graphs"]["albedo"]
+        graph.write_bytes(graph.read_bytes()[:500])
+        said = f"Model file {graph} cannot be loaded"
+    args = ["eval", str(bundle), str(tiny_dataset), "--limit", "2", "--no-baselines"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count(said) == 1 and "error: " in err and "warning" not in err, err
+
+
+def _coverage_bundle(tiny_run, folder, logit: float):
+    """The tiny model with its mask and alpha logits set to `logit` everywhere: -100 draws
+    nothing (as an untrained model, or one trained on another character, can), +100 covers
+    its whole billboard."""
+    import torch
+
+    from rigspace.train import loop
+    from rigspace.train.export import export_bundle
+
+    run = folder / "run"
+    shutil.copytree(tiny_run, run)
+    state = loop.load_checkpoint(run / loop.CHECKPOINT)
+    for name, value in state["model"].items():
+        if name.startswith(("geometry.heads.", "albedo.heads.")):
+            channel = 4 if name.startswith("geometry.") else 3  # the mask; albedo's alpha
+            value[channel] = logit if value.ndim == 1 else 0.0
+    torch.save(state, run / loop.CHECKPOINT)
+    export_bundle(run, folder / "bundle", int8=False)
+    return folder / "bundle"
+
+
+@pytest.fixture(scope="module")
+def blind_bundle(tiny_run, tmp_path_factory):
+    return _coverage_bundle(tiny_run, tmp_path_factory.mktemp("blind"), -100.0)
+
+
+@pytest.fixture(scope="module")
+def covering_bundle(tiny_run, tmp_path_factory):
+    return _coverage_bundle(tiny_run, tmp_path_factory.mktemp("covering"), 100.0)
+
+
+def test_eval_says_when_the_model_draws_nothing(
+    blind_bundle, covering_bundle, tiny_dataset, capsys
+):
+    """eval printed IoU 0.0000 and SSIM 0.0007 and no word of why."""
+    from rigspace.sdk.cli import main
+
+    args = [str(tiny_dataset), "--limit", "4", "--no-baselines"]
+    assert main(["eval", str(blind_bundle), *args]) == 0
+    err = capsys.readouterr().err
+    assert "warning: the model draws nothing: its mask is empty on 4 of 4 samples" in err
+    assert "(untrained, or the wrong bundle for this character?)" in err
+    assert main(["eval", str(covering_bundle), *args]) == 0  # a model that draws: no word
+    assert "draws nothing" not in capsys.readouterr().err
+
+
+def test_render_says_when_the_model_draws_nothing(blind_bundle, covering_bundle, tmp_path, capsys):
+    """render --reference showed the set alone, IoU 0.000, `warnings: []`, and no word."""
+    from rigspace.sdk.cli import main
+
+    out = tmp_path / "frames"
+    render = ["render", str(SCENE), "--model", str(blind_bundle), "--out", str(out),
+              "--frames", "1:3", "--resolution", "64x36", "--prim-samples", "1"]  # fmt: skip
+    assert main([*render, "--reference"]) == 0
+    err = capsys.readouterr().err
+    said = f"{CHARACTER}: the model draws nothing: its mask is empty on 3 of 3 frames"
+    assert said in err and "wrong bundle for this character?" in err
+    report = json.loads((out / "report.json").read_text())
+    assert any(said in w for w in report["warnings"])
+    assert all(e["covered_px"] == 0 for f in report["frames"] for e in f["characters"])
+    assert main([*render[:3], str(covering_bundle), *render[4:]]) == 0
+    assert "draws nothing" not in capsys.readouterr().err
 
 
 def test_region_metrics_measure_the_region_pixels_from_the_truths_uv_and_chart():
