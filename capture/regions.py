@@ -249,4 +249,3 @@ def region_settings(
         region=region.name,
         region_joints=tuple(rig.joints[j] for j in joints),
     )
-
