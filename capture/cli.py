@@ -63,6 +63,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--shard", default="0/1", metavar="i/n", help="capture only work items i, i+n, ..."
     )
+    regions = parser.add_mutually_exclusive_group()
+    regions.add_argument(
+        "--region",
+        metavar="NAME",
+        help="capture the dataset of the character's region NAME (RigspaceRegionAPI:NAME: its "
+        "own ring around its joint, its resolution, its surface alone) into --out instead of "
+        "the whole character's (docs/regions.md)",
+    )
+    regions.add_argument(
+        "--regions",
+        action="store_true",
+        help="after the whole character, capture each of its regions into OUT/regions/NAME",
+    )
     parser.add_argument(
         "--resume",
         action="store_true",
@@ -121,6 +134,11 @@ def run(args: argparse.Namespace) -> int:
             )
         character = found[0]
     overrides = CaptureOverrides(**given)  # a flag left out: its default
+    if args.ray is not None and (args.region or args.regions):
+        raise CaptureError(
+            "--ray captures the whole character only.",
+            "capture its regions on this machine (--region NAME), or leave out --ray.",
+        )
     if args.ray is not None:
         from rigspace.capture.ray_capture import capture_on_ray
 
@@ -143,8 +161,22 @@ def run(args: argparse.Namespace) -> int:
             shard=parse_shard(args.shard),
             resume=args.resume,
             workers=args.workers,
+            region=args.region,
         )
     print(result.summary(), file=sys.stdout)
+    if args.regions:
+        from pathlib import Path
+
+        stage = open_stage(args.scene)  # kept in a variable: its prims expire with it
+        for region in schema.region_names(stage.GetPrimAtPath(character)):
+            out = Path(args.out) / "regions" / region
+            resume = args.resume and (out / "capture.json").is_file()
+            print(f"region {region} -> {out}", file=sys.stdout)
+            part = capture(
+                args.scene, character, out, overrides, shard=parse_shard(args.shard),
+                resume=resume, workers=args.workers, region=region,
+            )  # fmt: skip
+            print(part.summary(), file=sys.stdout)
     return 0
 
 

@@ -386,6 +386,13 @@ def nothing_in_view(
 def _empty_views_warning(settings: CaptureSettings, empty: dict[int, int], total: int) -> str:
     count = sum(empty.values())
     by_view = ", ".join(f"view {v}: {n}" for v, n in sorted(empty.items()))
+    if settings.region:  # the rest of the character hides a region from some views: expected
+        return (
+            f"{count} of {total} samples show less than {ds.EMPTY_PIXELS:g} pixels of region "
+            f"{settings.region} of {settings.character} ({by_view}): the rest of the character "
+            "hides it there (a hand behind the body), or its ring misses it (radius "
+            f"{settings.radius:g}; rigspace:region:{settings.region}:size widens it)."
+        )
     return (
         f"{count} of {total} samples show less than {ds.EMPTY_PIXELS:g} pixels of "
         f"{settings.character} ({by_view}); they teach the network nothing. Check those views' "

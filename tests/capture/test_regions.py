@@ -201,3 +201,19 @@ def test_a_region_s_shapes_are_drawn_apart_from_the_animation(captured_face):
         animation = np.array([dict(zip(ANIMATED, weights_at(float(t)), strict=True))[name]
                               for t in frames])  # fmt: skip
         assert not np.allclose(values, animation, atol=1e-3)  # not the clip's weights
+
+
+def test_capture_regions_captures_each_region_after_the_body(face_scene, tmp_path, capsys):
+    from rigspace.sdk.cli import main
+
+    out = tmp_path / "ds"
+    args = ["capture", str(face_scene), "--out", str(out), "--views", "2", "--every", "6",
+            "--workers", "1", "--regions"]  # fmt: skip
+    assert main(args) == 0
+    assert json.loads((out / "capture.json").read_text()).get("region") is None  # the body's
+    region = json.loads((out / "regions" / "face" / "capture.json").read_text())
+    assert region["region"] == "face" and region["resolution"] == 32
+    assert (out / "regions" / "face" / "manifest.json").is_file()
+    assert "region face ->" in capsys.readouterr().out
+    assert main([*args[:-1], "--region", "face", "--ray"]) == 2
+    assert "--ray captures the whole character only" in capsys.readouterr().err

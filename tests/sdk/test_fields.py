@@ -177,5 +177,5 @@ def test_a_format_version_that_is_not_an_integer_says_so(tmp_path, value, said):
     with pytest.raises(BundleError) as info:
         read_manifest(bundle)
     text = str(info.value)
-    assert f"format_version must be an integer (one of 1, 2, 3); it is {said}." in text
+    assert f"format_version must be an integer (one of 1, 2, 3, 4); it is {said}." in text
     assert "Fix:" in text

@@ -293,7 +293,7 @@ def test_eval_says_a_problem_with_what_it_measures_once_as_its_error(
     if damage == "format_version":
         manifest["format_version"] = str(manifest["format_version"])
         path.write_text(json.dumps(manifest))
-        said = 'format_version must be an integer (one of 1, 2, 3); it is "2" (a string)'
+        said = 'format_version must be an integer (one of 1, 2, 3, 4); it is "2" (a string)'
     else:
         (level16,) = [lv for lv in manifest["levels"] if lv["resolution"] == 16]
         graph = bundle / level16["graphs"]["albedo"]
