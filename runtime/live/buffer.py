@@ -154,9 +154,14 @@ class BindingCounters:
     ignored: int
     unknown_bones: int
     dropped: int
-    """Samples dropped by the buffer: duplicates and out-of-order."""
+    """Everything sent that never reached a pose: the frames the buffer dropped (duplicates and
+    out of order) plus the datagrams the kernel dropped (`kernel_dropped`)."""
     duplicates: int
     out_of_order: int
+    kernel_dropped: int | None
+    """Datagrams the kernel dropped before the receiver read them (its receive buffer was full:
+    the receiver fell behind a flood), from the socket; None where the transport cannot tell
+    (TCP, serial, a device, a replay) or the system does not say."""
     clock_resets: int
     reconnects: int
     last_seen: float | None
@@ -490,9 +495,14 @@ class LiveBuffer:
         return float(np.median(np.diff(times))) if len(times) > 1 else 0.0
 
     def counters(
-        self, now: float | None = None, decoded: DecodeCounters | None = None, reconnects: int = 0
+        self,
+        now: float | None = None,
+        decoded: DecodeCounters | None = None,
+        reconnects: int = 0,
+        kernel_dropped: int | None = None,
     ) -> BindingCounters:
-        """A snapshot of this binding's status and counters (decoder counts from `decoded`)."""
+        """A snapshot of this binding's status and counters (decoder counts from `decoded`, the
+        transport's reconnects and the datagrams its kernel dropped)."""
         now = time.monotonic() if now is None else now
         d = decoded or DecodeCounters()
         # No lock (the frame thread calls this every frame): single reads, and the rings'
@@ -510,9 +520,10 @@ class LiveBuffer:
             malformed=d.malformed,
             ignored=d.ignored,
             unknown_bones=d.unknown_bones,
-            dropped=self.duplicates + self.out_of_order,
+            dropped=self.duplicates + self.out_of_order + (kernel_dropped or 0),
             duplicates=self.duplicates,
             out_of_order=self.out_of_order,
+            kernel_dropped=kernel_dropped,
             clock_resets=self.clock_resets,
             reconnects=reconnects,
             last_seen=last_seen,

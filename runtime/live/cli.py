@@ -408,9 +408,12 @@ def _print_summary(summary: dict[str, Any], out: Path, video: str | None, stoppe
     )
     for b in summary["bindings"]:
         lat = summary["latency_ms"].get(b["binding"], {})
+        kernel = b.get("kernel_dropped")
+        by_kernel = f" ({kernel} by the kernel: its receive buffer was full)" if kernel else ""
         print(
             f"  {b['binding']} ({b['url']}): {b['status']}, {b['samples']} samples, "
-            f"{b['malformed']} malformed, {b['dropped']} dropped, {b['reconnects']} reconnects; "
+            f"{b['malformed']} malformed, {b['dropped']} dropped{by_kernel}, "
+            f"{b['reconnects']} reconnects; "
             f"sample received to frame written p50 {lat.get('p50')} ms, p99 {lat.get('p99')} ms"
         )
     for t in summary.get("takes", []):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import socket
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -197,6 +198,46 @@ def test_a_flood_is_counted_and_bounded_and_the_receiver_keeps_going():
         assert source._threads[0].is_alive()
     finally:
         source.stop()
+
+
+def _kernel_drops(sock: socket.socket) -> int:
+    """The kernel's own count of datagrams it dropped for `sock`: the drops column of
+    /proc/net/udp on the socket's inode line."""
+    import os
+
+    inode = str(os.fstat(sock.fileno()).st_ino)
+    with open("/proc/net/udp") as table:
+        for line in table:
+            fields = line.split()
+            if fields[9] == inode:
+                return int(fields[-1])
+    raise AssertionError("the socket is not in /proc/net/udp")
+
+
+@pytest.mark.skipif(not Path("/proc/net/udp").exists(), reason="Linux's /proc/net/udp")
+def test_datagrams_the_kernel_drops_are_counted_as_dropped():
+    """A receive buffer overflowing (a tiny SO_RCVBUF, a burst while the reader is held) loses
+    datagrams in the kernel before the receiver sees them: counted, as the kernel counts them."""
+    source = open_source("vmc://127.0.0.1:0", "suit")
+    buffer = LiveBuffer(source.bones)
+    source.start(buffer)
+    try:
+        source.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        message = build_msg(BONE_POS, ["Hips", 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]).dgram
+        sent = 3000
+        with source._deliver_lock, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            # The receiver waits for the lock with at most one datagram read: the rest queue.
+            for _ in range(sent):
+                s.sendto(message, source.address)
+        kernel = _kernel_drops(source.sock)
+        assert kernel > sent // 2  # the burst overflowed the buffer
+        assert wait_for(lambda: source.decoder.counters.packets == sent - kernel)
+        counters = source.counters()
+        assert counters.kernel_dropped == kernel
+        assert counters.dropped == kernel + counters.duplicates + counters.out_of_order
+    finally:
+        source.stop()
+    assert source.counters().kernel_dropped == kernel  # still reported once stopped
 
 
 def test_switching_to_sender_time_is_a_new_stream_not_a_clock_reset():
