@@ -27,8 +27,10 @@ RECENT = 256
 """Snapshots a frame's delayed pose looks back through (all the buffer kept before takes could
 catch up; `history` keeps more for them): the per-frame cost stays what it was."""
 CLOCK_RESET_SECONDS = 1.0
-"""A source timestamp this far behind the stream's last one is a restarted sender (a new clock),
-not a late packet: the stream starts over instead of dropping everything until it catches up."""
+"""A sender's clock is trusted while it keeps pace with the receive clock: a timestamp this far
+behind the stream's last one (a restarted sender), or a sample whose offset from the receive
+clock moved this far either way (a clock that jumped ahead or back, an absurd value), starts
+the stream's clock over (a new `_Clock`) instead of dropping everything until it catches up."""
 ONE_EURO_MAX_CUTOFF = 5.0
 """Minimum cutoff (Hz) of the One Euro filter at smoothing strength 0+; it falls as (1 - s)^2."""
 ONE_EURO_BETA = 0.8
@@ -138,9 +140,13 @@ class LivePose:
     weight: float
     """1 while connected or stale; falls to 0 over `blend` seconds once lost; 0 while waiting."""
     sample_time: float
-    """Local monotonic time of the newest sample in this pose (nan while waiting)."""
+    """Local monotonic time of the newest sample in this pose on the source's clock (nan while
+    waiting)."""
     weights: dict[str, float] = field(default_factory=dict)
     """The source's blend shape weights by its names, the latest of each (empty: none sent)."""
+    received: float = math.nan
+    """Local monotonic time the newest sample in this pose arrived (nan while waiting): the
+    start of its latency."""
 
 
 @dataclass
@@ -177,20 +183,70 @@ class BindingCounters:
         return dict(self.__dict__)  # flat scalars: asdict's deep copy cost 0.1 ms a frame
 
 
-class _Stream:
-    """Ordering, clock mapping and jitter state of one clock domain."""
+class _Clock:
+    """One run of a stream's clock: its source times map to local time by the offset of its
+    least-delayed sample (the smallest receive - timestamp of its last RECENT samples).
 
-    __slots__ = ("last_received", "last_ts", "offsets")
+    A stream whose clock jumps starts a new one; every snapshot keeps the clock it was stamped
+    on, so a restarted sender's new offset never moves the old stream's snapshots (it put them
+    after the new ones: a take replayed the old stream). Times are kept relative to the clock's
+    first timestamp, so a clock at 3e38 still maps to the receive clock's precision."""
+
+    __slots__ = ("base", "offset", "offsets")
+
+    def __init__(self, base: float) -> None:
+        self.base = base
+        self.offsets: deque[float] = deque(maxlen=RECENT)
+        self.offset = math.inf
+
+    def drift(self, ts: float, received: float) -> float:
+        """How far a sample's offset is from the clock's (its delay over the least-delayed
+        sample's; far negative: the sender's clock ran ahead)."""
+        return received - (ts - self.base) - self.offset
+
+    def add(self, ts: float, received: float) -> float:
+        """Take a sample's offset into account; its time on the local clock."""
+        self.offsets.append(received - (ts - self.base))
+        self.offset = min(self.offsets)
+        return ts - self.base + self.offset
+
+
+class _Stream:
+    """Ordering, clock and jitter state of one clock domain."""
+
+    __slots__ = ("clock", "last_received", "last_ts")
 
     def __init__(self) -> None:
         self.last_ts = -math.inf
         self.last_received = -math.inf
-        self.offsets: deque[float] = deque(maxlen=256)
+        self.clock: _Clock | None = None
 
-    def restart(self) -> None:
-        """A new clock (the sender restarted): forget order and offset."""
-        self.last_ts = self.last_received = -math.inf
-        self.offsets.clear()
+    def jumped(self, ts: float, received: float) -> bool:
+        """Whether `ts` leaves the stream's clock: far behind its last timestamp (a restarted
+        sender), or its offset from the receive clock moved by more than CLOCK_RESET_SECONDS
+        (a clock that jumped ahead, or fell behind: a sender restarted after a pause)."""
+        clock = self.clock
+        if clock is None:
+            return False
+        return ts < self.last_ts - CLOCK_RESET_SECONDS or not (
+            abs(clock.drift(ts, received)) <= CLOCK_RESET_SECONDS
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class _Snapshot:
+    """The binding's state after one push, as the history keeps it."""
+
+    rotations: np.ndarray
+    valid: np.ndarray
+    root: np.ndarray | None
+    clock: _Clock
+    """The clock its newest sample was stamped on (its local time follows that clock's offset
+    as it improves)."""
+    source: float
+    """The newest sample's source time, relative to `clock.base`."""
+    received: float
+    """Local time the newest sample in it arrived."""
 
 
 class _Ring:
@@ -247,6 +303,7 @@ class _Published:
     sample_time: float
     last_seen: float
     weights: dict[str, float] = field(default_factory=dict)
+    received: float = math.nan
 
 
 class LiveBuffer:
@@ -272,17 +329,16 @@ class LiveBuffer:
         stream's weights are taken as they come)."""
         self._times: deque[float] = deque(maxlen=s.history)
         """Local time of each snapshot when it was pushed (orders snapshots across streams)."""
-        self._source_times: deque[tuple[int, float]] = deque(maxlen=s.history)
-        """(stream, source timestamp) of each snapshot: mapped to local time at pose() with the
-        stream's clock offset as known then (it only improves as samples arrive)."""
-        self._snapshots: deque[tuple[np.ndarray, np.ndarray | None]] = deque(maxlen=s.history)
+        self._snapshots: deque[_Snapshot] = deque(maxlen=s.history)
+        """Mapped to local time at pose() with their clocks' offsets as known then (they only
+        improve as samples arrive)."""
         self._streams: dict[int, _Stream] = {}
         self._last_seen = math.nan
         self._published: _Published | None = None
         """The newest state, replaced whole by each push: `pose` reads it without the lock."""
-        self._held: tuple[np.ndarray, np.ndarray | None, float, np.ndarray] | None = None
-        """The last delayed pose (rotations, root, sample time, valid), for a frame that
-        finds the receiver mid-push."""
+        self._held: tuple[np.ndarray, np.ndarray | None, float, np.ndarray, float] | None = None
+        """The last delayed pose (rotations, root, sample time, valid, received), for a frame
+        that finds the receiver mid-push."""
         self._jitter = _Ring()
         self._latency = _Ring()
         self.samples = self.duplicates = self.out_of_order = self.clock_resets = 0
@@ -299,21 +355,21 @@ class LiveBuffer:
             if stream is None:
                 stream = self._streams[frame.stream] = _Stream()
             ts = frame.timestamp
-            if ts <= stream.last_ts:
-                if ts < stream.last_ts - CLOCK_RESET_SECONDS:
+            clock = stream.clock
+            if clock is None or stream.jumped(ts, received):
+                if clock is not None:
                     self.clock_resets += 1
-                    stream.restart()
-                elif ts == stream.last_ts:
-                    self.duplicates += 1
-                    return False
-                else:
-                    self.out_of_order += 1
-                    return False
-            if stream.last_ts > -math.inf:
+                clock = stream.clock = _Clock(ts)
+            elif ts == stream.last_ts:
+                self.duplicates += 1
+                return False
+            elif ts < stream.last_ts:
+                self.out_of_order += 1
+                return False
+            else:
                 self._jitter.append(abs((received - stream.last_received) - (ts - stream.last_ts)))
             stream.last_ts, stream.last_received = ts, received
-            stream.offsets.append(received - ts)
-            local = ts + min(stream.offsets)  # the least-delayed sample fixes the clock offset
+            local = clock.add(ts, received)  # the least-delayed sample fixes the clock offset
             rotations = self._smooth(frame, ts)
             idx = frame.indices
             self._current[idx] = rotations
@@ -322,24 +378,32 @@ class LiveBuffer:
                 self._root = frame.root_position
             if frame.weights:
                 self._weights = {**self._weights, **frame.weights}  # replaced whole: shared
+            valid = self._valid.copy()
             if self._times and local <= self._times[-1]:
                 # Another stream's sample at or before the last snapshot: update that snapshot
                 # (snapshot times stay strictly increasing for the delayed lookup).
-                self._snapshots[-1] = (self._current.copy(), self._root)
+                last = self._snapshots[-1]
+                self._snapshots[-1] = _Snapshot(
+                    self._current.copy(), valid, self._root, last.clock, last.source, received
+                )
             else:
                 self._times.append(local)
-                self._source_times.append((frame.stream, ts))
-                self._snapshots.append((self._current.copy(), self._root))
+                self._snapshots.append(
+                    _Snapshot(
+                        self._current.copy(), valid, self._root, clock, ts - clock.base, received
+                    )
+                )
             self._last_seen = received
             self.samples += len(idx)
             # The frame thread reads this without the lock: one reference, replaced whole.
             self._published = _Published(
-                self._snapshots[-1][0],
-                self._valid.copy(),
+                self._snapshots[-1].rotations,
+                valid,
                 self._root,
                 self._times[-1],
                 received,
                 self._weights,
+                received,
             )
             return True
 
@@ -390,22 +454,23 @@ class LiveBuffer:
             rotations = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
             return LivePose(rotations, np.zeros(n, dtype=bool), None, WAITING, 0.0, math.nan)
         status = self._status(now, published.last_seen)
-        rotations, root, sample_time, valid = (
+        rotations, root, sample_time, valid, received = (
             published.rotations,
             published.root,
             published.sample_time,
             published.valid,
+            published.received,
         )
         if s.mode != LATEST and len(self._times) >= 2:
             if self._lock.acquire(blocking=False):
                 try:
-                    rotations, root, sample_time = self._delayed(now)
+                    rotations, root, sample_time, received = self._delayed(now)
                     valid = self._valid.copy()
-                    self._held = (rotations, root, sample_time, valid)
+                    self._held = (rotations, root, sample_time, valid, received)
                 finally:
                     self._lock.release()
             elif self._held is not None:
-                rotations, root, sample_time, valid = self._held
+                rotations, root, sample_time, valid, received = self._held
         weight = 1.0
         if status == LOST:
             gone = now - (published.last_seen + s.lost_after)
@@ -419,6 +484,7 @@ class LiveBuffer:
             weight,
             sample_time,
             dict(published.weights),
+            received,
         )
 
     def pose_at(self, when: float) -> LivePose:
@@ -436,10 +502,12 @@ class LiveBuffer:
                 return LivePose(rest, np.zeros(n, bool), None, WAITING, 0.0, math.nan)
             newest = float(times[i])
             if self.settings.mode == DELAYED and len(times) >= 2:
-                rotations, root, sample_time = self._delayed(when, times)
+                rotations, root, sample_time, received = self._delayed(when, times)
             else:
-                (rotations, root), sample_time = self._snapshots[i], newest
-            valid = self._valid.copy()
+                snapshot = self._snapshots[i]
+                rotations, root = snapshot.rotations, snapshot.root
+                sample_time, received = newest, snapshot.received
+            valid = self._snapshots[i].valid.copy()
         s = self.settings
         status = self._status(when, newest)
         weight = 1.0
@@ -454,11 +522,12 @@ class LiveBuffer:
             weight,
             sample_time,
             dict(self._weights),  # the latest: weights are not kept per snapshot
+            received,
         )
 
     def _delayed(
         self, now: float, times: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray | None, float]:
+    ) -> tuple[np.ndarray, np.ndarray | None, float, float]:
         """The pose `delay` seconds before `now`, slerped between the snapshots around it
         (called with the lock held). `times`: the local times of the newest snapshots (default:
         of the last RECENT, all a frame looks back through; a recorder passes them all)."""
@@ -468,26 +537,24 @@ class LiveBuffer:
         first = len(self._snapshots) - len(times)  # snapshot index of times[0]
         target = now - delay
         i = int(np.searchsorted(times, target, side="right"))
-        if i == 0:
-            (rotations, root), sample_time = self._snapshots[first], times[0]
-        elif i == len(times):
-            (rotations, root), sample_time = self._snapshots[-1], times[-1]
-        else:
-            t0, t1 = times[i - 1], times[i]
-            (r0, p0), (r1, p1) = self._snapshots[first + i - 1], self._snapshots[first + i]
-            u = (target - t0) / (t1 - t0) if t1 > t0 else 1.0
-            rotations = quat_slerp(r0, r1, u)
-            root = p0 if p0 is None or p1 is None else p0 + u * (p1 - p0)
-            sample_time = target
-        return rotations, root, float(sample_time)
+        if i == 0 or i == len(times):
+            k = first if i == 0 else len(self._snapshots) - 1
+            snapshot, sample_time = self._snapshots[k], times[0 if i == 0 else -1]
+            return snapshot.rotations, snapshot.root, float(sample_time), snapshot.received
+        t0, t1 = times[i - 1], times[i]
+        a, b = self._snapshots[first + i - 1], self._snapshots[first + i]
+        u = (target - t0) / (t1 - t0) if t1 > t0 else 1.0
+        rotations = quat_slerp(a.rotations, b.rotations, u)
+        p0, p1 = a.root, b.root
+        root = p0 if p0 is None or p1 is None else p0 + u * (p1 - p0)
+        return rotations, root, float(target), b.received
 
     def _local_times(self, last: int | None = None) -> np.ndarray:
-        """Snapshot times on the local clock, from each stream's current offset, non-decreasing:
-        of every kept snapshot, or of the `last` newest."""
-        offsets = {k: min(v.offsets) for k, v in self._streams.items() if v.offsets}
-        kept = self._source_times
+        """Snapshot times on the local clock, each by its own clock's current offset,
+        non-decreasing: of every kept snapshot, or of the `last` newest."""
+        kept = self._snapshots
         skip = 0 if last is None else max(0, len(kept) - last)
-        mapped = [ts + offsets.get(stream, 0.0) for stream, ts in islice(kept, skip, None)]
+        mapped = [snapshot.source + snapshot.clock.offset for snapshot in islice(kept, skip, None)]
         return np.maximum.accumulate(np.array(mapped))
 
     def _sample_interval(self) -> float:

@@ -75,7 +75,10 @@ class DecodeCounters:
 
 
 class Decoder(Protocol):
-    """Sans-IO: bytes in, frames out; no sockets, no threads, never raises on input."""
+    """Sans-IO: bytes in, frames out; no sockets, no threads, never raises on input.
+
+    A decoder whose class sets `by_sender = True` gets each datagram's source address as
+    `feed(..., sender=ADDRESS)` from a UDP transport (VMC keeps senders apart)."""
 
     bones: tuple[str, ...]
     space: str

@@ -157,9 +157,12 @@ class UdpSource(Source):
     def _run(self) -> None:
         sock = self.sock
         assert sock is not None
+        # A decoder that keeps senders apart (VMC: each its own frames and clock) gets the
+        # datagram's source address.
+        by_sender = bool(getattr(self.decoder, "by_sender", False))
         while not self._stop.is_set():
             try:
-                data = sock.recv(65536)
+                data, sender = sock.recvfrom(65536)
             except TimeoutError:
                 continue
             except OSError as exc:
@@ -167,7 +170,10 @@ class UdpSource(Source):
                 if self._stop.wait(POLL_SECONDS):
                     return
                 continue
-            self._deliver(data, time.monotonic())
+            if by_sender:
+                self._deliver(data, time.monotonic(), sender=sender)
+            else:
+                self._deliver(data, time.monotonic())
 
     def kernel_dropped(self) -> int | None:
         """Datagrams the kernel dropped because the receive buffer was full, as it counts them
