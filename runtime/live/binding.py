@@ -48,6 +48,9 @@ TURN_RATE = 240.0
 tick at 30 fps): a fade that would turn a joint faster lasts longer than the blend seconds."""
 CLIP_FADE_SECONDS = 0.25
 """A clip blend moves at most this fast from 0 to 1 (a button press does not pop the pose)."""
+WEIGHT_RANGE = (-2.0, 2.0)
+"""The range a live blend shape weight is clamped into when the character's capture ring
+declares none for its shape (blendShapeRanges): the one `rigspace view`'s sliders allow."""
 NATIVE_BASIS = {"vmc": Y_180}
 """Sources whose decoder already converted to right-handed Y up, but whose performer faces
 -Z: their basis replaces the binding's sourceUpAxis/sourceHandedness (no double conversion)."""

@@ -32,7 +32,8 @@ class LiveCharacter:
     last_local: np.ndarray | None = None
     last_poses: list = field(default_factory=list)
     """(binding runtime, LivePose) of the last frame, for its blend shape weights."""
-    """(J, 4, 4) the last frame's merged local transforms."""
+    weight_ranges: tuple[np.ndarray, np.ndarray] | None = None
+    """(low, high) per blend shape (the rig's order) that live weights are clamped into."""
 
 
 SOURCE_DESCRIPTION = {
@@ -74,6 +75,20 @@ def with_source(binding: schema.LiveBinding, url: str) -> schema.LiveBinding:
                 file=sys.stderr,
             )
     return schema.LiveBinding(**fields)
+
+
+def weight_ranges(prim: Usd.Prim, shapes: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) per shape of `shapes`: the capture ring's blendShapeRanges where it declares
+    the shape (the weights the network was trained on), else WEIGHT_RANGE."""
+    from rigspace.runtime.live.binding import WEIGHT_RANGE
+
+    low, high = np.full(len(shapes), WEIGHT_RANGE[0]), np.full(len(shapes), WEIGHT_RANGE[1])
+    if schema.has_capture_ring(prim):
+        ring = schema.read_capture_ring(prim)
+        for name, (lo, hi) in zip(ring.blend_shape_names, ring.blend_shape_ranges, strict=False):
+            if name in shapes:
+                low[shapes.index(name)], high[shapes.index(name)] = lo, hi
+    return low, high
 
 
 def _clip_ranges(prim: Usd.Prim) -> dict[str, tuple[float, float]]:
@@ -224,16 +239,22 @@ class LiveInput:
         """(B,) the character's blend shape weights (its order) with the live weights of
         `poses` ((runtime, LivePose) pairs; default the last frame's) merged in by each
         binding's weight (a lost source lets go as its bones do); None when no binding sent a
-        weight for one of its shapes (the animation's apply)."""
+        weight for one of its shapes (the animation's apply). Live weights are clamped into
+        their shapes' ranges (`weight_ranges`): a source's 5.0 is its shape's high end, never
+        a pose the network was not trained on (the frames, and so the takes, hold only those)."""
         live = self.characters.get(character.path)
         shapes = character.rig.blend_shapes
         if live is None or not shapes:
             return None
+        if live.weight_ranges is None:
+            live.weight_ranges = weight_ranges(character.prim, shapes)
+        low, high = live.weight_ranges
         out = None
         for runtime, pose in live.last_poses if poses is None else poses:
             indices, values = runtime.blend_weights(pose, shapes)
             if len(indices):
                 out = character.rig.blend_weights(time_code) if out is None else out
+                values = np.clip(values, low[indices], high[indices])
                 out[indices] += (values - out[indices]) * float(pose.weight)
         return out
 

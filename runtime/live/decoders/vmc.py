@@ -47,6 +47,11 @@ BLEND_APPLY = "/VMC/Ext/Blend/Apply"
 MAX_BLEND_NAMES = 256
 """Distinct blend shape names a sender may name (ARKit has 52, VRM presets 18): a flood of
 invented names is counted as malformed instead of growing memory."""
+MAX_BLEND_WEIGHT = 10.0
+"""Largest blend shape weight magnitude accepted: ARKit's and VRM's are in [0, 1] and rigs
+overdrive a shape to 2 at most, so a weight beyond 10 is garbage (1e30 turned the network's
+output into NaN), counted as malformed like NaN. Within it, the runtime clamps each weight
+into its shape's range (binding.WEIGHT_RANGE, or the capture ring's blendShapeRanges)."""
 TIME = "/VMC/Ext/T"
 MAX_SENDERS = 8
 """Senders (source addresses) whose frames are assembled apart at once; one more forgets the one
@@ -196,7 +201,7 @@ class VmcDecoder:
                 len(params) < 2
                 or type(params[0]) is not str
                 or type(params[1]) not in _NUMBER
-                or not math.isfinite(params[1])
+                or not abs(params[1]) <= MAX_BLEND_WEIGHT  # NaN, Inf or absurd
                 or (
                     params[0] not in self._blend_names and len(self._blend_names) >= MAX_BLEND_NAMES
                 )

@@ -38,3 +38,27 @@ def udp_port_bound(port: int) -> bool:
 @pytest.fixture
 def free_tcp_port() -> int:
     return free_port()
+
+
+class FrameDriver:
+    """Drives a `rigspace live` run in this process by the frames it renders: every
+    Engine.render (the warm-up's first) calls `on_frame(engine, frame)`; when it returns True
+    the run stops as Ctrl-C stops it (it still writes its report, video and take). So a test
+    waits on what the code under test does (a frame rendered, a status reached), never on the
+    clock; `--seconds` is only the bound of a run that never gets there."""
+
+    def __init__(self, monkeypatch, on_frame: Callable) -> None:
+        from rigspace.runtime.engine import Engine
+
+        self.frames = 0
+        real = Engine.render
+
+        def render(engine, time_code):
+            frame = real(engine, time_code)
+            self.frames += 1
+            # Only inside the live loop (not the warm-up frame), where Ctrl-C is caught.
+            if on_frame(engine, frame) and self.frames > 1:
+                raise KeyboardInterrupt
+            return frame
+
+        monkeypatch.setattr(Engine, "render", render)

@@ -538,3 +538,15 @@ def test_a_senders_own_clock_jumps_start_its_clock_over():
         assert buffer.clock_resets >= 7  # to each absurd clock and back (0.0: back only)
     finally:
         source.stop()
+
+
+def test_an_absurd_blend_weight_is_malformed_and_one_out_of_range_passes_to_be_clamped():
+    """/VMC/Ext/Blend/Val with a finite but absurd weight (1e30: no rig's) is malformed like NaN;
+    5.0 and -3.0 are weights, passed on for the runtime to clamp into the shape's range."""
+    decoder = VmcDecoder()
+    for name, value in (("jawOpen", 1e30), ("mouthSmileLeft", 5.0), ("eyeBlinkLeft", -3.0)):
+        decoder.feed(_osc("/VMC/Ext/Blend/Val", name, value), 1.0)
+    decoder.feed(_osc("/VMC/Ext/Blend/Apply"), 1.0)
+    (frame,) = decoder.feed(_osc("/VMC/Ext/OK", 1), 1.0)
+    assert frame.weights == {"mouthSmileLeft": 5.0, "eyeBlinkLeft": -3.0}
+    assert decoder.counters.malformed == 1
