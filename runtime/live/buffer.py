@@ -247,6 +247,8 @@ class _Snapshot:
     """The newest sample's source time, relative to `clock.base`."""
     received: float
     """Local time the newest sample in it arrived."""
+    weights: dict[str, float]
+    """The blend shape weights as of it (the buffer's dict, replaced whole, never changed)."""
 
 
 class _Ring:
@@ -304,6 +306,13 @@ class _Published:
     last_seen: float
     weights: dict[str, float] = field(default_factory=dict)
     received: float = math.nan
+
+
+def _local_times(snapshots: list[_Snapshot]) -> np.ndarray:
+    """The snapshots' times on the local clock, each by its own clock's current offset, made
+    non-decreasing (snapshots of several streams interleave)."""
+    mapped = [snapshot.source + snapshot.clock.offset for snapshot in snapshots]
+    return np.maximum.accumulate(np.array(mapped, dtype=np.float64))
 
 
 class LiveBuffer:
@@ -379,20 +388,17 @@ class LiveBuffer:
             if frame.weights:
                 self._weights = {**self._weights, **frame.weights}  # replaced whole: shared
             valid = self._valid.copy()
+            state = (self._current.copy(), valid, self._root)
             if self._times and local <= self._times[-1]:
                 # Another stream's sample at or before the last snapshot: update that snapshot
                 # (snapshot times stay strictly increasing for the delayed lookup).
                 last = self._snapshots[-1]
-                self._snapshots[-1] = _Snapshot(
-                    self._current.copy(), valid, self._root, last.clock, last.source, received
-                )
+                snapshot = _Snapshot(*state, last.clock, last.source, received, self._weights)
+                self._snapshots[-1] = snapshot
             else:
                 self._times.append(local)
-                self._snapshots.append(
-                    _Snapshot(
-                        self._current.copy(), valid, self._root, clock, ts - clock.base, received
-                    )
-                )
+                snapshot = _Snapshot(*state, clock, ts - clock.base, received, self._weights)
+                self._snapshots.append(snapshot)
             self._last_seen = received
             self.samples += len(idx)
             # The frame thread reads this without the lock: one reference, replaced whole.
@@ -464,7 +470,8 @@ class LiveBuffer:
         if s.mode != LATEST and len(self._times) >= 2:
             if self._lock.acquire(blocking=False):
                 try:
-                    rotations, root, sample_time, received = self._delayed(now)
+                    recent = islice(self._snapshots, max(0, len(self._snapshots) - RECENT), None)
+                    rotations, root, sample_time, received = self._delayed(now, list(recent))
                     valid = self._valid.copy()
                     self._held = (rotations, root, sample_time, valid, received)
                 finally:
@@ -488,74 +495,70 @@ class LiveBuffer:
         )
 
     def pose_at(self, when: float) -> LivePose:
-        """The pose a frame at local monotonic time `when` (now or past) would have had, from
-        the kept snapshots: the newest one pushed by then (latest), or `delay` before it
-        (delayed). For a take recorder that fell behind (a stall, a busy machine): it catches up
-        with the poses of the ticks it missed instead of skipping them. Waits for the lock (it
-        is not on the frame thread). Before the first snapshot: the waiting pose."""
+        """The pose a frame at local monotonic time `when` (now or past) shows, from the kept
+        snapshots received by then: the newest one (latest), or the pose `delay` before `when`
+        among them (delayed). A frame (when = now) and a take tick (when = its due time, also
+        for a recorder catching up after a stall) read the same way, so a take holds what the
+        screen showed. Never waits for the receiver: the history is copied in one C-level step
+        (no other thread runs during it) and each snapshot is immutable. Before the first
+        snapshot: the waiting pose."""
         n = len(self.bones)
-        with self._lock:
-            times = self._local_times() if self._times else np.zeros(0)
-            i = int(np.searchsorted(times, when, side="right")) - 1
-            if i < 0:
-                rest = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
-                return LivePose(rest, np.zeros(n, bool), None, WAITING, 0.0, math.nan)
-            newest = float(times[i])
-            if self.settings.mode == DELAYED and len(times) >= 2:
-                rotations, root, sample_time, received = self._delayed(when, times)
-            else:
-                snapshot = self._snapshots[i]
-                rotations, root = snapshot.rotations, snapshot.root
-                sample_time, received = newest, snapshot.received
-            valid = self._snapshots[i].valid.copy()
+        snapshots = list(self._snapshots)  # one consistent copy, without the lock
+        end = len(snapshots)
+        while end and snapshots[end - 1].received > when:  # arrived after `when`: not yet there
+            end -= 1
+        if not end:
+            rest = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+            return LivePose(rest, np.zeros(n, bool), None, WAITING, 0.0, math.nan)
+        newest = snapshots[end - 1]
+        if self.settings.mode == DELAYED and end >= 2:
+            window = snapshots[max(0, end - RECENT) : end]
+            if end > RECENT and when - self._delay() < _local_times(window)[0]:
+                window = snapshots[:end]  # a recorder far behind: look through them all
+            rotations, root, sample_time, received = self._delayed(when, window)
+        else:
+            rotations, root = newest.rotations, newest.root
+            sample_time, received = _local_times([newest])[0], newest.received
         s = self.settings
-        status = self._status(when, newest)
+        status = self._status(when, newest.received)
         weight = 1.0
         if status == LOST:
-            gone = when - (newest + s.lost_after)
+            gone = when - (newest.received + s.lost_after)
             weight = max(0.0, 1.0 - gone / s.blend) if s.blend > 0 else 0.0
         return LivePose(
             rotations.copy(),
-            valid,
+            newest.valid.copy(),
             None if root is None else np.array(root, dtype=np.float64),
             status,
             weight,
-            sample_time,
-            dict(self._weights),  # the latest: weights are not kept per snapshot
+            float(sample_time),
+            dict(newest.weights),
             received,
         )
 
+    def _delay(self) -> float:
+        """Seconds `delayed` looks back: `delay`, or one sample interval."""
+        return self.settings.delay if self.settings.delay is not None else self._sample_interval()
+
     def _delayed(
-        self, now: float, times: np.ndarray | None = None
+        self, now: float, snapshots: list[_Snapshot]
     ) -> tuple[np.ndarray, np.ndarray | None, float, float]:
-        """The pose `delay` seconds before `now`, slerped between the snapshots around it
-        (called with the lock held). `times`: the local times of the newest snapshots (default:
-        of the last RECENT, all a frame looks back through; a recorder passes them all)."""
-        s = self.settings
-        delay = s.delay if s.delay is not None else self._sample_interval()
-        times = self._local_times(RECENT) if times is None else times
-        first = len(self._snapshots) - len(times)  # snapshot index of times[0]
-        target = now - delay
+        """The pose `delay` seconds before `now`, slerped between the two of `snapshots` (in
+        order, the newest last) around it."""
+        times = _local_times(snapshots)
+        target = now - self._delay()
         i = int(np.searchsorted(times, target, side="right"))
         if i == 0 or i == len(times):
-            k = first if i == 0 else len(self._snapshots) - 1
-            snapshot, sample_time = self._snapshots[k], times[0 if i == 0 else -1]
-            return snapshot.rotations, snapshot.root, float(sample_time), snapshot.received
+            k = 0 if i == 0 else -1
+            snapshot = snapshots[k]
+            return snapshot.rotations, snapshot.root, float(times[k]), snapshot.received
         t0, t1 = times[i - 1], times[i]
-        a, b = self._snapshots[first + i - 1], self._snapshots[first + i]
+        a, b = snapshots[i - 1], snapshots[i]
         u = (target - t0) / (t1 - t0) if t1 > t0 else 1.0
         rotations = quat_slerp(a.rotations, b.rotations, u)
         p0, p1 = a.root, b.root
         root = p0 if p0 is None or p1 is None else p0 + u * (p1 - p0)
         return rotations, root, float(target), b.received
-
-    def _local_times(self, last: int | None = None) -> np.ndarray:
-        """Snapshot times on the local clock, each by its own clock's current offset,
-        non-decreasing: of every kept snapshot, or of the `last` newest."""
-        kept = self._snapshots
-        skip = 0 if last is None else max(0, len(kept) - last)
-        mapped = [snapshot.source + snapshot.clock.offset for snapshot in islice(kept, skip, None)]
-        return np.maximum.accumulate(np.array(mapped))
 
     def _sample_interval(self) -> float:
         times = list(self._times)[-33:]

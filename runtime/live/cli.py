@@ -118,10 +118,12 @@ FIRST_FRAME_NOTE = 2.0
 
 class _TakeThread(threading.Thread):
     """Records every live character's merged pose at each stage tick, whatever the renderer is
-    doing: the take keeps the stage's rate even when frames are dropped. A tick this thread
-    reaches late (a stall: the GIL held by a compile, a loaded machine) is recorded all the
-    same, with the pose its bindings held at the tick's time (LiveBuffer.pose_at): every tick
-    of the run is in the take, stamped with its time code."""
+    doing: the take keeps the stage's rate even when frames are dropped. Each tick is what the
+    screen shows at it (`LiveInput.merged`: one evaluation of the tick's pose, transitions
+    included, for the frame and the take). A tick this thread reaches late (a stall: the GIL
+    held by a compile, a loaded machine) is recorded all the same, with the pose its bindings
+    held at the tick's due time (LiveBuffer.pose_at): every tick of the run is in the take,
+    stamped with its time code."""
 
     def __init__(self, engine, start_code: float, fps: float, t0: float, ticks: int) -> None:
         super().__init__(name="rigspace-live-take", daemon=True)
@@ -155,7 +157,7 @@ class _TakeThread(threading.Thread):
                     return
                 code = self.start_code + k
                 for path, live in self.engine.live.characters.items():
-                    local, poses = self.engine.live.merged(live.character, code, due, True)
+                    local, poses = self.engine.live.merged(live.character, code, take=True)
                     if local is not None:
                         weights = self.engine.live.weights(live.character, code, poses)
                         if weights is None and live.character.rig.blend_shapes:
@@ -171,6 +173,7 @@ def live(args: argparse.Namespace) -> int:
 
     from rigspace.runtime.cli import make_folder, remove_empty
     from rigspace.runtime.engine import Engine
+    from rigspace.runtime.live.engine import Ticks
     from rigspace.runtime.output import VideoWriter
     from rigspace.sdk.color import linear_to_srgb
 
@@ -204,6 +207,8 @@ def live(args: argparse.Namespace) -> int:
                 ) from exc
         _warm_up(engine, start_code)
         t0 = time.monotonic()
+        # Frames and the take share each tick's live pose, evaluated at the tick's due time.
+        engine.live.ticks = Ticks(t0, fps, start_code, recording=bool(args.record))
         if args.record:
             recorder = _TakeThread(engine, start_code, fps, t0, ticks)
             recorder.start()
@@ -297,10 +302,10 @@ def _loop(engine, out, video, start_code, fps, t0, ticks, cv2, np, linear_to_srg
             report["tick"] = k
             report["written_seconds"] = round(written - t0, 4)
             latency = {}
-            for name, sample_time in engine.live.sample_times().items():
-                if math.isfinite(sample_time):
-                    latency[name] = round((written - sample_time) * 1e3, 3)
-                    latencies.setdefault(name, []).append(written - sample_time)
+            for name, received in engine.live.received_times().items():
+                if math.isfinite(received):
+                    latency[name] = round((written - received) * 1e3, 3)
+                    latencies.setdefault(name, []).append(written - received)
             report["latency_ms"] = latency
             frames.append(report)
             k += 1

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import socket
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 
@@ -62,3 +64,18 @@ class FrameDriver:
             return frame
 
         monkeypatch.setattr(Engine, "render", render)
+
+
+class Sender:
+    """The CMU clip over VMC to `url` from a process of its own (tests/runtime/live/
+    vmc_sender.py: a renderer holding this process's GIL cannot starve it), in real time,
+    looping, until closed; `turn` degrees turns its hips (poses the clip never has). Each
+    Sender is a new sender process: a new source port, its /VMC/Ext/T from 0."""
+
+    def __init__(self, url: str, turn: float = 0.0) -> None:
+        command = [sys.executable, "-m", "tests.runtime.live.vmc_sender", url, "--turn", str(turn)]
+        self.process = subprocess.Popen(command, cwd=REPO)
+
+    def close(self) -> None:
+        self.process.terminate()
+        self.process.wait(30)
