@@ -29,8 +29,9 @@ rigspace live SCENE --out DIR [--seconds S] [--record TAKE.usda] [--source NAME=
 rigspace live send URL --bvh FILE [--speed 1] [--loop] [--seconds S]
     Stream a BVH clip to a VMC receiver (vmc://HOST:PORT) or serve it as an Axis Neuron BVH stream
     (bvh+tcp://HOST:PORT).
-rigspace live probe URL [--seconds S]
-    Listen on a live-source URL and print one JSON status line a second (bones, rate, status).
+rigspace live probe URL [--seconds S] [--frames N]
+    Listen on a live-source URL and print one JSON status line a second (bones, rate, status),
+    for S seconds or until N frames have arrived.
 rigspace live calibrate SCENE --binding NAME [--seconds S] [--source URL]
     Hold the performer in the character's rest pose: the source's pose after S seconds is stored
     in the binding's restPose (with its sourceBones and targetJoints) in SCENE's root layer.
@@ -206,6 +207,13 @@ def live(args: argparse.Namespace) -> int:
                     "choose a writable .mp4 path in an existing folder.",
                 ) from exc
         _warm_up(engine, start_code)
+        print(
+            f"rigspace live: ready: {ticks} ticks at {fps:g} fps from time code {start_code:g}"
+            + (f", recording {args.record}" if args.record else "")
+            + " (Ctrl-C stops)",
+            file=sys.stderr,
+            flush=True,
+        )  # the engine is loaded and its sources listen: a script driving senders waits for it
         t0 = time.monotonic()
         # Frames and the take share each tick's live pose, evaluated at the tick's due time.
         engine.live.ticks = Ticks(t0, fps, start_code, recording=bool(args.record))

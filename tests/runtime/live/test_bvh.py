@@ -137,7 +137,7 @@ def serve_lines(server: socket.socket, lines: list[bytes], done: threading.Event
     conn, _ = server.accept()
     with conn:
         conn.sendall(b"".join(lines))
-        done.wait(5)
+        done.wait(60)  # until the test has read the lines (a bound, never waited out)
 
 
 def test_tcp_client_reads_and_reconnects(cmu, free_tcp_port):

@@ -108,6 +108,7 @@ def test_live_records_the_clip_sent_over_vmc_and_render_replays_the_take(tmp_pat
     finally:
         sender.close()
     assert code == 0
+    assert "rigspace live: ready: 60 ticks at 30 fps" in capsys.readouterr().err
     report = json.loads((out / "report.json").read_text())
     assert report["ticks"] == 60 and report["rendered"] + report["dropped"] == 60
     assert report["rendered"] >= 3 and len(list(out.glob("frame_*.png"))) == report["rendered"]
@@ -286,8 +287,10 @@ def test_send_and_probe_subcommands(tmp_path, capsys):
     port = free_port()
     url = f"vmc://127.0.0.1:{port}"
     result: list[int] = []
-    probe = threading.Thread(
-        target=lambda: result.append(main(["live", "probe", url, "--seconds", "1.2"]))
+    probe = threading.Thread(  # listens until 30 frames arrived (120 s: only a bound)
+        target=lambda: result.append(
+            main(["live", "probe", url, "--frames", "30", "--seconds", "120"])
+        )
     )
     probe.start()
     assert wait_for(lambda: udp_port_bound(port))
@@ -296,6 +299,7 @@ def test_send_and_probe_subcommands(tmp_path, capsys):
     lines = capsys.readouterr().out.strip().splitlines()
     assert result == [0] and any(line.startswith("sent ") for line in lines)
     status = json.loads([line for line in lines if line.startswith("{")][-1])
+    assert status["frames"] >= 30 and status["seconds"] < 120  # stopped by the frames
     assert status["bones_seen"] == 23 and status["malformed"] == 0
     assert main(["live", "send", "udp://127.0.0.1:1", "--bvh", str(CMU_CLIP)]) == 2
     assert "rigspace live send: error" in capsys.readouterr().err

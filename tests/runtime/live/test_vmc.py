@@ -182,16 +182,16 @@ def test_a_flood_is_counted_and_bounded_and_the_receiver_keeps_going():
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             for k in range(3000):
                 s.sendto(rng.bytes(int(rng.integers(1, 1400))) if k % 2 else unknown, address)
-            assert wait_for(lambda: source.decoder.counters.packets > 100)
+            # Every datagram of the flood read or dropped by the kernel (its buffer full on a
+            # loaded machine): the receiver has drained it, and a frame now arrives whole.
+            assert wait_for(
+                lambda: source.decoder.counters.packets + (source.kernel_dropped() or 0) == 3000,
+                timeout=60,
+            )
             q = random_quats(len(HUMAN_BODY_BONES))
-            # The flood can still fill the socket's receive buffer on a loaded machine, and UDP
-            # then drops what comes next: resend the frame until one arrives whole.
-            for _ in range(20):
-                for dgram in encode_frame(HUMAN_BODY_BONES, q, np.zeros(3), None, 5.0):
-                    s.sendto(dgram, address)
-                if wait_for(lambda: source.decoder.counters.frames >= 1, timeout=1.0):
-                    break
-            assert source.decoder.counters.frames >= 1
+            for dgram in encode_frame(HUMAN_BODY_BONES, q, np.zeros(3), None, 5.0):
+                s.sendto(dgram, address)
+            assert wait_for(lambda: source.decoder.counters.frames >= 1)
         c = source.decoder.counters
         assert c.malformed > 0 and c.unknown_bones > 0 and source.decoder.buffered == 0
         assert len(buffer._snapshots) <= buffer.settings.history
@@ -271,11 +271,11 @@ def test_sender_stops_and_restarts_stale_lost_connected():
     try:
         send(5, 100.0)
         assert wait_for(lambda: buffer.pose().status == "connected")
-        assert wait_for(lambda: buffer.pose().status == "stale", timeout=2)
+        assert wait_for(lambda: buffer.pose().status == "stale")
         held = buffer.pose()
         assert held.weight == 1.0 and held.valid[1:].all()  # the last pose is held
-        assert wait_for(lambda: buffer.pose().status == "lost", timeout=2)
-        assert wait_for(lambda: buffer.pose().weight == 0.0, timeout=2)  # blended back
+        assert wait_for(lambda: buffer.pose().status == "lost")
+        assert wait_for(lambda: buffer.pose().weight == 0.0)  # blended back
         send(5, 0.0)  # the sender restarts: its clock starts again
         assert wait_for(lambda: buffer.pose().status == "connected")
         assert buffer.pose().weight == 1.0 and buffer.clock_resets == 1
