@@ -503,8 +503,12 @@ class LiveBuffer:
         (no other thread runs during it) and each snapshot is immutable. Before the first
         snapshot: the waiting pose."""
         n = len(self.bones)
-        snapshots = list(self._snapshots)  # one consistent copy, without the lock
-        end = len(snapshots)
+        last = self._snapshots[-1] if self._snapshots else None
+        if self.settings.mode == LATEST and last is not None and last.received <= when:
+            snapshots, end = [last], 1  # a frame now: the newest, without copying the history
+        else:
+            snapshots = list(self._snapshots)  # one consistent copy, without the lock
+            end = len(snapshots)
         while end and snapshots[end - 1].received > when:  # arrived after `when`: not yet there
             end -= 1
         if not end:
