@@ -77,7 +77,8 @@ def test_tool_errors_are_one_line(capsys):
 
 def test_send_seconds_count_from_the_first_frame(monkeypatch, capsys):
     """A slow preparation (the clip re-expressed on HumanBodyBones, slow on a loaded machine)
-    must not eat --seconds: the sender still sends for the time asked."""
+    must not eat --seconds, nor may a busy machine: the sender sends the frames of the time
+    asked (0.3 s at 120 Hz: 36), catching up when held back."""
     prepare = send.humanoid_clip
 
     def slow(*args, **kwargs):
@@ -88,4 +89,4 @@ def test_send_seconds_count_from_the_first_frame(monkeypatch, capsys):
     url = f"vmc://127.0.0.1:{free_port()}"
     assert send.main([url, "--bvh", str(CMU_CLIP), "--seconds", "0.3"]) == 0
     sent = int(capsys.readouterr().out.split()[1])
-    assert sent >= 20  # about 36 at 120 Hz
+    assert sent == 36
