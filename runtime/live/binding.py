@@ -48,6 +48,9 @@ TURN_RATE = 240.0
 tick at 30 fps): a fade that would turn a joint faster lasts longer than the blend seconds."""
 CLIP_FADE_SECONDS = 0.25
 """A clip blend moves at most this fast from 0 to 1 (a button press does not pop the pose)."""
+WEIGHT_RANGE = (-2.0, 2.0)
+"""The range a live blend shape weight is clamped into when the character's capture ring
+declares none for its shape (blendShapeRanges): the one `rigspace view`'s sliders allow."""
 NATIVE_BASIS = {"vmc": Y_180}
 """Sources whose decoder already converted to right-handed Y up, but whose performer faces
 -Z: their basis replaces the binding's sourceUpAxis/sourceHandedness (no double conversion)."""
@@ -99,15 +102,14 @@ class LiveBindingRuntime:
         now: float | None = None,
         sample: Callable[[float], Any] | None = None,
         time_code: float | None = None,
-        past: bool = False,
     ) -> tuple[np.ndarray, LivePose]:
-        """The stage's (J, 4, 4) local transforms with this binding's pose merged in, and the pose
-        (its status and weight belong in the frame's report). A source with clip controls
+        """The stage's (J, 4, 4) local transforms with this binding's pose at local time `now`
+        (LiveBuffer.pose_at) merged in, and the pose (its status and weight belong in the
+        frame's report), without the transitions of `apply_frame`. A source with clip controls
         first blends the stage pose towards its clips: `sample(time_code)` gives the stage's
         local transforms at another time code (without it, clips are not blended)."""
         now = time.monotonic() if now is None else now
-        # `past`: a take recorder catching up asks for the pose at a tick it missed.
-        pose = self.buffer.pose_at(now) if past else self.buffer.pose(now)
+        pose = self.buffer.pose_at(now)
         if self.clip_ranges and sample is not None and time_code is not None:
             stage_local = self._blend_clips(stage_local, pose, now, sample, time_code)
         return self.retargeter.apply(stage_local, pose), pose
@@ -119,8 +121,10 @@ class LiveBindingRuntime:
         sample: Callable[[float], Any] | None = None,
         time_code: float | None = None,
     ) -> tuple[np.ndarray, LivePose]:
-        """`apply` for a frame on screen: with the transitions at a connect, reconnect or loss
-        (`_transition`); a take records `apply`'s live pose itself."""
+        """The pose shown at local time `now`: `apply` with the transitions at a connect,
+        reconnect or loss (`_transition`). Frames and take ticks both come here
+        (`LiveInput.merged`), so a take records what the screen shows; calls come in time order
+        (the binding keeps the transition in progress)."""
         now = time.monotonic() if now is None else now
         out, pose = self.apply(stage_local, now, sample, time_code)
         if self.retargeter.space == "additive":  # controller offsets ease in with their weight
@@ -145,14 +149,20 @@ class LiveBindingRuntime:
         if pose.status == LOST:
             out = in_place
         if pose.status != previous and pose.status in (CONNECTED, LOST):
-            held = previous == STALE or pose.status == LOST
+            # From what the screen shows: the held pose after a gap, or the blend of a fade cut
+            # short (a reconnect while the loss blended back started from the stage animation:
+            # a 60-70 deg pop); else (a first connect, or a reconnect once the loss's fade was
+            # over) from the stage animation as it plays on.
+            held = previous == STALE or pose.status == LOST or self._fade is not None
             frozen = self._shown.copy() if held and self._shown is not None else None
             turn = float(_turn_degrees(in_place if frozen is None else frozen, out).max())
             self._fade = (now, max(self.buffer.settings.blend, turn / TURN_RATE), frozen)
         if self._fade is not None:
             start, seconds, frozen = self._fade
             u = (now - start) / seconds if seconds > 0 else 1.0
-            if u >= 1.0 or pose.status not in (CONNECTED, LOST):
+            if pose.status == STALE and self._shown is not None:
+                out = self._shown  # a gap in a fade: hold what was shown, the fade's blend
+            elif u >= 1.0 or pose.status not in (CONNECTED, LOST):
                 self._fade = None
                 if pose.status == CONNECTED:
                     self._anchor = None

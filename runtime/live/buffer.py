@@ -27,8 +27,10 @@ RECENT = 256
 """Snapshots a frame's delayed pose looks back through (all the buffer kept before takes could
 catch up; `history` keeps more for them): the per-frame cost stays what it was."""
 CLOCK_RESET_SECONDS = 1.0
-"""A source timestamp this far behind the stream's last one is a restarted sender (a new clock),
-not a late packet: the stream starts over instead of dropping everything until it catches up."""
+"""A sender's clock is trusted while it keeps pace with the receive clock: a timestamp this far
+behind the stream's last one (a restarted sender), or a sample whose offset from the receive
+clock moved this far either way (a clock that jumped ahead or back, an absurd value), starts
+the stream's clock over (a new `_Clock`) instead of dropping everything until it catches up."""
 ONE_EURO_MAX_CUTOFF = 5.0
 """Minimum cutoff (Hz) of the One Euro filter at smoothing strength 0+; it falls as (1 - s)^2."""
 ONE_EURO_BETA = 0.8
@@ -138,9 +140,13 @@ class LivePose:
     weight: float
     """1 while connected or stale; falls to 0 over `blend` seconds once lost; 0 while waiting."""
     sample_time: float
-    """Local monotonic time of the newest sample in this pose (nan while waiting)."""
+    """Local monotonic time of the newest sample in this pose on the source's clock (nan while
+    waiting)."""
     weights: dict[str, float] = field(default_factory=dict)
     """The source's blend shape weights by its names, the latest of each (empty: none sent)."""
+    received: float = math.nan
+    """Local monotonic time the newest sample in this pose arrived (nan while waiting): the
+    start of its latency."""
 
 
 @dataclass
@@ -154,9 +160,14 @@ class BindingCounters:
     ignored: int
     unknown_bones: int
     dropped: int
-    """Samples dropped by the buffer: duplicates and out-of-order."""
+    """Everything sent that never reached a pose: the frames the buffer dropped (duplicates and
+    out of order) plus the datagrams the kernel dropped (`kernel_dropped`)."""
     duplicates: int
     out_of_order: int
+    kernel_dropped: int | None
+    """Datagrams the kernel dropped before the receiver read them (its receive buffer was full:
+    the receiver fell behind a flood), from the socket; None where the transport cannot tell
+    (TCP, serial, a device, a replay) or the system does not say."""
     clock_resets: int
     reconnects: int
     last_seen: float | None
@@ -172,20 +183,72 @@ class BindingCounters:
         return dict(self.__dict__)  # flat scalars: asdict's deep copy cost 0.1 ms a frame
 
 
-class _Stream:
-    """Ordering, clock mapping and jitter state of one clock domain."""
+class _Clock:
+    """One run of a stream's clock: its source times map to local time by the offset of its
+    least-delayed sample (the smallest receive - timestamp of its last RECENT samples).
 
-    __slots__ = ("last_received", "last_ts", "offsets")
+    A stream whose clock jumps starts a new one; every snapshot keeps the clock it was stamped
+    on, so a restarted sender's new offset never moves the old stream's snapshots (it put them
+    after the new ones: a take replayed the old stream). Times are kept relative to the clock's
+    first timestamp, so a clock at 3e38 still maps to the receive clock's precision."""
+
+    __slots__ = ("base", "offset", "offsets")
+
+    def __init__(self, base: float) -> None:
+        self.base = base
+        self.offsets: deque[float] = deque(maxlen=RECENT)
+        self.offset = math.inf
+
+    def drift(self, ts: float, received: float) -> float:
+        """How far a sample's offset is from the clock's (its delay over the least-delayed
+        sample's; far negative: the sender's clock ran ahead)."""
+        return received - (ts - self.base) - self.offset
+
+    def add(self, ts: float, received: float) -> float:
+        """Take a sample's offset into account; its time on the local clock."""
+        self.offsets.append(received - (ts - self.base))
+        self.offset = min(self.offsets)
+        return ts - self.base + self.offset
+
+
+class _Stream:
+    """Ordering, clock and jitter state of one clock domain."""
+
+    __slots__ = ("clock", "last_received", "last_ts")
 
     def __init__(self) -> None:
         self.last_ts = -math.inf
         self.last_received = -math.inf
-        self.offsets: deque[float] = deque(maxlen=256)
+        self.clock: _Clock | None = None
 
-    def restart(self) -> None:
-        """A new clock (the sender restarted): forget order and offset."""
-        self.last_ts = self.last_received = -math.inf
-        self.offsets.clear()
+    def jumped(self, ts: float, received: float) -> bool:
+        """Whether `ts` leaves the stream's clock: far behind its last timestamp (a restarted
+        sender), or its offset from the receive clock moved by more than CLOCK_RESET_SECONDS
+        (a clock that jumped ahead, or fell behind: a sender restarted after a pause)."""
+        clock = self.clock
+        if clock is None:
+            return False
+        return ts < self.last_ts - CLOCK_RESET_SECONDS or not (
+            abs(clock.drift(ts, received)) <= CLOCK_RESET_SECONDS
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class _Snapshot:
+    """The binding's state after one push, as the history keeps it."""
+
+    rotations: np.ndarray
+    valid: np.ndarray
+    root: np.ndarray | None
+    clock: _Clock
+    """The clock its newest sample was stamped on (its local time follows that clock's offset
+    as it improves)."""
+    source: float
+    """The newest sample's source time, relative to `clock.base`."""
+    received: float
+    """Local time the newest sample in it arrived."""
+    weights: dict[str, float]
+    """The blend shape weights as of it (the buffer's dict, replaced whole, never changed)."""
 
 
 class _Ring:
@@ -242,6 +305,14 @@ class _Published:
     sample_time: float
     last_seen: float
     weights: dict[str, float] = field(default_factory=dict)
+    received: float = math.nan
+
+
+def _local_times(snapshots: list[_Snapshot]) -> np.ndarray:
+    """The snapshots' times on the local clock, each by its own clock's current offset, made
+    non-decreasing (snapshots of several streams interleave)."""
+    mapped = [snapshot.source + snapshot.clock.offset for snapshot in snapshots]
+    return np.maximum.accumulate(np.array(mapped, dtype=np.float64))
 
 
 class LiveBuffer:
@@ -267,17 +338,16 @@ class LiveBuffer:
         stream's weights are taken as they come)."""
         self._times: deque[float] = deque(maxlen=s.history)
         """Local time of each snapshot when it was pushed (orders snapshots across streams)."""
-        self._source_times: deque[tuple[int, float]] = deque(maxlen=s.history)
-        """(stream, source timestamp) of each snapshot: mapped to local time at pose() with the
-        stream's clock offset as known then (it only improves as samples arrive)."""
-        self._snapshots: deque[tuple[np.ndarray, np.ndarray | None]] = deque(maxlen=s.history)
+        self._snapshots: deque[_Snapshot] = deque(maxlen=s.history)
+        """Mapped to local time at pose() with their clocks' offsets as known then (they only
+        improve as samples arrive)."""
         self._streams: dict[int, _Stream] = {}
         self._last_seen = math.nan
         self._published: _Published | None = None
         """The newest state, replaced whole by each push: `pose` reads it without the lock."""
-        self._held: tuple[np.ndarray, np.ndarray | None, float, np.ndarray] | None = None
-        """The last delayed pose (rotations, root, sample time, valid), for a frame that
-        finds the receiver mid-push."""
+        self._held: tuple[np.ndarray, np.ndarray | None, float, np.ndarray, float] | None = None
+        """The last delayed pose (rotations, root, sample time, valid, received), for a frame
+        that finds the receiver mid-push."""
         self._jitter = _Ring()
         self._latency = _Ring()
         self.samples = self.duplicates = self.out_of_order = self.clock_resets = 0
@@ -294,21 +364,21 @@ class LiveBuffer:
             if stream is None:
                 stream = self._streams[frame.stream] = _Stream()
             ts = frame.timestamp
-            if ts <= stream.last_ts:
-                if ts < stream.last_ts - CLOCK_RESET_SECONDS:
+            clock = stream.clock
+            if clock is None or stream.jumped(ts, received):
+                if clock is not None:
                     self.clock_resets += 1
-                    stream.restart()
-                elif ts == stream.last_ts:
-                    self.duplicates += 1
-                    return False
-                else:
-                    self.out_of_order += 1
-                    return False
-            if stream.last_ts > -math.inf:
+                clock = stream.clock = _Clock(ts)
+            elif ts == stream.last_ts:
+                self.duplicates += 1
+                return False
+            elif ts < stream.last_ts:
+                self.out_of_order += 1
+                return False
+            else:
                 self._jitter.append(abs((received - stream.last_received) - (ts - stream.last_ts)))
             stream.last_ts, stream.last_received = ts, received
-            stream.offsets.append(received - ts)
-            local = ts + min(stream.offsets)  # the least-delayed sample fixes the clock offset
+            local = clock.add(ts, received)  # the least-delayed sample fixes the clock offset
             rotations = self._smooth(frame, ts)
             idx = frame.indices
             self._current[idx] = rotations
@@ -317,24 +387,29 @@ class LiveBuffer:
                 self._root = frame.root_position
             if frame.weights:
                 self._weights = {**self._weights, **frame.weights}  # replaced whole: shared
+            valid = self._valid.copy()
+            state = (self._current.copy(), valid, self._root)
             if self._times and local <= self._times[-1]:
                 # Another stream's sample at or before the last snapshot: update that snapshot
                 # (snapshot times stay strictly increasing for the delayed lookup).
-                self._snapshots[-1] = (self._current.copy(), self._root)
+                last = self._snapshots[-1]
+                snapshot = _Snapshot(*state, last.clock, last.source, received, self._weights)
+                self._snapshots[-1] = snapshot
             else:
                 self._times.append(local)
-                self._source_times.append((frame.stream, ts))
-                self._snapshots.append((self._current.copy(), self._root))
+                snapshot = _Snapshot(*state, clock, ts - clock.base, received, self._weights)
+                self._snapshots.append(snapshot)
             self._last_seen = received
             self.samples += len(idx)
             # The frame thread reads this without the lock: one reference, replaced whole.
             self._published = _Published(
-                self._snapshots[-1][0],
-                self._valid.copy(),
+                self._snapshots[-1].rotations,
+                valid,
                 self._root,
                 self._times[-1],
                 received,
                 self._weights,
+                received,
             )
             return True
 
@@ -382,22 +457,24 @@ class LiveBuffer:
             rotations = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
             return LivePose(rotations, np.zeros(n, dtype=bool), None, WAITING, 0.0, math.nan)
         status = self._status(now, published.last_seen)
-        rotations, root, sample_time, valid = (
+        rotations, root, sample_time, valid, received = (
             published.rotations,
             published.root,
             published.sample_time,
             published.valid,
+            published.received,
         )
         if s.mode != LATEST and len(self._times) >= 2:
             if self._lock.acquire(blocking=False):
                 try:
-                    rotations, root, sample_time = self._delayed(now)
+                    recent = islice(self._snapshots, max(0, len(self._snapshots) - RECENT), None)
+                    rotations, root, sample_time, received = self._delayed(now, list(recent))
                     valid = self._valid.copy()
-                    self._held = (rotations, root, sample_time, valid)
+                    self._held = (rotations, root, sample_time, valid, received)
                 finally:
                     self._lock.release()
             elif self._held is not None:
-                rotations, root, sample_time, valid = self._held
+                rotations, root, sample_time, valid, received = self._held
         weight = 1.0
         if status == LOST:
             gone = now - (published.last_seen + s.lost_after)
@@ -411,85 +488,92 @@ class LiveBuffer:
             weight,
             sample_time,
             dict(published.weights),
+            received,
         )
 
     def pose_at(self, when: float) -> LivePose:
-        """The pose a frame at local monotonic time `when` (now or past) would have had, from
-        the kept snapshots: the newest one pushed by then (latest), or `delay` before it
-        (delayed). For a take recorder that fell behind (a stall, a busy machine): it catches up
-        with the poses of the ticks it missed instead of skipping them. Waits for the lock (it
-        is not on the frame thread). Before the first snapshot: the waiting pose."""
+        """The pose a frame at local monotonic time `when` (now or past) shows, from the kept
+        snapshots received by then: the newest one (latest), or the pose `delay` before `when`
+        among them (delayed). A frame (when = now) and a take tick (when = its due time, also
+        for a recorder catching up after a stall) read the same way, so a take holds what the
+        screen showed. Never waits for the receiver: the history is copied in one C-level step
+        (no other thread runs during it) and each snapshot is immutable. Before the first
+        snapshot: the waiting pose."""
         n = len(self.bones)
-        with self._lock:
-            times = self._local_times() if self._times else np.zeros(0)
-            i = int(np.searchsorted(times, when, side="right")) - 1
-            if i < 0:
-                rest = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
-                return LivePose(rest, np.zeros(n, bool), None, WAITING, 0.0, math.nan)
-            newest = float(times[i])
-            if self.settings.mode == DELAYED and len(times) >= 2:
-                rotations, root, sample_time = self._delayed(when, times)
-            else:
-                (rotations, root), sample_time = self._snapshots[i], newest
-            valid = self._valid.copy()
+        last = self._snapshots[-1] if self._snapshots else None
+        if self.settings.mode == LATEST and last is not None and last.received <= when:
+            snapshots, end = [last], 1  # a frame now: the newest, without copying the history
+        else:
+            snapshots = list(self._snapshots)  # one consistent copy, without the lock
+            end = len(snapshots)
+        while end and snapshots[end - 1].received > when:  # arrived after `when`: not yet there
+            end -= 1
+        if not end:
+            rest = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+            return LivePose(rest, np.zeros(n, bool), None, WAITING, 0.0, math.nan)
+        newest = snapshots[end - 1]
+        if self.settings.mode == DELAYED and end >= 2:
+            window = snapshots[max(0, end - RECENT) : end]
+            if end > RECENT and when - self._delay() < _local_times(window)[0]:
+                window = snapshots[:end]  # a recorder far behind: look through them all
+            rotations, root, sample_time, received = self._delayed(when, window)
+        else:
+            rotations, root = newest.rotations, newest.root
+            sample_time, received = _local_times([newest])[0], newest.received
         s = self.settings
-        status = self._status(when, newest)
+        status = self._status(when, newest.received)
         weight = 1.0
         if status == LOST:
-            gone = when - (newest + s.lost_after)
+            gone = when - (newest.received + s.lost_after)
             weight = max(0.0, 1.0 - gone / s.blend) if s.blend > 0 else 0.0
         return LivePose(
             rotations.copy(),
-            valid,
+            newest.valid.copy(),
             None if root is None else np.array(root, dtype=np.float64),
             status,
             weight,
-            sample_time,
-            dict(self._weights),  # the latest: weights are not kept per snapshot
+            float(sample_time),
+            dict(newest.weights),
+            received,
         )
 
-    def _delayed(
-        self, now: float, times: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray | None, float]:
-        """The pose `delay` seconds before `now`, slerped between the snapshots around it
-        (called with the lock held). `times`: the local times of the newest snapshots (default:
-        of the last RECENT, all a frame looks back through; a recorder passes them all)."""
-        s = self.settings
-        delay = s.delay if s.delay is not None else self._sample_interval()
-        times = self._local_times(RECENT) if times is None else times
-        first = len(self._snapshots) - len(times)  # snapshot index of times[0]
-        target = now - delay
-        i = int(np.searchsorted(times, target, side="right"))
-        if i == 0:
-            (rotations, root), sample_time = self._snapshots[first], times[0]
-        elif i == len(times):
-            (rotations, root), sample_time = self._snapshots[-1], times[-1]
-        else:
-            t0, t1 = times[i - 1], times[i]
-            (r0, p0), (r1, p1) = self._snapshots[first + i - 1], self._snapshots[first + i]
-            u = (target - t0) / (t1 - t0) if t1 > t0 else 1.0
-            rotations = quat_slerp(r0, r1, u)
-            root = p0 if p0 is None or p1 is None else p0 + u * (p1 - p0)
-            sample_time = target
-        return rotations, root, float(sample_time)
+    def _delay(self) -> float:
+        """Seconds `delayed` looks back: `delay`, or one sample interval."""
+        return self.settings.delay if self.settings.delay is not None else self._sample_interval()
 
-    def _local_times(self, last: int | None = None) -> np.ndarray:
-        """Snapshot times on the local clock, from each stream's current offset, non-decreasing:
-        of every kept snapshot, or of the `last` newest."""
-        offsets = {k: min(v.offsets) for k, v in self._streams.items() if v.offsets}
-        kept = self._source_times
-        skip = 0 if last is None else max(0, len(kept) - last)
-        mapped = [ts + offsets.get(stream, 0.0) for stream, ts in islice(kept, skip, None)]
-        return np.maximum.accumulate(np.array(mapped))
+    def _delayed(
+        self, now: float, snapshots: list[_Snapshot]
+    ) -> tuple[np.ndarray, np.ndarray | None, float, float]:
+        """The pose `delay` seconds before `now`, slerped between the two of `snapshots` (in
+        order, the newest last) around it."""
+        times = _local_times(snapshots)
+        target = now - self._delay()
+        i = int(np.searchsorted(times, target, side="right"))
+        if i == 0 or i == len(times):
+            k = 0 if i == 0 else -1
+            snapshot = snapshots[k]
+            return snapshot.rotations, snapshot.root, float(times[k]), snapshot.received
+        t0, t1 = times[i - 1], times[i]
+        a, b = snapshots[i - 1], snapshots[i]
+        u = (target - t0) / (t1 - t0) if t1 > t0 else 1.0
+        rotations = quat_slerp(a.rotations, b.rotations, u)
+        p0, p1 = a.root, b.root
+        root = p0 if p0 is None or p1 is None else p0 + u * (p1 - p0)
+        return rotations, root, float(target), b.received
 
     def _sample_interval(self) -> float:
         times = list(self._times)[-33:]
         return float(np.median(np.diff(times))) if len(times) > 1 else 0.0
 
     def counters(
-        self, now: float | None = None, decoded: DecodeCounters | None = None, reconnects: int = 0
+        self,
+        now: float | None = None,
+        decoded: DecodeCounters | None = None,
+        reconnects: int = 0,
+        kernel_dropped: int | None = None,
     ) -> BindingCounters:
-        """A snapshot of this binding's status and counters (decoder counts from `decoded`)."""
+        """A snapshot of this binding's status and counters (decoder counts from `decoded`, the
+        transport's reconnects and the datagrams its kernel dropped)."""
         now = time.monotonic() if now is None else now
         d = decoded or DecodeCounters()
         # No lock (the frame thread calls this every frame): single reads, and the rings'
@@ -507,9 +591,10 @@ class LiveBuffer:
             malformed=d.malformed,
             ignored=d.ignored,
             unknown_bones=d.unknown_bones,
-            dropped=self.duplicates + self.out_of_order,
+            dropped=self.duplicates + self.out_of_order + (kernel_dropped or 0),
             duplicates=self.duplicates,
             out_of_order=self.out_of_order,
+            kernel_dropped=kernel_dropped,
             clock_resets=self.clock_resets,
             reconnects=reconnects,
             last_seen=last_seen,

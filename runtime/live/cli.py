@@ -29,8 +29,9 @@ rigspace live SCENE --out DIR [--seconds S] [--record TAKE.usda] [--source NAME=
 rigspace live send URL --bvh FILE [--speed 1] [--loop] [--seconds S]
     Stream a BVH clip to a VMC receiver (vmc://HOST:PORT) or serve it as an Axis Neuron BVH stream
     (bvh+tcp://HOST:PORT).
-rigspace live probe URL [--seconds S]
-    Listen on a live-source URL and print one JSON status line a second (bones, rate, status).
+rigspace live probe URL [--seconds S] [--frames N]
+    Listen on a live-source URL and print one JSON status line a second (bones, rate, status),
+    for S seconds or until N frames have arrived.
 rigspace live calibrate SCENE --binding NAME [--seconds S] [--source URL]
     Hold the performer in the character's rest pose: the source's pose after S seconds is stored
     in the binding's restPose (with its sourceBones and targetJoints) in SCENE's root layer.
@@ -118,10 +119,12 @@ FIRST_FRAME_NOTE = 2.0
 
 class _TakeThread(threading.Thread):
     """Records every live character's merged pose at each stage tick, whatever the renderer is
-    doing: the take keeps the stage's rate even when frames are dropped. A tick this thread
-    reaches late (a stall: the GIL held by a compile, a loaded machine) is recorded all the
-    same, with the pose its bindings held at the tick's time (LiveBuffer.pose_at): every tick
-    of the run is in the take, stamped with its time code."""
+    doing: the take keeps the stage's rate even when frames are dropped. Each tick is what the
+    screen shows at it (`LiveInput.merged`: one evaluation of the tick's pose, transitions
+    included, for the frame and the take). A tick this thread reaches late (a stall: the GIL
+    held by a compile, a loaded machine) is recorded all the same, with the pose its bindings
+    held at the tick's due time (LiveBuffer.pose_at): every tick of the run is in the take,
+    stamped with its time code."""
 
     def __init__(self, engine, start_code: float, fps: float, t0: float, ticks: int) -> None:
         super().__init__(name="rigspace-live-take", daemon=True)
@@ -155,7 +158,7 @@ class _TakeThread(threading.Thread):
                     return
                 code = self.start_code + k
                 for path, live in self.engine.live.characters.items():
-                    local, poses = self.engine.live.merged(live.character, code, due, True)
+                    local, poses = self.engine.live.merged(live.character, code, take=True)
                     if local is not None:
                         weights = self.engine.live.weights(live.character, code, poses)
                         if weights is None and live.character.rig.blend_shapes:
@@ -171,6 +174,7 @@ def live(args: argparse.Namespace) -> int:
 
     from rigspace.runtime.cli import make_folder, remove_empty
     from rigspace.runtime.engine import Engine
+    from rigspace.runtime.live.engine import Ticks
     from rigspace.runtime.output import VideoWriter
     from rigspace.sdk.color import linear_to_srgb
 
@@ -203,7 +207,16 @@ def live(args: argparse.Namespace) -> int:
                     "choose a writable .mp4 path in an existing folder.",
                 ) from exc
         _warm_up(engine, start_code)
+        print(
+            f"rigspace live: ready: {ticks} ticks at {fps:g} fps from time code {start_code:g}"
+            + (f", recording {args.record}" if args.record else "")
+            + " (Ctrl-C stops)",
+            file=sys.stderr,
+            flush=True,
+        )  # the engine is loaded and its sources listen: a script driving senders waits for it
         t0 = time.monotonic()
+        # Frames and the take share each tick's live pose, evaluated at the tick's due time.
+        engine.live.ticks = Ticks(t0, fps, start_code, recording=bool(args.record))
         if args.record:
             recorder = _TakeThread(engine, start_code, fps, t0, ticks)
             recorder.start()
@@ -297,10 +310,10 @@ def _loop(engine, out, video, start_code, fps, t0, ticks, cv2, np, linear_to_srg
             report["tick"] = k
             report["written_seconds"] = round(written - t0, 4)
             latency = {}
-            for name, sample_time in engine.live.sample_times().items():
-                if math.isfinite(sample_time):
-                    latency[name] = round((written - sample_time) * 1e3, 3)
-                    latencies.setdefault(name, []).append(written - sample_time)
+            for name, received in engine.live.received_times().items():
+                if math.isfinite(received):
+                    latency[name] = round((written - received) * 1e3, 3)
+                    latencies.setdefault(name, []).append(written - received)
             report["latency_ms"] = latency
             frames.append(report)
             k += 1
@@ -408,9 +421,12 @@ def _print_summary(summary: dict[str, Any], out: Path, video: str | None, stoppe
     )
     for b in summary["bindings"]:
         lat = summary["latency_ms"].get(b["binding"], {})
+        kernel = b.get("kernel_dropped")
+        by_kernel = f" ({kernel} by the kernel: its receive buffer was full)" if kernel else ""
         print(
             f"  {b['binding']} ({b['url']}): {b['status']}, {b['samples']} samples, "
-            f"{b['malformed']} malformed, {b['dropped']} dropped, {b['reconnects']} reconnects; "
+            f"{b['malformed']} malformed, {b['dropped']} dropped{by_kernel}, "
+            f"{b['reconnects']} reconnects; "
             f"sample received to frame written p50 {lat.get('p50')} ms, p99 {lat.get('p99')} ms"
         )
     for t in summary.get("takes", []):

@@ -28,11 +28,45 @@ class LiveCharacter:
     bindings: list[schema.LiveBinding]
     runtimes: list[LiveBindingRuntime] = field(default_factory=list)
     last: dict[str, Any] = field(default_factory=dict)
-    """binding name -> {status, weight, sample_time} of the last frame's pose."""
+    """binding name -> {status, weight, received} of the last frame's pose."""
     last_local: np.ndarray | None = None
+    """(J, 4, 4) the last frame's merged local transforms."""
     last_poses: list = field(default_factory=list)
     """(binding runtime, LivePose) of the last frame, for its blend shape weights."""
-    """(J, 4, 4) the last frame's merged local transforms."""
+    weight_ranges: tuple[np.ndarray, np.ndarray] | None = None
+    """(low, high) per blend shape (the rig's order) that live weights are clamped into."""
+    shown: dict[int, tuple[np.ndarray, list]] = field(default_factory=dict)
+    """Tick -> (local transforms, poses) evaluated and still wanted by a frame or the take."""
+    next_tick: int = 0
+    """The first tick not evaluated yet (ticks are evaluated in order)."""
+    frame_tick: int = 0
+    """The tick of the last frame (frames only go forward)."""
+    take_tick: int = 0
+    """The next tick the take will ask for."""
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    """Frames and the take recorder evaluate ticks from two threads."""
+
+
+@dataclass(frozen=True)
+class Ticks:
+    """A real-time run's clock (`rigspace live`): tick k, time code `start + k`, is due at local
+    monotonic time `t0 + k / fps`. With it, a frame and a take tick of the same time code share
+    one evaluation of the live pose at the tick's due time: the take records what the screen
+    shows, transitions included."""
+
+    t0: float
+    fps: float
+    start: float
+    recording: bool
+    """A take records every tick: each is evaluated (in order) and kept until it took it."""
+
+    def tick(self, time_code: float) -> int | None:
+        """The tick of `time_code`, or None for a time code that is none (the warm-up frame)."""
+        k = round(time_code - self.start)
+        return k if k >= 0 and abs(time_code - (self.start + k)) < 1e-6 else None
+
+    def due(self, k: int) -> float:
+        return self.t0 + k / self.fps
 
 
 SOURCE_DESCRIPTION = {
@@ -76,6 +110,20 @@ def with_source(binding: schema.LiveBinding, url: str) -> schema.LiveBinding:
     return schema.LiveBinding(**fields)
 
 
+def weight_ranges(prim: Usd.Prim, shapes: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) per shape of `shapes`: the capture ring's blendShapeRanges where it declares
+    the shape (the weights the network was trained on), else WEIGHT_RANGE."""
+    from rigspace.runtime.live.binding import WEIGHT_RANGE
+
+    low, high = np.full(len(shapes), WEIGHT_RANGE[0]), np.full(len(shapes), WEIGHT_RANGE[1])
+    if schema.has_capture_ring(prim):
+        ring = schema.read_capture_ring(prim)
+        for name, (lo, hi) in zip(ring.blend_shape_names, ring.blend_shape_ranges, strict=False):
+            if name in shapes:
+                low[shapes.index(name)], high[shapes.index(name)] = lo, hi
+    return low, high
+
+
 def _clip_ranges(prim: Usd.Prim) -> dict[str, tuple[float, float]]:
     """The character's named clips (capture ring clipNames -> clipRanges), for clip blends."""
     if not schema.has_capture_ring(prim):
@@ -105,6 +153,9 @@ class LiveInput:
         self.characters: dict[str, LiveCharacter] = {}
         self._lock = threading.Lock()  # open/close may race with a recorder thread's reads
         self._opened = False
+        self.ticks: Ticks | None = None
+        """Set by a real-time run (`rigspace live`): frames and takes then share each tick's
+        pose (`merged`); None: each frame's live pose is the one at the time it is asked."""
         named: set[str] = set()
         for character in characters:
             chosen = []
@@ -180,23 +231,53 @@ class LiveInput:
         character: NeuralCharacter,
         time_code: float,
         now: float | None = None,
-        past: bool = False,
+        take: bool = False,
     ):
         """(J, 4, 4) the character's local transforms at `time_code` with its bindings' poses
-        merged in (None without live bindings), and each binding's pose. `past`: the poses the
-        bindings held at local time `now` (LiveBuffer.pose_at), for a recorder catching up."""
+        merged in (None without live bindings), and each binding's pose: what the screen shows
+        (LiveBindingRuntime.apply_frame: the pose at the time, with the connect, reconnect and
+        loss transitions). At local time `now` (default: now); in a real-time run (`ticks`)
+        a tick's at its due time, evaluated once for the frame and the take (`take`: the
+        recorder asks, and the tick is not kept for it any more)."""
         live = self.characters.get(character.path)
         if live is None or not live.runtimes:
             return None, []
-        now = time.monotonic() if now is None else now
-        rig = character.rig
+        tick = None if self.ticks is None or now is not None else self.ticks.tick(time_code)
+        if tick is None:
+            with live.lock:
+                return self._shown(live, time_code, time.monotonic() if now is None else now)
+        return self._at_tick(live, tick, take)
+
+    def _at_tick(self, live: LiveCharacter, tick: int, take: bool):
+        """The evaluation of `tick` (ticks in order: a frame ahead of the take evaluates the
+        ticks before it first; without a take, frames skip the ticks they dropped)."""
+        ticks = self.ticks
+        assert ticks is not None
+        with live.lock:
+            while live.next_tick <= tick:
+                k, live.next_tick = live.next_tick, live.next_tick + 1
+                if k == tick or ticks.recording:
+                    code = ticks.start + k
+                    live.shown[k] = self._shown(live, code, ticks.due(k))
+            found = live.shown.get(tick)
+            if take:
+                live.take_tick = tick + 1
+            else:
+                live.frame_tick = tick
+            keep = min(live.frame_tick, live.take_tick if ticks.recording else tick)
+            for k in [k for k in live.shown if k < keep]:
+                del live.shown[k]
+            if found is None:  # a tick asked for again after it was let go: as it is now
+                found = self._shown(live, ticks.start + tick, time.monotonic())
+            return found
+
+    def _shown(self, live: LiveCharacter, time_code: float, when: float):
+        """The character's merged local transforms and poses shown at local time `when`."""
+        rig = live.character.rig
         local = np.asarray(rig.local_transforms(time_code), dtype=np.float64)
         poses = []
         for runtime in live.runtimes:
-            if past:  # a take recorder catching up: the live pose at a tick it missed
-                local, pose = runtime.apply(local, now, rig.local_transforms, time_code, True)
-            else:  # a frame: with the connect, reconnect and loss transitions
-                local, pose = runtime.apply_frame(local, now, rig.local_transforms, time_code)
+            local, pose = runtime.apply_frame(local, when, rig.local_transforms, time_code)
             poses.append((runtime, pose))
         return local, poses
 
@@ -212,7 +293,7 @@ class LiveInput:
         entry["live"] = []
         for runtime, pose in poses:
             state = {"status": pose.status, "weight": round(pose.weight, 4)}
-            live.last[runtime.name] = {**state, "sample_time": pose.sample_time}
+            live.last[runtime.name] = {**state, "received": pose.received}
             entry["live"].append({"binding": runtime.name, **state})
         live.last_local = local
         live.last_poses = poses
@@ -224,24 +305,31 @@ class LiveInput:
         """(B,) the character's blend shape weights (its order) with the live weights of
         `poses` ((runtime, LivePose) pairs; default the last frame's) merged in by each
         binding's weight (a lost source lets go as its bones do); None when no binding sent a
-        weight for one of its shapes (the animation's apply)."""
+        weight for one of its shapes (the animation's apply). Live weights are clamped into
+        their shapes' ranges (`weight_ranges`): a source's 5.0 is its shape's high end, never
+        a pose the network was not trained on (the frames, and so the takes, hold only those)."""
         live = self.characters.get(character.path)
         shapes = character.rig.blend_shapes
         if live is None or not shapes:
             return None
+        if live.weight_ranges is None:
+            live.weight_ranges = weight_ranges(character.prim, shapes)
+        low, high = live.weight_ranges
         out = None
         for runtime, pose in live.last_poses if poses is None else poses:
             indices, values = runtime.blend_weights(pose, shapes)
             if len(indices):
                 out = character.rig.blend_weights(time_code) if out is None else out
+                values = np.clip(values, low[indices], high[indices])
                 out[indices] += (values - out[indices]) * float(pose.weight)
         return out
 
-    def sample_times(self) -> dict[str, float]:
-        """binding name -> local monotonic time of the newest sample in the last frame's pose,
-        for the bindings that were connected (a held or lost pose's age is not a latency)."""
+    def received_times(self) -> dict[str, float]:
+        """binding name -> local monotonic time the newest sample in the last frame's pose
+        arrived, for the bindings that were connected (a held or lost pose's age is not a
+        latency)."""
         return {
-            name: state["sample_time"]
+            name: state["received"]
             for live in self.characters.values()
             for name, state in live.last.items()
             if state["status"] == "connected"

@@ -78,9 +78,11 @@ def send_vmc(
     speed: float = 1.0,
     loop: bool = False,
     stop: threading.Event | None = None,
+    frames: int | None = None,
 ) -> int:
     """Send `clip` to vmc://HOST:PORT in real time (scaled by speed), with /VMC/Ext/T carrying
-    the clip time; returns the frames sent. `stop` ends it early."""
+    the clip time; returns the frames sent. `stop` ends it early; `frames` ends it after that
+    many (a sender held back by a busy machine catches up and sends them all)."""
     parts = urlsplit(url)
     address = (parts.hostname or "127.0.0.1", parts.port or 39539)
     stop = stop or threading.Event()
@@ -88,7 +90,7 @@ def send_vmc(
     sent = 0
     start = time.monotonic()
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        while not stop.is_set():
+        while not stop.is_set() and (frames is None or sent < frames):
             i = sent % len(clip.rotations)
             if sent and i == 0 and not loop:
                 break
@@ -174,7 +176,12 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     )
     parser.add_argument("--speed", type=float, default=1.0, help="playback speed (1 = real time)")
     parser.add_argument("--loop", action="store_true", help="start the clip again at its end")
-    parser.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    parser.add_argument(
+        "--seconds",
+        type=float,
+        default=None,
+        help="stop after this long (VMC: after the frames of this long, at --speed, in real time)",
+    )
     args = parser.parse_args(argv)
     try:
         if not args.speed > 0:
@@ -188,18 +195,22 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
                 f"{args.url!r} is not a URL this sender speaks.",
                 "send to vmc://HOST:PORT or serve on bvh+tcp://HOST:PORT.",
             )
-        if scheme == "vmc":  # prepared before --seconds starts counting
-            rotations, roots = skeleton.pose(motion)
-            clip = humanoid_clip(skeleton, rotations, roots, frame_time)
         stop = threading.Event()
         timer = threading.Timer(args.seconds or 0.0, stop.set)
         timer.daemon = True
-        if args.seconds is not None:
-            timer.start()
         if scheme == "vmc":
-            sent = send_vmc(args.url, clip, args.speed, args.loop, stop)
+            rotations, roots = skeleton.pose(motion)
+            clip = humanoid_clip(skeleton, rotations, roots, frame_time)
+            # --seconds: the frames of that long, whatever the preparation took or a busy
+            # machine holds the sender back (it catches up): a count, not a clock.
+            frames = None
+            if args.seconds is not None:
+                frames = round(args.seconds * args.speed / clip.frame_time)
+            sent = send_vmc(args.url, clip, args.speed, args.loop, stop, frames)
             print(f"sent {sent} frames to {args.url}")
         else:
+            if args.seconds is not None:  # how long the server serves
+                timer.start()
             parts = urlsplit(args.url)
             try:
                 sent = serve_bvh(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import socket
+import sys
 import threading
 import time
 from collections.abc import Sequence
@@ -19,7 +20,13 @@ POLL_SECONDS = 0.1
 """How long a receiver blocks in one read before it checks whether it should stop."""
 UDP_RECEIVE_BUFFER = 1 << 20
 """Kernel receive buffer for UDP sources, bytes: a flood overflows the kernel's bounded buffer
-(the excess is lost there), never our memory."""
+(the excess is lost there, and counted: `kernel_dropped`), never our memory."""
+SO_MEMINFO = getattr(socket, "SO_MEMINFO", 55)
+"""Linux's getsockopt for a socket's memory counters (<asm-generic/socket.h>; Python names it
+on no version yet)."""
+SK_MEMINFO_DROPS = 8
+"""Index of the datagrams the kernel dropped for the socket in SO_MEMINFO's u32 array
+(<linux/sock_diag.h>): the drops column of /proc/net/udp, read from the socket itself."""
 
 
 class LiveSourceError(RigspaceError):
@@ -73,7 +80,13 @@ class Source:
 
     def counters(self, now: float | None = None) -> BindingCounters:
         assert self.buffer is not None, "start() the source first"
-        return self.buffer.counters(now, self.decoder.counters, self.reconnects)
+        return self.buffer.counters(
+            now, self.decoder.counters, self.reconnects, self.kernel_dropped()
+        )
+
+    def kernel_dropped(self) -> int | None:
+        """Data the kernel dropped before it was read; None: this transport cannot tell."""
+        return None
 
     def _deliver(self, data: bytes, received: float, **kw: Any) -> None:
         buffer = self.buffer
@@ -101,6 +114,8 @@ class UdpSource(Source):
         super().__init__(name, url, decoder)
         self.host, self.port = host, port
         self.sock: socket.socket | None = None
+        self._kernel_dropped: int | None = None
+        """The last count read from the socket (kept once it is closed)."""
 
     @property
     def address(self) -> tuple[str, int]:
@@ -142,9 +157,12 @@ class UdpSource(Source):
     def _run(self) -> None:
         sock = self.sock
         assert sock is not None
+        # A decoder that keeps senders apart (VMC: each its own frames and clock) gets the
+        # datagram's source address.
+        by_sender = bool(getattr(self.decoder, "by_sender", False))
         while not self._stop.is_set():
             try:
-                data = sock.recv(65536)
+                data, sender = sock.recvfrom(65536)
             except TimeoutError:
                 continue
             except OSError as exc:
@@ -152,10 +170,31 @@ class UdpSource(Source):
                 if self._stop.wait(POLL_SECONDS):
                     return
                 continue
-            self._deliver(data, time.monotonic())
+            if by_sender:
+                self._deliver(data, time.monotonic(), sender=sender)
+            else:
+                self._deliver(data, time.monotonic())
+
+    def kernel_dropped(self) -> int | None:
+        """Datagrams the kernel dropped because the receive buffer was full, as it counts them
+        for this socket (SO_MEMINFO: one getsockopt, the same counter as /proc/net/udp's drops
+        column, current at every call; SO_RXQ_OVFL would only bring it with the next datagram
+        queued, so the drops at the end of a burst would go unreported). None on a system
+        without it. After stop(), the count read last."""
+        sock = self.sock
+        if sock is None or sock.fileno() < 0:
+            return self._kernel_dropped
+        try:
+            info = sock.getsockopt(socket.SOL_SOCKET, SO_MEMINFO, 4 * (SK_MEMINFO_DROPS + 1))
+        except OSError:  # not Linux, or a kernel without SO_MEMINFO
+            return self._kernel_dropped
+        if len(info) >= 4 * (SK_MEMINFO_DROPS + 1):  # older kernels return fewer counters
+            self._kernel_dropped = int.from_bytes(info[4 * SK_MEMINFO_DROPS :][:4], sys.byteorder)
+        return self._kernel_dropped
 
     def _close(self) -> None:
         if self.sock is not None:
+            self.kernel_dropped()  # the final count, reported after the socket is gone
             self.sock.close()
 
 

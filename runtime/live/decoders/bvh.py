@@ -243,9 +243,10 @@ def read_bvh(path: str | Path) -> tuple[BvhSkeleton, np.ndarray, float]:
 
 class BvhStreamDecoder:
     """The Axis Neuron BVH data stream: one line of channel values per frame, for a known
-    hierarchy. Lines may carry Axis Neuron's prefix (an index and the avatar name) and its `||`
-    terminator. The stream has no timestamps: frames get the receive time, and lines that
-    arrive in one read (a burst) are spaced BURST_STEP apart so they stay distinct and ordered."""
+    hierarchy. Lines may carry Axis Neuron's prefix (an index and the avatar name); a frame ends
+    at a newline or at Axis Neuron's `||` terminator, which need not be followed by one. The
+    stream has no timestamps: frames get the receive time, and lines that arrive in one read (a
+    burst) are spaced BURST_STEP apart so they stay distinct and ordered."""
 
     space = "local"
     BURST_STEP = 1e-6
@@ -275,11 +276,11 @@ class BvhStreamDecoder:
         self._buffer += data
         frames: list[SourceFrame] = []
         while True:
-            end = self._buffer.find(b"\n")
+            end, size = self._line_end()
             if end < 0:
                 break
             line = bytes(self._buffer[:end])
-            del self._buffer[: end + 1]
+            del self._buffer[: end + size]
             if self._skip:
                 self._skip = False
                 continue
@@ -293,10 +294,19 @@ class BvhStreamDecoder:
             self._skip = True
         return frames
 
+    def _line_end(self) -> tuple[int, int]:
+        """(where the first frame in the buffer ends, the terminator's length): a newline, or
+        Axis Neuron's `||`, which ends a frame with or without a newline after it (a newline
+        that follows is then a blank line); (-1, 0) while no frame is complete."""
+        newline, bars = self._buffer.find(b"\n"), self._buffer.find(b"||")
+        if bars >= 0 and (newline < 0 or bars < newline):
+            return bars, 2
+        return newline, 1
+
     def decode_line(self, line: bytes, timestamp: float) -> SourceFrame | None:
         """One line of channel values -> a frame, or None (blank, or counted as malformed)."""
         c = self.counters
-        tokens = line.replace(b"||", b" ").split()
+        tokens = line.split()
         if not tokens:
             return None
         c.messages += 1

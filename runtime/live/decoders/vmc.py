@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 import struct
+from collections.abc import Hashable
 
 import numpy as np
 from pythonosc.osc_packet import OscPacket
@@ -46,7 +47,15 @@ BLEND_APPLY = "/VMC/Ext/Blend/Apply"
 MAX_BLEND_NAMES = 256
 """Distinct blend shape names a sender may name (ARKit has 52, VRM presets 18): a flood of
 invented names is counted as malformed instead of growing memory."""
+MAX_BLEND_WEIGHT = 10.0
+"""Largest blend shape weight magnitude accepted: ARKit's and VRM's are in [0, 1] and rigs
+overdrive a shape to 2 at most, so a weight beyond 10 is garbage (1e30 turned the network's
+output into NaN), counted as malformed like NaN. Within it, the runtime clamps each weight
+into its shape's range (binding.WEIGHT_RANGE, or the capture ring's blendShapeRanges)."""
 TIME = "/VMC/Ext/T"
+MAX_SENDERS = 8
+"""Senders (source addresses) whose frames are assembled apart at once; one more forgets the one
+heard from least recently (a flood from many ports cannot grow memory)."""
 
 _NUMBER = (float, int)
 
@@ -88,41 +97,55 @@ class VmcDecoder:
     bone with Root fixed (as Unity-based senders do) both move the character; other bones'
     positions are not used (retargeting takes rotations). A value with NaN or Inf is malformed
     where it arrives (counted; the bone's last good value in the frame stays).
+
+    Several senders (source addresses, `feed(..., sender=)`) are assembled apart, each its own
+    clock domain: a second sender's /VMC/Ext/T closes none of the first's frames, and a jump of
+    its clock starts only its own clock over in the buffer.
     """
 
     space = "local"
+    by_sender = True
+    """The transport passes each datagram's source address (`feed(..., sender=)`)."""
 
     def __init__(self, bones: tuple[str, ...] = HUMAN_BODY_BONES) -> None:
         self.bones: tuple[str, ...] = (ROOT, *bones)
         self._index = {name: i for i, name in enumerate(self.bones)}
         self.counters = DecodeCounters()
-        self._pending: dict[int, list] = {}
-        self._sender_time = False
         self._hips = self._index["Hips"] if "Hips" in self._index else -1
-        self._root_pose: tuple[np.ndarray, np.ndarray] | None = None
-        """The last good Root/Pos (position, (w, x, y, z)), right-handed."""
-        self._hips_offset: np.ndarray | None = None
-        """The last good Hips Bone/Pos position (its local offset), right-handed."""
-        self._blend_pending: dict[str, float] = {}
-        """Blend/Val values waiting for Blend/Apply."""
-        self._blend_applied: dict[str, float] = {}
-        """Values applied since the last frame closed: the next frame carries them."""
+        self._senders: dict[Hashable, _Sender] = {}
+        """Each sender's partial frame, least recently heard first (at most MAX_SENDERS)."""
         self._blend_names: set[str] = set()
 
     @property
     def buffered(self) -> int:
-        """Bone values waiting for the frame to close (at most one per known bone)."""
-        return len(self._pending)
+        """Bone values waiting for their frames to close (at most one per known bone and
+        sender)."""
+        return sum(len(sender.pending) for sender in self._senders.values())
 
     def reset(self) -> None:
-        self._pending.clear()
+        for sender in self._senders.values():
+            sender.pending.clear()
 
-    def feed(self, data: bytes, received: float) -> list[SourceFrame]:
+    def _sender(self, key: Hashable) -> _Sender:
+        """The state of the sender at `key`, the most recently heard from now."""
+        sender = self._senders.pop(key, None)
+        if sender is None:
+            slots = {s.slot for s in self._senders.values()}
+            if len(self._senders) >= MAX_SENDERS:
+                slots.discard(self._senders.pop(next(iter(self._senders))).slot)
+            sender = _Sender(min(set(range(MAX_SENDERS)) - slots))
+        self._senders[key] = sender
+        return sender
+
+    def feed(self, data: bytes, received: float, sender: Hashable = None) -> list[SourceFrame]:
+        """The frames `data` completes; `sender` (the datagram's source address) keeps each
+        sender's frames and clock apart."""
         c = self.counters
         c.packets += 1
         if not bundle_sizes_fit(data):
             c.malformed += 1  # python-osc would take the element's claimed size on trust
             return []
+        state = self._sender(sender)
         frames: list[SourceFrame] = []
         flat = _flat_messages(data)
         if flat is None:  # nested bundles (python-osc orders them by time tag) or not OSC
@@ -132,12 +155,12 @@ class VmcDecoder:
                 c.malformed += 1
                 return []
             for timed in messages:
-                self._message(timed.message.address, timed.message.params, received, frames)
+                self._message(state, timed.message.address, timed.message.params, received, frames)
             return frames
         for element in flat:
             fast = _bone_message(element)
             if fast is not None:  # the hot path: one struct unpack, no python-osc objects
-                self._message(fast[0], fast[1], received, frames)
+                self._message(state, fast[0], fast[1], received, frames)
                 continue
             try:
                 messages = OscPacket(element).messages
@@ -145,13 +168,13 @@ class VmcDecoder:
                 c.malformed += 1
                 continue
             for timed in messages:
-                self._message(timed.message.address, timed.message.params, received, frames)
+                self._message(state, timed.message.address, timed.message.params, received, frames)
         return frames
 
     def _message(
-        self, address: str, params: list, received: float, frames: list[SourceFrame]
+        self, state: _Sender, address: str, params: list, received: float, frames: list[SourceFrame]
     ) -> None:
-        """One OSC message: a bone value collected, a frame closed, or a count."""
+        """One OSC message of a sender: a bone value collected, a frame closed, or a count."""
         c = self.counters
         c.messages += 1
         if address == BONE_POS or address == ROOT_POS:
@@ -172,13 +195,13 @@ class VmcDecoder:
                 if index <= 0:  # unknown, or a bone calling itself Root
                     c.unknown_bones += 1
                     return
-            self._pending[index] = params[1:8]
+            state.pending[index] = params[1:8]
         elif address == BLEND_VAL:
             if (
                 len(params) < 2
                 or type(params[0]) is not str
                 or type(params[1]) not in _NUMBER
-                or not math.isfinite(params[1])
+                or not abs(params[1]) <= MAX_BLEND_WEIGHT  # NaN, Inf or absurd
                 or (
                     params[0] not in self._blend_names and len(self._blend_names) >= MAX_BLEND_NAMES
                 )
@@ -186,40 +209,42 @@ class VmcDecoder:
                 c.malformed += 1
                 return
             self._blend_names.add(params[0])
-            self._blend_pending[params[0]] = float(params[1])
+            state.blend_pending[params[0]] = float(params[1])
         elif address == BLEND_APPLY:
-            self._blend_applied.update(self._blend_pending)
-            self._blend_pending.clear()
+            state.blend_applied.update(state.blend_pending)
+            state.blend_pending.clear()
         elif address == OK:
-            if not self._sender_time:
-                frame = self._close(received)
+            if not state.sender_time:
+                frame = self._close(state, received)
                 if frame is not None:
                     frames.append(frame)
         elif address == TIME:
             if not params or type(params[0]) not in _NUMBER or not math.isfinite(params[0]):
                 c.malformed += 1
                 return
-            self._sender_time = True
-            frame = self._close(float(params[0]))
+            state.sender_time = True
+            frame = self._close(state, float(params[0]))
             if frame is not None:
                 frames.append(frame)
         else:
             c.ignored += 1
 
-    def _close(self, timestamp: float) -> SourceFrame | None:
-        """The frame of the bone values collected so far, or None if there are none valid."""
+    def _close(self, state: _Sender, timestamp: float) -> SourceFrame | None:
+        """The sender's frame of the bone values collected so far, or None if none is valid."""
         c = self.counters
-        weights, self._blend_applied = self._blend_applied or None, {}
-        if not self._pending:
+        weights, state.blend_applied = state.blend_applied or None, {}
+        # T's clock and the receive clock are different streams (the first frames of a sender
+        # that sends T close on OK with receive times): no false clock reset between them.
+        stream = 2 * state.slot + (1 if state.sender_time else 0)
+        if not state.pending:
             if weights is None:
                 return None
             c.frames += 1  # a face stream's frame: weights, no bones
-            stream = 1 if self._sender_time else 0
             empty = np.zeros(0, dtype=np.int64)
             return SourceFrame(stream, timestamp, empty, np.zeros((0, 4)), None, weights)
-        indices = np.fromiter(self._pending, dtype=np.int64, count=len(self._pending))
-        values = np.array(list(self._pending.values()), dtype=np.float64)  # (k, 7)
-        self._pending.clear()
+        indices = np.fromiter(state.pending, dtype=np.int64, count=len(state.pending))
+        values = np.array(list(state.pending.values()), dtype=np.float64)  # (k, 7)
+        state.pending.clear()
         with np.errstate(invalid="ignore"):
             finite_pos = np.all(np.abs(values[:, :3]) <= MAX_POSITION, axis=1)
         positions, quats = unity_to_right_handed(values[:, :3], values[:, 3:7])
@@ -229,36 +254,62 @@ class VmcDecoder:
         if not ok.any():
             if weights is None:
                 return None
-            stream = 1 if self._sender_time else 0
             c.frames += 1
             return SourceFrame(stream, timestamp, indices[:0], quats[:0], None, weights)
-        root_position = self._root_motion(indices, positions, quats, ok)
+        root_position = self._root_motion(state, indices, positions, quats, ok)
         c.frames += 1
         c.samples += int(np.count_nonzero(ok))
-        # T's clock and the receive clock are different streams (the first frames of a sender
-        # that sends T close on OK with receive times): no false clock reset between them.
-        stream = 1 if self._sender_time else 0
         return SourceFrame(stream, timestamp, indices[ok], quats[ok], root_position, weights)
 
     def _root_motion(
-        self, indices: np.ndarray, positions: np.ndarray, quats: np.ndarray, ok: np.ndarray
+        self,
+        state: _Sender,
+        indices: np.ndarray,
+        positions: np.ndarray,
+        quats: np.ndarray,
+        ok: np.ndarray,
     ) -> np.ndarray | None:
         """The frame's root position by the class's rule (None when this frame moved neither
         Root nor Hips: the buffer keeps the last one)."""
         moved = False
         for k in np.flatnonzero(ok & ((indices == 0) | (indices == self._hips))):
             if indices[k] == 0:
-                self._root_pose = (positions[k], quats[k])
+                state.root_pose = (positions[k], quats[k])
             else:
-                self._hips_offset = positions[k]
+                state.hips_offset = positions[k]
             moved = True
         if not moved:
             return None
-        offset = np.zeros(3) if self._hips_offset is None else self._hips_offset
-        if self._root_pose is None:
+        offset = np.zeros(3) if state.hips_offset is None else state.hips_offset
+        if state.root_pose is None:
             return offset.copy()
-        position, rotation = self._root_pose
+        position, rotation = state.root_pose
         return position + _rotate(rotation, offset)
+
+
+class _Sender:
+    """What one sender has sent towards its next frame, and what its frames carry over."""
+
+    __slots__ = (
+        "blend_applied", "blend_pending", "hips_offset", "pending", "root_pose", "sender_time",
+        "slot",
+    )  # fmt: skip
+
+    def __init__(self, slot: int) -> None:
+        self.slot = slot
+        """Its place among the senders (0..MAX_SENDERS-1): its streams are 2 slot (receive
+        times) and 2 slot + 1 (its /VMC/Ext/T clock)."""
+        self.pending: dict[int, list] = {}
+        self.sender_time = False
+        """Whether it has sent /VMC/Ext/T: then only T closes its frames, with T's time."""
+        self.root_pose: tuple[np.ndarray, np.ndarray] | None = None
+        """The last good Root/Pos (position, (w, x, y, z)), right-handed."""
+        self.hips_offset: np.ndarray | None = None
+        """The last good Hips Bone/Pos position (its local offset), right-handed."""
+        self.blend_pending: dict[str, float] = {}
+        """Blend/Val values waiting for Blend/Apply."""
+        self.blend_applied: dict[str, float] = {}
+        """Values applied since the last frame closed: the next frame carries them."""
 
 
 BUNDLE = b"#bundle\0"

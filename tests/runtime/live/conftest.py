@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import socket
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 
@@ -59,3 +61,42 @@ def udp_port_bound(port: int) -> bool:
 @pytest.fixture
 def free_tcp_port() -> int:
     return free_port()
+
+
+class FrameDriver:
+    """Drives a `rigspace live` run in this process by the frames it renders: every
+    Engine.render (the warm-up's first) calls `on_frame(engine, frame)`; when it returns True
+    the run stops as Ctrl-C stops it (it still writes its report, video and take). So a test
+    waits on what the code under test does (a frame rendered, a status reached), never on the
+    clock; `--seconds` is only the bound of a run that never gets there."""
+
+    def __init__(self, monkeypatch, on_frame: Callable) -> None:
+        from rigspace.runtime.engine import Engine
+
+        self.frames = 0
+        real = Engine.render
+
+        def render(engine, time_code):
+            frame = real(engine, time_code)
+            self.frames += 1
+            # Only inside the live loop (not the warm-up frame), where Ctrl-C is caught.
+            if on_frame(engine, frame) and self.frames > 1:
+                raise KeyboardInterrupt
+            return frame
+
+        monkeypatch.setattr(Engine, "render", render)
+
+
+class Sender:
+    """The CMU clip over VMC to `url` from a process of its own (tests/runtime/live/
+    vmc_sender.py: a renderer holding this process's GIL cannot starve it), in real time,
+    looping, until closed; `turn` degrees turns its hips (poses the clip never has). Each
+    Sender is a new sender process: a new source port, its /VMC/Ext/T from 0."""
+
+    def __init__(self, url: str, turn: float = 0.0) -> None:
+        command = [sys.executable, "-m", "tests.runtime.live.vmc_sender", url, "--turn", str(turn)]
+        self.process = subprocess.Popen(command, cwd=REPO)
+
+    def close(self) -> None:
+        self.process.terminate()
+        self.process.wait(30)

@@ -288,6 +288,45 @@ def test_connect_reconnect_and_loss_move_no_joint_more_than_10_degrees_a_tick(sk
     np.testing.assert_allclose(lost, [roots[int(2.0 / step)]] * len(lost), atol=1e-6)  # in place
 
 
+def test_a_transition_cut_short_by_a_gap_or_a_reconnect_moves_no_joint_more_than_10_degrees(skel):
+    """Transitions that do not finish: a connect's fade cut by a gap (stale), then a reconnect,
+    then a loss whose fade back is cut by a reconnect. Each new fade starts from what the screen
+    shows (the blend so far), so no joint turns more than 10 deg in a 30 fps tick (before: a
+    reconnect during the loss's fade started from the stage animation, a 60-70 deg pop)."""
+    from rigspace.runtime.live.source_frame import SourceFrame
+
+    _, skel_prim, local = skel
+    runtime = open_binding(binding("vmc://127.0.0.1:1"), skel_prim, 0.01)  # never started
+    bones = runtime.source.bones
+    arm = [bones.index("LeftUpperArm"), bones.index("RightUpperArm"), bones.index("Hips")]
+
+    def frame(t: float, angle: float) -> SourceFrame:
+        q = np.tile([np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)], (3, 1))
+        return SourceFrame(0, t, np.array(arm), q, np.array([0.0, 0.95, 0.0]))
+
+    lost_after = runtime.buffer.settings.lost_after  # 2 s: 4 x the 0.5 s timeout
+    phases = [  # (until, angle or None for a gap)
+        (0.2, 2.1),  # a connect, its fade (0.5 s or more) cut short by...
+        (0.9, None),  # ...a gap: stale
+        (1.3, -2.1),  # a reconnect to a pose far away, cut short again
+        (1.5 + lost_after + 0.15, None),  # lost, 0.15 s into the fade back to the stage
+        (4.5 + lost_after, 2.1),  # a reconnect during that fade
+    ]
+    shown, statuses, step, t = [], [], 1 / 30, 0.0
+    for until, angle in phases:
+        while t < until:
+            if angle is not None:
+                runtime.buffer.push(frame(t, angle), t)
+            out, pose = runtime.apply_frame(local, now=t + 0.001)
+            shown.append(out)
+            statuses.append(pose.status)
+            t += step
+    assert {"stale", "lost", "connected"} <= set(statuses)
+    per_tick = np.array([_joint_angles(a, b).max() for a, b in itertools.pairwise(shown)])
+    assert per_tick.max() <= 10.0, (np.argmax(per_tick), statuses[np.argmax(per_tick)])
+    assert _joint_angles(shown[-1], runtime.apply(local, now=t)[0]).max() < 1e-6  # arrived
+
+
 def test_a_bvh_binding_and_a_vmc_binding_pose_the_character_alike(skel):
     """Issue 21's pelvis rule through open_binding itself: the clip replayed as BVH (the cmu
     preset, the clip's own rest) and the same clip as `live send` puts it on the humanoid,

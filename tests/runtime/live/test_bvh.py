@@ -88,6 +88,23 @@ def test_stream_decodes_lines_split_anywhere_and_axis_neuron_prefix(cmu):
     assert decoder.counters.malformed == 0
 
 
+def test_stream_frames_ended_by_the_axis_neuron_terminator_alone_decode(cmu):
+    """Axis Neuron ends each frame with `||`, not always followed by a newline: every frame
+    decodes, whether `||` ends the read, is split across reads or is followed by CR LF."""
+    skeleton, motion, _ = cmu
+    decoder = BvhStreamDecoder(skeleton)
+    frames = [b"0 Avatar00 " + line.rstrip() + b" ||" for line in clip_lines(motion, range(6))]
+    frames[4] += b"\r\n"  # some versions end the terminator's line too
+    data = b"".join(frames)
+    got = decoder.feed(data[:-1], 0.0)  # the last frame's terminator cut in two
+    assert len(got) == 5 and decoder.counters.malformed == 0
+    got += decoder.feed(data[-1:], 1.0)
+    assert len(got) == 6 and decoder.counters.malformed == 0
+    expected, _ = skeleton.pose(np.round(motion[:6], 4))
+    np.testing.assert_allclose(np.stack([f.rotations for f in got]), expected, atol=1e-12)
+    assert decoder.buffered == 0
+
+
 def test_stream_counts_malformed_lines(cmu):
     skeleton, motion, _ = cmu
     decoder = BvhStreamDecoder(skeleton)
@@ -120,7 +137,7 @@ def serve_lines(server: socket.socket, lines: list[bytes], done: threading.Event
     conn, _ = server.accept()
     with conn:
         conn.sendall(b"".join(lines))
-        done.wait(5)
+        done.wait(60)  # until the test has read the lines (a bound, never waited out)
 
 
 def test_tcp_client_reads_and_reconnects(cmu, free_tcp_port):

@@ -55,19 +55,29 @@ def test_a_still_source_costs_a_reused_frame_and_every_frame_reports_the_binding
         assert moved.report["characters"][0]["live"][0]["status"] == "connected"
         assert moved.report["characters"][0]["decision"] == "evaluated"
         # The connect fades in from the stage pose (issue 21: no pop); the held pose after it.
+        # The performer holds still meanwhile (a gap would hold the fade where it was).
         assert runtime.fading
-        assert wait_for(lambda: engine.render(11.0) is not None and not runtime.fading)
-        send_pose(port, HELD, held_pose(0.6), 0.05)
-        assert wait_for(lambda: runtime.counters().samples >= 4 * len(HELD))
+        sent = [3]
+
+        def holding() -> bool:
+            send_pose(port, HELD, held_pose(0.6), 0.01 * sent[0])
+            sent[0] += 1
+            samples = sent[0] * (len(HELD) + 1)  # and Root
+            assert wait_for(lambda: runtime.counters().samples >= samples)
+            engine.render(11.0)
+            return not runtime.fading
+
+        assert wait_for(holding)
+        holding()  # one more sample of the held pose, after the fade
         # A later stage time, the same live pose: the character's layer is reused (no network
         # call), while the set's props go on moving with the stage.
         still = engine.render(12.0)
         assert still.report["characters"][0]["decision"] == "reused"
         assert still.report["seconds"]["network"] < 1e-4  # no network evaluation
-        assert still.report["live"][0]["samples"] == 4 * (len(HELD) + 1)  # and Root
+        assert still.report["live"][0]["samples"] == sent[0] * (len(HELD) + 1)
         # The same time code with a new live pose is not the last frame repeated.
-        send_pose(port, HELD, held_pose(-0.4), 0.06)
-        assert wait_for(lambda: runtime.counters().samples >= 5 * len(HELD))
+        send_pose(port, HELD, held_pose(-0.4), 0.01 * sent[0])
+        assert wait_for(lambda: runtime.counters().samples >= (sent[0] + 1) * (len(HELD) + 1))
         changed = engine.render(12.0)
         assert "repeat_of_last_frame" not in changed.report
         assert changed.report["characters"][0]["decision"] == "evaluated"

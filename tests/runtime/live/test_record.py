@@ -86,7 +86,7 @@ def test_a_recorded_take_replays_onto_its_skeleton_exactly(tmp_path):
     runtime = open_binding(binding, skel_prim, 0.01)
     runtime.start()
     try:
-        assert runtime.source.finished.wait(5)  # type: ignore[attr-defined]
+        assert runtime.source.finished.wait(60)  # type: ignore[attr-defined]
         assert wait_for(lambda: runtime.buffer.samples == 30 * 22)
         out, _ = runtime.apply(np.array(UsdSkel.MakeTransforms(
             anim.GetTranslationsAttr().Get(0), anim.GetRotationsAttr().Get(0), anim.GetScalesAttr().Get(0)
@@ -259,7 +259,7 @@ def test_a_take_of_a_face_records_its_blend_shape_weights_and_replays_them(tmp_p
     buffer = LiveBuffer(source.bones)
     source.start(buffer)
     try:
-        assert source.finished.wait(10)  # type: ignore[attr-defined]
+        assert source.finished.wait(60)  # type: ignore[attr-defined]
         assert wait_for(lambda: buffer.pose().weights.get("jawOpen") == 1.0)
         assert buffer.pose().weights == {"jawOpen": 1.0, "blink": 0.0}
     finally:

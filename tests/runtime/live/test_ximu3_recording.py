@@ -56,7 +56,7 @@ def test_lower_body_recording_through_ptys():
             writer = threading.Thread(target=os.write, args=(leader, text.encode()))
             writer.start()
             writers.append(writer)
-        assert wait_for(lambda: buffer.samples == ROWS * len(SENSORS), timeout=10)
+        assert wait_for(lambda: buffer.samples == ROWS * len(SENSORS), timeout=60)
         pose = buffer.pose()
     finally:
         for w in writers:
