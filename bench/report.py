@@ -130,29 +130,35 @@ def _texture(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def _premise(r: dict[str, Any]) -> list[str]:
-    cross = r.get("crossover")
-    where = (
-        f"The mesh path costs as much as the network at about {cross / 1e3:,.0f}k triangles."
-        if cross
-        else "The measured rows do not cross."
-    )
+    from rigspace.bench.premise import crossover_sentence
+
     lines = [
         "## The premise: the mesh path against the network, by triangles",
         "",
         "The sample character subdivided (1 -> 4 triangles a step), in the previs shot at "
-        "640x360: per frame the skinned mesh drawn by the renderer (`--reference`: blend shapes, "
-        "skinning, normals, raster and shading) against the network's maps (albedo branch); "
-        f"medians over 4 frames, ms. {where} ![premise](premise.png)",
+        "640x360, one frame of each path in turn; medians over 4 frames, ms. The mesh path: the "
+        "skinned mesh drawn by the renderer as the character's layer (`--reference`), skinned as "
+        "a user's CPU path skins it (sdk/skinning.py: numba LBS over the joints' skinning "
+        "matrices, blend shapes, normals; equal to UsdSkel's skinning); its posing + skinning + "
+        "raster is the frame's rig and network stages (the reference mode draws the mesh in the "
+        "network's stage), its skinning the bench's own timing of the posed meshes. The network "
+        "path as `rigspace render` runs by default (textures on): its network is the bench's "
+        "timing of the bundle's graphs, its textures the sampler's. On a GPU the mesh path would "
+        "skin in a vertex shader; that path is not built here (future work). "
+        f"{crossover_sentence(r['rows'])} ![premise](premise.png)",
         "",
-        "| triangles | mesh path ms | of which posing + raster (scene stage) | network path ms "
-        "| of which network | mesh MiB | network MiB |",
-        "|---|---|---|---|---|---|---|",
+        "| triangles | mesh path ms | of which posing + skinning + raster | of which skinning "
+        "| network path ms | of which network (graphs) | of which textures | mesh MiB "
+        "| network MiB |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for row in r["rows"]:
         lines.append(
-            f"| {row['triangles']:,} | {row['mesh_ms']:.1f} | {row['mesh_scene_ms']:.1f} | "
-            f"{row['network_ms']:.1f} | {row['network_stage_ms']:.1f} | "
-            f"{row['mesh_mib']:.1f} | {row['network_mib']:.1f} |"
+            f"| {row['triangles']:,} | {_f(row['mesh_ms'])} | "
+            f"{_f(row.get('mesh_pose_raster_ms'))} | {_f(row.get('mesh_skinning_ms'))} | "
+            f"{_f(row['network_ms'])} | {_f(row.get('network_graphs_ms'))} | "
+            f"{_f(row.get('network_texture_ms'))} | {_f(row['mesh_mib'])} | "
+            f"{_f(row['network_mib'])} |"
         )
     return lines
 

@@ -6,7 +6,8 @@ rigspace:animationSource, else the one UsdSkel binds to the skeleton, its own or
 inherited from the SkelRoot: sdk/bindings.py) through UsdSkel's AnimQuery/AnimMapper,
 so a live source can later replace them before `UsdSkel.ConcatJointTransforms` (the
 seam the runtime uses). Skinning is USD's own
-`SkinningQuery.ComputeSkinnedPoints`. Matrices leave this module as numpy in the
+`SkinningQuery.ComputeSkinnedPoints` (the reference; sdk.skinning.CompiledRig replaces it and
+the normals with compiled kernels, the mesh path a CPU user runs). Matrices leave this module as numpy in the
 column-vector convention (p' = M @ p); Gf matrices are row-vector (camera.from_gf).
 """
 
@@ -222,6 +223,38 @@ class CharacterRig:
 
     # -- skinned meshes -----------------------------------------------------------------
 
+    def _world_points(
+        self,
+        mesh: _SkinnedMesh,
+        skinning: Vt.Matrix4dArray,
+        to_world: np.ndarray,
+        weights: np.ndarray | None,
+        time: float,
+    ) -> np.ndarray:
+        """(N, 3) float32 world points of `mesh`: its blend shapes at `weights`, UsdSkel's
+        skinning by `skinning` (inverse bind * skeleton-space joint), then `to_world`
+        (column-vector). The seam sdk.skinning.CompiledRig replaces."""
+        points = Vt.Vec3fArray.FromNumpy(mesh.parts[0].rest_points)
+        if mesh.shapes is not None and weights is not None:
+            if not mesh.shapes.apply(np.asarray(weights, dtype=np.float32), points):
+                raise SceneError(
+                    f"UsdSkel could not apply the blend shapes of "
+                    f"{mesh.query.GetPrim().GetPath()} at time {time}.",
+                    "check its skel:blendShapes, skel:blendShapeTargets and each "
+                    "BlendShape's offsets and pointIndices (rigspace inspect names them).",
+                )
+        if not mesh.query.ComputeSkinnedPoints(skinning, points, Usd.TimeCode(time)):
+            raise SceneError(
+                f"UsdSkel could not skin {mesh.query.GetPrim().GetPath()} at time {time}.",
+                "check its jointIndices/jointWeights against the skeleton's joints.",
+            )
+        p = np.asarray(points, dtype=np.float64)
+        return (p @ to_world[:3, :3].T + to_world[:3, 3]).astype(np.float32)
+
+    def _normals(self, mesh: _SkinnedMesh, world: np.ndarray) -> np.ndarray:
+        """(N, 3) float32 unit vertex normals of `mesh` posed at `world`."""
+        return vertex_normals(world, np.concatenate([p.triangles for p in mesh.parts]))
+
     def posed_meshes(
         self,
         time: float,
@@ -244,24 +277,9 @@ class CharacterRig:
             weights = self.blend_weights(time)
         meshes = []
         for mesh in self._meshes:
-            points = Vt.Vec3fArray.FromNumpy(mesh.parts[0].rest_points)
-            if mesh.shapes is not None and weights is not None:
-                if not mesh.shapes.apply(np.asarray(weights, dtype=np.float32), points):
-                    raise SceneError(
-                        f"UsdSkel could not apply the blend shapes of "
-                        f"{mesh.query.GetPrim().GetPath()} at time {time}.",
-                        "check its skel:blendShapes, skel:blendShapeTargets and each "
-                        "BlendShape's offsets and pointIndices (rigspace inspect names them).",
-                    )
-            if not mesh.query.ComputeSkinnedPoints(skinning, points, Usd.TimeCode(time)):
-                raise SceneError(
-                    f"UsdSkel could not skin {mesh.query.GetPrim().GetPath()} at time {time}.",
-                    "check its jointIndices/jointWeights against the skeleton's joints.",
-                )
-            p = np.asarray(points, dtype=np.float64)
-            world = (p @ to_world[:3, :3].T + to_world[:3, 3]).astype(np.float32)
+            world = self._world_points(mesh, skinning, to_world, weights, time)
             # Normals once per pose, not once per camera that renders it.
-            normals = vertex_normals(world, np.concatenate([p.triangles for p in mesh.parts]))
+            normals = self._normals(mesh, world)
             freeze(world, normals)  # renderers keep what they build from them (DrawMesh)
             for part in mesh.parts:
                 drawn = part.draw_mesh(world, normals)
