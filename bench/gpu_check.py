@@ -47,6 +47,8 @@ from typing import Any
 
 import numpy as np
 
+from rigspace.sdk.files import write_atomic
+
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "samples" / "models" / "sample"
 PREVIS = ROOT / "samples" / "scenes" / "previs.usda"
@@ -394,7 +396,7 @@ def main(argv: list[str] | None = None) -> int:
                 }
             result["seconds"][name] = round(time.monotonic() - start, 1)
             if args.out:
-                Path(args.out).write_text(json.dumps(result, indent=2, default=str) + "\n")
+                write_atomic(args.out, json.dumps(result, indent=2, default=str) + "\n")
     print(markdown(result))
     return 0
 

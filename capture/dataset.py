@@ -26,7 +26,6 @@ import copy
 import hashlib
 import io
 import json
-import os
 import shlex
 import zipfile
 from collections.abc import Sequence
@@ -42,6 +41,7 @@ from rigspace.sdk.charts import ChartTable, parse_charts
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.exr import read_exr
 from rigspace.sdk.fields import DATASET_MANIFEST, problems
+from rigspace.sdk.files import write_atomic
 from rigspace.sdk.render import Maps
 
 FORMAT = "rigspace.dataset"
@@ -501,12 +501,6 @@ def sha256_file(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-
-
 def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
     """An .npz (np.load reads it) with fixed zip timestamps, so equal arrays give equal bytes.
 
@@ -614,7 +608,7 @@ def write_charts(folder: Path, charts: ChartTable) -> None:
     then its samples have no texture AOVs either)."""
     path = folder / CHARTS_FILE
     if len(charts):
-        write_atomic(path, (json.dumps(charts.to_json(), indent=2) + "\n").encode())
+        write_atomic(path, json.dumps(charts.to_json(), indent=2) + "\n")
     else:
         path.unlink(missing_ok=True)
 
@@ -746,8 +740,7 @@ def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> 
         checksum=_dataset_checksum(folder, table, params_bytes, charted=charts is not None),
         settings=json.loads(json.dumps(settings.to_json())),  # as read back: lists, not tuples
     )
-    text = json.dumps(manifest.to_json(), indent=2) + "\n"
-    write_atomic(folder / MANIFEST_FILE, text.encode())
+    write_atomic(folder / MANIFEST_FILE, json.dumps(manifest.to_json(), indent=2) + "\n")
     return manifest
 
 

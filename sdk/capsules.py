@@ -37,6 +37,7 @@ from pxr import Usd, UsdGeom, UsdSkel
 
 from rigspace.sdk.camera import from_gf
 from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.files import write_atomic
 from rigspace.sdk.posing import CharacterRig
 
 FORMAT = "rigspace.capsules"
@@ -152,10 +153,7 @@ def write_capsules(capsules: Capsules, path: str | Path) -> Path:
             )
         ],
     }
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    os.replace(tmp, path)
-    return path
+    return write_atomic(path, json.dumps(data, indent=2) + "\n")
 
 
 def read_capsules(path: str | Path) -> Capsules:

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rigspace.capture.dataset import write_atomic
+from rigspace.sdk.files import write_atomic
 
 AGREEMENT = 1e-5
 """Largest output difference a rewritten graph may show against the original (5e-7 seen)."""

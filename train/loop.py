@@ -22,7 +22,6 @@ import functools
 import io
 import json
 import math
-import os
 import sys
 import tempfile
 import time
@@ -39,6 +38,7 @@ from rigspace.capture.dataset import DatasetError, DatasetManifest, read_manifes
 from rigspace.sdk.cli import sigterm_as_interrupt
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.fields import TRAINING_RUN, problems, read_checked
+from rigspace.sdk.files import replacing, write_atomic
 from rigspace.train import distributed
 from rigspace.train.budget import Pace, apply_plan, plan_schedule
 from rigspace.train.callbacks import (
@@ -153,18 +153,17 @@ class TrainResult:
 
 def save_checkpoint(folder: Path, model, optimizer, step: int, level: int) -> Path:
     path = folder / CHECKPOINT
-    tmp = folder / f".{CHECKPOINT}.{os.getpid()}.tmp"
-    torch.save(
-        {
-            "model": model.state_dict(),
-            "optimizer": optimizer.state_dict(),
-            "step": step,
-            "level": level,
-            "torch_rng": torch.get_rng_state(),
-        },
-        tmp,
-    )
-    os.replace(tmp, path)
+    with replacing(path) as tmp:
+        torch.save(
+            {
+                "model": model.state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "step": step,
+                "level": level,
+                "torch_rng": torch.get_rng_state(),
+            },
+            tmp,
+        )
     return path
 
 
@@ -533,7 +532,7 @@ def _plan(
         if plan is not None:
             record = replace(record, plan=plan.to_json())
         run.out.mkdir(parents=True, exist_ok=True)
-        (run.out / RUN_FILE).write_text(json.dumps(record.to_json(), indent=2) + "\n")
+        write_atomic(run.out / RUN_FILE, json.dumps(record.to_json(), indent=2) + "\n")
     config, plan = ctx.share(lambda: (config, plan))  # rank 0 planned and wrote run.json
     if plan is not None:
         return config, plan.to_json()

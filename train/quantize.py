@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from rigspace.sdk.conditioning import Skeleton2D
+from rigspace.sdk.files import replacing
 from rigspace.train.int8check import drift, graph_feeds, named_outputs, rig_feeds, session
 
 COVERAGE_OUTPUTS = ("alpha", "mask")
@@ -215,18 +216,19 @@ def quantize(
     with tempfile.TemporaryDirectory() as tmp:
         prepared = Path(tmp) / "prepared.onnx"
         quant_pre_process(str(fp32), str(prepared), skip_symbolic_shape=True)
-        quantize_static(
-            str(prepared),
-            str(int8),
-            _Calibration(feeds),
-            quant_format=QuantFormat.QDQ,
-            activation_type=QuantType.QUInt8,
-            weight_type=QuantType.QInt8,
-            per_channel=True,
-            nodes_to_exclude=[*exclude, *pose_nodes(fp32), *softmax_nodes(fp32)],
-            calibrate_method=CalibrationMethod.MinMax,
-            extra_options={"TensorQuantOverrides": overrides},
-        )
+        with replacing(int8, ".onnx") as written:  # in place, in one step (requantize_bundle)
+            quantize_static(
+                str(prepared),
+                str(written),
+                _Calibration(feeds),
+                quant_format=QuantFormat.QDQ,
+                activation_type=QuantType.QUInt8,
+                weight_type=QuantType.QInt8,
+                per_channel=True,
+                nodes_to_exclude=[*exclude, *pose_nodes(fp32), *softmax_nodes(fp32)],
+                calibrate_method=CalibrationMethod.MinMax,
+                extra_options={"TensorQuantOverrides": overrides},
+            )
 
 
 def meets(metrics: dict[str, float | None], target: dict[str, float] | None = None) -> bool:
