@@ -183,6 +183,7 @@ def synthetic_bundle(folder: Path, resolution: int) -> Path:
     only: no ONNX graphs), for timing the torch predictor above 128."""
     import torch
 
+    from rigspace.sdk.bundle import write_manifest_document
     from rigspace.sdk.weights import write_safetensors
     from rigspace.train.network import TRUNK, Rig2Image
 
@@ -206,7 +207,7 @@ def synthetic_bundle(folder: Path, resolution: int) -> Path:
     write_safetensors(
         out / "weights.safetensors", {k: v.numpy() for k, v in model.state_dict().items()}
     )
-    (out / "manifest.json").write_text(json.dumps(manifest))
+    write_manifest_document(out, manifest)
     return out
 
 

@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import warnings
 from pathlib import Path
 from typing import Any
@@ -53,6 +52,7 @@ from rigspace.sdk.bundle import (
     FORMAT_VERSION,
     TEXTURE_BRANCH_VERSION,
     ModelManifest,
+    write_manifest_document,
 )
 from rigspace.sdk.capsules import FILE_NAME as CAPSULES
 from rigspace.sdk.capsules import read_capsules
@@ -236,11 +236,7 @@ def export_bundle(
         name: {"bytes": (out / name).stat().st_size, "sha256": _sha256(out / name)}
         for name in sorted(written)
     }
-    # The readers' type checks the document before it is written (sdk.bundle.ModelManifest).
-    ModelManifest.from_json(json.loads(json.dumps(manifest)), out / "manifest.json")
-    tmp = out / f".manifest.json.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
-    os.replace(tmp, out / "manifest.json")
+    write_manifest_document(out, manifest)  # checked as the readers check it, then written
     remove_stale(out, set(written))
     return manifest
 
