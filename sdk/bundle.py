@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from rigspace.sdk.errors import RigspaceError
-from rigspace.sdk.fields import BUNDLE_MANIFEST, problems
+from rigspace.sdk.fields import BUNDLE_MANIFEST, Size, problems
 from rigspace.sdk.files import write_atomic
 
 FORMAT = "rigspace.bundle"
@@ -74,7 +74,7 @@ class GraphFiles:
 class Level:
     """A level of detail: the output resolution and its branches' graphs."""
 
-    resolution: int
+    resolution: Size
     files: GraphFiles
 
 

@@ -37,7 +37,7 @@ import torch
 from rigspace.capture.dataset import DatasetError, DatasetManifest, read_manifest
 from rigspace.sdk.cli import sigterm_as_interrupt
 from rigspace.sdk.errors import RigspaceError
-from rigspace.sdk.fields import TRAINING_RUN, problems, read_checked
+from rigspace.sdk.fields import Field, problems, read_checked, spec_of
 from rigspace.sdk.files import replacing, write_atomic
 from rigspace.train import distributed
 from rigspace.train.budget import Pace, apply_plan, plan_schedule
@@ -138,6 +138,15 @@ class RunRecord:
         theirs = replace(other, config=other.train_config().to_json()).to_json()
         ours, theirs = json.loads(json.dumps(ours)), json.loads(json.dumps(theirs))
         return sorted(key for key in ours if theirs.get(key) != ours[key])
+
+
+TRAINING_RUN = (
+    *spec_of(RunRecord),
+    # plan is an open table (train.budget.Plan.to_json): the keys rigspace reads.
+    Field("plan.steps_per_level", "size", required=True),
+    Field("plan.seconds_per_step", "object"),
+)
+"""The fields of a training run's run.json (read_run), from RunRecord (sdk.fields.spec_of)."""
 
 
 @dataclass
@@ -273,7 +282,7 @@ def prepare_run(
 
 
 def read_run(folder: Path) -> RunRecord:
-    """A run folder's run.json, checked against its spec (sdk.fields.TRAINING_RUN) and typed: a
+    """A run folder's run.json, checked against its spec (TRAINING_RUN) and typed: a
     damaged or hand-edited file is a TrainingError naming the field, never a traceback."""
     path = folder / RUN_FILE
     return RunRecord.from_json(read_checked(path, TRAINING_RUN, TrainingError, RUN_FIX), path)
