@@ -175,7 +175,8 @@ def pack(
                 )
     for name in COPIED:
         if (folder / name).is_file():
-            shutil.copyfile(folder / name, out / name)
+            with replacing(out / name) as tmp:  # a pack made again over this one
+                shutil.copyfile(folder / name, tmp)
     index = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
