@@ -24,6 +24,7 @@ from typing import Any
 
 from rigspace.bench import report
 from rigspace.sdk.cli import CommandSpec
+from rigspace.sdk.files import write_atomic
 from rigspace.sdk.predictors import add_device_argument, add_predictor_argument
 
 DESCRIPTION = """\
@@ -213,10 +214,8 @@ def _pngs(out: Path) -> str:
 def _write(out: Path, result: dict[str, Any]) -> None:
     from rigspace.bench.report import markdown
 
-    tmp = out / f".results.json.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps(result, indent=1, default=_plain) + "\n")
-    os.replace(tmp, out / "results.json")
-    (out / "README.md").write_text(markdown(result, SECTIONS))
+    write_atomic(out / "results.json", json.dumps(result, indent=1, default=_plain) + "\n")
+    write_atomic(out / "README.md", markdown(result, SECTIONS))
 
 
 def _plain(value: Any) -> Any:

@@ -47,6 +47,8 @@ from typing import Any
 
 import numpy as np
 
+from rigspace.sdk.files import write_atomic
+
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "samples" / "models" / "sample"
 PREVIS = ROOT / "samples" / "scenes" / "previs.usda"
@@ -181,6 +183,7 @@ def synthetic_bundle(folder: Path, resolution: int) -> Path:
     only: no ONNX graphs), for timing the torch predictor above 128."""
     import torch
 
+    from rigspace.sdk.bundle import write_manifest_document
     from rigspace.sdk.weights import write_safetensors
     from rigspace.train.network import TRUNK, Rig2Image
 
@@ -204,7 +207,7 @@ def synthetic_bundle(folder: Path, resolution: int) -> Path:
     write_safetensors(
         out / "weights.safetensors", {k: v.numpy() for k, v in model.state_dict().items()}
     )
-    (out / "manifest.json").write_text(json.dumps(manifest))
+    write_manifest_document(out, manifest)
     return out
 
 
@@ -394,7 +397,7 @@ def main(argv: list[str] | None = None) -> int:
                 }
             result["seconds"][name] = round(time.monotonic() - start, 1)
             if args.out:
-                Path(args.out).write_text(json.dumps(result, indent=2, default=str) + "\n")
+                write_atomic(args.out, json.dumps(result, indent=2, default=str) + "\n")
     print(markdown(result))
     return 0
 

@@ -10,6 +10,7 @@ import numpy as np
 from rigspace.capture import dataset as ds
 from rigspace.sdk.color import linear_to_srgb
 from rigspace.sdk.exr import read_exr
+from rigspace.sdk.files import write_atomic
 from rigspace.sdk.render import Maps
 
 ROWS = 6
@@ -79,5 +80,5 @@ def write_contact_sheet(folder: Path) -> Path:
     ok, png = cv2.imencode(".png", contact_sheet(folder))
     if not ok:
         raise OSError(f"could not encode {path}")
-    ds.write_atomic(path, png.tobytes())
+    write_atomic(path, png.tobytes())
     return path

@@ -26,7 +26,6 @@ import copy
 import hashlib
 import io
 import json
-import os
 import shlex
 import zipfile
 from collections.abc import Sequence
@@ -41,7 +40,8 @@ from rigspace.capture.settings import CaptureSettings, Clip
 from rigspace.sdk.charts import ChartTable, parse_charts
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.exr import read_exr
-from rigspace.sdk.fields import DATASET_MANIFEST, problems
+from rigspace.sdk.fields import Field, Positive, Size, problems, spec_of
+from rigspace.sdk.files import write_atomic
 from rigspace.sdk.render import Maps
 
 FORMAT = "rigspace.dataset"
@@ -148,11 +148,11 @@ class ManifestRing:
     """The capture ring (manifest `ring`): its camera and its views. A hand-written manifest
     may give only the camera (radius, focal_length, horizontal_aperture): the rest reads empty."""
 
-    radius: float
+    radius: Positive
     """Distance from the look-at joint to every camera, scene units."""
-    focal_length: float
+    focal_length: Positive
     """Millimetres, as UsdGeom.Camera's focalLength."""
-    horizontal_aperture: float
+    horizontal_aperture: Positive
     """Millimetres, as UsdGeom.Camera's horizontalAperture."""
     views_per_ring: int = 0
     elevations: tuple[float, ...] = ()
@@ -200,7 +200,7 @@ class Renderer:
 
     name: str
     """The renderer's name ("gl" or "embree", the capture's --renderer)."""
-    samples_per_axis: int
+    samples_per_axis: Size
     """Supersamples per pixel along each axis."""
 
 
@@ -245,7 +245,7 @@ class DatasetManifest:
     joints: tuple[str, ...]
     """Skeleton joint names, in the order of params.npz's `rig` rows."""
     ring: ManifestRing
-    resolution: int
+    resolution: Size
     """Width and height of every sample, pixels."""
     format: str = FORMAT
     format_version: int = FORMAT_VERSION
@@ -262,7 +262,7 @@ class DatasetManifest:
     look_at_joint: str = ""
     rotation_encoding: str = "rot6d"
     up_axis: str = "Y"
-    meters_per_unit: float | None = None
+    meters_per_unit: Positive | None = None
     clips: tuple[Clip, ...] = ()
     renderer: Renderer | None = None
     channels: dict[str, str] = field(default_factory=dict, repr=False)
@@ -343,6 +343,20 @@ class DatasetManifest:
             "settings": copy.deepcopy(self.settings),
         }
         return {key: value for key, value in document.items() if value is not None}
+
+
+DATASET_MANIFEST = (
+    *spec_of(DatasetManifest, skip=("path", "format", "format_version")),
+    # counts is an open table (a count per split name): the keys rigspace writes.
+    Field("counts.samples", "count"),
+    Field("counts.items", "count"),
+    Field("counts.train", "count"),
+    Field("counts.heldout-views", "count"),
+    Field("counts.heldout-clips", "count"),
+)
+"""The fields of a dataset's manifest.json that rigspace reads (read_manifest), from
+DatasetManifest and its sections' dataclasses (sdk.fields.spec_of); the manifest's path is no
+key of it, and its format and version are checked before the spec."""
 
 
 def _view_keys(coverage: Any) -> list[str]:
@@ -501,12 +515,6 @@ def sha256_file(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-
-
 def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
     """An .npz (np.load reads it) with fixed zip timestamps, so equal arrays give equal bytes.
 
@@ -614,7 +622,7 @@ def write_charts(folder: Path, charts: ChartTable) -> None:
     then its samples have no texture AOVs either)."""
     path = folder / CHARTS_FILE
     if len(charts):
-        write_atomic(path, (json.dumps(charts.to_json(), indent=2) + "\n").encode())
+        write_atomic(path, json.dumps(charts.to_json(), indent=2) + "\n")
     else:
         path.unlink(missing_ok=True)
 
@@ -746,8 +754,7 @@ def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> 
         checksum=_dataset_checksum(folder, table, params_bytes, charted=charts is not None),
         settings=json.loads(json.dumps(settings.to_json())),  # as read back: lists, not tuples
     )
-    text = json.dumps(manifest.to_json(), indent=2) + "\n"
-    write_atomic(folder / MANIFEST_FILE, text.encode())
+    write_atomic(folder / MANIFEST_FILE, json.dumps(manifest.to_json(), indent=2) + "\n")
     return manifest
 
 

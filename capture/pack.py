@@ -21,7 +21,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import os
 import shutil
 import sys
 import tarfile
@@ -33,6 +32,7 @@ from tqdm import tqdm
 
 from rigspace.capture import dataset as ds
 from rigspace.capture.ring import SPLITS
+from rigspace.sdk.files import replacing, write_atomic
 
 INDEX_FILE = "index.json"
 SHARDS_FOLDER = "shards"
@@ -73,36 +73,33 @@ def write_shard(
     bar: tqdm | None = None,
 ) -> dict[str, Any]:
     """One shard of `rows` (atomically), each sample's EXR checked against its recorded sha256."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with tarfile.open(tmp, "w", format=tarfile.USTAR_FORMAT) as tar:
-        for row in rows:
-            relative = str(table["path"][row])
-            try:
-                exr = (folder / relative).read_bytes()
-            except OSError as exc:
-                tmp.unlink(missing_ok=True)
-                raise ds.DatasetError(
-                    f"Sample {folder / relative} cannot be read ({exc.strerror or exc}).",
-                    f"re-render it with `{ds.resume_command(folder)}`, then pack again.",
-                ) from exc
-            if hashlib.sha256(exr).hexdigest() != str(table["sha256"][row]):
-                tmp.unlink(missing_ok=True)
-                raise ds.DatasetError(
-                    f"Sample {folder / relative} differs from its recorded checksum (damaged).",
-                    f"repair the dataset with `{ds.resume_command(folder)}`, then pack again.",
-                )
-            key = sample_key(int(row))
-            tar.addfile(*_member(f"{key}.exr", exr))
-            columns = {name: column[row] for name, column in table.items()}
-            tar.addfile(*_member(f"{key}.npz", ds.npz_bytes(columns)))
-            if bar is not None:
-                bar.update(1)
-    digest = hashlib.sha256()
-    with tmp.open("rb") as stream:
-        while chunk := stream.read(1 << 20):
-            digest.update(chunk)
-    size = tmp.stat().st_size
-    os.replace(tmp, path)
+    with replacing(path) as tmp:
+        with tarfile.open(tmp, "w", format=tarfile.USTAR_FORMAT) as tar:
+            for row in rows:
+                relative = str(table["path"][row])
+                try:
+                    exr = (folder / relative).read_bytes()
+                except OSError as exc:
+                    raise ds.DatasetError(
+                        f"Sample {folder / relative} cannot be read ({exc.strerror or exc}).",
+                        f"re-render it with `{ds.resume_command(folder)}`, then pack again.",
+                    ) from exc
+                if hashlib.sha256(exr).hexdigest() != str(table["sha256"][row]):
+                    raise ds.DatasetError(
+                        f"Sample {folder / relative} differs from its recorded checksum (damaged).",
+                        f"repair the dataset with `{ds.resume_command(folder)}`, then pack again.",
+                    )
+                key = sample_key(int(row))
+                tar.addfile(*_member(f"{key}.exr", exr))
+                columns = {name: column[row] for name, column in table.items()}
+                tar.addfile(*_member(f"{key}.npz", ds.npz_bytes(columns)))
+                if bar is not None:
+                    bar.update(1)
+        digest = hashlib.sha256()
+        with tmp.open("rb") as stream:
+            while chunk := stream.read(1 << 20):
+                digest.update(chunk)
+        size = tmp.stat().st_size
     return {"bytes": size, "sha256": digest.hexdigest()}
 
 
@@ -178,7 +175,8 @@ def pack(
                 )
     for name in COPIED:
         if (folder / name).is_file():
-            shutil.copyfile(folder / name, out / name)
+            with replacing(out / name) as tmp:  # a pack made again over this one
+                shutil.copyfile(folder / name, tmp)
     index = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -188,5 +186,5 @@ def pack(
         "shards": shards,
         "manifest": manifest.to_json(),
     }
-    ds.write_atomic(out / INDEX_FILE, (json.dumps(index, indent=1) + "\n").encode())
+    write_atomic(out / INDEX_FILE, json.dumps(index, indent=1) + "\n")
     return index

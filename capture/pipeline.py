@@ -46,6 +46,7 @@ from rigspace.sdk.capsules import fit_capsules, write_capsules
 from rigspace.sdk.cli import sigterm_as_interrupt
 from rigspace.sdk.exr import write_exr
 from rigspace.sdk.fields import CAPTURE_SETTINGS, read_checked
+from rigspace.sdk.files import write_atomic
 from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.render import DrawMesh, RenderSettings, choose_renderer
 from rigspace.sdk.rotations import rig_parameters
@@ -333,7 +334,7 @@ def prepare_folder(folder: Path, settings: CaptureSettings, resume: bool, sharde
         )
     try:
         (folder / "items").mkdir(parents=True, exist_ok=True)
-        ds.write_atomic(settings_file, (json.dumps(settings.to_json(), indent=2) + "\n").encode())
+        write_atomic(settings_file, json.dumps(settings.to_json(), indent=2) + "\n")
     except OSError as exc:
         raise CaptureError(
             f"--out {folder} cannot be written: {exc}.", "choose a writable location."

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from rigspace.capture.pipeline import capture
 from rigspace.capture.settings import CaptureOverrides
+from rigspace.sdk.files import write_atomic
 from rigspace.sdk.render import renderer_plugins
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -85,8 +86,9 @@ def main(argv: list[str] | None = None) -> None:
     rows = run(args.scene, args.character, (first, last), args.views, args.sizes, usable)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(
-            json.dumps({"command": "python -m rigspace.capture.rates", "rows": rows}, indent=2)
+        write_atomic(
+            args.json,
+            json.dumps({"command": "python -m rigspace.capture.rates", "rows": rows}, indent=2),
         )
 
 

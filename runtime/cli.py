@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 import time as clock
 from pathlib import Path
@@ -14,6 +13,7 @@ from typing import TYPE_CHECKING
 from rigspace.runtime.options import add_view_arguments, positive
 from rigspace.sdk.cli import CommandSpec, time_range
 from rigspace.sdk.errors import RigspaceError, SceneError
+from rigspace.sdk.files import write_atomic
 from rigspace.sdk.predictors import add_predictor_argument
 
 if TYPE_CHECKING:
@@ -219,10 +219,10 @@ def _render_frames(engine, truth, video, times, out: Path, aovs) -> tuple[list[d
 def _write_report(
     out: Path, args: argparse.Namespace, engine, warnings: list[str], reports: list[dict]
 ) -> None:
-    """report.json in `out`, replaced at once (written beside it, then renamed)."""
+    """report.json in `out`, replaced at once (sdk.files.write_atomic)."""
     width, height = args.resolution
-    tmp = out / f".report.json.{os.getpid()}.tmp"
-    tmp.write_text(
+    write_atomic(
+        out / "report.json",
         json.dumps(
             {
                 "scene": str(args.scene),
@@ -233,9 +233,8 @@ def _write_report(
             },
             indent=2,
         )
-        + "\n"
+        + "\n",
     )
-    os.replace(tmp, out / "report.json")
 
 
 def _print_totals(

@@ -3,6 +3,26 @@
 A bundle is a folder with `manifest.json` and the ONNX graphs it names. This module
 reads and checks the manifest; `rigspace.train` writes it and `rigspace.runtime` loads
 the graphs. Reading never executes anything from the bundle.
+
+One contract for reading and writing it:
+
+    read_manifest(folder) -> ModelManifest          what every reader uses: checked, typed
+    read_manifest_document(folder) -> dict          the same checks, the document itself
+    write_manifest_document(folder, document)       checked as a reader checks, then atomic
+
+Every writer (the export, int8 re-quantisation, eval's and --display's recorded metrics,
+the graph rewrite, capsules) reads the document, changes its sections and writes it back
+through write_manifest_document, so no writer can leave a manifest that a reader refuses:
+a document that fails the checks is a BundleError and nothing is written.
+
+Why a checked document and not ModelManifest writing itself: ModelManifest is a typed view
+of the fields the runtime reads (training_distance from training_camera.distance, the
+int8 judgement from int8_check), while much of the document is open-ended and only
+recorded (metrics, training, torch, int8_check, inputs, outputs, dataset). A full typed
+model of every section, and a to_json that writes each bundle back byte for byte (the
+committed bundles' sections are not even in the same order: the export's order changed
+between them), would be a second description of those sections to keep in step. Writers
+instead change only the sections they own and the rest passes through untouched.
 """
 
 from __future__ import annotations
@@ -13,9 +33,11 @@ from pathlib import Path
 from typing import Any
 
 from rigspace.sdk.errors import RigspaceError
-from rigspace.sdk.fields import BUNDLE_MANIFEST, problems
+from rigspace.sdk.fields import BUNDLE_MANIFEST, Size, problems
+from rigspace.sdk.files import write_atomic
 
 FORMAT = "rigspace.bundle"
+MANIFEST_FILE = "manifest.json"
 FORMAT_VERSION = 2
 """Written by this rigspace for the paper's rotations-only input. Version 2 added the albedo
 graphs' `alpha` (coverage) output."""
@@ -52,7 +74,7 @@ class GraphFiles:
 class Level:
     """A level of detail: the output resolution and its branches' graphs."""
 
-    resolution: int
+    resolution: Size
     files: GraphFiles
 
 
@@ -67,7 +89,7 @@ class TextureHead:
 
 @dataclass(frozen=True)
 class ModelManifest:
-    """What a model bundle's manifest.json declares (format versions 1 to 3), read and checked
+    """What a model bundle's manifest.json declares (format versions 1 to 4), read and checked
     once (read_manifest): every reader takes its sections from here, typed."""
 
     path: Path
@@ -118,25 +140,61 @@ class ModelManifest:
 
 def manifest_path(path: str | Path) -> Path:
     path = Path(path)
-    return path / "manifest.json" if path.is_dir() else path
+    return path / MANIFEST_FILE if path.is_dir() else path
 
 
 def read_manifest(path: str | Path) -> ModelManifest:
     """Read and check a bundle's manifest (a bundle folder or its manifest.json)."""
     file = manifest_path(path)
+    return _typed(_load(path, file), file)
+
+
+def read_manifest_document(path: str | Path) -> dict[str, Any]:
+    """A bundle's manifest document (a bundle folder or its manifest.json), checked as
+    read_manifest checks it (the same BundleError): what a writer changes and hands to
+    write_manifest_document."""
+    file = manifest_path(path)
+    data = _load(path, file)
+    _typed(data, file)
+    return data
+
+
+def write_manifest_document(folder: str | Path, document: dict[str, Any]) -> ModelManifest:
+    """Write `document` as the manifest.json of the bundle in `folder`, atomically, and return
+    it as read_manifest will read it. It is first checked as every reader checks it (the
+    format, version, joints and encoding, then the field spec): a document a reader would
+    refuse is a BundleError, and nothing is written.
+
+    The text is `json.dumps(document, indent=2)` and a newline, as every bundle so far was
+    written: a document read and written back unchanged gives the same bytes."""
+    file = Path(folder) / MANIFEST_FILE
+    text = json.dumps(document, indent=2) + "\n"
+    try:
+        manifest = _typed(json.loads(text), file)  # the document as a reader will see it
+    except BundleError as exc:
+        raise BundleError(
+            f"Refused to write {file}, which no reader would accept: {exc.what}",
+            "nothing was written and the bundle is as it was; this is a rigspace bug in the "
+            "command that wrote it: please report it with that command.",
+        ) from exc
+    write_atomic(file, text)
+    return manifest
+
+
+def _load(path: str | Path, file: Path) -> Any:
+    """The JSON in a bundle's manifest file (BundleError when there is none, or unreadable)."""
     if not file.is_file():
         raise BundleError(
             f"Model bundle {path}: there is no manifest.json at {file}.",
             "point rigspace:model at a folder written by `rigspace train` (or its manifest.json).",
         )
     try:
-        data = json.loads(file.read_text())
+        return json.loads(file.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise BundleError(
             f"Model bundle manifest {file} is not readable JSON ({exc}).",
             "re-export the bundle with `rigspace train`; the file is damaged.",
         ) from exc
-    return _typed(data, file)
 
 
 def _typed(data: Any, file: Path) -> ModelManifest:

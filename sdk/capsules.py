@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,8 +34,10 @@ from pathlib import Path
 import numpy as np
 from pxr import Usd, UsdGeom, UsdSkel
 
+from rigspace.sdk.bundle import MANIFEST_FILE, read_manifest_document, write_manifest_document
 from rigspace.sdk.camera import from_gf
 from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.files import write_atomic
 from rigspace.sdk.posing import CharacterRig
 
 FORMAT = "rigspace.capsules"
@@ -152,10 +153,7 @@ def write_capsules(capsules: Capsules, path: str | Path) -> Path:
             )
         ],
     }
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    os.replace(tmp, path)
-    return path
+    return write_atomic(path, json.dumps(data, indent=2) + "\n")
 
 
 def read_capsules(path: str | Path) -> Capsules:
@@ -180,19 +178,17 @@ def read_capsules(path: str | Path) -> Capsules:
 
 def add_to_bundle(capsules: Capsules, bundle: str | Path) -> Path:
     """Write capsules into a model bundle and name them in its manifest ("capsules"), leaving
-    every other manifest field as it was."""
+    every other manifest field as it was. The manifest is read and checked first (a
+    BundleError, and nothing written, when a reader would refuse it)."""
     bundle = Path(bundle)
-    manifest = bundle / "manifest.json"
-    if not manifest.is_file():
+    if not (bundle / MANIFEST_FILE).is_file():
         raise CapsuleError(
             f"{bundle} is not a model bundle (no manifest.json).", "pass the bundle's folder."
         )
+    data = read_manifest_document(bundle)
     written = write_capsules(capsules, bundle / FILE_NAME)
-    data = json.loads(manifest.read_text())
     data["capsules"] = FILE_NAME
-    tmp = manifest.with_name(f".manifest.json.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    os.replace(tmp, manifest)
+    write_manifest_document(bundle, data)
     return written
 
 

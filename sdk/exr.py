@@ -15,12 +15,12 @@ the visible surface's USD st (float32: a 4K texture needs 1/4096, and UDIM coord
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import OpenImageIO as oiio
 
+from rigspace.sdk.files import replacing
 from rigspace.sdk.render import Maps
 
 CHANNELS = ("R", "G", "B", "A", "Z", "N.X", "N.Y", "N.Z")
@@ -67,18 +67,18 @@ def write_channels(
     spec.attribute("DateTime", DATE_TIME)
     for key, value in (attributes or {}).items():
         spec.attribute(f"rigspace:{key}", value)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.exr")
-    out = oiio.ImageOutput.create(str(tmp))
-    if out is None or not out.open(str(tmp), spec):
-        raise ExrError(f"cannot write {path}: {oiio.geterror()}")
-    # write_image fails quietly on bad input (DESIGN.md): check its result.
-    ok = out.write_image(pixels)
-    error = out.geterror()
-    out.close()
-    if not ok:
-        tmp.unlink(missing_ok=True)
-        raise ExrError(f"cannot write {path}: {error}")
-    os.replace(tmp, path)
+    # Not fsynced (durable=False): a capture or a render writes thousands; a capture's work
+    # item record, written durably after its samples, holds their sha256 (resume redoes any lost).
+    with replacing(path, ".exr", durable=False) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None or not out.open(str(tmp), spec):
+            raise ExrError(f"cannot write {path}: {oiio.geterror()}")
+        # write_image fails quietly on bad input (DESIGN.md): check its result.
+        ok = out.write_image(pixels)
+        error = out.geterror()
+        out.close()
+        if not ok:
+            raise ExrError(f"cannot write {path}: {error}")
 
 
 def write_exr(

@@ -2,22 +2,34 @@
 
 A manifest edited by hand, written by another version or damaged can hold a string where a
 number belongs; read on trust, that is a traceback deep inside whatever uses the field (the
-billboard's maths, a level's loop). Each reader checks its file against its spec here first,
-so a wrong type is one named error from every command, and inspect checks with the same code.
+billboard's maths, a level's loop). Each reader checks its file against its spec first (the
+checks are here, with the specs written out; derived specs live beside their dataclasses), so
+a wrong type is one named error from every command, and inspect checks with the same code.
 
 A spec maps dotted paths to kinds: "levels[].resolution" is the `resolution` of every item of
 the list `levels`. A path whose parent is absent is not checked (optional sections); `required`
 paths must be there.
+
+A format whose dataclass names the document's keys has its spec derived from it (spec_of):
+each field's type gives the kind (`Size` and `Positive` mark what the type alone does not
+say), a field without a default is required, and a dataclass-typed field is a section whose
+own fields follow. The dataset manifest's spec (capture.dataset.DATASET_MANIFEST) and
+run.json's (train.loop.TRAINING_RUN) are derived so, beside their dataclasses; only the keys
+of their open tables (counts.samples, plan.steps_per_level) are written out there. The bundle
+manifest's spec (BUNDLE_MANIFEST) stays written out: see its note.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
-from collections.abc import Callable
+import types
+import typing
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 from rigspace.sdk.errors import RigspaceError
 
@@ -51,6 +63,71 @@ class Field:
     path: str
     kind: str
     required: bool = False
+
+
+Size = Annotated[int, "size"]
+"""A whole number > 0 (a resolution, samples per axis): spec_of gives it the kind "size"."""
+Positive = Annotated[float, "positive"]
+"""A finite number > 0 (a distance, a focal length): spec_of gives it the kind "positive"."""
+
+
+_PLAIN = {str: "text", bool: "flag", int: "count", float: "number"}
+"""The kinds of plain types (a bool is not a count: JSON's true is not 1)."""
+_NUMBERS = ("number", "count", "positive", "size")
+
+
+def spec_of(cls: type, skip: Collection[str] = (), prefix: str = "") -> tuple[Field, ...]:
+    """The spec of a format from the dataclass that types its document: a Field per field
+    (its name is the document's key), of the kind its type gives (kind_of), required when it
+    has no default. A dataclass-typed field is a section and a tuple of dataclasses a list of
+    them: their own fields follow ("ring.radius", "clips[].name"). `skip` names the fields,
+    dotted as their paths, that are not keys of the document or are checked before the spec
+    (the manifest's own path, its format)."""
+    found: list[Field] = []
+    hints = typing.get_type_hints(cls, include_extras=True)
+    for item in dataclasses.fields(cls):
+        path = f"{prefix}{item.name}"
+        if path in skip:
+            continue
+        required = item.default is dataclasses.MISSING and (
+            item.default_factory is dataclasses.MISSING
+        )
+        kind, section = kind_of(hints[item.name])
+        found.append(Field(path, kind, required))
+        if section is not None and kind == "list":
+            found.append(Field(f"{path}[]", "object"))
+            found.extend(spec_of(section, skip, f"{path}[]."))
+        elif section is not None:
+            found.extend(spec_of(section, skip, f"{path}."))
+    return tuple(found)
+
+
+def kind_of(hint: Any) -> tuple[str, type | None]:
+    """The spec kind of a dataclass field's type, and the dataclass of a section (or of a
+    list's items) whose fields the spec goes on into: str text, bool flag, int count, float
+    number, `Size` size, `Positive` positive, a tuple of strings names, of numbers numbers,
+    a dict object, `X | None` as X. Any other type is a TypeError (a format's dataclass
+    must say what its fields hold)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    optional = [a for a in args if a is not type(None)]
+    if origin is Annotated:
+        return str(hint.__metadata__[0]), None
+    if origin in (typing.Union, types.UnionType) and len(optional) == 1:
+        return kind_of(optional[0])
+    if hint in _PLAIN:
+        return _PLAIN[hint], None
+    if hint is dict or origin is dict:
+        return "object", None
+    if isinstance(hint, type) and dataclasses.is_dataclass(hint):
+        return "object", hint
+    if origin is tuple and len(args) == 2 and args[1] is Ellipsis:
+        item, section = kind_of(args[0])
+        if item == "text":
+            return "names", None
+        if item in _NUMBERS:
+            return "numbers", None
+        return "list", section
+    raise TypeError(f"no spec kind for the type {hint!r}: annotate the field (sdk.fields)")
 
 
 def problems(data: Any, spec: tuple[Field, ...]) -> list[str]:
@@ -107,6 +184,13 @@ def _values(data: Any, parts: list[str], where: str = ""):
     yield from _values(value, rest, here)
 
 
+# The bundle manifest's spec is written out rather than derived (spec_of): ModelManifest is a
+# typed view of the document, not its keys (training_distance is training_camera.distance,
+# depth_scale depth.scale, int8_failed a judgement over int8_check, a level's GraphFiles its
+# "graphs" and "int8"), and what the spec checks inside the open sections (training.steps,
+# torch.config, conditioning.skeleton) has no field there. Where ModelManifest's fields do
+# name the document's keys (joints, levels[].resolution, texture.charts, ...), the kinds and
+# requirements agree with spec_of's: tests/sdk/test_fields.py holds them to it.
 BUNDLE_MANIFEST = (
     Field("joints", "names", required=True),
     Field("blend_shapes", "names"),
@@ -138,6 +222,7 @@ BUNDLE_MANIFEST = (
     Field("texture", "object"),
     Field("texture.charts", "count", required=True),
     Field("texture.file", "text"),
+    Field("texture.branch", "text"),
     Field("conditioning", "object"),
     Field("conditioning.skeleton", "object", required=True),
     Field("int8_check", "object"),
@@ -151,77 +236,6 @@ BUNDLE_MANIFEST = (
     Field("capsules", "text"),
 )
 """The fields of a model bundle's manifest.json that rigspace reads (sdk.bundle.read_manifest)."""
-
-DATASET_MANIFEST = (
-    Field("resolution", "size", required=True),
-    Field("joints", "names", required=True),
-    Field("blend_shapes", "names"),
-    Field("look_at_joint", "text"),
-    Field("scene", "text"),
-    Field("scene_fingerprint", "text"),
-    Field("character", "text"),
-    Field("skeleton", "text"),
-    Field("rotation_encoding", "text"),
-    Field("up_axis", "text"),
-    Field("checksum", "text"),
-    Field("meters_per_unit", "positive"),
-    Field("counts", "object"),
-    Field("counts.samples", "count"),
-    Field("counts.items", "count"),
-    Field("counts.train", "count"),
-    Field("counts.heldout-views", "count"),
-    Field("counts.heldout-clips", "count"),
-    Field("ring", "object", required=True),
-    Field("ring.radius", "positive", required=True),
-    Field("ring.focal_length", "positive", required=True),
-    Field("ring.horizontal_aperture", "positive", required=True),
-    Field("ring.views_per_ring", "count"),
-    Field("ring.elevations", "numbers"),
-    Field("ring.held_out_views_per_ring", "count"),
-    Field("ring.held_out_elevations", "numbers"),
-    Field("ring.clipping_range", "numbers"),
-    Field("ring.views", "list"),
-    Field("ring.views[]", "object"),
-    Field("ring.views[].index", "count", required=True),
-    Field("ring.views[].azimuth", "number", required=True),
-    Field("ring.views[].elevation", "number", required=True),
-    Field("ring.views[].held_out", "flag", required=True),
-    Field("clips", "list"),
-    Field("clips[]", "object"),
-    Field("clips[].name", "text", required=True),
-    Field("clips[].first", "number", required=True),
-    Field("clips[].last", "number", required=True),
-    Field("clips[].held_out", "flag"),
-    Field("renderer", "object"),
-    Field("renderer.name", "text", required=True),
-    Field("renderer.samples_per_axis", "size", required=True),
-    Field("channels", "object"),
-    Field("charts", "object"),
-    Field("charts.file", "text", required=True),
-    Field("charts.count", "count", required=True),
-    Field("params", "object"),
-    Field("coverage", "object"),
-    Field("coverage.empty_below_pixels", "number", required=True),
-    Field("coverage.empty_samples", "count", required=True),
-    Field("coverage.empty_by_view", "object", required=True),
-    Field("splits", "names"),
-    Field("bytes", "count"),
-    Field("settings", "object"),
-)
-"""The fields of a dataset's manifest.json that rigspace reads (capture.dataset.read_manifest)."""
-
-TRAINING_RUN = (
-    Field("config", "object", required=True),
-    Field("dataset", "text", required=True),
-    Field("dataset_checksum", "text"),
-    Field("joints", "names", required=True),
-    Field("blend_shapes", "names"),
-    Field("charts", "count"),
-    Field("plan", "object"),
-    Field("plan.steps_per_level", "size", required=True),
-    Field("plan.seconds_per_step", "object"),
-)
-"""The fields of a training run's run.json (train.loop.read_run)."""
 
 CAPTURE_SETTINGS = (
     Field("scene", "text", required=True),

@@ -11,13 +11,13 @@ without torch or the `safetensors` package reads it (tested against that package
 from __future__ import annotations
 
 import json
-import os
 import struct
 from pathlib import Path
 
 import numpy as np
 
 from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.files import replacing
 
 DTYPES: dict[str, np.dtype] = {
     "F32": np.dtype("<f4"),
@@ -58,13 +58,11 @@ def write_safetensors(
         offset += len(blob)
     text = json.dumps(header, separators=(",", ":")).encode()
     text += b" " * (-len(text) % 8)  # the data starts 8-byte aligned, as the reference writes
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
+    with replacing(path) as tmp, open(tmp, "wb") as f:
         f.write(struct.pack("<Q", len(text)))
         f.write(text)
         for blob in blobs:
             f.write(blob)
-    os.replace(tmp, path)
 
 
 def read_safetensors(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, str]]:

@@ -353,16 +353,15 @@ def run_display(args: argparse.Namespace) -> int:
             print(f"at {size}x{size} ({size // level}x the model's {level}x{level}):")
             print(format_table(result))
     if args.record:
-        path = Path(args.model) / "manifest.json"
-        manifest = json.loads(path.read_text())
+        from rigspace.sdk.bundle import read_manifest_document, write_manifest_document
+
+        manifest = read_manifest_document(args.model)
         display = manifest.setdefault("metrics", {}).setdefault("display", {})
         for size, result in results.items():
             display.setdefault(args.split, {})[str(size)] = json.loads(
                 to_json({"samples": result["samples"], "rows": result["rows"]})
             )
-        tmp = path.with_name(f".manifest.json.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(manifest, indent=2) + "\n")
-        os.replace(tmp, path)
+        write_manifest_document(args.model, manifest)
     if args.json:
         sys.stdout.write(to_json({str(k): v for k, v in results.items()}))
     return 0
@@ -502,19 +501,15 @@ def record_metrics(
 ) -> None:
     """Write the evaluation's aggregated rows into the bundle manifest's metrics (with the
     int8 graphs whose fp32 graphs ran in their place, failed at export, when there are any)."""
-    import os
-
+    from rigspace.sdk.bundle import read_manifest_document, write_manifest_document
     from rigspace.train.evaluate import to_json
 
-    path = model / "manifest.json"
-    manifest = json.loads(path.read_text())
+    manifest = read_manifest_document(model)
     rows = json.loads(to_json({"samples": result["samples"], "rows": result["rows"]}))
     if fp32_in_place:
         rows["fp32_in_place_of"] = list(fp32_in_place)
     manifest.setdefault("metrics", {}).setdefault(split, {})[precision] = rows
-    tmp = path.with_name(f".manifest.json.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
-    os.replace(tmp, path)
+    write_manifest_document(model, manifest)
 
 
 EVAL_COMMAND = CommandSpec(

@@ -36,6 +36,7 @@ import torch
 from rigspace.capture.dataset import read_manifest
 from rigspace.sdk.conditioning import joints2d
 from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.files import write_atomic
 from rigspace.sdk.render import Maps
 from rigspace.train.ablation import save_figure
 from rigspace.train.budget import trained_levels
@@ -278,7 +279,7 @@ def main(argv: list[str] | None = None) -> int:
             f"extrapolated: held-out-view albedo reaches {args.target_psnr:g} dB after about "
             f"{reach:.0f} training minutes at the last points' rate (log-linear fit)"
         )
-    (args.out.with_suffix(".json")).write_text(json.dumps(points, indent=2) + "\n")
+    write_atomic(args.out.with_suffix(".json"), json.dumps(points, indent=2) + "\n")
     print(f"curve: {args.out}, {args.out.with_suffix('.json')}")
     return 0
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from rigspace.capture.dataset import PARAMS_FILE, DatasetError, DatasetManifest, read_manifest
 from rigspace.capture.ring import SPLITS, TRAIN
+from rigspace.sdk.files import write_atomic
 from rigspace.sdk.render import Maps
 from rigspace.sdk.rotations import rig_inputs
 from rigspace.train.data import chart_targets, read_sample, targets_at
@@ -392,7 +393,7 @@ def _write_worst(
         title = f"{name}  {entry['path']}  PSNR {entry['albedo_psnr']:.1f} dB"
         write_png(path, error_map_image(pred, target, height, title))
         entry["image"] = str(path)
-    (out / f"{prefix}_report.json").write_text(to_json(report))
+    write_atomic(out / f"{prefix}_report.json", to_json(report))
 
 
 def albedo_flip(pred: Maps, target: Maps) -> float:

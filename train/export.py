@@ -37,8 +37,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import shutil
 import warnings
 from pathlib import Path
 from typing import Any
@@ -54,10 +52,12 @@ from rigspace.sdk.bundle import (
     FORMAT_VERSION,
     TEXTURE_BRANCH_VERSION,
     ModelManifest,
+    write_manifest_document,
 )
 from rigspace.sdk.capsules import FILE_NAME as CAPSULES
 from rigspace.sdk.capsules import read_capsules
 from rigspace.sdk.conditioning import Skeleton2D
+from rigspace.sdk.files import replacing, write_atomic
 from rigspace.sdk.predictors import GraphSet, OrtRunner
 from rigspace.sdk.weights import write_safetensors
 from rigspace.train.budget import trained_levels
@@ -95,7 +95,8 @@ def export_graph(model: Rig2Image, branch: str, resolution: int, path: Path) -> 
         # needs no onnxscript and gives plain, stable graphs for this small static network.
         warnings.filterwarnings("ignore", category=DeprecationWarning, module=r"torch\.onnx")
         warnings.filterwarnings("ignore", message=".*legacy TorchScript-based ONNX export.*")
-        _export(wrapper, example, path, inputs, names)
+        with replacing(path, ".onnx") as tmp:  # a re-export replaces each graph in one step
+            _export(wrapper, example, tmp, inputs, names)
 
 
 def _export(
@@ -216,13 +217,13 @@ def export_bundle(
             "graphs": check_int8(out, trunk, levels, rows, skeleton=skeleton),
         }
     if source.is_file():
-        shutil.copyfile(source, out / CAPSULES)
+        write_atomic(out / CAPSULES, source.read_bytes())
     if capsules.is_file():
         manifest["capsules"] = CAPSULES
         written.append(CAPSULES)
     if model.charts:
         # The chart table the texture head numbers, from the dataset (capture wrote it).
-        shutil.copyfile(dataset / CHARTS_FILE, out / CHARTS_FILE)
+        write_atomic(out / CHARTS_FILE, (dataset / CHARTS_FILE).read_bytes())
         manifest["texture"] = {
             "charts": model.charts,
             "file": CHARTS_FILE,
@@ -235,11 +236,7 @@ def export_bundle(
         name: {"bytes": (out / name).stat().st_size, "sha256": _sha256(out / name)}
         for name in sorted(written)
     }
-    # The readers' type checks the document before it is written (sdk.bundle.ModelManifest).
-    ModelManifest.from_json(json.loads(json.dumps(manifest)), out / "manifest.json")
-    tmp = out / f".manifest.json.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
-    os.replace(tmp, out / "manifest.json")
+    write_manifest_document(out, manifest)  # checked as the readers check it, then written
     remove_stale(out, set(written))
     return manifest
 

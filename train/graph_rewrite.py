@@ -20,13 +20,18 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from rigspace.capture.dataset import write_atomic
+from rigspace.sdk.bundle import (
+    MANIFEST_FILE,
+    BundleError,
+    read_manifest_document,
+    write_manifest_document,
+)
+from rigspace.sdk.files import write_atomic
 
 AGREEMENT = 1e-5
 """Largest output difference a rewritten graph may show against the original (5e-7 seen)."""
@@ -190,12 +195,11 @@ def rewrite_bundle(folder: str | Path, dry_run: bool = False) -> list[str]:
     import onnx
 
     folder = Path(folder)
-    manifest_path = folder / "manifest.json"
-    if not manifest_path.is_file():
+    if not (folder / MANIFEST_FILE).is_file():
         raise SystemExit(
             f"{folder} is not a model bundle (no manifest.json): give a bundle folder."
         )
-    manifest = json.loads(manifest_path.read_text())
+    manifest = read_manifest_document(folder)
     changed = []
     for name in sorted(manifest.get("files", {})):
         if not name.endswith(".onnx"):
@@ -215,7 +219,7 @@ def rewrite_bundle(folder: str | Path, dry_run: bool = False) -> list[str]:
         write_atomic(path, after)
         manifest["files"][name] = {"bytes": len(after), "sha256": hashlib.sha256(after).hexdigest()}
     if changed and not dry_run:
-        write_atomic(manifest_path, (json.dumps(manifest, indent=2) + "\n").encode())
+        write_manifest_document(folder, manifest)
     return changed
 
 
@@ -228,7 +232,11 @@ def main(argv: list[str] | None = None) -> int:
         "--check", action="store_true", help="only list the graphs it would rewrite"
     )
     args = parser.parse_args(argv)
-    changed = rewrite_bundle(args.bundle, dry_run=args.check)
+    try:
+        changed = rewrite_bundle(args.bundle, dry_run=args.check)
+    except BundleError as exc:  # a manifest a reader refuses: said, and nothing rewritten
+        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
+        return 1
     verb = "would rewrite" if args.check else "rewrote"
     print(
         f"{args.bundle}: {verb} {len(changed)} graphs"

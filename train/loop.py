@@ -22,7 +22,6 @@ import functools
 import io
 import json
 import math
-import os
 import sys
 import tempfile
 import time
@@ -38,7 +37,8 @@ import torch
 from rigspace.capture.dataset import DatasetError, DatasetManifest, read_manifest
 from rigspace.sdk.cli import sigterm_as_interrupt
 from rigspace.sdk.errors import RigspaceError
-from rigspace.sdk.fields import TRAINING_RUN, problems, read_checked
+from rigspace.sdk.fields import Field, problems, read_checked, spec_of
+from rigspace.sdk.files import replacing, write_atomic
 from rigspace.train import distributed
 from rigspace.train.budget import Pace, apply_plan, plan_schedule
 from rigspace.train.callbacks import (
@@ -140,6 +140,15 @@ class RunRecord:
         return sorted(key for key in ours if theirs.get(key) != ours[key])
 
 
+TRAINING_RUN = (
+    *spec_of(RunRecord),
+    # plan is an open table (train.budget.Plan.to_json): the keys rigspace reads.
+    Field("plan.steps_per_level", "size", required=True),
+    Field("plan.seconds_per_step", "object"),
+)
+"""The fields of a training run's run.json (read_run), from RunRecord (sdk.fields.spec_of)."""
+
+
 @dataclass
 class TrainResult:
     folder: Path
@@ -153,18 +162,17 @@ class TrainResult:
 
 def save_checkpoint(folder: Path, model, optimizer, step: int, level: int) -> Path:
     path = folder / CHECKPOINT
-    tmp = folder / f".{CHECKPOINT}.{os.getpid()}.tmp"
-    torch.save(
-        {
-            "model": model.state_dict(),
-            "optimizer": optimizer.state_dict(),
-            "step": step,
-            "level": level,
-            "torch_rng": torch.get_rng_state(),
-        },
-        tmp,
-    )
-    os.replace(tmp, path)
+    with replacing(path) as tmp:
+        torch.save(
+            {
+                "model": model.state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "step": step,
+                "level": level,
+                "torch_rng": torch.get_rng_state(),
+            },
+            tmp,
+        )
     return path
 
 
@@ -274,7 +282,7 @@ def prepare_run(
 
 
 def read_run(folder: Path) -> RunRecord:
-    """A run folder's run.json, checked against its spec (sdk.fields.TRAINING_RUN) and typed: a
+    """A run folder's run.json, checked against its spec (TRAINING_RUN) and typed: a
     damaged or hand-edited file is a TrainingError naming the field, never a traceback."""
     path = folder / RUN_FILE
     return RunRecord.from_json(read_checked(path, TRAINING_RUN, TrainingError, RUN_FIX), path)
@@ -533,7 +541,7 @@ def _plan(
         if plan is not None:
             record = replace(record, plan=plan.to_json())
         run.out.mkdir(parents=True, exist_ok=True)
-        (run.out / RUN_FILE).write_text(json.dumps(record.to_json(), indent=2) + "\n")
+        write_atomic(run.out / RUN_FILE, json.dumps(record.to_json(), indent=2) + "\n")
     config, plan = ctx.share(lambda: (config, plan))  # rank 0 planned and wrote run.json
     if plan is not None:
         return config, plan.to_json()

@@ -24,7 +24,9 @@ from typing import Any
 
 import numpy as np
 
+from rigspace.sdk.bundle import read_manifest_document, write_manifest_document
 from rigspace.sdk.conditioning import Skeleton2D
+from rigspace.sdk.files import replacing
 from rigspace.train.int8check import drift, graph_feeds, named_outputs, rig_feeds, session
 
 COVERAGE_OUTPUTS = ("alpha", "mask")
@@ -215,18 +217,19 @@ def quantize(
     with tempfile.TemporaryDirectory() as tmp:
         prepared = Path(tmp) / "prepared.onnx"
         quant_pre_process(str(fp32), str(prepared), skip_symbolic_shape=True)
-        quantize_static(
-            str(prepared),
-            str(int8),
-            _Calibration(feeds),
-            quant_format=QuantFormat.QDQ,
-            activation_type=QuantType.QUInt8,
-            weight_type=QuantType.QInt8,
-            per_channel=True,
-            nodes_to_exclude=[*exclude, *pose_nodes(fp32), *softmax_nodes(fp32)],
-            calibrate_method=CalibrationMethod.MinMax,
-            extra_options={"TensorQuantOverrides": overrides},
-        )
+        with replacing(int8, ".onnx") as written:  # in place, in one step (requantize_bundle)
+            quantize_static(
+                str(prepared),
+                str(written),
+                _Calibration(feeds),
+                quant_format=QuantFormat.QDQ,
+                activation_type=QuantType.QUInt8,
+                weight_type=QuantType.QInt8,
+                per_channel=True,
+                nodes_to_exclude=[*exclude, *pose_nodes(fp32), *softmax_nodes(fp32)],
+                calibrate_method=CalibrationMethod.MinMax,
+                extra_options={"TensorQuantOverrides": overrides},
+            )
 
 
 def meets(metrics: dict[str, float | None], target: dict[str, float] | None = None) -> bool:
@@ -301,7 +304,7 @@ def requantize_bundle(bundle: Path, dataset: Path, rows: int = 128) -> dict[str,
     manifest's int8_check (with offered_levels); returns the new int8_check."""
     from rigspace.train.data import SampleSet
 
-    manifest = _read_manifest(bundle)
+    manifest = read_manifest_document(bundle)
     train = SampleSet(dataset, "train")
     picks = np.unique(np.linspace(0, len(train) - 1, min(rows, len(train))).astype(int))
     inputs = rig_feeds(
@@ -327,18 +330,11 @@ def int8_name(fp32: str) -> str:
     return f"{fp32.removesuffix('.onnx')}.int8.onnx"
 
 
-def _read_manifest(bundle: Path) -> dict[str, Any]:
-    import json
-
-    return json.loads((bundle / "manifest.json").read_text())
-
-
 def _write_manifest(bundle: Path, manifest: dict[str, Any]) -> None:
-    """Write a bundle's manifest atomically, with the size and sha256 of every int8 graph it
-    lists (the export's `files` records, which the runtime's rules verify)."""
+    """Write a bundle's manifest (sdk.bundle.write_manifest_document: checked, atomic), with
+    the size and sha256 of every int8 graph it lists (the export's `files` records, which the
+    runtime's rules verify)."""
     import hashlib
-    import json
-    import os
 
     names = [manifest["trunk"]["int8"].get("trunk")]
     names += [name for level in manifest["levels"] for name in level["int8"].values()]
@@ -347,9 +343,7 @@ def _write_manifest(bundle: Path, manifest: dict[str, Any]) -> None:
         data = (bundle / name).read_bytes()
         files[name] = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
     manifest["files"] = dict(sorted(files.items()))
-    tmp = bundle / f".manifest.json.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
-    os.replace(tmp, bundle / "manifest.json")
+    write_manifest_document(bundle, manifest)
 
 
 def recheck_bundle(bundle: Path, dataset: Path, limit: int = 200) -> dict[str, Any]:
@@ -364,7 +358,7 @@ def recheck_bundle(bundle: Path, dataset: Path, limit: int = 200) -> dict[str, A
     from rigspace.train.evaluate import to_json
     from rigspace.train.int8check import TOLERANCES, check_int8
 
-    manifest = _read_manifest(bundle)
+    manifest = read_manifest_document(bundle)
     trunk = manifest["trunk"]["graphs"]["trunk"]
     trunk_int8 = manifest["trunk"]["int8"]["trunk"]
     split = "heldout-views" if len(SampleSet(dataset, "heldout-views")) else "train"

@@ -14,6 +14,7 @@ from typing import Any
 
 from rigspace.sdk.cli import CommandSpec
 from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.files import write_atomic
 from rigspace.sdk.predictors import add_predictor_argument
 
 DESCRIPTION = """\
@@ -238,9 +239,7 @@ def live(args: argparse.Namespace) -> int:
         if recorder.error is not None:
             raise recorder.error
         summary["takes"] = _write_takes(args, engine, recorder, fps)
-    tmp = out / f".report.json.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps({**summary, "frames": frames}, indent=2) + "\n")
-    os.replace(tmp, out / "report.json")
+    write_atomic(out / "report.json", json.dumps({**summary, "frames": frames}, indent=2) + "\n")
     _print_summary(summary, out, args.video, stopped)
     return 0
 

@@ -18,6 +18,7 @@ from rigspace.runtime.live.decoders.vmc import HUMAN_BODY_BONES, VmcDecoder, enc
 from rigspace.runtime.live.decoders.ximu3 import Ximu3Decoder
 from rigspace.runtime.live.source_frame import SourceFrame, quat_angle, quat_slerp
 from rigspace.runtime.live.sources import open_source
+from rigspace.sdk.files import write_atomic
 
 REPO = Path(__file__).resolve().parents[2]
 CLIP = REPO / "samples" / "motion" / "cmu_131_01.bvh"
@@ -330,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
     text = json.dumps(results, indent=2)
     print(text)
     if args.json:
-        args.json.write_text(text + "\n")
+        write_atomic(args.json, text + "\n")
     return 0
 
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from rigspace.runtime.view.cli import build, in_background
 from rigspace.sdk.errors import RigspaceError
+from rigspace.sdk.files import write_atomic
 
 CHROMIUM = "/usr/bin/chromium"
 SCRUB = """t => { const s = document.getElementById('scrub'); s.value = t;
@@ -116,8 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  preview 320x180                {_stats(result['server_preview_ms'])}")
     print(f"  full 640x360                   {_stats(result['server_full_ms'])}")
     if args.json:
-        with open(args.json, "w") as file:
-            json.dump(result, file, indent=2)
+        write_atomic(args.json, json.dumps(result, indent=2))
     return 0
 
 

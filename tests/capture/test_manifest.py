@@ -18,7 +18,7 @@ MINIMAL = {
     "joints": ["hips", "hips/spine"],
     "ring": {"radius": 3.0, "horizontal_aperture": 20.955, "focal_length": 50.0},
 }
-"""What the reader needs (sdk.fields.DATASET_MANIFEST's required fields)."""
+"""What the reader needs (capture.dataset.DATASET_MANIFEST's required fields)."""
 
 
 def test_finalize_writes_the_manifest_read_manifest_returns(dataset):

@@ -4,16 +4,17 @@ wrong type is one named error, from the reader and from the commands; never a tr
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import shutil
 
 import pytest
 
-from rigspace.capture.dataset import DatasetError
+from rigspace.capture.dataset import DATASET_MANIFEST, DatasetError
 from rigspace.capture.dataset import read_manifest as read_dataset
 from rigspace.sdk.bundle import BundleError, read_manifest
 from rigspace.sdk.cli import main
-from rigspace.sdk.fields import BUNDLE_MANIFEST, DATASET_MANIFEST, Field
+from rigspace.sdk.fields import BUNDLE_MANIFEST, Field, Positive, Size, kind_of, spec_of
 from tests.conftest import REPO
 
 SAMPLE = REPO / "samples" / "models" / "sample"
@@ -122,8 +123,8 @@ def test_a_wrong_type_in_a_dataset_manifest_is_a_named_error(tmp_path, tiny_data
 def test_a_wrong_type_in_run_json_or_capture_json_is_a_named_error(tmp_path, tiny_dataset):
     from rigspace.capture.pipeline import CaptureError, prepare_folder
     from rigspace.capture.settings import CaptureSettings
-    from rigspace.sdk.fields import CAPTURE_SETTINGS, TRAINING_RUN
-    from rigspace.train.loop import TrainingError, read_run
+    from rigspace.sdk.fields import CAPTURE_SETTINGS
+    from rigspace.train.loop import TRAINING_RUN, TrainingError, read_run
 
     run = {
         "config": {},
@@ -179,3 +180,63 @@ def test_a_format_version_that_is_not_an_integer_says_so(tmp_path, value, said):
     text = str(info.value)
     assert f"format_version must be an integer (one of 1, 2, 3, 4); it is {said}." in text
     assert "Fix:" in text
+
+
+# -- one description: specs from the formats' dataclasses ----------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("hint", "kind"),
+    [
+        (str, "text"), (bool, "flag"), (int, "count"), (float, "number"), (Size, "size"),
+        (Positive | None, "positive"), (str | None, "text"), (tuple[str, ...], "names"),
+        (tuple[float, ...], "numbers"), (tuple[Size, ...], "numbers"),
+        (dict[str, int], "object"), (dict, "object"),
+    ],
+)  # fmt: skip
+def test_a_fields_type_gives_its_kind(hint, kind):
+    assert kind_of(hint) == (kind, None)
+
+
+def test_a_section_or_a_list_of_sections_is_followed_into():
+    from rigspace.capture.dataset import ManifestRing, ManifestView
+
+    assert kind_of(ManifestRing | None) == ("object", ManifestRing)
+    assert kind_of(tuple[ManifestView, ...]) == ("list", ManifestView)
+    with pytest.raises(TypeError, match="annotate the field"):
+        kind_of(frozenset[str])
+
+
+def test_the_dataset_and_run_specs_are_their_dataclasses():
+    """Every field of DatasetManifest (and its sections) and of RunRecord is in the spec, of
+    its type's kind, required exactly when it has no default."""
+    from rigspace.capture.dataset import DatasetManifest
+    from rigspace.train.loop import TRAINING_RUN, RunRecord
+
+    assert Field("ring", "object", required=True) in DATASET_MANIFEST
+    assert Field("ring.radius", "positive", required=True) in DATASET_MANIFEST
+    assert Field("ring.views[].held_out", "flag", required=True) in DATASET_MANIFEST
+    assert Field("clips[].held_out", "flag") in DATASET_MANIFEST
+    assert Field("meters_per_unit", "positive") in DATASET_MANIFEST
+    assert Field("renderer.samples_per_axis", "size", required=True) in DATASET_MANIFEST
+    paths = {f.path for f in DATASET_MANIFEST}
+    unkeyed = {"path", "format", "format_version"}  # no key, or checked before the spec
+    keys = {f.name for f in dataclasses.fields(DatasetManifest)} - unkeyed
+    assert keys <= paths and "path" not in paths
+    assert [f.path for f in TRAINING_RUN if f.required] == ["config", "dataset", "joints",
+                                                            "plan.steps_per_level"]  # fmt: skip
+    assert {f.name for f in dataclasses.fields(RunRecord)} <= {f.path for f in TRAINING_RUN}
+
+
+def test_the_bundle_spec_agrees_with_model_manifest_where_its_fields_are_keys():
+    """BUNDLE_MANIFEST is written out (ModelManifest is a typed view, see sdk.fields); where a
+    ModelManifest field (or a field of its sections) names a key, the kinds and the
+    requirement agree, so the two descriptions cannot drift apart unseen."""
+    from rigspace.sdk.bundle import ModelManifest
+
+    derived = spec_of(ModelManifest, skip=("path", "int8_failed"))
+    written = {f.path: f for f in BUNDLE_MANIFEST}
+    shared = [f for f in derived if f.path in written]
+    assert {f.path for f in shared} >= {"joints", "maps", "levels[].resolution", "texture.charts",
+                                        "texture.branch", "torch", "files", "capsules"}  # fmt: skip
+    assert [f for f in shared if written[f.path] != f] == []

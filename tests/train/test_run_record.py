@@ -13,7 +13,7 @@ pytest.importorskip("torch", reason="training needs the train extra (torch)")
 from rigspace.train import loop
 
 MINIMAL = {"config": {}, "dataset": "/d", "joints": ["a", "a/b"]}
-"""What read_run needs (sdk.fields.TRAINING_RUN's required fields)."""
+"""What read_run needs (train.loop.TRAINING_RUN's required fields)."""
 
 
 def test_read_run_gives_back_the_file_the_run_wrote(tiny_run):

@@ -21,6 +21,7 @@ from rigspace.train.export import export_bundle  # noqa: E402
 from rigspace.train.loss import chart_downsample, texture_loss  # noqa: E402
 from rigspace.train.network import Rig2Image, Shape, texture_channels, texture_maps  # noqa: E402
 from rigspace.train.quantize import softmax_nodes  # noqa: E402
+from tests.conftest import write_bundle_manifest  # noqa: E402
 
 TINY = preset("tiny", texture=True)
 BOXES = (
@@ -232,7 +233,7 @@ def test_an_older_bundle_s_channel_softmax_is_rewritten_to_the_same_outputs(tmp_
     onnx.save(model, str(bundle / "albedo_8.onnx"))
     before = (bundle / "albedo_8.onnx").read_bytes()
     entry = {"bytes": len(before), "sha256": hashlib.sha256(before).hexdigest()}
-    (bundle / "manifest.json").write_text(json.dumps({"files": {"albedo_8.onnx": entry}}))
+    write_bundle_manifest(bundle, ["hips"], files={"albedo_8.onnx": entry})
     assert graph_rewrite.rewrite_bundle(bundle, dry_run=True) == ["albedo_8.onnx"]
     assert (bundle / "albedo_8.onnx").read_bytes() == before  # a dry run writes nothing
     assert graph_rewrite.rewrite_bundle(bundle) == ["albedo_8.onnx"]
