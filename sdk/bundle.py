@@ -88,6 +88,20 @@ class TextureHead:
 
 
 @dataclass(frozen=True)
+class RegionBundle:
+    """A region of the character with a network of its own (manifest `regions`, issue 33):
+    the face or a hand, drawn at its own resolution around its own joint and composited over
+    the body's maps. Its bundle is a complete bundle in a folder inside this one (its own
+    manifest: its look-at joint, its training camera, its levels)."""
+
+    name: str
+    joint: str
+    """The joint its cameras looked at (its bundle's look_at_joint)."""
+    folder: Path
+    """Its bundle's folder (inside the body's bundle)."""
+
+
+@dataclass(frozen=True)
 class ModelManifest:
     """What a model bundle's manifest.json declares (format versions 1 to 4), read and checked
     once (read_manifest): every reader takes its sections from here, typed."""
@@ -127,6 +141,8 @@ class ModelManifest:
     """The pose conditioning (train.conditioning; rigspace.sdk.conditioning reads its skeleton)."""
     torch: dict[str, Any] | None = field(default=None, repr=False)
     """The torch predictor's section (train.torch_predictor): weights file, shape, config."""
+    regions: tuple[RegionBundle, ...] = ()
+    """The character's regions with networks of their own (docs/regions.md), in training order."""
 
     @property
     def folder(self) -> Path:
@@ -293,7 +309,29 @@ def _sections(
         training=dict(data.get("training") or {}),
         conditioning=data.get("conditioning") or None,
         torch=data.get("torch") if isinstance(data.get("torch"), dict) else None,
+        regions=_regions(data.get("regions") or [], file),
     )
+
+
+def _regions(entries: list[dict[str, Any]], file: Path) -> tuple[RegionBundle, ...]:
+    """The manifest's regions (their fields already checked): each bundle a folder inside the
+    body's, each name once."""
+    regions: list[RegionBundle] = []
+    for entry in entries:
+        relative = Path(entry["bundle"])
+        if relative.is_absolute() or ".." in relative.parts or not relative.parts:
+            raise BundleError(
+                f"Model bundle manifest {file}: region {entry['name']!r} names its bundle "
+                f"{entry['bundle']!r}, which is not a folder inside the bundle.",
+                "re-export the bundle with `rigspace train` (a region's bundle is regions/NAME).",
+            )
+        if any(r.name == entry["name"] for r in regions):
+            raise BundleError(
+                f"Model bundle manifest {file}: region {entry['name']!r} is listed twice.",
+                "re-export the bundle with `rigspace train`.",
+            )
+        regions.append(RegionBundle(entry["name"], entry["joint"], file.parent / relative))
+    return tuple(regions)
 
 
 def _json_type(value: Any) -> str:

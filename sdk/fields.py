@@ -234,6 +234,11 @@ BUNDLE_MANIFEST = (
     Field("torch.config", "object", required=True),
     Field("files", "object"),
     Field("capsules", "text"),
+    Field("regions", "list"),
+    Field("regions[]", "object"),
+    Field("regions[].name", "text", required=True),
+    Field("regions[].joint", "text", required=True),
+    Field("regions[].bundle", "text", required=True),
 )
 """The fields of a model bundle's manifest.json that rigspace reads (sdk.bundle.read_manifest)."""
 

@@ -17,6 +17,8 @@ from rigspace.sdk.predictors import add_device_argument, add_predictor_argument
 
 if TYPE_CHECKING:
     from rigspace.sdk.model import BundleModel
+    from rigspace.train.config import TrainConfig
+    from rigspace.train.distributed import Context
 
 TRAINING = "training"
 """Subfolder of a model bundle holding the run: run.json, checkpoint.pt, log, previews."""
@@ -67,6 +69,13 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         "then re-export",
     )
     parser.add_argument("--no-int8", action="store_true", help="export fp32 graphs only")
+    parser.add_argument(
+        "--no-regions",
+        action="store_true",
+        help="train the body only, not the regions the dataset holds (DATASET/regions/NAME, "
+        "from `rigspace capture --regions`); by default each trains after the body into "
+        "OUT/regions/NAME, the budget shared by image size",
+    )
     parser.add_argument(
         "--force",
         action="store_true",
@@ -126,7 +135,9 @@ def run_train(args: argparse.Namespace) -> int:
     ctx = distributed.context(args.device)  # under torchrun: joins the process group
     if args.upgrade:
         return _upgrade(args, out)
-    read_manifest(Path(args.dataset))  # a bad dataset fails before --force removes anything
+    body = read_manifest(Path(args.dataset))  # a bad dataset fails before --force removes anything
+    regions = [] if args.no_regions else region_datasets(Path(args.dataset))
+    shares = budget_shares(body.resolution, [r for _, r in regions], args.minutes)
     if args.force and ctx.is_main:
         removed = clear_bundle(out)
         if removed:
@@ -137,16 +148,17 @@ def run_train(args: argparse.Namespace) -> int:
         out / TRAINING,
         config,
         steps=args.steps,
-        minutes=args.minutes,
+        minutes=shares[0],
         resume=args.resume,
         device=args.device,
         cache=not args.no_cache,
         resident=args.resident,
     )
     if not ctx.is_main:  # rank 0 reports and exports; the others wait for it
-        if result.stopped != "interrupted":
-            ctx.barrier()
-        return 130 if result.stopped == "interrupted" else 0
+        if result.stopped == "interrupted":
+            return 130
+        ctx.barrier()
+        return _train_regions(args, out, config, regions, shares[1:], ctx) if regions else 0
     print(
         f"trained {result.step} steps in {result.seconds:.0f} s ({result.images_per_second:.1f} images/s), "
         f"stopped: {result.stopped}, last loss {result.last_loss:.4f}"
@@ -159,7 +171,93 @@ def run_train(args: argparse.Namespace) -> int:
         return 130
     code = _export(args, out)
     ctx.barrier()
+    if code == 0 and regions:
+        code = _train_regions(args, out, config, regions, shares[1:], ctx)
     return code
+
+
+REGIONS = "regions"
+"""Subfolder of a dataset (capture --regions) and of a model bundle holding its regions."""
+
+
+def region_datasets(dataset: Path) -> list[tuple[str, int]]:
+    """(name, resolution) of each region dataset in DATASET/regions (capture --regions), by
+    name; each one's manifest is read (a damaged one fails here, before anything trains)."""
+    from rigspace.capture.dataset import MANIFEST_FILE, read_manifest
+
+    folder = dataset / REGIONS
+    if not dataset.is_dir() or not folder.is_dir():
+        return []
+    found = sorted(p for p in folder.iterdir() if (p / MANIFEST_FILE).is_file())
+    return [(p.name, read_manifest(p).resolution) for p in found]
+
+
+def budget_shares(body: int, regions: Sequence[int], minutes: float | None) -> list[float | None]:
+    """--minutes split between the body and its regions in proportion to their images'
+    pixels (a step's cost grows with them), so each trains about as many steps; None for
+    each without --minutes."""
+    if minutes is None:
+        return [None] * (1 + len(regions))
+    pixels = [body * body, *(r * r for r in regions)]
+    return [minutes * p / sum(pixels) for p in pixels]
+
+
+def _train_regions(
+    args: argparse.Namespace,
+    out: Path,
+    config: TrainConfig,
+    regions: list[tuple[str, int]],
+    shares: list[float | None],
+    ctx: Context,
+) -> int:
+    """Each region's network on its dataset into OUT/regions/NAME (a bundle of its own, with
+    its own training run), then the body's manifest lists them."""
+    from rigspace.sdk.bundle import read_manifest_document, write_manifest_document
+    from rigspace.train.loop import train
+
+    done = []
+    for (name, resolution), minutes in zip(regions, shares, strict=True):
+        home = out / REGIONS / name
+        region_config = dataclasses.replace(
+            config,
+            resolution=resolution,
+            start_resolution=min(config.start_resolution, resolution),
+        )
+        print(f"region {name}: training at {resolution}x{resolution} into {home}")
+        resume = args.resume and (home / TRAINING / RUN_FILE).is_file()
+        result = train(
+            Path(args.dataset) / REGIONS / name, home / TRAINING, region_config,
+            steps=args.steps, minutes=minutes, resume=resume, device=args.device,
+            cache=not args.no_cache, resident=args.resident,
+        )  # fmt: skip
+        if not ctx.is_main:
+            if result.stopped == "interrupted":
+                return 130
+            ctx.barrier()
+            continue
+        print(
+            f"region {name}: trained {result.step} steps in {result.seconds:.0f} s "
+            f"({result.images_per_second:.1f} images/s), stopped: {result.stopped}"
+        )
+        if result.stopped == "interrupted":
+            print(
+                f"checkpoint saved in {home / TRAINING}; continue with the same command and "
+                "--resume (the body's bundle is exported, without its regions yet)"
+            )
+            return 130
+        _export(args, home)
+        done.append(name)
+        ctx.barrier()
+    if ctx.is_main:
+        document = read_manifest_document(out)
+        listed = {r["name"]: r for r in document.get(REGIONS, [])}
+        for name in done:
+            joint = read_manifest_document(out / REGIONS / name).get("look_at_joint", "")
+            listed[name] = {"name": name, "joint": joint, "bundle": f"{REGIONS}/{name}"}
+        document[REGIONS] = [listed[n] for n in sorted(listed)]
+        write_manifest_document(out, document)
+        print(f"regions in {out}: {', '.join(sorted(listed))}")
+    return 0
 
 
 def _export(args: argparse.Namespace, out: Path, metrics: dict | None = None) -> int:
@@ -242,6 +340,9 @@ def clear_bundle(out: Path) -> list[Path]:
     if (out / TRAINING).is_dir():
         shutil.rmtree(out / TRAINING)
         removed.append(out / TRAINING)
+    if (out / REGIONS).is_dir():  # the regions' bundles and runs (written by train alone)
+        shutil.rmtree(out / REGIONS)
+        removed.append(out / REGIONS)
     return removed
 
 
