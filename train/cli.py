@@ -469,40 +469,61 @@ def run_display(args: argparse.Namespace) -> int:
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    from rigspace.train.evaluate import (
-        DatasetTable,
-        Downsampled,
-        compare,
-        format_table,
-        targets_note,
-        to_json,
-    )
-    from rigspace.train.predictor import BundlePredictor
-    from rigspace.train.regions import dataset_regions
-
-    def note(text: str) -> None:
-        print(f"note: {text}", file=sys.stderr)
+    from rigspace.sdk.bundle import read_manifest as read_bundle
+    from rigspace.train.evaluate import format_table, to_json
 
     if args.errors:
         check_folder(Path(args.errors), "--errors")  # before the evaluation, not after it
     if args.display:
         return run_display(args)
-    table = DatasetTable(Path(args.dataset))
-    top, stopped = model_top_level(Path(args.model))
+    model, dataset = Path(args.model), Path(args.dataset)
+    result = _evaluate(args, model, dataset, Path(args.errors) if args.errors else None)
+    regions = {}
+    for region in read_bundle(model).regions:  # each region's network on its own dataset
+        data = dataset / REGIONS / region.name
+        if not (data / "manifest.json").is_file():
+            _note(
+                f"region {region.name} is not measured: {dataset} has no {REGIONS}/{region.name} "
+                "(capture it with `rigspace capture SCENE --out DATASET --regions`)"
+            )
+            continue
+        errors = Path(args.errors) / REGIONS / region.name if args.errors else None
+        regions[region.name] = _evaluate(args, region.folder, data, errors)
+    if args.json:  # strict JSON: null for nan and inf, never NaN
+        sys.stdout.write(to_json(result | ({"regions": regions} if regions else {})))
+        return 0
+    print(format_table(result))
+    for name, region_result in regions.items():
+        print(f"region {name} ({model / REGIONS / name} on {dataset / REGIONS / name}):")
+        print(format_table(region_result))
+    return 0
+
+
+def _note(text: str) -> None:
+    print(f"note: {text}", file=sys.stderr)
+
+
+def _evaluate(args: argparse.Namespace, model: Path, dataset: Path, errors: Path | None) -> dict:
+    """One bundle against one dataset: the compare() result (recorded in the bundle with
+    --record)."""
+    from rigspace.train.evaluate import DatasetTable, Downsampled, compare, targets_note
+    from rigspace.train.predictor import BundlePredictor
+    from rigspace.train.regions import dataset_regions
+
+    table = DatasetTable(dataset)
+    top, stopped = model_top_level(model)
     if stopped:
-        print(f"note: {stopped}", file=sys.stderr)
+        _note(stopped)
     if top is not None and table.resolution > top and table.resolution % top == 0:
         # The bundle's top level is below the capture's resolution (a model designed so, or a
         # run a budget stopped early): evaluate it there, as the runtime uses it, against
         # box-downsampled targets.
-        table = DatasetTable(Path(args.dataset), top)
-        print(f"note: targets {targets_note(table)}", file=sys.stderr)
+        table = DatasetTable(dataset, top)
+        _note(f"targets {targets_note(table)}")
     predictors = [
-        BundlePredictor(
-            Path(args.model), table, int8=args.int8, predictor=args.predictor, device=args.device
-        )
+        BundlePredictor(model, table, int8=args.int8, predictor=args.predictor, device=args.device)
     ]
-    warn_damaged_graphs(Path(args.model), predictors[0].model, table.resolution)
+    warn_damaged_graphs(model, predictors[0].model, table.resolution)
     print(f"the model runs on {predictors[0].model.runner.description}", file=sys.stderr)
     if predictors[0].model.charts:  # the texture head's placement, in texels of the textures
         from rigspace.train.display import scene_textures
@@ -511,41 +532,29 @@ def run_eval(args: argparse.Namespace) -> int:
         if textures is not None:
             predictors[0].attach_textures(textures)
         else:
-            note(f"the texture head's placement is not measured: {why}")
+            _note(f"the texture head's placement is not measured: {why}")
     if args.split == "heldout-clips" and not args.no_baselines:
         # Held-out clips were never captured from training views: nothing to interpolate.
-        print(
-            "note: the captured-view baselines need training views of the same frame; a "
-            "held-out clip has none, so only the model is measured",
-            file=sys.stderr,
+        _note(
+            "the captured-view baselines need training views of the same frame; a held-out "
+            "clip has none, so only the model is measured"
         )
     elif not args.no_baselines:
         from rigspace.train.baselines import BaselinePredictor
 
         predictors += [
-            Downsampled(BaselinePredictor(Path(args.dataset), kind), table.factor)
+            Downsampled(BaselinePredictor(dataset, kind), table.factor)
             for kind in ("nearest", "linear")
         ]
-    regions = dataset_regions(json.loads((table.folder / "capture.json").read_text()), note)
+    regions = dataset_regions(json.loads((table.folder / "capture.json").read_text()), _note)
     result = compare(
-        predictors,
-        table,
-        args.split,
-        limit=args.limit or None,
-        out_dir=args.errors,
-        regions=regions,
+        predictors, table, args.split, limit=args.limit or None, out_dir=errors, regions=regions
     )
     _warn_draws_nothing(result, predictors[0].name)
     if args.record:
         fallbacks = sorted(predictors[0].model.int8_fallbacks)
-        record_metrics(
-            Path(args.model), args.split, "int8" if args.int8 else "fp32", result, fallbacks
-        )
-    if args.json:
-        sys.stdout.write(to_json(result))  # strict JSON: null for nan and inf, never NaN
-    else:
-        print(format_table(result))
-    return 0
+        record_metrics(model, args.split, "int8" if args.int8 else "fp32", result, fallbacks)
+    return result
 
 
 def _warn_draws_nothing(result: dict, name: str) -> None:

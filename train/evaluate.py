@@ -561,6 +561,13 @@ def format_table(result: dict[str, Any]) -> str:
         )
     first: dict[str, Any] = next(iter(result.get("reports", {}).values()), {})
     for name, region in first.get("regions", {}).items():
+        if region["pixels_mean"] == 0:  # a named reason, never a bare "n/a"
+            lines.append(
+                f"\nalbedo PSNR over the {name} ({region['description']}): not measured: no "
+                f"sample of the {result['samples']} shows a pixel of it (views from behind, or "
+                "targets without texture coordinates; evaluate more samples with --limit 0)"
+            )
+            continue
         values = ", ".join(
             f"{row['predictor']} {_cell(row.get(f'albedo_psnr@{name}'), '{:.2f}')} dB"
             for row in result["rows"]

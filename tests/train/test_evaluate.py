@@ -399,3 +399,25 @@ def test_region_metrics_measure_the_region_pixels_from_the_truths_uv_and_chart()
     assert np.isclose(got["albedo_psnr@character"], 10 * np.log10(1 / (0.5 * 0.25)))
     elsewhere = Maps(truth.albedo, truth.normal, truth.depth, truth.mask, uv, chart * 2)
     assert np.isnan(region_metrics(pred, elsewhere, [region])["albedo_psnr@face"])
+
+
+def test_a_region_no_sample_shows_is_named_not_n_a():
+    """A region with no pixel in any sample evaluated gets a reason, not "n/a" (issue 33)."""
+    region = {"description": "the surface its blend shapes move", "pixels_mean": 0.0}
+    result = {
+        "split": "heldout-views", "samples": 4, "dataset": "ds",
+        "rows": [{"predictor": "model", "albedo_psnr@face": float("nan")}],
+        "reports": {"model": {"regions": {"face": region}}},
+    }  # fmt: skip
+    text = ev.format_table(result)
+    assert (
+        "over the face (the surface its blend shapes move): not measured: no sample of the 4"
+        in text
+    )
+    assert "n/a" not in text.split("over the face")[1]
+    region["pixels_mean"] = 120.0
+    result["rows"][0]["albedo_psnr@face"] = 27.5
+    assert (
+        "face (the surface its blend shapes move, 120 pixels a sample): model 27.50 dB"
+        in ev.format_table(result)
+    )

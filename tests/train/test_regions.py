@@ -40,6 +40,16 @@ def test_train_trains_each_region_into_a_bundle_the_body_lists(region_dataset, t
     assert body.regions[0].folder == out / "regions" / "face"
     assert face.look_at_joint == "neck/head" and face.training_resolution == 16
     assert max(level.resolution for level in face.levels) == 16
+    # eval measures each region's network on its own dataset, beside the body's.
+    assert main(["eval", str(out), str(region_dataset), "--no-baselines", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["rows"][0]["predictor"] == "model"
+    face_result = result["regions"]["face"]
+    assert face_result["dataset"].endswith("regions/face") and face_result["samples"] > 0
+    assert main(["eval", str(out), str(region_dataset), "--no-baselines"]) == 0
+    assert f"region face ({out / 'regions' / 'face'} on" in capsys.readouterr().out
+    assert main(["eval", str(out), str(region_dataset / "regions" / "face"), "--no-baselines"]) == 0
+    assert "region face is not measured" in capsys.readouterr().err
     # --force replaces the bundle and its regions; --no-regions trains the body alone.
     assert main([*args, "--force", "--no-regions"]) == 0
     assert read_manifest(out).regions == () and not (out / "regions").exists()
