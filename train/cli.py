@@ -390,6 +390,14 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
         "--no-baselines", action="store_true", help="skip nearest-view and interpolation"
     )
     parser.add_argument("--errors", help="folder for error-map images of the worst samples")
+    parser.add_argument(
+        "--shapes",
+        nargs="*",
+        metavar="SHAPE",
+        help="also measure the shape response: each blend shape's weight 0 -> 1 with the pose "
+        "and camera held, the network's albedo change against the mesh's (ratio, correlation) "
+        "on 8 samples of --split; no names: every shape the model reads (train/shapes.py)",
+    )
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument(
         "--record", action="store_true", help="store the model's metrics in the bundle manifest"
@@ -489,14 +497,44 @@ def run_eval(args: argparse.Namespace) -> int:
             continue
         errors = Path(args.errors) / REGIONS / region.name if args.errors else None
         regions[region.name] = _evaluate(args, region.folder, data, errors)
+        if args.shapes is not None:
+            regions[region.name]["shapes"] = _shapes(args, region.folder, data)
+    if args.shapes is not None:
+        result["shapes"] = _shapes(args, model, dataset)
     if args.json:  # strict JSON: null for nan and inf, never NaN
         sys.stdout.write(to_json(result | ({"regions": regions} if regions else {})))
         return 0
-    print(format_table(result))
+    print(format_table(result) + _shapes_table(result, "the model"))
     for name, region_result in regions.items():
         print(f"region {name} ({model / REGIONS / name} on {dataset / REGIONS / name}):")
-        print(format_table(region_result))
+        print(format_table(region_result) + _shapes_table(region_result, f"region {name}"))
     return 0
+
+
+def _shapes(args: argparse.Namespace, model: Path, dataset: Path) -> list[dict]:
+    """--shapes for one bundle on its dataset: the shapes it reads among those named."""
+    from rigspace.sdk.bundle import read_manifest as read_bundle
+    from rigspace.train.shapes import shape_response
+
+    read = read_bundle(model).blend_shapes
+    if not read:
+        _note(f"{model} reads no blend shapes: no shape response")
+        return []
+    names = [s for s in args.shapes if s in read] if args.shapes else list(read)
+    if args.shapes and len(names) < len(args.shapes):
+        missing = ", ".join(s for s in args.shapes if s not in read)
+        _note(f"{model} does not read {missing}: not measured there")
+    if not names:
+        return []
+    rows = shape_response(model, dataset, names, args.split, 8, args.predictor, args.device)
+    return [dataclasses.asdict(r) for r in rows]
+
+
+def _shapes_table(result: dict, what: str) -> str:
+    from rigspace.train.shapes import ShapeResponse, format_responses
+
+    rows = result.get("shapes")
+    return "\n" + format_responses([ShapeResponse(**r) for r in rows], what) if rows else ""
 
 
 def _note(text: str) -> None:

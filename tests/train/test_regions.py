@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from rigspace.sdk.bundle import BundleError, read_manifest
@@ -46,8 +47,20 @@ def test_train_trains_each_region_into_a_bundle_the_body_lists(region_dataset, t
     assert result["rows"][0]["predictor"] == "model"
     face_result = result["regions"]["face"]
     assert face_result["dataset"].endswith("regions/face") and face_result["samples"] > 0
-    assert main(["eval", str(out), str(region_dataset), "--no-baselines"]) == 0
-    assert f"region face ({out / 'regions' / 'face'} on" in capsys.readouterr().out
+    assert main(["eval", str(out), str(region_dataset), "--no-baselines", "--limit", "2",
+                 "--shapes", "jawOpen", "blink"]) == 0  # fmt: skip
+    printed = capsys.readouterr().out
+    assert f"region face ({out / 'regions' / 'face'} on" in printed
+    assert "shape response of the model" in printed and "shape response of region face" in printed
+    assert main(["eval", str(out), str(region_dataset), "--no-baselines", "--limit", "2",
+                 "--json", "--shapes"]) == 0  # fmt: skip
+    result = json.loads(capsys.readouterr().out)
+    shapes = {r["shape"]: r for r in result["regions"]["face"]["shapes"]}
+    assert set(shapes) == set(read_manifest(out / "regions" / "face").blend_shapes)
+    blink = shapes["blink"]  # the eyes' points pulled in: the mesh's face moves where seen
+    assert blink["samples"] > 0 and blink["mesh_change"] > 0 and blink["network_change"] >= 0
+    # jawOpen drops the lowest ring, on the neck: nothing of the face region moves.
+    assert shapes["jawOpen"]["mesh_change"] == 0
     assert main(["eval", str(out), str(region_dataset / "regions" / "face"), "--no-baselines"]) == 0
     assert "region face is not measured" in capsys.readouterr().err
     # --force replaces the bundle and its regions; --no-regions trains the body alone.
@@ -86,3 +99,26 @@ def test_a_region_listed_twice_is_named(tmp_path):
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(BundleError, match="listed twice"):
         read_manifest(tmp_path)
+
+
+def test_the_shape_response_compares_the_network_s_change_with_the_mesh_s():
+    from rigspace.sdk.render import Maps
+    from rigspace.train.shapes import change, summarise
+
+    def maps(albedo):
+        h, w = albedo.shape[:2]
+        return Maps(albedo=albedo, normal=np.zeros((h, w, 3), np.float32),
+                    depth=np.ones((h, w), np.float32), mask=np.ones((h, w), np.float32))  # fmt: skip
+
+    rng = np.random.default_rng(0)
+    a = maps(rng.random((8, 8, 3)).astype(np.float32))
+    b = maps(a.albedo + np.where(np.arange(8)[:, None, None] < 4, 0.5, 0.0).astype(np.float32))
+    moved = change(a, b)
+    pixels = np.ones((8, 8), bool)
+    same = summarise("jawOpen", [(moved, moved, pixels)])  # the network moves as the mesh does
+    assert same.ratio == pytest.approx(1.0) and same.correlation == pytest.approx(1.0)
+    elsewhere = summarise("jawOpen", [(moved, moved[::-1], pixels)])  # as much, other pixels
+    assert elsewhere.ratio == pytest.approx(1.0) and elsewhere.correlation < -0.9
+    still = summarise("jawOpen", [(moved, np.zeros_like(moved), pixels)])  # ignores the shape
+    assert still.ratio == 0.0 and np.isnan(still.correlation)
+    assert np.isnan(summarise("jawOpen", [(moved, moved, ~pixels)]).ratio)  # no pixel: no number
