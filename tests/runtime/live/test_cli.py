@@ -223,10 +223,11 @@ def test_sender_stopping_goes_stale_then_lost_frames_keep_coming_and_it_reconnec
         for sender in senders:
             sender.close()
     assert code == 0 and state["phase"] == "restarted" and state["settled"] >= 3
-    # connected -> stale -> lost while nothing arrived, frames kept coming, then connected.
+    # Frames kept coming while nothing arrived (on a loaded machine a frame can take longer
+    # than the stale stage, so the frames may show lost alone; the ticks below show each).
     paused = [e["status"] for e in phases["paused"]]
     sequence = [s for k, s in enumerate(paused) if k == 0 or s != paused[k - 1]]
-    assert sequence[-2:] == ["stale", "lost"] and "connected" not in sequence[1:], paused
+    assert sequence[-1] == "lost" and "connected" not in sequence[1:], paused
     assert phases["restarted"][-1]["status"] == "connected"
     frames = json.loads((out / "report.json").read_text())["frames"]
     assert frames[-1]["live"][0]["samples"] > frames[0]["live"][0]["samples"]
@@ -252,11 +253,21 @@ def test_sender_stopping_goes_stale_then_lost_frames_keep_coming_and_it_reconnec
     gap = [k for k in range(1, len(codes)) if status[k - 1] != "connected"]
     gap = [k for k in gap if k > min(k for k in range(len(codes)) if status[k] == "stale")]
     assert status[gap[-1]] == "connected" and {"stale", "lost"} <= {status[k] for k in gap}
+    # Tick by tick: connected -> stale -> lost -> connected (the pause, then the new sender).
+    steps = [s for k, s in enumerate(status) if k == 0 or s != status[k - 1]]
+    assert any(steps[k : k + 4] == ["connected", "stale", "lost", "connected"]
+               for k in range(len(steps))), steps  # fmt: skip
     turn = degrees_between(recorded.rotations[gap], recorded.rotations[np.subtract(gap, 1)])
     move = np.linalg.norm(
         recorded.root_positions[gap] - recorded.root_positions[np.subtract(gap, 1)], axis=1
     )
-    assert turn.max() < 25.0 and move.max() < 25.0, (turn.max(axis=1), move)
+    worst = gap[int(np.argmax(turn.max(axis=1)))]
+    assert turn.max() < 25.0 and move.max() < 25.0, (
+        f"tick {worst}: {turn.max():.1f} deg, statuses around it "
+        f"{status[max(worst - 3, 0) : worst + 3]}",
+        turn.max(axis=1),
+        move,
+    )
     # After the restart, the take follows the new sender (before: the old stream replayed).
     expected = expected_locals(second_clip, scene, url, 0.0)
     errors = angles(recorded.rotations[-3:, None], expected[None]).max(axis=2)
