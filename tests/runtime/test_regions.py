@@ -1,0 +1,187 @@
+"""Regions in the runtime (runtime/regions.py): the merge of a region's layer into its body's
+against a per-pixel reference, and the rule that skips a region that adds nothing."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from rigspace.runtime.billboard import Billboard
+from rigspace.runtime.character import COVERAGE_EPSILON, Layer
+from rigspace.runtime.regions import (
+    DEPTH_TOLERANCE,
+    FEATHER_PX,
+    SOLID,
+    merge_region,
+    region_skip,
+    region_weight,
+)
+
+MERGE_TOLERANCE = 1e-5
+"""float32 blends against the float64 reference."""
+
+
+def _layer(x0, y0, mask, depth, colour, normal=(0.0, 0.0, 1.0), uv=None, chart=None) -> Layer:
+    mask = np.asarray(mask, np.float32)
+    covered = mask > COVERAGE_EPSILON
+    depth = np.where(covered, np.broadcast_to(np.float32(depth), mask.shape), np.inf)
+    n = np.asarray(normal, np.float32) / np.linalg.norm(normal)
+    return Layer(
+        x0, y0,
+        (mask[..., None] * np.asarray(colour, np.float32)).astype(np.float32),
+        mask, depth.astype(np.float32),
+        np.where(covered[..., None], n, 0.0).astype(np.float32),
+        16, ("albedo", "geometry"), uv=uv, chart=chart,
+    )  # fmt: skip
+
+
+def _disc(h, w, cy, cx, radius) -> np.ndarray:
+    y, x = np.mgrid[0:h, 0:w] + 0.5
+    return np.clip(radius - np.hypot(y - cy, x - cx) + 0.5, 0.0, 1.0).astype(np.float32)
+
+
+def reference_weight(body: Layer, region: Layer, feather: float, tolerance: float) -> np.ndarray:
+    """region_weight pixel by pixel from its definition: a seam is any pixel the body covers at
+    least SOLID where the region does not win; the distance to the nearest one by brute force."""
+
+    def body_at(y, x):
+        i, j = y - body.y0, x - body.x0
+        if 0 <= i < body.mask.shape[0] and 0 <= j < body.mask.shape[1]:
+            return float(body.mask[i, j]), float(body.depth[i, j])
+        return 0.0, math.inf
+
+    rh, rw = region.mask.shape
+    wins = np.zeros((rh, rw), bool)
+    for i in range(rh):
+        for j in range(rw):
+            _, depth = body_at(region.y0 + i, region.x0 + j)
+            r, d = float(region.mask[i, j]), float(region.depth[i, j])
+            wins[i, j] = r > COVERAGE_EPSILON and d <= depth * (1 + tolerance)
+    x0, y0 = min(body.x0, region.x0), min(body.y0, region.y0)
+    x1 = max(body.x0 + body.mask.shape[1], region.x0 + rw)
+    y1 = max(body.y0 + body.mask.shape[0], region.y0 + rh)
+    seams = []
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            i, j = y - region.y0, x - region.x0
+            mine = 0 <= i < rh and 0 <= j < rw and wins[i, j]
+            if body_at(y, x)[0] >= SOLID and not mine:
+                seams.append((y, x))
+    seam = np.array(seams, float).reshape(-1, 2)
+    out = np.zeros((rh, rw))
+    for i in range(rh):
+        for j in range(rw):
+            if not wins[i, j]:
+                continue
+            f = 1.0
+            if len(seam):
+                d = np.hypot(seam[:, 0] - region.y0 - i, seam[:, 1] - region.x0 - j).min()
+                t = min(d / feather, 1.0)
+                f = t * t * (3 - 2 * t)
+            b = min(max(body_at(region.y0 + i, region.x0 + j)[0], 0.0), 1.0)
+            out[i, j] = 1 - (1 - f) * b
+    return out
+
+
+@pytest.fixture
+def scene_layers():
+    """A body covering a 20x24 rectangle's left 14 columns, at depth 3, and a face disc at
+    depth 2.99 straddling the body's right edge (and its rectangle's)."""
+    body_mask = np.zeros((20, 24), np.float32)
+    body_mask[:, :14] = 1.0
+    body_mask[:, 14] = 0.4  # the body's anti-aliased edge
+    body = _layer(3, 2, body_mask, 3.0, (0.8, 0.2, 0.1), normal=(0.3, 0.0, 1.0))
+    region = _layer(10, 5, _disc(12, 16, 6.0, 7.0, 5.0), 2.99, (0.1, 0.3, 0.9))
+    return body, region
+
+
+def test_the_weight_matches_its_definition_pixel_by_pixel(scene_layers):
+    body, region = scene_layers
+    weight, union = region_weight(body, region)
+    assert union == (3, 2, 27, 22)
+    expected = reference_weight(body, region, FEATHER_PX, DEPTH_TOLERANCE)
+    assert np.abs(weight - expected).max() < MERGE_TOLERANCE
+    # Feathered towards the seam inside the body, sharp against the background: beyond the
+    # body's rectangle the region's weight is 1 wherever it covers.
+    inside = (expected > 0) & (expected < 1)
+    assert inside.any() and np.all(weight[:, 8:][region.mask[:, 8:] > 0] == 1.0)
+
+
+def test_the_merge_blends_where_the_body_is_covered_and_replaces_where_not(scene_layers):
+    body, region = scene_layers
+    merged = merge_region(body, region)
+    weight, _ = region_weight(body, region)
+    assert (merged.x0, merged.y0, merged.mask.shape) == (3, 2, (20, 24))
+    ry, rx = region.y0 - merged.y0, region.x0 - merged.x0
+    inside = np.s_[ry : ry + 12, rx : rx + 16]
+    body_mask = np.zeros_like(merged.mask)
+    body_mask[body.y0 - 2 : body.y0 - 2 + 20, :24] = body.mask
+    w = weight[..., None]
+    expected_albedo = w * region.albedo + (1 - w) * body.albedo[inside]
+    assert np.abs(merged.albedo[inside] - expected_albedo).max() < MERGE_TOLERANCE
+    assert (
+        np.abs(
+            merged.mask[inside] - (weight * region.mask + (1 - weight) * body.mask[inside])
+        ).max()
+        < MERGE_TOLERANCE
+    )
+    # Normals: the blend, renormalised; depth: the region's where it wins (w >= 1/2).
+    blended = w * region.normal + (1 - w) * body.normal[inside]
+    blended /= np.maximum(np.linalg.norm(blended, axis=-1, keepdims=True), 1e-12)
+    drawn = weight > 0
+    assert np.abs(merged.normal[inside][drawn] - blended[drawn]).max() < MERGE_TOLERANCE
+    assert np.allclose(np.linalg.norm(merged.normal[merged.mask > 0], axis=-1), 1.0, atol=1e-5)
+    wins = weight >= 0.5
+    assert np.all(merged.depth[inside][wins] == region.depth[wins])
+    assert np.all(merged.depth[inside][~wins] == body.depth[inside][~wins])
+    # Outside the region's winning pixels the body's values are kept to the bit.
+    keep = np.ones(merged.mask.shape, bool)
+    keep[inside] = ~drawn
+    for a, b in ((merged.albedo, body.albedo), (merged.mask, body.mask)):
+        assert np.array_equal(a[keep], b[keep])
+
+
+def test_a_region_behind_the_body_or_empty_leaves_it_unchanged(scene_layers):
+    body, region = scene_layers
+    behind = _layer(region.x0, region.y0, region.mask, 3.0 * (1 + 2.5 * DEPTH_TOLERANCE),
+                    (0.1, 0.3, 0.9))  # fmt: skip
+    weight, _ = region_weight(body, behind)
+    # Behind the body by more than the tolerance: only where the body is empty does it draw.
+    ry, rx = behind.y0 - body.y0, behind.x0 - body.x0
+    covered = body.mask[ry : ry + 12, rx : rx + 16]
+    assert np.all(weight[covered >= SOLID] == 0) and np.all(weight[covered == 0][
+        behind.mask[covered == 0] > COVERAGE_EPSILON] == 1)  # fmt: skip
+    within = _layer(region.x0, region.y0, region.mask, 3.0 * (1 + 0.5 * DEPTH_TOLERANCE),
+                    (0.1, 0.3, 0.9))  # fmt: skip
+    assert np.all(region_weight(body, within)[0][region.mask > COVERAGE_EPSILON] > 0)
+    empty = _layer(region.x0, region.y0, np.zeros_like(region.mask), 2.0, (1, 1, 1))
+    assert merge_region(body, empty) is body  # the body unchanged, bit for bit
+
+
+def test_uv_and_chart_follow_the_winner(scene_layers):
+    body, region = scene_layers
+    region.uv = np.full((*region.mask.shape, 2), 0.25, np.float32)
+    region.chart = np.full(region.mask.shape, 3, np.int32)
+    merged = merge_region(body, region)
+    weight, _ = region_weight(body, region)
+    ry, rx = region.y0 - merged.y0, region.x0 - merged.x0
+    chart = merged.chart[ry : ry + 12, rx : rx + 16]
+    assert np.all(chart[weight >= 0.5] == 3) and np.all(chart[weight < 0.5] == 0)
+    assert merged.uv is not None and merged.chart.sum() == 3 * (weight >= 0.5).sum()
+
+
+def _billboard(size: float, visible: bool = True, reason: str = "") -> Billboard:
+    corners = np.array([[0, 0], [size, 0], [size, size], [0, size]], float)
+    return Billboard(np.zeros(3), np.eye(3), corners, 1.0, visible, reason)
+
+
+def test_the_skip_rule_says_why():
+    assert region_skip(_billboard(300), 128, _billboard(60), 64) == ""
+    assert "not magnified" in region_skip(_billboard(100), 128, _billboard(30), 32)
+    # 40 of the body's 128 network pixels lie across the face's 94 screen pixels: 32 adds none.
+    assert "no finer than the body's 40" in region_skip(_billboard(300), 128, _billboard(94), 32)
+    assert region_skip(_billboard(300), 128, _billboard(60, False, "outside the view"), 64) == (
+        "outside the view"
+    )
