@@ -1,15 +1,22 @@
-"""Regions in the runtime (runtime/regions.py): the merge of a region's layer into its body's
-against a per-pixel reference, and the rule that skips a region that adds nothing."""
+"""Regions in the runtime (runtime/regions.py, the Engine, `rigspace render`): the merge of a
+region's layer into its body's against a per-pixel reference, and a face region trained in
+seconds drawn over the body when the camera is close, skipped with its reason when it adds
+nothing, turned off by --no-regions, and left out with a warning when its bundle is damaged."""
 
 from __future__ import annotations
 
+import json
 import math
+import shutil
 
+import cv2
 import numpy as np
 import pytest
+from pxr import Gf, Usd, UsdGeom
 
 from rigspace.runtime.billboard import Billboard
 from rigspace.runtime.character import COVERAGE_EPSILON, Layer
+from rigspace.runtime.engine import Engine
 from rigspace.runtime.regions import (
     DEPTH_TOLERANCE,
     FEATHER_PX,
@@ -18,6 +25,9 @@ from rigspace.runtime.regions import (
     region_skip,
     region_weight,
 )
+from rigspace.sdk.bundle import read_manifest_document, write_manifest_document
+from rigspace.sdk.cli import main
+from tests.regions import trained_regions
 
 MERGE_TOLERANCE = 1e-5
 """float32 blends against the float64 reference."""
@@ -185,3 +195,148 @@ def test_the_skip_rule_says_why():
     assert region_skip(_billboard(300), 128, _billboard(60, False, "outside the view"), 64) == (
         "outside the view"
     )
+
+
+# -- the Engine and `rigspace render` on a face region trained in seconds --------------------
+
+
+@pytest.fixture(scope="module")
+def face(tmp_path_factory):
+    return trained_regions(tmp_path_factory)
+
+
+def _engine(scene, distance: float | None = None, **options) -> Engine:
+    """An engine of the face scene at 96x72, its camera `distance` in front of the head."""
+    engine = Engine(scene, width=96, height=72, **options)
+    if distance is not None:
+        with Usd.EditContext(engine.stage, engine.stage.GetSessionLayer()):
+            UsdGeom.XformCommonAPI(engine.camera_prim).SetTranslate(Gf.Vec3d(0, 1.0, distance))
+    return engine
+
+
+def _region_calls(engine: Engine) -> list[int]:
+    """Counts the face network's calls from now on (in the returned list's one element)."""
+    (part,) = engine.characters[0].regions
+    calls = [0]
+    predict = part.model.predict
+
+    def counted(*args, **kwargs):
+        calls[0] += 1
+        return predict(*args, **kwargs)
+
+    part.model.predict = counted  # type: ignore[method-assign]
+    return calls
+
+
+@pytest.mark.slow  # the face fixture trains two bundles (10-30 s)
+def test_a_close_camera_draws_the_face_over_the_body(face):
+    scene, _ = face
+    with _engine(scene, 2.5) as engine, _engine(scene, 2.5, regions=False) as body_only:
+        calls = _region_calls(engine)
+        frame = engine.render(6.0)
+        (hero,) = frame.report["characters"]
+        (region,) = hero["regions"]
+        assert hero["size_px"] > hero["level"]  # the body is magnified on screen
+        assert region["name"] == "face" and region["decision"] == "evaluated"
+        assert region["level"] == 16 and len(region["region"]) == 4 and calls == [1]
+        assert frame.report["counts"]["regions evaluated"] == 1
+        alone = body_only.render(6.0)
+        (off,) = alone.report["characters"][0]["regions"]
+        assert off["decision"] == "skipped" and "turned off" in off["reason"]
+        # The face changes the body's image inside its own square only.
+        x, y, w, h = region["region"]
+        changed = np.any(frame.beauty != alone.beauty, axis=-1)
+        assert changed[y : y + h, x : x + w].any()
+        changed[y : y + h, x : x + w] = False
+        assert not changed.any()
+        # The same time again: the frame is repeated, the face reused, no network call.
+        again = engine.render(6.0)
+        assert again.report["characters"][0]["regions"][0]["decision"] == "reused"
+        assert again.report["counts"]["regions reused"] == 1 and calls == [1]
+
+
+@pytest.mark.slow  # the face fixture trains two bundles (10-30 s)
+def test_far_or_without_its_body_the_face_is_skipped_and_runs_nothing(face):
+    scene, _ = face
+    with _engine(scene, 60.0) as engine:
+        calls = _region_calls(engine)
+        far = engine.render(6.0)
+        hero = far.report["characters"][0]
+        assert hero["decision"] == "evaluated" and hero["size_px"] <= hero["level"]
+        (region,) = hero["regions"]
+        assert region["decision"] == "skipped" and "not magnified" in region["reason"]
+        assert far.report["counts"]["regions skipped"] == 1
+        with Usd.EditContext(engine.stage, engine.stage.GetSessionLayer()):
+            UsdGeom.XformCommonAPI(engine.camera_prim).SetRotate(Gf.Vec3f(0, 180, 0))
+        behind = engine.render(7.0)
+        hero = behind.report["characters"][0]
+        assert hero["decision"] == "skipped" and hero["reason"] == "behind the camera"
+        assert hero["regions"][0]["reason"] == "its character is not drawn this frame"
+        assert calls == [0]
+
+
+@pytest.mark.slow  # the face fixture trains two bundles (10-30 s)
+def test_render_draws_the_face_and_no_regions_gives_the_body_alone(face, tmp_path):
+    scene, bundle = face
+    # The body alone: the same bundle with no regions in its manifest.
+    alone = tmp_path / "alone"
+    shutil.copytree(bundle, alone, ignore=shutil.ignore_patterns("regions", "training"))
+    document = read_manifest_document(alone)
+    del document["regions"]
+    write_manifest_document(alone, document)
+    common = ["--frames", "6:6", "--resolution", "96x72", "--camera", "/World/Camera"]
+    with_face, without, body = tmp_path / "face", tmp_path / "without", tmp_path / "body"
+    assert main(["render", str(scene), "--out", str(with_face), *common, "--reference"]) == 0
+    assert main(["render", str(scene), "--out", str(without), *common, "--no-regions"]) == 0
+    assert main(["render", str(scene), "--out", str(body), *common, "--model", str(alone)]) == 0
+    png = "frame_000006.0.png"
+    image = {k: cv2.imread(str(k / png)) for k in (with_face, without, body)}
+    assert np.array_equal(image[without], image[body])
+    assert not np.array_equal(image[with_face], image[body])
+    report = json.loads((with_face / "report.json").read_text())["frames"][0]
+    (region,) = report["characters"][0]["regions"]
+    assert region["decision"] == "evaluated" and report["counts"]["regions evaluated"] == 1
+    # --reference measures the face over its own square too.
+    (numbers,) = report["reference"][0]["regions"]
+    assert numbers["name"] == "face" and numbers["region"] == region["region"]
+    assert math.isfinite(numbers["psnr"]) and 0 <= numbers["flip"] <= 1
+    off = json.loads((without / "report.json").read_text())["frames"][0]
+    assert off["characters"][0]["regions"][0]["decision"] == "skipped"
+
+
+def _no_manifest(folder):
+    (folder / "manifest.json").unlink()
+    return "no manifest.json"
+
+
+def _no_graph(folder):
+    trunk = read_manifest_document(folder)["trunk"]["graphs"]["trunk"]
+    (folder / trunk).unlink()
+    return f"{trunk} is missing"
+
+
+def _strange_joint(folder):
+    document = read_manifest_document(folder)
+    document["joints"] = [*document["joints"][:-1], "tail"]
+    write_manifest_document(folder, document)
+    return "joints the skeleton lacks: tail"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("damage", [_no_manifest, _no_graph, _strange_joint])
+def test_a_damaged_region_bundle_warns_and_the_body_draws(face, tmp_path, capsys, damage):
+    scene, bundle = face
+    copy = tmp_path / "model"
+    shutil.copytree(bundle, copy, ignore=shutil.ignore_patterns("training"))
+    said = damage(copy / "regions" / "face")
+    with _engine(scene, models={"": str(copy)}) as engine, _engine(scene, regions=False) as alone:
+        warning = capsys.readouterr().err
+        assert "region face is not drawn, the body draws without it" in warning
+        assert said in warning and str(copy / "regions" / "face") in warning
+        assert "Fix:" in warning and "--no-regions" in warning
+        frame = engine.render(6.0)
+        hero = frame.report["characters"][0]
+        assert hero["decision"] == "evaluated"
+        assert hero["regions"][0]["decision"] == "skipped"
+        assert said in hero["regions"][0]["reason"]
+        assert np.array_equal(frame.beauty, alone.render(6.0).beauty)
