@@ -31,7 +31,8 @@ the current time (authored or fallback, time samples, relationship targets, meta
 neural character's bundle and metrics), the layer stack and its composition, validation
 findings linked to their prims, a timeline with a camera picker, and a viewport with the
 Engine's frame (beauty, albedo, normal, depth, mask), each character's billboard, level,
-decision and cost, a frame-time graph, and the live bindings' counters. The scene reloads
+decision and cost (and its regions': the face, a hand), a frame-time graph, and the live
+bindings' counters. The scene reloads
 when one of its layer files changes. Serves on 127.0.0.1 unless --host says otherwise.
 """
 
