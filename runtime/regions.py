@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 
 import cv2
+import numba as nb
 import numpy as np
 
 from rigspace.runtime.billboard import Billboard
@@ -73,13 +74,11 @@ def region_weight(
         max(body.x0 + bw, region.x0 + rw),
         max(body.y0 + bh, region.y0 + rh),
     )
-    b_mask = _onto(body.mask, body, union, 0.0)
-    ry, rx = region.y0 - union[1], region.x0 - union[0]
-    inside = np.s_[ry : ry + rh, rx : rx + rw]
-    b = np.clip(b_mask[inside], 0.0, 1.0)
+    own = (region.x0, region.y0, region.x0 + rw, region.y0 + rh)
+    b = np.clip(_window(body.mask, body, own, 0.0), 0.0, 1.0)
     wins = region.mask > COVERAGE_EPSILON
     if body.depth is not None and region.depth is not None:
-        b_depth = _onto(body.depth, body, union, np.inf)[inside]  # inf where the body is empty
+        b_depth = _window(body.depth, body, own, np.inf)  # inf where the body is empty
         wins &= region.depth <= b_depth * np.float32(1.0 + tolerance)
     if not wins.any():
         return np.zeros((rh, rw), np.float32), union
@@ -88,10 +87,16 @@ def region_weight(
         # The seams within `feather` of the region's rectangle: solid body it does not draw
         # (outside its rectangle too, so a region cut by its square still blends there).
         m = math.ceil(feather) + 1
-        wy0, wx0 = max(ry - m, 0), max(rx - m, 0)
-        wy1, wx1 = min(ry + rh + m, union[3] - union[1]), min(rx + rw + m, union[2] - union[0])
-        seam = b_mask[wy0:wy1, wx0:wx1] >= SOLID
-        mine = np.s_[ry - wy0 : ry - wy0 + rh, rx - wx0 : rx - wx0 + rw]
+        around = (
+            max(own[0] - m, union[0]),
+            max(own[1] - m, union[1]),
+            min(own[2] + m, union[2]),
+            min(own[3] + m, union[3]),
+        )
+        seam = _window(body.mask, body, around, 0.0) >= SOLID
+        mine = np.s_[
+            own[1] - around[1] : own[3] - around[1], own[0] - around[0] : own[2] - around[0]
+        ]
         seam[mine] &= ~wins
         if seam.any():
             # Exact Euclidean distance of every pixel to the nearest seam pixel.
@@ -105,14 +110,20 @@ def region_weight(
 
 
 def merge_region(
-    body: Layer, region: Layer, feather: float = FEATHER_PX, tolerance: float = DEPTH_TOLERANCE
+    body: Layer,
+    region: Layer,
+    feather: float = FEATHER_PX,
+    tolerance: float = DEPTH_TOLERANCE,
+    kernel: bool = True,
 ) -> Layer:
     """The body's layer with a region's merged in, over the rectangle holding both: with w the
     region's weight (region_weight), coverage and premultiplied albedo are w * region + (1 -
     w) * body; normals the same blend renormalised; depth, uv and chart the winner's (the
     region's where w >= 1/2). Pixels where w is 0 keep the body's values exactly, and a
     region that wins no pixel returns `body` itself. The region has every map the body has
-    (its branches include the body's); a map the body lacks stays absent."""
+    (its branches include the body's); a map the body lacks stays absent. The blend is one
+    compiled pass over the region's rectangle (`kernel` False: numpy, `_blend_reference`,
+    which the pass is tested against)."""
     if (body.albedo is None) != (region.albedo is None) or (
         body.depth is not None and (region.depth is None or region.normal is None)
     ):
@@ -121,52 +132,151 @@ def merge_region(
             f"(branches {body.branches})"
         )
     weight, union = region_weight(body, region, feather, tolerance)
-    drawn = weight > 0
-    if not drawn.any():
+    if not np.any(weight > 0):
         return body
+    # The body's maps copied into the rectangle holding both (its cached layer stays as it is).
+    out = Layer(
+        union[0], union[1],
+        None if body.albedo is None else _onto(body.albedo, body, union, 0.0),
+        _onto(body.mask, body, union, 0.0),
+        None if body.depth is None else _onto(body.depth, body, union, np.inf),
+        None if body.normal is None else _onto(body.normal, body, union, 0.0),
+        body.level, body.branches, dict(body.info),
+        None if body.uv is None and region.uv is None
+        else _onto(_or_zeros(body.uv, body, 2), body, union, 0.0),
+        None if body.chart is None and region.chart is None
+        else _onto(_or_zeros(body.chart, body, 0, np.int32), body, union, 0),
+    )  # fmt: skip
+    if kernel:
+        _blend(out, region, weight)
+    else:
+        _blend_reference(out, region, weight)
+    return out
+
+
+def _blend_reference(out: Layer, region: Layer, weight: np.ndarray) -> None:
+    """merge_region's blend in numpy, in place in `out` (the body's maps over the union):
+    only the pixels the region draws (weight > 0) change."""
     rh, rw = region.mask.shape
-    ry, rx = region.y0 - union[1], region.x0 - union[0]
-    inside = np.s_[ry : ry + rh, rx : rx + rw]
-    w = weight[..., None]
+    oy, ox = region.y0 - out.y0, region.x0 - out.x0
+    inside = np.s_[oy : oy + rh, ox : ox + rw]
+    drawn = weight > 0
     wins = weight >= 0.5
-    mask = _onto(body.mask, body, union, 0.0)
-    under = mask[inside]
-    np.copyto(under, weight * region.mask + (1.0 - weight) * under, where=drawn)
-    albedo = depth = normal = None
-    if body.albedo is not None and region.albedo is not None:
-        albedo = _onto(body.albedo, body, union, 0.0)
-        under = albedo[inside]  # premultiplied: blended as the coverage is
-        np.copyto(under, w * region.albedo + (1.0 - w) * under, where=drawn[..., None])
-    if body.depth is not None and region.depth is not None:
-        depth = _onto(body.depth, body, union, np.inf)
-        np.copyto(depth[inside], region.depth, where=wins)
-    if body.normal is not None and region.normal is not None:
-        normal = _onto(body.normal, body, union, 0.0)
-        under = normal[inside]
-        mixed = w * region.normal + (1.0 - w) * under
-        length = np.linalg.norm(mixed, axis=-1, keepdims=True)
-        mixed = np.where(length > COVERAGE_EPSILON, mixed / np.maximum(length, 1e-12), 0.0)
-        np.copyto(under, mixed.astype(np.float32), where=drawn[..., None])
-    uv = chart = None
-    if body.uv is not None or region.uv is not None:
-        uv = _onto(_or_zeros(body.uv, body, 2), body, union, 0.0)
-        np.copyto(uv[inside], _or_zeros(region.uv, region, 2), where=wins[..., None])
-    if body.chart is not None or region.chart is not None:
-        chart = _onto(_or_zeros(body.chart, body, 0, np.int32), body, union, 0)
-        np.copyto(chart[inside], _or_zeros(region.chart, region, 0, np.int32), where=wins)
-    return Layer(
-        union[0], union[1], albedo, mask, depth, normal, body.level, body.branches,
-        dict(body.info), uv, chart,
+    w = weight[drawn]
+
+    def blended(target: np.ndarray, mine: np.ndarray) -> None:
+        under = target[inside]
+        a, b = mine[drawn], under[drawn]
+        k = w if a.ndim == 1 else w[:, None]
+        under[drawn] = k * a + (np.float32(1.0) - k) * b
+
+    blended(out.mask, region.mask)
+    if out.albedo is not None and region.albedo is not None:
+        blended(out.albedo, region.albedo)  # premultiplied: blended as the coverage is
+    if out.depth is not None and region.depth is not None:
+        out.depth[inside][wins] = region.depth[wins]
+    if out.normal is not None and region.normal is not None:
+        blended(out.normal, region.normal)
+        under = out.normal[inside]
+        n = under[drawn]
+        length = np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
+        under[drawn] = np.where(length > COVERAGE_EPSILON, n / np.maximum(length, 1e-12), 0.0)
+    if out.uv is not None:
+        out.uv[inside][wins] = _or_zeros(region.uv, region, 2)[wins]
+    if out.chart is not None:
+        out.chart[inside][wins] = _or_zeros(region.chart, region, 0, np.int32)[wins]
+
+
+_NONE_2 = np.zeros((0, 0), np.float32)
+_NONE_3 = np.zeros((0, 0, 3), np.float32)
+_NONE_UV = np.zeros((0, 0, 2), np.float32)
+_NONE_CHART = np.zeros((0, 0), np.int32)
+
+
+def _blend(out: Layer, region: Layer, weight: np.ndarray) -> None:
+    """_blend_reference's result by the compiled pass (blend_pass)."""
+    albedo = out.albedo is not None and region.albedo is not None
+    geometry = out.depth is not None and out.normal is not None
+    blend_pass(
+        weight, region.y0 - out.y0, region.x0 - out.x0,
+        np.ascontiguousarray(region.mask, np.float32),
+        np.ascontiguousarray(region.albedo, np.float32) if albedo else _NONE_3,
+        np.ascontiguousarray(region.depth, np.float32) if geometry else _NONE_2,
+        np.ascontiguousarray(region.normal, np.float32) if geometry else _NONE_3,
+        np.ascontiguousarray(region.uv, np.float32) if region.uv is not None else _NONE_UV,
+        np.ascontiguousarray(region.chart, np.int32) if region.chart is not None else _NONE_CHART,
+        out.mask, out.albedo if albedo else _NONE_3, out.depth if geometry else _NONE_2,
+        out.normal if geometry else _NONE_3, _NONE_UV if out.uv is None else out.uv,
+        _NONE_CHART if out.chart is None else out.chart,
+        albedo, geometry, COVERAGE_EPSILON,
     )  # fmt: skip
 
 
-def _onto(array: np.ndarray, layer: Layer, union: tuple[int, int, int, int], fill) -> np.ndarray:
-    """A copy of one of `layer`'s maps placed in the rectangle `union` (filled with `fill`)."""
-    h, w = union[3] - union[1], union[2] - union[0]
-    out = np.full((h, w, *array.shape[2:]), fill, array.dtype)
-    y, x = layer.y0 - union[1], layer.x0 - union[0]
-    out[y : y + array.shape[0], x : x + array.shape[1]] = array
+@nb.njit(cache=True, nogil=True)
+def blend_pass(
+    weight, oy, ox, r_mask, r_albedo, r_depth, r_normal, r_uv, r_chart,
+    mask, albedo, depth, normal, uv, chart, with_albedo, with_geometry, epsilon,
+):  # fmt: skip
+    """Blend a region's maps (r_*) into the body's over the union (in place), the region's
+    top-left at (oy, ox) there: _blend_reference one pixel at a time, in one pass over the
+    region's rectangle. A zero-sized r_uv or r_chart reads as zeros; a zero-sized uv or chart
+    (the union has none) is left alone."""
+    h, w = weight.shape
+    one = np.float32(1.0)
+    has_uv, has_chart = uv.shape[0] > 0, chart.shape[0] > 0
+    r_has_uv, r_has_chart = r_uv.shape[0] > 0, r_chart.shape[0] > 0
+    for i in range(h):
+        y = oy + i
+        for j in range(w):
+            k = weight[i, j]
+            if not k > 0:
+                continue
+            x = ox + j
+            mask[y, x] = k * r_mask[i, j] + (one - k) * mask[y, x]
+            if with_albedo:
+                for c in range(3):
+                    albedo[y, x, c] = k * r_albedo[i, j, c] + (one - k) * albedo[y, x, c]
+            wins = k >= 0.5
+            if with_geometry:
+                n0 = k * r_normal[i, j, 0] + (one - k) * normal[y, x, 0]
+                n1 = k * r_normal[i, j, 1] + (one - k) * normal[y, x, 1]
+                n2 = k * r_normal[i, j, 2] + (one - k) * normal[y, x, 2]
+                length = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+                scale = one / length if length > epsilon else np.float32(0.0)
+                normal[y, x, 0] = n0 * scale
+                normal[y, x, 1] = n1 * scale
+                normal[y, x, 2] = n2 * scale
+                if wins:
+                    depth[y, x] = r_depth[i, j]
+            if wins and has_uv:
+                for c in range(2):
+                    uv[y, x, c] = r_uv[i, j, c] if r_has_uv else 0.0
+            if wins and has_chart:
+                chart[y, x] = r_chart[i, j] if r_has_chart else 0
+
+
+def _window(array: np.ndarray, layer: Layer, rect: tuple[int, int, int, int], fill) -> np.ndarray:
+    """One of `layer`'s maps over the frame rectangle `rect` (x0, y0, x1, y1), `fill` where
+    the layer does not reach."""
+    x0, y0, x1, y1 = rect
+    h, w = array.shape[:2]
+    out = np.full((y1 - y0, x1 - x0, *array.shape[2:]), fill, array.dtype)
+    ly0, lx0 = max(layer.y0, y0), max(layer.x0, x0)
+    ly1, lx1 = min(layer.y0 + h, y1), min(layer.x0 + w, x1)
+    if ly1 > ly0 and lx1 > lx0:
+        out[ly0 - y0 : ly1 - y0, lx0 - x0 : lx1 - x0] = array[
+            ly0 - layer.y0 : ly1 - layer.y0, lx0 - layer.x0 : lx1 - layer.x0
+        ]
     return out
+
+
+def _onto(array: np.ndarray, layer: Layer, union: tuple[int, int, int, int], fill) -> np.ndarray:
+    """A copy of one of `layer`'s maps placed in the rectangle `union` (filled with `fill`),
+    which holds it."""
+    h, w = array.shape[:2]
+    if (layer.x0, layer.y0, layer.x0 + w, layer.y0 + h) == union:
+        return array.copy()
+    return _window(array, layer, union, fill)
 
 
 def _or_zeros(array: np.ndarray | None, layer: Layer, channels: int, dtype=np.float32):

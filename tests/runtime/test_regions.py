@@ -182,6 +182,28 @@ def test_uv_and_chart_follow_the_winner(scene_layers):
     assert merged.uv is not None and merged.chart.sum() == 3 * (weight >= 0.5).sum()
 
 
+def test_the_compiled_blend_equals_numpys(scene_layers):
+    body, region = scene_layers
+    rng = np.random.default_rng(7)
+    region.uv = rng.random((*region.mask.shape, 2), np.float32)
+    region.chart = rng.integers(1, 4, region.mask.shape).astype(np.int32)
+    noisy = _layer(region.x0 - 4, region.y0 + 3, region.mask * rng.random(region.mask.shape),
+                   2.9, (0.5, 0.5, 0.5), normal=(0.0, 0.6, 0.8))  # fmt: skip
+    noisy.depth = np.where(noisy.mask > COVERAGE_EPSILON, rng.uniform(2.9, 3.1, noisy.mask.shape),
+                           np.inf).astype(np.float32)  # fmt: skip
+    for mine in (region, noisy):
+        fast, slow = merge_region(body, mine), merge_region(body, mine, kernel=False)
+        assert (fast.x0, fast.y0) == (slow.x0, slow.y0)
+        for name in ("mask", "albedo", "depth", "normal", "uv"):
+            a, b = getattr(fast, name), getattr(slow, name)
+            assert (a is None) == (b is None), name
+            if a is not None:
+                finite = np.isfinite(b)
+                assert np.array_equal(finite, np.isfinite(a)), name
+                assert np.abs(a[finite] - b[finite]).max() < MERGE_TOLERANCE, name
+        assert (fast.chart is None and slow.chart is None) or np.array_equal(fast.chart, slow.chart)
+
+
 def _billboard(size: float, visible: bool = True, reason: str = "") -> Billboard:
     corners = np.array([[0, 0], [size, 0], [size, size], [0, size]], float)
     return Billboard(np.zeros(3), np.eye(3), corners, 1.0, visible, reason)
