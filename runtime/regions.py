@@ -116,10 +116,12 @@ def merge_region(
     tolerance: float = DEPTH_TOLERANCE,
     kernel: bool = True,
 ) -> Layer:
-    """The body's layer with a region's merged in, over the rectangle holding both: with w the
-    region's weight (region_weight), coverage and premultiplied albedo are w * region + (1 -
-    w) * body; normals the same blend renormalised; depth, uv and chart the winner's (the
-    region's where w >= 1/2). Pixels where w is 0 keep the body's values exactly, and a
+    """The body's layer with a region's merged in, over the rectangle holding both: the region
+    goes over the body with alpha k = w r (w its weight, region_weight; r its coverage), so
+    premultiplied albedo is w A_r + (1 - k) A_b and coverage k + (1 - k) b (the body stays
+    solid under the region's soft edge, and w = r = 1 replaces it); normals are k n_r + (1 -
+    k) b n_b renormalised; depth, uv and chart the winner's: the region's where its share k is
+    at least the body's (1 - k) b. Pixels where w is 0 keep the body's values exactly, and a
     region that wins no pixel returns `body` itself. The region has every map the body has
     (its branches include the body's); a map the body lacks stays absent. The blend is one
     compiled pass over the region's rectangle (`kernel` False: numpy, `_blend_reference`,
@@ -160,25 +162,22 @@ def _blend_reference(out: Layer, region: Layer, weight: np.ndarray) -> None:
     rh, rw = region.mask.shape
     oy, ox = region.y0 - out.y0, region.x0 - out.x0
     inside = np.s_[oy : oy + rh, ox : ox + rw]
+    one = np.float32(1.0)
     drawn = weight > 0
-    wins = weight >= 0.5
     w = weight[drawn]
-
-    def blended(target: np.ndarray, mine: np.ndarray) -> None:
-        under = target[inside]
-        a, b = mine[drawn], under[drawn]
-        k = w if a.ndim == 1 else w[:, None]
-        under[drawn] = k * a + (np.float32(1.0) - k) * b
-
-    blended(out.mask, region.mask)
+    b = out.mask[inside][drawn]  # the body's coverage
+    k = w * region.mask[drawn]  # the region's alpha over it
+    wins = np.zeros(weight.shape, bool)  # the region's share of the coverage >= the body's
+    wins[drawn] = k >= (one - k) * b
+    out.mask[inside][drawn] = k + (one - k) * b
     if out.albedo is not None and region.albedo is not None:
-        blended(out.albedo, region.albedo)  # premultiplied: blended as the coverage is
+        under = out.albedo[inside]  # premultiplied: the region over the body
+        under[drawn] = w[:, None] * region.albedo[drawn] + (one - k)[:, None] * under[drawn]
     if out.depth is not None and region.depth is not None:
         out.depth[inside][wins] = region.depth[wins]
     if out.normal is not None and region.normal is not None:
-        blended(out.normal, region.normal)
         under = out.normal[inside]
-        n = under[drawn]
+        n = k[:, None] * region.normal[drawn] + ((one - k) * b)[:, None] * under[drawn]
         length = np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
         under[drawn] = np.where(length > COVERAGE_EPSILON, n / np.maximum(length, 1e-12), 0.0)
     if out.uv is not None:
@@ -218,8 +217,8 @@ def blend_pass(
     mask, albedo, depth, normal, uv, chart, with_albedo, with_geometry, epsilon,
 ):  # fmt: skip
     """Blend a region's maps (r_*) into the body's over the union (in place), the region's
-    top-left at (oy, ox) there: _blend_reference one pixel at a time, in one pass over the
-    region's rectangle. A zero-sized r_uv or r_chart reads as zeros; a zero-sized uv or chart
+    top-left at (oy, ox) there, the region over the body with alpha weight * r_mask:
+    _blend_reference one pixel at a time, in one pass over the region's rectangle. A zero-sized r_uv or r_chart reads as zeros; a zero-sized uv or chart
     (the union has none) is left alone."""
     h, w = weight.shape
     one = np.float32(1.0)
@@ -228,19 +227,22 @@ def blend_pass(
     for i in range(h):
         y = oy + i
         for j in range(w):
-            k = weight[i, j]
+            k = weight[i, j]  # w
             if not k > 0:
                 continue
             x = ox + j
-            mask[y, x] = k * r_mask[i, j] + (one - k) * mask[y, x]
+            b = mask[y, x]
+            a = k * r_mask[i, j]  # the region's alpha over the body
+            mask[y, x] = a + (one - a) * b
             if with_albedo:
                 for c in range(3):
-                    albedo[y, x, c] = k * r_albedo[i, j, c] + (one - k) * albedo[y, x, c]
-            wins = k >= 0.5
+                    albedo[y, x, c] = k * r_albedo[i, j, c] + (one - a) * albedo[y, x, c]
+            wins = a >= (one - a) * b
             if with_geometry:
-                n0 = k * r_normal[i, j, 0] + (one - k) * normal[y, x, 0]
-                n1 = k * r_normal[i, j, 1] + (one - k) * normal[y, x, 1]
-                n2 = k * r_normal[i, j, 2] + (one - k) * normal[y, x, 2]
+                under = (one - a) * b
+                n0 = a * r_normal[i, j, 0] + under * normal[y, x, 0]
+                n1 = a * r_normal[i, j, 1] + under * normal[y, x, 1]
+                n2 = a * r_normal[i, j, 2] + under * normal[y, x, 2]
                 length = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
                 scale = one / length if length > epsilon else np.float32(0.0)
                 normal[y, x, 0] = n0 * scale

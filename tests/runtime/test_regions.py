@@ -119,38 +119,36 @@ def test_the_weight_matches_its_definition_pixel_by_pixel(scene_layers):
     assert inside.any() and np.all(weight[:, 8:][region.mask[:, 8:] > 0] == 1.0)
 
 
-def test_the_merge_blends_where_the_body_is_covered_and_replaces_where_not(scene_layers):
+def test_the_merge_puts_the_region_over_the_body_with_its_weight(scene_layers):
     body, region = scene_layers
     merged = merge_region(body, region)
     weight, _ = region_weight(body, region)
     assert (merged.x0, merged.y0, merged.mask.shape) == (3, 2, (20, 24))
     ry, rx = region.y0 - merged.y0, region.x0 - merged.x0
     inside = np.s_[ry : ry + 12, rx : rx + 16]
-    body_mask = np.zeros_like(merged.mask)
-    body_mask[body.y0 - 2 : body.y0 - 2 + 20, :24] = body.mask
-    w = weight[..., None]
-    expected_albedo = w * region.albedo + (1 - w) * body.albedo[inside]
+    w, r, b = weight, region.mask, body.mask[inside]
+    k = w * r  # the region's alpha over the body
+    expected_albedo = w[..., None] * region.albedo + (1 - k)[..., None] * body.albedo[inside]
     assert np.abs(merged.albedo[inside] - expected_albedo).max() < MERGE_TOLERANCE
-    assert (
-        np.abs(
-            merged.mask[inside] - (weight * region.mask + (1 - weight) * body.mask[inside])
-        ).max()
-        < MERGE_TOLERANCE
-    )
-    # Normals: the blend, renormalised; depth: the region's where it wins (w >= 1/2).
-    blended = w * region.normal + (1 - w) * body.normal[inside]
+    assert np.abs(merged.mask[inside] - (k + (1 - k) * b)).max() < MERGE_TOLERANCE
+    # Under the region's soft edge the body stays solid: no hole where both are covered.
+    both = (b == 1) & (r > 0)
+    assert np.all(merged.mask[inside][both] > 1 - MERGE_TOLERANCE)
+    # Normals: the blend by coverage, renormalised; depth: the region's where its share wins.
+    blended = k[..., None] * region.normal + ((1 - k) * b)[..., None] * body.normal[inside]
     blended /= np.maximum(np.linalg.norm(blended, axis=-1, keepdims=True), 1e-12)
     drawn = weight > 0
     assert np.abs(merged.normal[inside][drawn] - blended[drawn]).max() < MERGE_TOLERANCE
     assert np.allclose(np.linalg.norm(merged.normal[merged.mask > 0], axis=-1), 1.0, atol=1e-5)
-    wins = weight >= 0.5
+    wins = drawn & (k >= (1 - k) * b)
     assert np.all(merged.depth[inside][wins] == region.depth[wins])
     assert np.all(merged.depth[inside][~wins] == body.depth[inside][~wins])
+    assert np.all(np.isfinite(merged.depth[merged.mask > 0]))  # every covered pixel is tested
     # Outside the region's winning pixels the body's values are kept to the bit.
     keep = np.ones(merged.mask.shape, bool)
     keep[inside] = ~drawn
-    for a, b in ((merged.albedo, body.albedo), (merged.mask, body.mask)):
-        assert np.array_equal(a[keep], b[keep])
+    for a, c in ((merged.albedo, body.albedo), (merged.mask, body.mask)):
+        assert np.array_equal(a[keep], c[keep])
 
 
 def test_a_region_behind_the_body_or_empty_leaves_it_unchanged(scene_layers):
@@ -177,9 +175,11 @@ def test_uv_and_chart_follow_the_winner(scene_layers):
     merged = merge_region(body, region)
     weight, _ = region_weight(body, region)
     ry, rx = region.y0 - merged.y0, region.x0 - merged.x0
+    k, b = weight * region.mask, body.mask[ry : ry + 12, rx : rx + 16]
+    wins = (weight > 0) & (k >= (1 - k) * b)
     chart = merged.chart[ry : ry + 12, rx : rx + 16]
-    assert np.all(chart[weight >= 0.5] == 3) and np.all(chart[weight < 0.5] == 0)
-    assert merged.uv is not None and merged.chart.sum() == 3 * (weight >= 0.5).sum()
+    assert wins.any() and np.all(chart[wins] == 3) and np.all(chart[~wins] == 0)
+    assert merged.uv is not None and np.all(merged.uv[ry : ry + 12, rx : rx + 16][wins] == 0.25)
 
 
 def test_the_compiled_blend_equals_numpys(scene_layers):
