@@ -6,7 +6,8 @@
 Per frame: the camera at t; the scene's other prims drawn by the renderer plugin into a
 G-buffer (reused while neither they nor the camera move); per neural character the pose,
 its billboard, and (when visible) its network maps in the billboard's region, reused when
-pose and camera repeat; each layer lit by the scene's lights (runtime/shading.py's maths,
+pose and camera repeat, with its regions' maps (the face, a hand: bundles of their own,
+where they add detail) merged in by depth (runtime/regions.py); each layer lit by the scene's lights (runtime/shading.py's maths,
 compiled in shading_kernel.py, or in a fragment shader on a GPU: gl_shading.py) and
 shadowed (runtime/shadows/__init__.py: prims by shadow maps, characters by their capsules, onto
 each other); then a depth test composites the character over or under the prims, with its
