@@ -17,11 +17,18 @@ The steps of the paper's scene composition, for one character and one camera:
    the albedo branch, un-premultiplied, where no texture drives the colour or the chart is
    unsure (and for bundles without a head); premultiplied by the coverage.
 Only the billboard's screen bounding box is computed.
+
+A region of the character with a network of its own (the face, a hand: docs/regions.md) goes
+through the same steps with its own bundle (a NeuralPart, as the body is): its own billboard
+at its own joint, its own level, the same rig parameter path in its manifest's joint and shape
+order; runtime/regions.py merges its maps into the body's before the lighting.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from pxr import Usd, UsdGeom, Vt
@@ -32,7 +39,7 @@ from rigspace.sdk import schema
 from rigspace.sdk.bundle import BundleError
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.capsules import CapsuleError, read_capsules
-from rigspace.sdk.errors import SceneError
+from rigspace.sdk.errors import RigspaceError, SceneError
 from rigspace.sdk.model import BundleModel
 from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.rotations import rig_inputs, rig_parameters
@@ -100,22 +107,36 @@ def blend_order(model_shapes: tuple[str, ...], shapes: tuple[str, ...], where: s
     return np.array([shapes.index(name) for name in model_shapes], dtype=np.int64)
 
 
-class NeuralCharacter:
-    """A RigspaceNeuralCharacter prim with its loaded model, evaluated per frame."""
+class NeuralPart:
+    """What one model bundle draws of a neural character: the whole body (NeuralCharacter
+    itself), or a region of it with a network of its own (the face, a hand; docs/regions.md).
+    Each has its own joint and blend shape order (its manifest's), its own billboard at its
+    own look-at joint with its own training view, its own levels, and its own texture
+    sampling of the character's textures; the steps from pose to maps are the same."""
 
-    def __init__(self, prim: Usd.Prim, model: BundleModel) -> None:
-        self.prim = prim
-        self.path = str(prim.GetPath())
+    def __init__(
+        self,
+        rig: CharacterRig,
+        model: BundleModel,
+        where: str,
+        up: np.ndarray,
+        name: str = "body",
+        look_at: str = "",
+        shared: NeuralPart | None = None,
+    ) -> None:
+        """`where` names the part in errors ("Neural character /World/Hero"); `up` is the
+        stage's up axis; `look_at` the joint a manifest without look_at_joint looks at
+        (default: the skeleton's first); `shared`: a part (the body) whose textures this one
+        samples too when the two bundles' chart tables are the same."""
         self.model = model
-        self.rig = CharacterRig(prim)
+        self.name = name
+        """"body", or the region's name."""
         manifest = model.manifest
-        self.order = joint_order(model.joints, self.rig.joints, f"Neural character {self.path}")
-        self.blend_order = blend_order(
-            model.blend_shapes, self.rig.blend_shapes, f"Neural character {self.path}"
-        )
+        self.order = joint_order(model.joints, rig.joints, where)
+        self.blend_order = blend_order(model.blend_shapes, rig.blend_shapes, where)
         """Indices into the character's blend shapes of the model's (its input order)."""
         self.look_at = schema.find_joint(
-            manifest.look_at_joint or self.rig.joints[0], self.rig.joints
+            manifest.look_at_joint or look_at or rig.joints[0], rig.joints
         )
         if manifest.training_distance <= 0:
             raise BundleError(
@@ -128,21 +149,17 @@ class NeuralCharacter:
             manifest.training_aperture,
         )
         self.training_resolution = manifest.training_resolution or max(model.resolutions)
-        axis = UsdGeom.GetStageUpAxis(prim.GetStage())
-        self.up = (
-            np.array([0.0, 0.0, 1.0]) if axis == UsdGeom.Tokens.z else np.array([0.0, 1.0, 0.0])
-        )
+        self.up = up
         """The stage's up axis: the training ring kept it upright in every view."""
-        self.capsules: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
-        """Shadow capsules (skeleton joint index, a, b, radius), None without any."""
-        self.no_shadow = self._load_capsules(manifest.capsules)
-        """Why the character casts no shadow ("" when it has capsules)."""
         self.textures: ChartTextures | None = None
         """Its meshes' textures by texture chart, when its bundle has a texture head."""
-        self.no_texture = self._load_textures()
+        self._chart_table: dict | None = None
+        self.no_texture = self._load_textures(rig, shared)
         """Why its colour comes from the albedo branch alone ("" when it samples textures)."""
 
-    def _load_textures(self) -> str:
+    def _load_textures(self, rig: CharacterRig, shared: NeuralPart | None = None) -> str:
+        """Its texture charts over the character's textures; those of `shared` (the body)
+        when the two bundles' chart tables are the same (the textures are read once)."""
         if not self.model.charts:
             return "its model bundle has no texture head"
         try:
@@ -150,7 +167,11 @@ class NeuralCharacter:
         except BundleError as exc:  # a damaged charts.json: the albedo branch still draws it
             return str(exc)
         assert table is not None  # the bundle has charts
-        sources = {self.rig.mesh_name(m): m for m in self.rig.mesh_sources()}
+        self._chart_table = table
+        if shared is not None and shared.textures is not None and shared._chart_table == table:
+            self.textures = shared.textures
+            return ""
+        sources = {rig.mesh_name(m): m for m in rig.mesh_sources()}
         try:
             textures = ChartTextures.build(table, sources)
         except TextureMismatch as exc:
@@ -162,55 +183,6 @@ class NeuralCharacter:
             return "none of its meshes has a texture"
         self.textures = textures
         return ""
-
-    def _load_capsules(self, name: str | None) -> str:
-        if not name:
-            return "its model bundle has no shadow capsules (capsules.json)"
-        try:
-            capsules = read_capsules(self.model.manifest.folder / str(name))
-        except CapsuleError as exc:
-            return str(exc)
-        try:
-            joints = [schema.find_joint(j, self.rig.joints) for j in capsules.joints]
-        except schema.JointLookupError as exc:
-            return f"its shadow capsules name a joint the skeleton lacks ({exc})"
-        self.capsules = (np.asarray(joints), capsules.a, capsules.b, capsules.radius)
-        self._chains = chains([self.rig.joints[j] for j in joints])
-        return ""
-
-    def posed_capsules(self, world: np.ndarray) -> PosedCapsules | None:
-        """The shadow capsules at joint transforms `world` (J, 4, 4), in world space."""
-        if self.capsules is None:
-            return None
-        joints, a, b, radius = self.capsules
-        return pose_capsules(a, b, radius, world[joints], self._chains)
-
-    def pose(self, time: float, local: Vt.Matrix4dArray | None = None) -> np.ndarray:
-        """(J, 4, 4) joint-to-world transforms at `time` (from `local` when a source gives it)."""
-        world = self.rig.world_transforms(time, local)
-        if not np.all(np.isfinite(world)):
-            raise SceneError(
-                f"Neural character {self.path}: the animation gives NaN or Inf joint transforms at "
-                f"time {time:g}.",
-                "fix the SkelAnimation's values at that time (or the live source's data).",
-            )
-        return world
-
-    def weights(self, time: float, live: np.ndarray | None = None) -> np.ndarray:
-        """(B,) the blend shape weights the model reads at `time`, in its order: the
-        animation's, or `live` (the character's order, from a live source) where given."""
-        if not len(self.blend_order):
-            return np.zeros(0, dtype=np.float32)
-        weights = self.rig.blend_weights(time) if live is None else np.asarray(live, np.float32)
-        weights = weights[self.blend_order]
-        if not np.all(np.isfinite(weights)):
-            bad = self.model.blend_shapes[int(np.argmax(~np.isfinite(weights)))]
-            raise SceneError(
-                f"Neural character {self.path}: blend shape {bad} has a NaN or Inf weight at "
-                f"time {time:g}.",
-                "fix the SkelAnimation's blendShapeWeights at that time (or the live source's).",
-            )
-        return weights
 
     def place(self, world: np.ndarray, camera: Camera) -> Billboard:
         scale = float(np.cbrt(abs(np.linalg.det(world[self.look_at][:3, :3]))))
@@ -295,6 +267,122 @@ class NeuralCharacter:
         else:
             sharp = sharpen_coverage(mask, magnification(homography, (x0, y0, w, h)))
         return Layer(x0, y0, albedo, sharp, depth, normal, level, tuple(branches), info, uv, chart)
+
+
+class NeuralCharacter(NeuralPart):
+    """A RigspaceNeuralCharacter prim with its loaded model, evaluated per frame: its body is
+    this NeuralPart; its regions (`load_regions`), each a NeuralPart of its own bundle, are
+    drawn over it (runtime/regions.py)."""
+
+    def __init__(self, prim: Usd.Prim, model: BundleModel) -> None:
+        self.prim = prim
+        self.path = str(prim.GetPath())
+        self.rig = CharacterRig(prim)
+        axis = UsdGeom.GetStageUpAxis(prim.GetStage())
+        up = np.array([0.0, 0.0, 1.0]) if axis == UsdGeom.Tokens.z else np.array([0.0, 1.0, 0.0])
+        super().__init__(self.rig, model, f"Neural character {self.path}", up)
+        self.capsules: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        """Shadow capsules (skeleton joint index, a, b, radius), None without any."""
+        self.no_shadow = self._load_capsules(model.manifest.capsules)
+        """Why the character casts no shadow ("" when it has capsules)."""
+        self.regions: list[NeuralPart] = []
+        """Its regions drawn by their own bundles (load_regions), in its manifest's order."""
+        self.region_problems: dict[str, str] = {}
+        """Region name -> why it is not drawn (its bundle could not be loaded, or regions are
+        turned off): every region its manifest lists is in `regions` or here once
+        load_regions ran."""
+
+    @property
+    def region_names(self) -> tuple[str, ...]:
+        """The regions its bundle lists (manifest `regions`), in order."""
+        return tuple(r.name for r in self.model.manifest.regions)
+
+    def load_regions(self, open_model: Callable[[Path], BundleModel]) -> list[str]:
+        """Each region its bundle lists as a NeuralPart of its own bundle, opened by
+        `open_model(folder)` (the engine's: the body's precision and predictor, sessions
+        shared between characters). A region whose bundle cannot be used (no manifest, a graph
+        missing or damaged, a joint or shape the character lacks) is left out, and the body
+        draws without it: returned is one warning per such region, naming the region, the file
+        and the fix."""
+        warnings = []
+        for region in self.model.manifest.regions:
+            where = f"Neural character {self.path}, region {region.name}"
+            try:
+                model = open_model(region.folder)
+                part = NeuralPart(
+                    self.rig, model, where, self.up, region.name, region.joint, shared=self
+                )
+            except schema.JointLookupError as exc:
+                problem = f"{where}: its bundle looks at a joint the skeleton lacks ({exc})"
+                fix = "retrain the regions on this character's skeleton"
+            except RigspaceError as exc:
+                problem, fix = exc.what, exc.fix
+            else:
+                self.regions.append(part)
+                continue
+            self.region_problems[region.name] = f"its bundle cannot be used: {problem}"
+            fix = f"{fix.rstrip('.')}; or " if fix else ""
+            warnings.append(
+                f"{self.path}: region {region.name} is not drawn, the body draws without it: "
+                f"its bundle {region.folder} cannot be used: {problem} Fix: {fix}train the "
+                "regions again (`rigspace train DATASET --out "
+                f"{self.model.manifest.folder}` on a dataset captured with `rigspace capture "
+                "--regions` writes regions/NAME), or draw the body alone (--no-regions)."
+            )
+        return warnings
+
+    def _load_capsules(self, name: str | None) -> str:
+        if not name:
+            return "its model bundle has no shadow capsules (capsules.json)"
+        try:
+            capsules = read_capsules(self.model.manifest.folder / str(name))
+        except CapsuleError as exc:
+            return str(exc)
+        try:
+            joints = [schema.find_joint(j, self.rig.joints) for j in capsules.joints]
+        except schema.JointLookupError as exc:
+            return f"its shadow capsules name a joint the skeleton lacks ({exc})"
+        self.capsules = (np.asarray(joints), capsules.a, capsules.b, capsules.radius)
+        self._chains = chains([self.rig.joints[j] for j in joints])
+        return ""
+
+    def posed_capsules(self, world: np.ndarray) -> PosedCapsules | None:
+        """The shadow capsules at joint transforms `world` (J, 4, 4), in world space."""
+        if self.capsules is None:
+            return None
+        joints, a, b, radius = self.capsules
+        return pose_capsules(a, b, radius, world[joints], self._chains)
+
+    def pose(self, time: float, local: Vt.Matrix4dArray | None = None) -> np.ndarray:
+        """(J, 4, 4) joint-to-world transforms at `time` (from `local` when a source gives it)."""
+        world = self.rig.world_transforms(time, local)
+        if not np.all(np.isfinite(world)):
+            raise SceneError(
+                f"Neural character {self.path}: the animation gives NaN or Inf joint transforms at "
+                f"time {time:g}.",
+                "fix the SkelAnimation's values at that time (or the live source's data).",
+            )
+        return world
+
+    def weights(
+        self, time: float, live: np.ndarray | None = None, part: NeuralPart | None = None
+    ) -> np.ndarray:
+        """(B,) the blend shape weights the model reads at `time`, in its order: the
+        animation's, or `live` (the character's order, from a live source) where given.
+        `part`: those one of its regions reads, in its model's order (default: the body's)."""
+        part = part or self
+        if not len(part.blend_order):
+            return np.zeros(0, dtype=np.float32)
+        weights = self.rig.blend_weights(time) if live is None else np.asarray(live, np.float32)
+        weights = weights[part.blend_order]
+        if not np.all(np.isfinite(weights)):
+            bad = part.model.blend_shapes[int(np.argmax(~np.isfinite(weights)))]
+            raise SceneError(
+                f"Neural character {self.path}: blend shape {bad} has a NaN or Inf weight at "
+                f"time {time:g}.",
+                "fix the SkelAnimation's blendShapeWeights at that time (or the live source's).",
+            )
+        return weights
 
 
 def geometry_reference(

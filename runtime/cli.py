@@ -10,7 +10,7 @@ import time as clock
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from rigspace.runtime.options import add_view_arguments, positive
+from rigspace.runtime.options import add_regions_argument, add_view_arguments, positive
 from rigspace.sdk.cli import CommandSpec, time_range
 from rigspace.sdk.errors import RigspaceError, SceneError
 from rigspace.sdk.files import write_atomic
@@ -93,6 +93,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="colour characters from their albedo branch even where their bundle has a texture "
         "head (the network's image alone, for comparison)",
     )
+    add_regions_argument(parser)
     parser.add_argument(
         "--aovs",
         type=_aovs,
@@ -127,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
         args.scene, camera=args.camera, width=width, height=height,
         renderer=args.renderer, precision="int8" if args.int8 else "fp32", aovs=aovs,
         prim_samples=args.prim_samples, max_level=args.max_level, textures=not args.no_textures,
-        predictor=args.predictor, models=dict(args.model),
+        predictor=args.predictor, models=dict(args.model), regions=not args.no_regions,
     )  # fmt: skip
     truth = None
     video = None
@@ -164,6 +165,7 @@ def run(args: argparse.Namespace) -> int:
     warnings = never_drawn(reports, paths) + draws_nothing(reports, paths)
     for warning in warnings:
         print(f"rigspace render: warning: {warning}", file=sys.stderr)
+    warnings = engine.region_warnings + warnings  # said when the engine loaded them
     _write_report(out, args, engine, warnings, reports)
     _print_totals(args, out, reports, truth is not None)
     return 0
@@ -456,6 +458,23 @@ def reference_summary(reports: list[dict]) -> str:
             else ""
         )
         + (f"; {empty} frames had nothing to compare (under a pixel)" if empty else "")
+        + _regions_summary(rows)
+    )
+
+
+def _regions_summary(rows: list[dict]) -> str:
+    """The reference line's part about the characters' regions (their own squares), if any."""
+    import numpy as np
+
+    by_name: dict[str, list[dict]] = {}
+    for row in rows:
+        for region in row.get("regions", ()):
+            by_name.setdefault(region["name"], []).append(region)
+    return "".join(
+        f"; region {name}, its own square over {len(found)} frames: beauty PSNR "
+        f"{np.median([r['psnr'] for r in found]):.2f} dB, FLIP "
+        f"{np.median([r['flip'] for r in found]):.4f}"
+        for name, found in sorted(by_name.items())
     )
 
 
@@ -493,9 +512,9 @@ def compare_with_reference(frame, truth, path: Path, coverage: dict | None = Non
 def compare_regions(frame, truth, coverage: dict | None = None) -> list[dict]:
     """PSNR of each evaluated character's region (lit beauty and albedo) against the reference
     frame, and the IoU of its own coverage against its skinned mesh's in that region
-    (`coverage`: per character path, the two (H, W) coverages, `coverages`; both at 0.5)."""
-    import numpy as np
-
+    (`coverage`: per character path, the two (H, W) coverages, `coverages`; both at 0.5).
+    A character drawn with regions of its own (the face, a hand: docs/regions.md) also gets
+    the same numbers over each region's own square (`regions`), where its network drew."""
     results = []
     for entry in frame.report["characters"]:
         if "region" not in entry:
@@ -513,22 +532,37 @@ def compare_regions(frame, truth, coverage: dict | None = None) -> list[dict]:
                 }
             )
             continue
-        x, y, w, h = entry["region"]
-        region = np.s_[y : y + h, x : x + w]
-        result = {
-            "path": entry["path"],
-            "region": entry["region"],
-            "psnr": _psnr(frame.beauty[region], truth.beauty[region]),
-            "albedo_psnr": _psnr(frame.maps.albedo[region], truth.maps.albedo[region]),
-            **region_flip(frame.beauty[region], truth.beauty[region], entry),
-        }
-        neural, mesh = (coverage or {}).get(entry["path"], (None, None))
-        if neural is not None and mesh is not None:
-            a, b = neural[region] >= 0.5, mesh[region] >= 0.5
-            union = int(np.logical_or(a, b).sum())
-            result["mask_iou"] = float(np.logical_and(a, b).sum() / union) if union else None
+        pair = (coverage or {}).get(entry["path"], (None, None))
+        result = {"path": entry["path"], **_compared(frame, truth, entry, pair)}
+        drawn = [r for r in entry.get("regions", ()) if "region" in r]
+        if drawn:
+            result["regions"] = [
+                {"name": r["name"], **_compared(frame, truth, r, pair)} for r in drawn
+            ]
         results.append(result)
     return results
+
+
+def _compared(frame, truth, entry: dict, coverage: tuple) -> dict:
+    """The numbers of one rectangle (a character's or a region's report entry `region`):
+    beauty and albedo PSNR, FLIP and its ceiling, and the mask IoU of the two coverages
+    (`coverage`: the network's and the mesh's, (H, W); None: not measured)."""
+    import numpy as np
+
+    x, y, w, h = entry["region"]
+    region = np.s_[y : y + h, x : x + w]
+    result = {
+        "region": entry["region"],
+        "psnr": _psnr(frame.beauty[region], truth.beauty[region]),
+        "albedo_psnr": _psnr(frame.maps.albedo[region], truth.maps.albedo[region]),
+        **region_flip(frame.beauty[region], truth.beauty[region], entry),
+    }
+    neural, mesh = coverage
+    if neural is not None and mesh is not None:
+        a, b = neural[region] >= 0.5, mesh[region] >= 0.5
+        union = int(np.logical_or(a, b).sum())
+        result["mask_iou"] = float(np.logical_and(a, b).sum() / union) if union else None
+    return result
 
 
 def region_flip(beauty, truth, entry: dict) -> dict:

@@ -6,7 +6,8 @@
 Per frame: the camera at t; the scene's other prims drawn by the renderer plugin into a
 G-buffer (reused while neither they nor the camera move); per neural character the pose,
 its billboard, and (when visible) its network maps in the billboard's region, reused when
-pose and camera repeat; each layer lit by the scene's lights (runtime/shading.py's maths,
+pose and camera repeat, with its regions' maps (the face, a hand: bundles of their own,
+where they add detail) merged in by depth (runtime/regions.py); each layer lit by the scene's lights (runtime/shading.py's maths,
 compiled in shading_kernel.py, or in a fragment shader on a GPU: gl_shading.py) and
 shadowed (runtime/shadows/__init__.py: prims by shadow maps, characters by their capsules, onto
 each other); then a depth test composites the character over or under the prims, with its
@@ -34,7 +35,7 @@ import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom
 
 from rigspace.runtime.billboard import Billboard
-from rigspace.runtime.character import Layer, NeuralCharacter
+from rigspace.runtime.character import Layer, NeuralCharacter, NeuralPart
 from rigspace.runtime.composite_kernel import composite, over_background
 from rigspace.runtime.gl_shading import GLShading, open_gl_shading
 from rigspace.runtime.lights import (
@@ -47,6 +48,7 @@ from rigspace.runtime.lights import (
     lights_at,
 )
 from rigspace.runtime.live.engine import LiveInput
+from rigspace.runtime.regions import merge_region, region_skip
 from rigspace.runtime.scene import SceneGeometry
 from rigspace.runtime.shading import pixel_positions, shade_pixels
 from rigspace.runtime.shading_kernel import shade as compiled_shade
@@ -147,6 +149,7 @@ class Engine:
         models: dict[str, str] | None = None,
         shadow_backend: ShadowBackend | None = None,
         gl_lighting: str = "hardware",
+        regions: bool = True,
     ) -> None:
         """`reference=True` draws each character's real skinned mesh with the renderer instead
         of its network (the ground truth that `rigspace render --reference` compares with).
@@ -166,7 +169,9 @@ class Engine:
         `shadow_backend` says what computes the shadows (rigspace.runtime.shadows.ShadowBackend:
         the compiled kernels and, on a GPU, the fragment shader by default). `gl_lighting`
         says where the lighting runs in a fragment shader (runtime/gl_shading.py:
-        "hardware", the gl renderer on a GPU; "always", on Mesa's llvmpipe too; "never")."""
+        "hardware", the gl renderer on a GPU; "always", on Mesa's llvmpipe too; "never").
+        `regions` False draws each character's body alone, never its regions (the face, a
+        hand: bundles of their own listed in its manifest, docs/regions.md; not loaded)."""
         _check_request(aovs, width, height)
         self.aovs = tuple(aovs)
         self.max_level = max_level
@@ -177,8 +182,10 @@ class Engine:
         self.width, self.height = width, height
         self.camera_prim = self._camera(camera)
         validation.require_valid(self.stage, "render")  # inspect's checks, in inspect's words
+        self.region_warnings: list[str] = []
+        """One sentence per region left out at load (its bundle cannot be used), said once."""
         self.characters, self.without_model = self._load_characters(
-            precision, predictor, reference, textures
+            precision, predictor, reference, textures, regions
         )
         self.reference = reference
         self.weight_overrides: dict[str, dict[str, float]] = {}
@@ -221,27 +228,41 @@ class Engine:
         self._listener = Tf.Notice.Register(Usd.Notice.ObjectsChanged, self._changed, self.stage)
 
     def _load_characters(
-        self, precision: str, predictor: str, reference: bool, textures: bool
+        self, precision: str, predictor: str, reference: bool, textures: bool, regions: bool
     ) -> tuple[list[NeuralCharacter], list[str]]:
-        """The stage's neural characters with their bundles loaded, and the paths of those
-        without a model bundle."""
+        """The stage's neural characters with their bundles (and their regions' bundles)
+        loaded, and the paths of those without a model bundle."""
         characters: list[NeuralCharacter] = []
         without_model: list[str] = []
         loaded: dict[Path, BundleModel] = {}
+
+        def open_model(folder: Path) -> BundleModel:
+            folder = folder.resolve()
+            if folder not in loaded:  # characters sharing a bundle share its sessions
+                model = BundleModel(folder, precision, predictor=predictor)
+                if not reference:
+                    model.preload()  # a damaged bundle fails here, not mid-sequence
+                loaded[folder] = model
+            return loaded[folder]
+
         for prim in schema.neural_characters(self.stage):
             manifest = schema.resolve_model_path(schema.read_neural_character(prim))
             if manifest is None:
                 without_model.append(str(prim.GetPath()))
                 continue
-            folder = manifest.parent.resolve()
-            if folder not in loaded:  # characters sharing a bundle share its sessions
-                loaded[folder] = BundleModel(folder, precision, predictor=predictor)
-                if not reference:
-                    loaded[folder].preload()  # a damaged bundle fails here, not mid-sequence
-            character = NeuralCharacter(prim, loaded[folder])
-            if not textures and character.textures is not None:
-                character.textures = None
-                character.no_texture = "textures are turned off (--no-textures)"
+            character = NeuralCharacter(prim, open_model(manifest.parent))
+            if reference:  # the skinned mesh stands in for the body and its regions
+                pass
+            elif regions:
+                self.region_warnings += character.load_regions(open_model)
+            else:
+                character.region_problems = dict.fromkeys(
+                    character.region_names, "regions are turned off (--no-regions)"
+                )
+            for part in (character, *character.regions):
+                if not textures and part.textures is not None:
+                    part.textures = None
+                    part.no_texture = "textures are turned off (--no-textures)"
             characters.append(character)
         return characters, without_model
 
@@ -250,6 +271,12 @@ class Engine:
         self._prims_key: tuple = ()
         self._prims: Maps | None = None
         self._layers: dict[str, _CachedLayer] = {}
+        """Each body's and region's last evaluated layer, by _Candidate.key."""
+        self._drawn: dict[str, _CachedLayer] = {}
+        """Each character's layer as the last frame lit and composited it: its body's, or its
+        body's with its regions merged in (kept in `_merges` while they hold)."""
+        self._merges: dict[str, tuple[tuple[int, ...], _CachedLayer]] = {}
+        """A character's merged layer, keyed by the serials of the layers merged."""
         self._lit_prims: tuple[bytes, np.ndarray | None, list[np.ndarray | None] | None] | None = (
             None
         )
@@ -271,12 +298,16 @@ class Engine:
         for path, why in self._no_shadow:  # said once, here and in the first frame's report
             print(f"rigspace render: warning: {path} casts no shadow: {why}.", file=sys.stderr)
         for c in self.characters:
-            if c.model.charts and c.no_texture and not self.reference and textures:
-                print(
-                    f"rigspace render: warning: {c.path} samples no texture, its colour comes from "
-                    f"the albedo branch: {c.no_texture}.",
-                    file=sys.stderr,
-                )
+            for part in (c, *c.regions):
+                if part.model.charts and part.no_texture and not self.reference and textures:
+                    which = c.path if part is c else f"{c.path} (region {part.name})"
+                    print(
+                        f"rigspace render: warning: {which} samples no texture, its colour comes "
+                        f"from the albedo branch: {part.no_texture}.",
+                        file=sys.stderr,
+                    )
+        for warning in self.region_warnings:
+            print(f"rigspace render: warning: {warning}", file=sys.stderr)
 
     def _camera(self, path: str | None) -> Usd.Prim:
         if path:
@@ -617,6 +648,9 @@ class Engine:
         if f.pending and self.overlap:  # the prims lit while the networks run (a new frame)
             beauty = self._light_prims_stage(f)
         self._finish_evaluation(f)
+        for entry in f.report["characters"]:  # the regions last in their character's entry
+            if "regions" in entry:
+                entry["regions"] = entry.pop("regions")
         f.report["counts"] = _counts(f.report["characters"])
         if self.live.active:
             f.report["live"] = self.live.report()
@@ -627,7 +661,7 @@ class Engine:
             f.light_key,
             self.shadows.key,
             tuple((path, posed.key) for path, posed in f.casters),
-            tuple((c.character.path, self._layers[c.character.path].serial) for c in f.candidates),
+            tuple((c.key, self._drawn[c.key].serial) for c in f.candidates),
         )
         if beauty is None and self._frame is not None and self._frame[0] == frame_key:
             return self._reused_composite(f)
@@ -704,6 +738,8 @@ class Engine:
             f.report["characters"].append(entry)
             with f.timed("rig"):
                 candidate = self._pose_one(f, character, entry)
+                if character.region_names and not self.reference:
+                    entry["regions"] = self._place_regions(f, character, candidate)
             if candidate is not None:
                 f.candidates.append(candidate)
                 if self.reference:
@@ -716,7 +752,8 @@ class Engine:
     ) -> _Candidate | None:
         try:
             world = character.pose(f.time, self.live.local(character, f.time, entry))
-            weights = character.weights(f.time, self._weights_of(character, f.time))
+            source = self._weights_of(character, f.time)
+            weights = character.weights(f.time, source)
         except SceneError as exc:
             # One bad frame of animation must not end a sequence, nor draw a wrong image:
             # the character is left out of this frame, loudly.
@@ -734,7 +771,49 @@ class Engine:
         # billboard, so they decide the reuse without computing the parameters.
         view = billboard.corners.round(3).tobytes() + f.camera_key
         region = billboard.region(f.camera)
-        return _Candidate(character, entry, billboard, world, view, region, weights)
+        return _Candidate(
+            character, entry, billboard, world, view, region, weights, character,
+            character.path, source,
+        )  # fmt: skip
+
+    def _place_regions(
+        self, f: _FrameState, character: NeuralCharacter, c: _Candidate | None
+    ) -> list[dict[str, Any]]:
+        """The report's entries of a character's regions this frame; those that add detail
+        (region_skip) become candidates of its body (`c.regions`), evaluated with it. A
+        region is placed only once its body is drawn: a skipped one runs nothing."""
+        entries: list[dict[str, Any]] = []
+        parts = {part.name: part for part in character.regions}
+        for name in character.region_names:
+            entry: dict[str, Any] = {"name": name}
+            entries.append(entry)
+            part = parts.get(name)
+            if part is None:
+                entry.update(decision="skipped", reason=character.region_problems[name])
+                continue
+            if c is None:
+                entry.update(decision="skipped", reason="its character is not drawn this frame")
+                continue
+            billboard = part.place(c.world, f.camera)
+            body_level = character.model.level_for(c.billboard.size_px, self.max_level)
+            level = part.model.level_for(billboard.size_px, self.max_level)
+            why = region_skip(c.billboard, body_level, billboard, level)
+            if why:
+                entry.update(decision="skipped", reason=why, size_px=round(billboard.size_px, 1))
+                continue
+            try:
+                weights = character.weights(f.time, c.source_weights, part)
+            except SceneError as exc:
+                entry.update(decision="skipped", reason=exc.what)
+                continue
+            view = billboard.corners.round(3).tobytes() + f.camera_key
+            c.regions.append(
+                _Candidate(
+                    character, entry, billboard, c.world, view, billboard.region(f.camera),
+                    weights, part, f"{character.path}#{name}", c.source_weights,
+                )
+            )  # fmt: skip
+        return entries
 
     def _evaluate_stage(self, f: _FrameState) -> None:
         """Each candidate's branches, its reuse of the last layer when pose, weights and view
@@ -748,22 +827,18 @@ class Engine:
             branches, why = self._branches(
                 c, f.candidates, lambda: self._prims_stage(f).mask, bool(f.lights)
             )
-            branches += _texture_branch(c.character)
-            cached = self._layers.get(c.character.path)
             c.entry["mode"] = "lit" if "geometry" in branches else "unlit"
             c.entry["mode_reason"] = why
-            if (
-                cached is not None
-                and cached.matches(c.world[c.character.order], c.view, c.billboard.side, c.weights)
-                and set(branches) <= set(cached.layer.branches)
-            ):
-                c.entry.update(decision="reused", reason="same pose and camera as the last frame")
-                continue
-            level = c.character.model.level_for(c.billboard.size_px, self.max_level)
-            pending.setdefault((id(c.character.model), level, branches), []).append(c)
+            self._plan(c, branches + _texture_branch(c.character), pending)
+            for r in c.regions:  # its maps must have every map the body's have (merge_region)
+                own = branches
+                if branches != BOTH and not _albedo_alone(r.part):
+                    own = BOTH
+                r.entry["mode"] = c.entry["mode"]
+                self._plan(r, own + _texture_branch(r.part), pending)
         with f.timed("rig"):
             for c in (c for group in pending.values() for c in group):
-                c.rig = c.character.parameters(c.world, c.billboard, f.camera, c.weights)
+                c.rig = c.part.parameters(c.world, c.billboard, f.camera, c.weights)
         # One network call per (model, level, branches): characters sharing a bundle batch.
         # They run on the network thread, with the resampling of their maps into the frame,
         # while this one draws and lights the prims (render).
@@ -772,16 +847,35 @@ class Engine:
             for (_, level, branches), group in pending.items()
         ]
 
+    def _plan(
+        self,
+        c: _Candidate,
+        branches: tuple[str, ...],
+        pending: dict[tuple[int, int, tuple[str, ...]], list[_Candidate]],
+    ) -> None:
+        """A body's or region's reuse of its last layer when pose, weights and view hold, else
+        its place in the network call of its (model, level, branches)."""
+        cached = self._layers.get(c.key)
+        if (
+            cached is not None
+            and cached.matches(c.world[c.part.order], c.view, c.billboard.side, c.weights)
+            and set(branches) <= set(cached.layer.branches)
+        ):
+            c.entry.update(decision="reused", reason="same pose and camera as the last frame")
+            return
+        level = c.part.model.level_for(c.billboard.size_px, self.max_level)
+        pending.setdefault((id(c.part.model), level, branches), []).append(c)
+
     @staticmethod
     def _evaluate(
         group: list[_Candidate], level: int, branches: tuple[str, ...], camera: Camera
     ) -> list[Layer]:
-        """One network call for characters sharing a bundle, level and branches, and each
-        one's maps resampled into the frame (on the network thread)."""
-        model = group[0].character.model
+        """One network call for characters (or regions) sharing a bundle, level and branches,
+        and each one's maps resampled into the frame (on the network thread)."""
+        model = group[0].part.model
         out = model.predict(np.concatenate([c.rig for c in group]), level, branches)
         return [
-            c.character.resample(
+            c.part.resample(
                 {name: value[k : k + 1] for name, value in out.items()},
                 c.billboard, camera, level, branches,
             )
@@ -793,13 +887,37 @@ class Engine:
         with f.timed("network"):
             for group, call in f.pending:
                 for c, layer in zip(group, call.result(), strict=True):
-                    self._layers[c.character.path] = _CachedLayer(
-                        c.world[c.character.order], c.view, layer, weights=c.weights
+                    self._layers[c.key] = _CachedLayer(
+                        c.world[c.part.order], c.view, layer, weights=c.weights
                     )
                     c.entry.update(decision="evaluated", batch=len(group))
         if not self.reference:
             for c in f.candidates:
-                self._describe(c, self._layers[c.character.path].layer)
+                self._describe(c, self._layers[c.key].layer)
+                for r in c.regions:
+                    self._describe(r, self._layers[r.key].layer)
+        with f.timed("composite"):
+            for c in f.candidates:
+                self._drawn[c.key] = self._merged(c)
+
+    def _merged(self, c: _Candidate) -> _CachedLayer:
+        """A character's layer to light and composite: its body's, with the layers of the
+        regions drawn this frame merged in by depth (runtime/regions.py; kept while the
+        layers merged are the same)."""
+        body = self._layers[c.key]
+        if not c.regions:
+            return body
+        regions = [self._layers[r.key] for r in c.regions]
+        key = (body.serial, *(r.serial for r in regions))
+        kept = self._merges.get(c.key)
+        if kept is not None and kept[0] == key:
+            return kept[1]
+        layer = body.layer
+        for region in regions:
+            layer = merge_region(layer, region.layer)
+        merged = body if layer is body.layer else _CachedLayer(body.pose, body.view, layer)
+        self._merges[c.key] = (key, merged)
+        return merged
 
     def _mesh_layers(self, f: _FrameState) -> None:
         """The reference mode's layers: each candidate's skinned mesh (with its texture charts,
@@ -813,7 +931,7 @@ class Engine:
             maps = self._mesh_renderer.render(meshes, f.camera)
             layer = Layer(0, 0, maps.albedo, maps.mask, maps.depth, maps.normal, 0, BOTH,
                           uv=maps.uv, chart=maps.chart)  # fmt: skip
-            self._layers[c.character.path] = _CachedLayer(
+            self._layers[c.key] = _CachedLayer(
                 c.world[c.character.order], c.view, layer, weights=c.weights
             )
 
@@ -878,14 +996,14 @@ class Engine:
         depth, mask = prims.depth.copy(), prims.mask.copy()
         # Texture AOVs (uv, chart) when anything has them: the reference mode's meshes, or a
         # character coloured from its textures.
-        layers = [self._layers[c.character.path].layer for c in f.candidates]
+        layers = [self._drawn[c.key].layer for c in f.candidates]
         uv = chart = None
         if prims.chart is not None or any(layer.chart is not None for layer in layers):
             shape = prims.mask.shape
             uv = prims.uv.copy() if prims.uv is not None else np.zeros((*shape, 2), np.float32)
             chart = prims.chart.copy() if prims.chart is not None else np.zeros(shape, np.int32)
         for c in f.candidates:
-            cached = self._layers[c.character.path]
+            cached = self._drawn[c.key]
             layer = cached.layer
             others = [(p, posed) for p, posed in f.casters if p != c.character.path]
             key = f.light_key + self.shadows.key + b"".join(posed.key for _, posed in others)
@@ -934,7 +1052,7 @@ class Engine:
         if character is None:
             return None
         camera, _ = self._camera_at(time)
-        cached = self._layers.get(path)
+        cached = self._drawn.get(path)
         if cached is None:
             return None
         layer = cached.layer
@@ -946,16 +1064,7 @@ class Engine:
     def _repeat(self, last: Frame, start: float) -> Frame:
         """The last frame again, its report saying so."""
         report = {**last.report, "repeat_of_last_frame": True, "composite_reused": True}
-        report["characters"] = [
-            {
-                **e,
-                "decision": "reused",
-                "reason": "same time code as the last frame, stage unedited",
-            }
-            if e["decision"] in ("evaluated", "reused")
-            else e
-            for e in last.report["characters"]
-        ]
+        report["characters"] = [_repeated(e) for e in last.report["characters"]]
         report["counts"] = _counts(report["characters"])
         report["seconds"] = _seconds(dict.fromkeys(STAGES, 0.0), start)
         return Frame(last.beauty, last.maps, report, last.opaque)
@@ -999,7 +1108,7 @@ class Engine:
         return weights
 
     def _describe(self, c: _Candidate, layer: Layer) -> None:
-        top = max(c.character.model.resolutions)
+        top = max(c.part.model.resolutions)
         c.entry.update(
             level=layer.level,
             top_level=top,
@@ -1026,11 +1135,18 @@ class Engine:
         )
 
 
-def _texture_branch(character: NeuralCharacter) -> tuple[str, ...]:
-    """("texture",) when the character's texture head is a branch of its own and the scene
-    has its textures (the frame runs it beside the map branches), else ()."""
-    own = character.model.texture_branch == "texture"
-    return ("texture",) if own and character.textures is not None else ()
+def _texture_branch(part: NeuralPart) -> tuple[str, ...]:
+    """("texture",) when the character's (or region's) texture head is a branch of its own
+    and the scene has its textures (the frame runs it beside the map branches), else ()."""
+    own = part.model.texture_branch == "texture"
+    return ("texture",) if own and part.textures is not None else ()
+
+
+def _albedo_alone(part: NeuralPart) -> bool:
+    """Whether the albedo branch alone gives a part's maps in the unlit mode: coverage from
+    its alpha (bundle format 2 on), colour not from a texture head on the geometry branch."""
+    on_geometry = part.textures is not None and part.model.texture_branch == "geometry"
+    return part.model.albedo_has_alpha and not on_geometry
 
 
 @dataclass
@@ -1083,10 +1199,12 @@ class _FrameState:
 
 @dataclass
 class _Candidate:
-    """A character whose billboard is in view this frame, before its maps are known."""
+    """A character whose billboard is in view this frame, before its maps are known; or one
+    of its regions that adds detail this frame (in its body's `regions`)."""
 
     character: NeuralCharacter
     entry: dict[str, Any]
+    """Its entry in the report (a region's: in its character's entry's "regions")."""
     billboard: Billboard
     world: np.ndarray
     """(J, 4, 4) joint-to-world transforms."""
@@ -1095,8 +1213,17 @@ class _Candidate:
     """(x0, y0, w, h) of the billboard in the frame."""
     weights: np.ndarray
     """(B,) blend shape weights in the model's order (empty: it reads none)."""
+    part: NeuralPart
+    """What draws it: the character itself (its body), or one of its regions."""
+    key: str
+    """Its layer's key in the engine's caches: the character's path, PATH#NAME a region's."""
+    source_weights: np.ndarray | None = None
+    """The character's blend shape weights from live sources and overrides (its order;
+    None: the animation's), from which each region takes its own."""
     rig: np.ndarray | None = None
     """Rig parameters, computed only for the characters evaluated this frame."""
+    regions: list[_Candidate] = field(default_factory=list)
+    """Its regions evaluated (or reused) this frame, merged into its layer."""
 
 
 def use_models(stage: Usd.Stage, models: dict[str, str]) -> None:
@@ -1189,10 +1316,24 @@ def _overlaps(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> boo
     return a[0] < b[0] + b[2] and b[0] < a[0] + a[2] and a[1] < b[1] + b[3] and b[1] < a[1] + a[3]
 
 
+def _repeated(entry: dict[str, Any]) -> dict[str, Any]:
+    """A report entry (a character's, or a region's) of a frame repeated unchanged."""
+    if "regions" in entry:
+        entry = {**entry, "regions": [_repeated(r) for r in entry["regions"]]}
+    if entry["decision"] in ("evaluated", "reused"):
+        return {**entry, "decision": "reused", "reason": REPEATED}
+    return entry
+
+
+REPEATED = "same time code as the last frame, stage unedited"
+
+
 def _counts(entries: list[dict[str, Any]]) -> dict[str, int]:
-    """How many characters each decision applied to in a frame (the report's summary)."""
+    """How many characters each decision applied to in a frame (the report's summary), and
+    how many of their regions."""
     counts = dict.fromkeys(("evaluated", "reused", "skipped", "reference"), 0)
     counts |= {"outside the view": 0, "unlit": 0, "below the largest level": 0}
+    counts |= dict.fromkeys(("regions evaluated", "regions reused", "regions skipped"), 0)
     for e in entries:
         counts[e["decision"]] += 1
         if e.get("reason") == "outside the view":
@@ -1201,6 +1342,8 @@ def _counts(entries: list[dict[str, Any]]) -> dict[str, int]:
             counts["unlit"] += 1
         if "level" in e and e["level"] < e["top_level"]:
             counts["below the largest level"] += 1
+        for region in e.get("regions", ()):
+            counts[f"regions {region['decision']}"] += 1
     return counts
 
 

@@ -1,6 +1,6 @@
 """The command-line options that render, live and view share, defined once (their types and
 help), so the three commands read `--camera`, `--resolution`, `--renderer` and `--source`
-alike."""
+alike (and --no-regions)."""
 
 from __future__ import annotations
 
@@ -61,6 +61,17 @@ def add_view_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--renderer", default="auto", help="renderer for the scene prims: gl, embree, auto"
+    )
+
+
+def add_regions_argument(parser: argparse.ArgumentParser) -> None:
+    """--no-regions: draw each character's body alone (docs/regions.md, "Runtime")."""
+    parser.add_argument(
+        "--no-regions",
+        action="store_true",
+        help="draw each character's body alone, not the regions its bundle lists (the face, "
+        "a hand: networks of their own, drawn over the body where the camera is close; "
+        "docs/regions.md)",
     )
 
 

@@ -71,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _live_parser() -> argparse.ArgumentParser:
     from rigspace.runtime.options import (
+        add_regions_argument,
         add_source_argument,
         add_view_arguments,
         positive,
@@ -93,6 +94,7 @@ def _live_parser() -> argparse.ArgumentParser:
     parser.add_argument("--prim-samples", type=positive, default=1, metavar="N",
                         help="N x N samples per pixel for the prims (default 1: real time first)")  # fmt: skip
     parser.add_argument("--max-level", type=positive, metavar="R", help="cap the level of detail")
+    add_regions_argument(parser)
     return parser
 
 
@@ -186,7 +188,7 @@ def live(args: argparse.Namespace) -> int:
     engine = Engine(
         args.scene, camera=args.camera, width=width, height=height, renderer=args.renderer,
         aovs=("beauty",), prim_samples=args.prim_samples, max_level=args.max_level,
-        sources=dict(args.source), predictor=args.predictor,
+        sources=dict(args.source), predictor=args.predictor, regions=not args.no_regions,
     )  # fmt: skip
     video = recorder = None
     result = None

@@ -10,7 +10,11 @@ import time
 import webbrowser
 from typing import TYPE_CHECKING
 
-from rigspace.runtime.options import add_source_argument, add_view_arguments
+from rigspace.runtime.options import (
+    add_regions_argument,
+    add_source_argument,
+    add_view_arguments,
+)
 from rigspace.sdk.cli import CommandSpec
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.predictors import add_predictor_argument
@@ -27,7 +31,8 @@ the current time (authored or fallback, time samples, relationship targets, meta
 neural character's bundle and metrics), the layer stack and its composition, validation
 findings linked to their prims, a timeline with a camera picker, and a viewport with the
 Engine's frame (beauty, albedo, normal, depth, mask), each character's billboard, level,
-decision and cost, a frame-time graph, and the live bindings' counters. The scene reloads
+decision and cost (and its regions': the face, a hand), a frame-time graph, and the live
+bindings' counters. The scene reloads
 when one of its layer files changes. Serves on 127.0.0.1 unless --host says otherwise.
 """
 
@@ -47,6 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_source_argument(
         parser, "drive the live binding NAME from URL instead of its authored source"
     )
+    add_regions_argument(parser)
 
 
 def _check_port(host: str, port: int) -> None:
@@ -71,6 +77,7 @@ def build(
     sources: dict[str, str] | None = None,
     renderer: str = "auto",
     predictor: str = "auto",
+    regions: bool = True,
 ) -> Viewer:
     """The viewer of one scene, its engines open (or `frames.error` saying why not)."""
     from rigspace.runtime.view.scene import SceneModel
@@ -81,7 +88,7 @@ def build(
     width, height = resolution
     frames = FrameService(scene, model.lock, width=width, height=height, reference=reference,
                           sources=sources, renderer=renderer,
-                          predictor=predictor)  # fmt: skip
+                          predictor=predictor, regions=regions)  # fmt: skip
     frames.open(camera)
     return Viewer(model, frames)
 
@@ -128,7 +135,8 @@ def run(args: argparse.Namespace) -> int:
         )
     viewer = build(args.scene, camera=args.camera, resolution=args.resolution,
                    reference=args.reference, sources=dict(args.source),
-                   renderer=args.renderer, predictor=args.predictor)  # fmt: skip
+                   renderer=args.renderer, predictor=args.predictor,
+                   regions=not args.no_regions)  # fmt: skip
     if viewer.frames.error and args.source:
         # --source asks for a live pose: without frames there is nothing to drive.
         viewer.close()

@@ -118,6 +118,7 @@ class FrameService:
         sources: dict[str, str] | None = None,
         renderer: str = "auto",
         predictor: str = "auto",
+        regions: bool = True,
     ) -> None:
         self.scene = Path(scene)
         self.lock = lock
@@ -128,6 +129,8 @@ class FrameService:
         self.sources = sources or {}
         self.renderer = renderer
         self.predictor = predictor
+        self.regions = regions
+        """Draw the characters' regions (False: `rigspace view --no-regions`)."""
         self.camera: str | None = None
         self.engines: Engines | None = None
         self.error: str | None = None
@@ -155,7 +158,7 @@ class FrameService:
             try:
                 full = Engine(self.scene, camera=camera, width=self.width, height=self.height,
                               renderer=self.renderer, sources=self.sources,
-                              predictor=self.predictor)  # fmt: skip
+                              predictor=self.predictor, regions=self.regions)  # fmt: skip
             except RigspaceError as exc:
                 self.error = str(exc)
                 return
@@ -166,7 +169,7 @@ class FrameService:
                 preview = Engine(
                     self.scene, camera=self.camera, width=max(self.width // s, 1),
                     height=max(self.height // s, 1), renderer=self.renderer, live=False,
-                    predictor=self.predictor,
+                    predictor=self.predictor, regions=self.regions,
                     prim_samples=PREVIEW["prim_samples"], max_level=PREVIEW["max_level"],
                 )  # fmt: skip
             truth = None

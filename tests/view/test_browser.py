@@ -270,3 +270,32 @@ def test_blend_shape_sliders_override_the_animations_weights(browser, tmp_path_f
         assert viewer.frames.engines.full.weight_overrides == {}
         assert not errors, errors
         page.close()
+
+
+def test_a_characters_regions_show_in_the_overlay_and_the_decisions(browser, tmp_path_factory):
+    """A character whose bundle has a face region: the face's square is drawn on the overlay
+    (its own toggle, apart from the characters' overlay) and its decision has a row of its own
+    in the decisions table."""
+    from tests.regions import trained_regions
+
+    scene, _ = trained_regions(tmp_path_factory)
+    overlay = (
+        "() => { const c = document.getElementById('overlay');"
+        " const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;"
+        " let n = 0; for (let i = 3; i < d.length; i += 4) if (d[i] > 0) n++; return n; }"
+    )
+    with served(scene) as (_, url):
+        page, errors = open_page(browser, url)
+        wait_frame(page, "h.quality === 'full'")
+        row = page.locator('#decisions tr[data-region="/World/Hero#face"]')
+        row.wait_for()
+        text = row.inner_text()  # the engine drew the first frame when it opened: reused
+        assert "region face" in text and ("evaluated" in text or "reused" in text), text
+        assert "16/16" in text
+        page.click("#overlay-toggle")  # the characters' overlay off: the region's square stays
+        with_regions = page.evaluate(overlay)
+        shot(page, "#viewport-panel", "regions")
+        page.click("#regions-toggle")
+        assert with_regions > 100 and page.evaluate(overlay) == 0
+        assert not errors, errors
+        page.close()

@@ -149,6 +149,7 @@ class App {
     document.getElementById("view-mode").addEventListener("change", (e) => { this.state.view = e.target.value; this.request("auto"); });
     document.getElementById("camera").addEventListener("change", (e) => { this.state.camera = e.target.value; this.request("auto"); });
     document.getElementById("overlay-toggle").addEventListener("change", () => this.viewport.drawOverlay());
+    document.getElementById("regions-toggle").addEventListener("change", () => this.viewport.drawOverlay());
     document.addEventListener("keydown", (e) => {
       if (e.target.tagName === "INPUT" && e.target.type !== "range") return;
       if (e.key === " ") { e.preventDefault(); this.togglePlay(); }

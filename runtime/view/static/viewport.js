@@ -1,5 +1,5 @@
-// The viewport: frames from the websocket, the per-character overlay, the decisions table
-// and the frame-time graph.
+// The viewport: frames from the websocket, the per-character overlay (and its regions': the
+// face, the hands), the decisions table and the frame-time graph.
 import { el, fmt } from "./util.js";
 
 const STAGES = ["scene", "rig", "network", "shadows", "lighting", "composite"];
@@ -56,9 +56,11 @@ export class Viewport {
   drawOverlay() {
     const ctx = this.octx, header = this.last;
     ctx.clearRect(0, 0, this.overlay.width, this.overlay.height);
-    if (!header || !document.getElementById("overlay-toggle").checked) return;
+    if (!header) return;
     const scale = this.app.size[0] / header.width;  // a preview is smaller than the canvas
     ctx.font = "12px system-ui, sans-serif";
+    if (document.getElementById("regions-toggle").checked) this.drawRegions(header, scale);
+    if (!document.getElementById("overlay-toggle").checked) return;
     for (const c of header.report.characters) {
       if (!c.region) continue;
       const [x, y, w, h] = c.region.map((v) => v * scale);
@@ -86,14 +88,40 @@ export class Viewport {
     }
   }
 
+  // Each region drawn this frame: its square, dotted, with its name, level and decision.
+  drawRegions(header, scale) {
+    const ctx = this.octx;
+    for (const c of header.report.characters) {
+      for (const r of (c.regions || []).filter((r) => r.region)) {
+        const [x, y, w, h] = r.region.map((v) => v * scale);
+        ctx.strokeStyle = r.decision === "evaluated" ? "#f2c14e" : "#c99cff";
+        ctx.lineWidth = 1.5;
+        ctx.setLineDash([2, 3]);
+        ctx.strokeRect(x + 0.5, y + 0.5, w, h);
+        ctx.setLineDash([]);
+        const label = `${r.name} ${r.decision} · level ${r.level}/${r.top_level} · ${r.size_px} px`;
+        ctx.fillStyle = "rgba(12, 14, 18, 0.78)";
+        ctx.fillRect(x, y + h - 18, ctx.measureText(label).width + 10, 18);
+        ctx.fillStyle = ctx.strokeStyle;
+        ctx.fillText(label, x + 5, y + h - 5);
+      }
+    }
+  }
+
   decisions(header) {
     const report = header.report;
-    const rows = report.characters.map((c) => el("tr", { "data-character": c.path },
+    const rows = report.characters.flatMap((c) => [el("tr", { "data-character": c.path },
       el("td", { class: "value" }, c.path),
       el("td", {}, el("span", { class: `st ${c.decision}` }, c.decision)),
       el("td", { class: "num" }, c.level ? `${c.level}/${c.top_level}` : "—"),
       el("td", {}, c.mode || ""),
-      el("td", { class: "muted" }, [c.reason, c.mode_reason, c.level_reason].filter(Boolean).join("; "))));
+      el("td", { class: "muted" }, [c.reason, c.mode_reason, c.level_reason].filter(Boolean).join("; "))),
+    ...(c.regions || []).map((r) => el("tr", { "data-region": `${c.path}#${r.name}` },
+      el("td", { class: "value" }, `  ↳ region ${r.name}`),
+      el("td", {}, el("span", { class: `st ${r.decision}` }, r.decision)),
+      el("td", { class: "num" }, r.level ? `${r.level}/${r.top_level}` : "—"),
+      el("td", {}, r.mode || ""),
+      el("td", { class: "muted" }, [r.reason, r.level_reason].filter(Boolean).join("; "))))]);
     const secs = report.seconds;
     document.getElementById("decisions").replaceChildren(
       el("table", {}, el("tr", {}, ...["character", "decision", "level", "mode", "why"].map((h) => el("th", {}, h))), ...rows),
