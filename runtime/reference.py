@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 NOTHING_TO_COMPARE = "nothing to compare"
+"""How the reason of a region with no pixel to compare begins (render's summary counts them)."""
 MIN_COMPARED_PX = 1.0
 """A billboard narrower than a pixel covers no pixel centre: the region is background in
 both images and its PSNR (120 dB, the 1e-12 floor) would say nothing about the network."""
