@@ -1,7 +1,7 @@
 """Peak resident memory of the runtime rendering N characters, measured in a fresh process.
 
-    peak_rss(8, size=256)          # runs the child below, returns its JSON
-    python -m rigspace.bench.memory --characters 8 --size 256 --precision fp32 --frames 4
+    peak_rss(8, size=256)          # runs `measure` in a child, returns its JSON
+    python -m rigspace.apps.memory --characters 8 --size 256 --precision fp32 --frames 4
 
 The child renders the previs sample scene (N - 1 more heroes referenced from /World/Hero
 into a temporary layer) and prints one JSON line: peak resident set size (KiB; VmHWM, see
@@ -12,7 +12,6 @@ because a peak only ever grows: it cannot be reset between runs in one process.
 
 from __future__ import annotations
 
-import argparse
 import json
 import resource
 import subprocess
@@ -74,39 +73,21 @@ def measure(characters: int, size: int, precision: str, frames: int) -> dict[str
     }
 
 
+CHILD = (
+    "import json, sys; from rigspace.bench.memory import measure; a = sys.argv; "
+    "print(json.dumps(measure(int(a[1]), int(a[2]), a[3], int(a[4]))), flush=True)"
+)
+"""The child process's program: `measure` with peak_rss's arguments, its JSON on one line."""
+
+
 def peak_rss(
     characters: int, size: int = 256, precision: str = "fp32", frames: int = 4
 ) -> dict[str, Any]:
     """Run `measure` in a fresh Python process and return its result."""
-    command = [
-        sys.executable,
-        "-m",
-        "rigspace.bench.memory",
-        f"--characters={characters}",
-        f"--size={size}",
-        f"--precision={precision}",
-        f"--frames={frames}",
-    ]
+    command = [sys.executable, "-c", CHILD, str(characters), str(size), precision, str(frames)]
     done = subprocess.run(command, capture_output=True, text=True, check=False)
     if done.returncode != 0:
         raise RuntimeError(
             f"{' '.join(command)} exited with {done.returncode}:\n{done.stderr[-2000:]}"
         )
     return json.loads(done.stdout.strip().splitlines()[-1])
-
-
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
-    parser.add_argument("--characters", type=int, default=1)
-    parser.add_argument("--size", type=int, default=256)
-    parser.add_argument("--precision", choices=("fp32", "int8"), default="fp32")
-    parser.add_argument("--frames", type=int, default=4)
-    args = parser.parse_args(argv)
-    if args.characters < 1 or args.frames < 1:
-        parser.error("--characters and --frames must be at least 1")
-    result = measure(args.characters, args.size, args.precision, args.frames)
-    print(json.dumps(result), flush=True)
-
-
-if __name__ == "__main__":
-    main()

@@ -5,7 +5,7 @@
 For the sample bundle, each predictor (rigspace.sdk.predictors) at every level: all maps for
 one character, and for eight in one batch (a crowd's frame), with its largest difference
 from onnxruntime on the CPU (the reference: the graphs as exported). Imports no USD, so the
-GPU check (rigspace.bench.gpu_check) times synthetic bundles through the same function.
+GPU check (rigspace.apps.gpu_check) times synthetic bundles through the same function.
 """
 
 from __future__ import annotations

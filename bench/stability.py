@@ -2,8 +2,8 @@
 
     stress(BundleModel(path), n=2000, seed=0, level=16)      # violations, q vs -q, timing
     drift(BundleModel(path), BundleModel(path, "int8"), rigs, level=128)
-    python -m rigspace.bench.stability                      # quick: 2,000 rigs, then drift
-    python -m rigspace.bench.stability --long               # 100,000 rigs at level 16
+    python -m rigspace.apps.stability                       # quick: 2,000 rigs, then drift
+    python -m rigspace.apps.stability --long                # 100,000 rigs at level 16
 
 The generators give (n, J, 4) quaternions (w, x, y, z) for a skeleton of J joints, seeded
 through a numpy Generator:
@@ -35,8 +35,6 @@ long mode takes about two to three minutes there.
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import time
 from collections import Counter
@@ -363,43 +361,3 @@ def animation_rigs(
         )
         rows.append(hero.parameters(world, hero.place(world, camera), camera)[0])
     return np.stack(rows)
-
-
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
-    parser.add_argument("--model", type=Path, default=SAMPLE_MODEL)
-    parser.add_argument("--precision", choices=("fp32", "int8"), default="fp32")
-    parser.add_argument("--long", action="store_true", help=f"{LONG_RIGS} rigs at level 16")
-    parser.add_argument("--rigs", type=int, default=2000)
-    parser.add_argument("--level", type=int, default=LONG_LEVEL)
-    parser.add_argument("--batch", type=int, default=256)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--drift-rigs", type=int, default=64, help="0: no drift")
-    parser.add_argument("--drift-levels", type=int, nargs="+", default=[16, 128])
-    parser.add_argument("--scene", type=Path, default=PREVIS, help="animation for drift rigs")
-    parser.add_argument("--character", default="/World/Hero")
-    args = parser.parse_args(argv)
-    n, level = (LONG_RIGS, LONG_LEVEL) if args.long else (args.rigs, args.level)
-    model = BundleModel(args.model, args.precision)
-    result: dict[str, Any] = {"stress": stress(model, n, args.seed, level, args.batch)}
-    if args.drift_rigs:
-        fp32, int8 = BundleModel(args.model), BundleModel(args.model, "int8")
-        rng = np.random.default_rng(args.seed)
-        sets = {
-            "haar": rigs(
-                haar(rng, args.drift_rigs, len(fp32.joints)), camera_frames(rng, args.drift_rigs)
-            ),
-            "animation": animation_rigs(
-                args.scene, args.character, fp32, args.drift_rigs, args.seed
-            ),
-        }
-        result["drift"] = {
-            f"{name}_{lv}": drift(fp32, int8, r, lv)
-            for name, r in sets.items()
-            for lv in args.drift_levels
-        }
-    print(json.dumps(result, indent=1), flush=True)
-
-
-if __name__ == "__main__":
-    main()

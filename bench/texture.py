@@ -4,10 +4,11 @@ The previs shot at display sizes (640x360, 1920x1080): per frame, the network's 
 the texture head's colour (`rigspace render`'s default), the same with the albedo branch
 alone (`--no-textures`) and the skinned mesh drawn by the renderer (`--reference`), rendered
 one after the other at each time; the character region's albedo and beauty PSNR, its beauty
-FLIP (and the ceiling: the mesh's region squeezed to the network's level and back, runtime
-cli's region_flip) and its own coverage's IoU against the mesh's, and each frame's milliseconds (total, network stage, and
-the texture sampler's own). The two network modes differ only in the colour of the pixels
-the textures cover: their time difference is the sampler's cost per character.
+FLIP (and the ceiling: the mesh's region squeezed to the network's level and back,
+runtime.reference.region_flip) and its own coverage's IoU against the mesh's, and each frame's
+milliseconds (total, network stage, and the texture sampler's own). The two network modes
+differ only in the colour of the pixels the textures cover: their time difference is the
+sampler's cost per character.
 """
 
 from __future__ import annotations
@@ -18,8 +19,8 @@ from typing import Any
 import numpy as np
 
 from rigspace.bench.scenes import PREVIS
-from rigspace.runtime.cli import compare_regions, coverages
 from rigspace.runtime.engine import Engine
+from rigspace.runtime.reference import compare_regions, coverages
 
 TIMES = np.linspace(0.0, 1600.0, 17)
 """The shot's frames every 100 time codes (the README's `--step 100` comparison)."""

@@ -24,7 +24,7 @@ from pxr import Usd, UsdSkel
 from rigspace.capture.ring import Lens, RingView, ring_views
 from rigspace.sdk import schema, timecodes
 from rigspace.sdk.errors import RigspaceError
-from rigspace.sdk.posing import CharacterRig
+from rigspace.sdk.posing import CharacterRig, centre_joint
 from rigspace.sdk.stage import meters_per_unit, open_stage, up_axis
 from rigspace.sdk.validation import (
     MAX_RESOLUTION,
@@ -350,8 +350,6 @@ skinned meshes frames the character off-centre (a rig rooted at its feet: its fe
 def _warn_off_centre(rig: CharacterRig, joint: int, clips: tuple[Clip, ...], warn: Warn) -> None:
     """Say when the ring would be aimed far from the character's middle, and which joint is
     in the middle (what `rigspace init` picks)."""
-    from rigspace.sdk.scaffold import centre_joint
-
     times = np.concatenate([c.times() for c in clips])
     picks = times[np.linspace(0, len(times) - 1, min(4, len(times))).astype(int)]
     found = centre_joint(rig, picks)

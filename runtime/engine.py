@@ -211,7 +211,7 @@ class Engine:
         self.report_cpu = False
         """Also report each stage's CPU seconds (`report["cpu_seconds"]`, beside `seconds`):
         the process's, all threads, while the stage ran (a profiling aid: the shadow timing
-        tool, `python -m rigspace.runtime.shadows.timing`)."""
+        tool, `python -m rigspace.apps.shadow_timing`)."""
         self.shadow_passes: dict[str, Callable[[], Any]] | None = None
         """None, or a dict that each frame fills with its shadow passes, each a call that runs
         the pass again on the same inputs with the shadow backend in use then: "prims" (the

@@ -19,15 +19,13 @@ pose for the vertices a joint dominates):
 The file is JSON: per capsule the joint's path in the skeleton and the segment's two ends
 `a`, `b` in the joint's frame (scene units of the fitted stage) and the `radius`. Capture
 writes it beside the dataset and export copies it into the model bundle. For a bundle made
-before capsules existed, `python -m rigspace.sdk.capsules SCENE CHARACTER BUNDLE` fits them
+before capsules existed, `python -m rigspace.apps.capsules SCENE CHARACTER BUNDLE` fits them
 on the scene's character and adds them to the bundle (its manifest gains "capsules").
 """
 
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -159,7 +157,7 @@ def write_capsules(capsules: Capsules, path: str | Path) -> Path:
 def read_capsules(path: str | Path) -> Capsules:
     """Read a capsules file (CapsuleError naming the file and the fix when it is unusable)."""
     path = Path(path)
-    fix = "fit them again: `python -m rigspace.sdk.capsules SCENE CHARACTER BUNDLE`."
+    fix = "fit them again: `python -m rigspace.apps.capsules SCENE CHARACTER BUNDLE`."
     try:
         data = json.loads(path.read_text())
         if data.get("format") != FORMAT or data.get("format_version") != FORMAT_VERSION:
@@ -190,34 +188,3 @@ def add_to_bundle(capsules: Capsules, bundle: str | Path) -> Path:
     data["capsules"] = FILE_NAME
     write_manifest_document(bundle, data)
     return written
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m rigspace.sdk.capsules SCENE CHARACTER BUNDLE`: fit and add to a bundle."""
-    from rigspace.sdk.stage import open_stage
-
-    parser = argparse.ArgumentParser(
-        prog="python -m rigspace.sdk.capsules", description=main.__doc__
-    )
-    parser.add_argument("scene", help="the stage holding the character")
-    parser.add_argument("character", help="the neural character prim's path, e.g. /World/Hero")
-    parser.add_argument("bundle", help="the model bundle folder to add capsules.json to")
-    args = parser.parse_args(argv)
-    try:
-        stage = open_stage(args.scene)
-        prim = stage.GetPrimAtPath(args.character)
-        if not prim:
-            raise CapsuleError(
-                f"{args.scene} has no prim {args.character}.", "pass the character's prim path."
-            )
-        capsules = fit_capsules(CharacterRig(prim))
-        path = add_to_bundle(capsules, args.bundle)
-    except RigspaceError as exc:
-        print(f"rigspace capsules: error: {exc}", file=sys.stderr)
-        return 1
-    print(f"{len(capsules)} capsules -> {path}")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

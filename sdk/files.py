@@ -10,7 +10,7 @@ target. The temporary name is hidden and unique per process and call (".NAME.PID
 two processes or threads writing the same file never write into each other's temporary, and
 a killed writer leaves only a ".*.tmp*" file (capture.dataset.clean_temporaries removes them).
 Every writer of the project's own artefacts (manifests, capture.json, run.json, reports,
-capsules, a bundle's graphs rewritten in place) goes through here; bench/recipe.py keeps its own
+capsules, a bundle's graphs rewritten in place) goes through here; apps/recipe.py keeps its own
 copy because it runs with the standard library only.
 """
 

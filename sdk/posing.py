@@ -286,3 +286,24 @@ class CharacterRig:
                 drawn.chart = charted.get(self.mesh_name(part))
                 meshes.append(drawn)
         return meshes
+
+
+def centre_joint(
+    rig: CharacterRig, times: np.ndarray
+) -> tuple[int, np.ndarray, list[np.ndarray]] | None:
+    """(the joint nearest the skinned meshes' bounding-box centre on average over `times`,
+    (T, J, 3) joint positions, the posed points per time); None without skinned meshes.
+    `rigspace init` aims the capture ring at that joint; capture warns when a ring is aimed far
+    from it."""
+    centres, joints, points = [], [], []
+    for t in times:
+        meshes = rig.posed_meshes(float(t))
+        if not meshes:
+            return None
+        p = np.concatenate([m.points for m in meshes])
+        points.append(p)
+        centres.append((p.min(axis=0) + p.max(axis=0)) / 2)
+        joints.append(rig.world_transforms(float(t))[:, :3, 3])  # column vectors
+    positions = np.array(joints)
+    mean = np.mean(centres, axis=0)
+    return int(np.argmin(np.linalg.norm(positions.mean(axis=0) - mean, axis=1))), positions, points

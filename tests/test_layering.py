@@ -1,8 +1,10 @@
-"""Dependencies point one way (DESIGN.md): usd_schemas <- sdk <- {capture, train, runtime}."""
+"""Dependencies point one way (DESIGN.md): usd_schemas <- sdk <- {capture, train, runtime} <- bench,
+and the apps (the `rigspace` subcommands and the `python -m` tools) above all of them."""
 
 from __future__ import annotations
 
 import ast
+import re
 
 import pytest
 
@@ -17,7 +19,17 @@ ALLOWED = {
     "runtime": {"usd_schemas", "sdk", "runtime"},
     # The bench measures everything side by side, so it alone may import every package.
     "bench": {"usd_schemas", "sdk", "capture", "train", "runtime", "bench"},
+    # The apps: commands and tools over the library, which imports none of them.
+    "apps": {"usd_schemas", "sdk", "capture", "train", "runtime", "bench", "apps"},
 }
+LIBRARY = sorted(set(ALLOWED) - {"apps"})
+APP_MODULE = re.compile(r"rigspace\.apps(\.\w+)*")
+"""A string naming an app module: what `python -m`, importlib or runpy would load."""
+LIBRARY_MAINS = {
+    "sdk/__main__.py": "`python -m rigspace.sdk` is the `rigspace` front door (rigspace.sdk.cli)",
+    "usd_schemas/generate.py": "the schema package's build step: writes the files beside it",
+}
+"""The library modules that may still run as programs, and why."""
 
 
 def rigspace_imports(path) -> set[str]:
@@ -91,3 +103,69 @@ def test_no_module_imports_itself_round_a_cycle():
                     seen.add(nxt)
                     stack.append((nxt, [*path, nxt]))
     assert not cycles, sorted(sorted(c) for c in cycles)
+
+
+def _names_an_app(path) -> list[str]:
+    """The places in `path` that load an app: imports of rigspace.apps, and strings that are an
+    app's module name (`[sys.executable, "-m", "rigspace.apps.x"]`, import_module)."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module:
+            names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+        elif isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+            names = [node.value] if APP_MODULE.fullmatch(node.value) else []
+        else:
+            continue
+        found += [
+            f"line {node.lineno}: {n}"
+            for n in names
+            if n == "rigspace.apps" or n.startswith("rigspace.apps.")
+        ][:1]
+    return found
+
+
+@pytest.mark.parametrize("package", LIBRARY)
+def test_no_library_module_imports_an_app(package):
+    """The apps sit above the library: a library module that needs something of an app's
+    needs library code, which moves down (runtime.reference from render, sdk.posing's
+    centre_joint from init); a process started by name counts as an import."""
+    found = {
+        str(path.relative_to(REPO)): hits
+        for path in sorted((REPO / package).rglob("*.py"))
+        if (hits := _names_an_app(path))
+    }
+    assert not found, f"library modules that load rigspace.apps: {found}"
+
+
+def _runs_as_a_program(path) -> bool:
+    """Whether a module is a `python -m` program: a __main__.py, or an `if __name__ ==
+    "__main__"` block."""
+    if path.name == "__main__.py":
+        return True
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Compare) and isinstance(node.left, ast.Name):
+            if node.left.id == "__name__" and any(
+                isinstance(c, ast.Constant) and c.value == "__main__" for c in node.comparators
+            ):
+                return True
+    return False
+
+
+def test_the_commands_and_tools_are_apps():
+    """Every `rigspace` subcommand's module and every `python -m` tool lives in apps/; the
+    library holds none but LIBRARY_MAINS."""
+    import tomllib
+
+    programs = {
+        str(path.relative_to(REPO))
+        for package in LIBRARY
+        for path in (REPO / package).rglob("*.py")
+        if _runs_as_a_program(path)
+    }
+    assert programs == set(LIBRARY_MAINS), f"move to apps/: {sorted(programs - set(LIBRARY_MAINS))}"
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    commands = project["entry-points"]["rigspace.commands"]
+    outside = {n: v for n, v in commands.items() if not v.startswith("rigspace.apps.")}
+    assert not outside, f"subcommands outside rigspace.apps: {outside}"

@@ -132,8 +132,8 @@ def _module_paths(path: Path) -> dict[str, Path]:
 
 def test_paths_built_from_a_modules_own_file_exist():
     """A module's constants like `Path(__file__).resolve().parents[1] / "samples"` point at
-    what they name in this checkout: a module moved into a package (shadows/timing.py) keeps
-    the right depth. Those inside the package are package data (the test above); those
+    what they name in this checkout: a module moved into a package (shadows/timing.py) or out
+    of one (apps/shadow_timing.py) keeps the right depth. Those inside the package are package data (the test above); those
     outside (samples/) exist only in a source checkout."""
     wrong = [
         f"{source.relative_to(REPO)}: {name} = {target}"

@@ -1,6 +1,6 @@
 """Training on several processes with torch.distributed: torchrun, DDP, rank 0 writes.
 
-    torchrun --standalone --nproc-per-node 2 -m rigspace.train DATASET --out MODEL ...
+    torchrun --standalone --nproc-per-node 2 -m rigspace.apps.train DATASET --out MODEL ...
     rigspace train DATASET --out MODEL --nproc 2 ...        (the same, torchrun spawned)
 
 Under torchrun (WORLD_SIZE > 1 in the environment) `context()` joins the process group:
@@ -15,11 +15,8 @@ process and training behaves exactly as it always has.
 
 from __future__ import annotations
 
-import argparse
 import copy
 import os
-import subprocess
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -220,46 +217,3 @@ def close() -> None:
     if dist.is_available() and dist.is_initialized():
         dist.destroy_process_group()
     _context = None
-
-
-def torchrun_argv(args: argparse.Namespace, nproc: int) -> list[str]:
-    """The torchrun command that runs `rigspace train` with `args` on `nproc` local ranks."""
-    from rigspace.train.config import TrainConfig
-
-    argv = [str(args.dataset), "--out", str(args.out), "--preset", args.preset]
-    if args.steps is not None:
-        argv += ["--steps", str(args.steps)]
-    if args.minutes is not None:
-        argv += ["--minutes", repr(args.minutes)]
-    argv += [f"--{f.replace('_', '-')}" for f in ("resume", "no_int8", "force") if getattr(args, f)]
-    if getattr(args, "device", None):
-        argv += ["--device", str(args.device)]
-    for f in TrainConfig.__dataclass_fields__.values():
-        value = getattr(args, f.name, None)
-        if f.name == "preset" or value is None:
-            continue
-        flag = "--" + f.name.replace("_", "-")
-        if isinstance(value, bool):
-            argv.append(flag if value else "--no-" + f.name.replace("_", "-"))
-        else:
-            argv += [flag, str(value)]
-    return [
-        sys.executable,
-        "-m",
-        "torch.distributed.run",
-        "--standalone",
-        f"--nproc-per-node={nproc}",
-        "-m",
-        "rigspace.train",
-        *argv,
-    ]
-
-
-def launch(args: argparse.Namespace, nproc: int) -> int:
-    """`rigspace train --nproc N`: run the same training under torchrun; its exit code."""
-    if args.upgrade:
-        raise RigspaceError(
-            "--upgrade trains a few heads on one process and cannot run with --nproc.",
-            "drop --nproc for --upgrade.",
-        )
-    return subprocess.run(torchrun_argv(args, nproc), check=False).returncode

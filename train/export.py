@@ -192,7 +192,7 @@ def export_bundle(
     dataset = Path(run.dataset)
     data_manifest = read_manifest(dataset)
     # Capsules are fitted to the character, not trained: the dataset's copy wins; without
-    # one, those already in the bundle (added by `python -m rigspace.sdk.capsules`) stay.
+    # one, those already in the bundle (added by `python -m rigspace.apps.capsules`) stay.
     source = dataset / CAPSULES
     capsules = source if source.is_file() else out / CAPSULES
     if capsules.is_file():

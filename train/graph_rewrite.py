@@ -1,6 +1,6 @@
 """Rewrite an exported bundle's graphs into the faster form the current export writes.
 
-    python -m rigspace.train.graph_rewrite BUNDLE [--check]
+    python -m rigspace.apps.graph_rewrite BUNDLE [--check]
 
 The texture head ends in a softmax over the channel axis of its chart logits, which
 onnxruntime's CPU runs slowly in its obvious forms: a Softmax node (6.2 of the 128x128
@@ -18,16 +18,13 @@ this module.
 
 from __future__ import annotations
 
-import argparse
 import hashlib
-import sys
 from pathlib import Path
 
 import numpy as np
 
 from rigspace.sdk.bundle import (
     MANIFEST_FILE,
-    BundleError,
     read_manifest_document,
     write_manifest_document,
 )
@@ -221,29 +218,3 @@ def rewrite_bundle(folder: str | Path, dry_run: bool = False) -> list[str]:
     if changed and not dry_run:
         write_manifest_document(folder, manifest)
     return changed
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m rigspace.train.graph_rewrite", description=__doc__.split("\n\n")[0]
-    )
-    parser.add_argument("bundle", help="a model bundle folder (rigspace train --out)")
-    parser.add_argument(
-        "--check", action="store_true", help="only list the graphs it would rewrite"
-    )
-    args = parser.parse_args(argv)
-    try:
-        changed = rewrite_bundle(args.bundle, dry_run=args.check)
-    except BundleError as exc:  # a manifest a reader refuses: said, and nothing rewritten
-        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
-        return 1
-    verb = "would rewrite" if args.check else "rewrote"
-    print(
-        f"{args.bundle}: {verb} {len(changed)} graphs"
-        + (f": {', '.join(changed)}" if changed else "")
-    )
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

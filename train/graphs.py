@@ -78,7 +78,7 @@ def channel_softmax(x: torch.Tensor) -> torch.Tensor:
     """Softmax over dim 1 of (N, C, H, W), written out (max, exp, sum, divide). The export
     brings it to the form onnxruntime's CPU runs fast (graph_rewrite.fast_channel_softmax:
     its Softmax node over the channel axis of NCHW took 6.2 of the 128x128 albedo graph's
-    10.3 ms, this form 1.1 of 7.0 on one thread); `python -m rigspace.train.graph_rewrite
+    10.3 ms, this form 1.1 of 7.0 on one thread); `python -m rigspace.apps.graph_rewrite
     BUNDLE` does the same to older bundles."""
     shifted = x - x.amax(dim=1, keepdim=True)
     e = torch.exp(shifted)

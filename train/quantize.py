@@ -484,29 +484,3 @@ def format_level_table(levels: dict[int, dict[str, Any]]) -> str:
             f"| {'yes' if e['offered'] else 'no: ' + '; '.join(e['not_offered'])} |"
         )
     return "\n".join(lines) + "\n"
-
-
-if __name__ == "__main__":
-    import argparse
-    import json
-
-    parser = argparse.ArgumentParser(description=requantize_bundle.__doc__)
-    parser.add_argument("bundle", type=Path)
-    parser.add_argument("dataset", type=Path)
-    parser.add_argument(
-        "--check-only", action="store_true", help="re-check the int8 graphs, do not re-quantise"
-    )
-    args = parser.parse_args()
-    if args.check_only:
-        result = recheck_bundle(args.bundle, args.dataset)
-    else:
-        result = requantize_bundle(args.bundle, args.dataset)
-    print(format_level_table({int(r): e for r, e in result["levels"].items()}))
-    print(json.dumps({"offered_levels": result["offered_levels"]}))
-    for name, graph in result["graphs"].items():
-        print(
-            name,
-            "ok" if graph["ok"] else "FAILED",
-            "offered" if graph["offered"] else "",
-            graph["not_offered"],
-        )

@@ -1,6 +1,6 @@
 """One training step, free of datasets and files: the schedule, the optimiser, forward and loss,
 the update. `rigspace.train.loop` runs these over a dataset; the GPU check
-(rigspace.bench.gpu_check) times them on a machine without usd-core or OpenImageIO.
+(rigspace.apps.gpu_check) times them on a machine without usd-core or OpenImageIO.
 """
 
 from __future__ import annotations

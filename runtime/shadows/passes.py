@@ -4,7 +4,7 @@ The engine's numpy passes (Engine._prim_shadows) call back into Python for every
 every pass; here each (light, maps or capsules) pass is one kernel call over its window,
 with the maps' depth and the capsules' 2-D view handed over as arrays. The result is the
 numpy passes' within float rounding (tests/runtime/test_shadows.py holds the tolerance);
-`python -m rigspace.runtime.shadows.timing` measures both.
+`python -m rigspace.apps.shadow_timing` measures both.
 """
 
 from __future__ import annotations

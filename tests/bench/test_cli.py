@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from rigspace.bench.cli import PARTS
+from rigspace.apps.bench import PARTS
 from rigspace.sdk.cli import main
 
 

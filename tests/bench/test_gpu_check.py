@@ -21,7 +21,7 @@ find_spec = importlib.util.find_spec
 importlib.util.find_spec = lambda n, *a, **k: None if n.split(".")[0] in BLOCKED else find_spec(n, *a, **k)
 sys.meta_path.insert(0, Block())
 sys.argv = ["gpu_check", *sys.argv[1:]]
-runpy.run_module("rigspace.bench.gpu_check", run_name="__main__")
+runpy.run_module("rigspace.apps.gpu_check", run_name="__main__")
 """
 
 

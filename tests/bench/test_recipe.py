@@ -1,4 +1,4 @@
-"""The GPU recipe (bench/recipe.py): its smoke mode end to end on the CPU, what it brings back
+"""The GPU recipe (apps/recipe.py): its smoke mode end to end on the CPU, what it brings back
 and how that is unpacked, the travel check, and its start on a machine with nothing installed."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import pytest
 
 pytest.importorskip("torch", reason="the recipe trains (the train extra)")
 
-from rigspace.bench import recipe
+from rigspace.apps import recipe
 from rigspace.sdk.model import BundleModel
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def smoke(tmp_path_factory):
     out = tmp_path_factory.mktemp("recipe") / "out"
     done = subprocess.run(
-        [sys.executable, "-m", "rigspace.bench.recipe", "run", "--smoke", "--out", str(out)],
+        [sys.executable, "-m", "rigspace.apps.recipe", "run", "--smoke", "--out", str(out)],
         cwd=ROOT, capture_output=True, text=True,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
@@ -104,13 +104,13 @@ def test_run_starts_with_the_standard_library_alone_and_names_prepare(tmp_path):
     if not python.is_file() or subprocess.run(probe, capture_output=True).returncode == 0:
         pytest.skip("needs a Python without rigspace's dependencies at /usr/bin/python3")
     done = subprocess.run(
-        [python, "bench/recipe.py", "run", "--out", str(tmp_path / "out"), "--payload",
+        [python, "apps/recipe.py", "run", "--out", str(tmp_path / "out"), "--payload",
          str(tmp_path / "none")],
         cwd=ROOT, capture_output=True, text=True,
     )  # fmt: skip
     assert done.returncode == 1, done.stderr
     assert "rigspace is not installed here" in done.stderr
-    assert "python -m rigspace.bench.recipe prepare" in done.stderr
+    assert "python -m rigspace.apps.recipe prepare" in done.stderr
     assert "Traceback" not in done.stderr
     numbers = json.loads((tmp_path / "out" / "numbers.json").read_text())
     assert "not installed" in numbers["failed"]

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from rigspace.capture import cli
+from rigspace.apps import capture as cli
 from rigspace.capture.ray_capture import DIE_ONCE, capture_on_ray
 from tests.capture.conftest import CHARACTER, SCENE, SMALL
 

@@ -48,7 +48,7 @@ def test_a_drifted_stage_range_holds_its_whole_frames(capsys):
     """An exporter wrote 1.0000000521-3023.0001577 (float32 drift); capture reads those as
     frames 1-3023 (sdk.timecodes), and render compares --frames with the same tolerance: no
     warning that 1:3023 reaches past the range. A frame past it by more still warns."""
-    from rigspace.runtime.cli import frame_times
+    from rigspace.apps.render import frame_times
 
     stage = Usd.Stage.CreateInMemory()
     stage.SetStartTimeCode(1.0000000521540642)

@@ -994,7 +994,7 @@ def test_the_character_layer_blended_matches_every_pixel_evaluated_by_numpy(tmp_
     assert shadowed > 500  # the roof's shadow (and the crate's) fall on the character
 
 
-# -- the shadow timing tool (runtime/shadows/timing.py) and the Engine settings it drives ---------
+# -- the shadow timing tool (apps/shadow_timing.py) and the Engine settings it drives ------------
 
 
 def test_the_engine_keeps_a_frames_shadow_passes_to_run_again():
@@ -1034,7 +1034,7 @@ def test_the_engine_keeps_a_frames_shadow_passes_to_run_again():
 
 
 def test_the_shadow_timing_tool_prints_its_lines(monkeypatch, capsys):
-    from rigspace.runtime.shadows import timing
+    from rigspace.apps import shadow_timing as timing
 
     argv = ["timing", "--frames", "1", "--sizes", "64x36", "--kernels", "numba"]
     monkeypatch.setattr("sys.argv", argv)
@@ -1049,7 +1049,7 @@ def test_the_shadow_timing_tool_prints_its_lines(monkeypatch, capsys):
 
 
 def test_the_shadow_timing_tool_names_a_missing_scene(monkeypatch, capsys, tmp_path):
-    from rigspace.runtime.shadows import timing
+    from rigspace.apps import shadow_timing as timing
 
     monkeypatch.setattr("sys.argv", ["timing", "--scene", str(tmp_path / "none.usda")])
     with pytest.raises(SystemExit):

@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from rigspace.apps.render_timing import textured_sphere
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.render import (
@@ -22,7 +23,6 @@ from rigspace.sdk.render import embree as embree_module
 from rigspace.sdk.render import gl as gl_module
 from rigspace.sdk.render.embree import sample_bilinear
 from rigspace.sdk.render.gl import weld_corners
-from rigspace.sdk.render.timing import textured_sphere
 
 # Agreement between gl and embree on the same frame. Measured here (Mesa llvmpipe, the five
 # scenes below; docs/renderers.md): IoU 1, mask MAE 0, depth relative error median <= 8.1e-8 and

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
 
+from rigspace.apps.scaffold import init_scene
 from rigspace.sdk import schema, validation
 from rigspace.sdk.cli import main
 from rigspace.sdk.errors import SceneError
-from rigspace.sdk.scaffold import init_scene
 from tests.conftest import CESIUM_MAN
 
 ROBOT = """#usda 1.0
@@ -182,7 +182,7 @@ def test_a_non_finite_derived_value_is_named_and_nothing_is_written(tmp_path, ca
 
 def test_a_scene_init_would_write_invalid_is_not_written(tmp_path, monkeypatch):
     """Whatever inspect's capture rules refuse is refused before the file exists."""
-    from rigspace.sdk import scaffold
+    from rigspace.apps import scaffold
 
     monkeypatch.setattr(scaffold, "RESOLUTION", 100)  # not a power of two: capture refuses it
     scene = tmp_path / "shot.usda"

@@ -1,4 +1,4 @@
-"""The ablation's cost table (python -m rigspace.train.ablation DATASET --cost R): MFLOP and
+"""The ablation's cost table (python -m rigspace.apps.ablation DATASET --cost R): MFLOP and
 fp32/int8 ms of each distinct architecture, untrained, through real onnxruntime graphs."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import pytest
 
 pytest.importorskip("torch", reason="the cost table builds the variants' networks with torch")
 
-from rigspace.train import ablation
+from rigspace.apps import ablation
 
 
 def _rows(table: str) -> dict[str, list[str]]:

@@ -1,4 +1,4 @@
-"""Quality against training time (python -m rigspace.train.curve) on kept tiny checkpoints."""
+"""Quality against training time (python -m rigspace.apps.curve) on kept tiny checkpoints."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ import pytest
 
 pytest.importorskip("torch", reason="the curve evaluates checkpoints with torch (train extra)")
 
-from rigspace.train import curve, loop
+from rigspace.apps import curve
+from rigspace.train import loop
 from rigspace.train.config import preset
 
 TINY = preset("tiny")  # levels 16 and 32, 20 steps each; the 32 block has faded in at step 30

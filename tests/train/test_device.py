@@ -58,7 +58,7 @@ def test_auto_trains_on_the_cpu_without_a_gpu_and_bf16_autocasts_there(tiny_data
 
 
 def test_the_ablation_passes_its_device_to_every_variant(tiny_dataset, tmp_path, capsys):
-    from rigspace.train import ablation
+    from rigspace.apps import ablation
 
     out = tmp_path / "abl"
     code = ablation.main([str(tiny_dataset), "--out", str(out), "--variants", "paper",
@@ -71,7 +71,7 @@ def test_the_ablation_passes_its_device_to_every_variant(tiny_dataset, tmp_path,
 def test_eval_and_the_curve_take_a_device_and_refuse_one_that_is_not_there(
     tiny_dataset, tmp_path, capsys
 ):
-    from rigspace.train import curve
+    from rigspace.apps import curve
     from rigspace.train.export import export_bundle
 
     run = tmp_path / "run"

@@ -13,10 +13,11 @@ import pytest
 
 torch = pytest.importorskip("torch", reason="training needs the train extra (torch)")
 
+from rigspace.apps import train as cli  # noqa: E402
+from rigspace.apps.train import torchrun_argv  # noqa: E402
 from rigspace.capture.pack import pack  # noqa: E402
-from rigspace.train import cli, loop  # noqa: E402
+from rigspace.train import loop  # noqa: E402
 from rigspace.train.config import preset  # noqa: E402
-from rigspace.train.distributed import torchrun_argv  # noqa: E402
 from rigspace.train.export import export_bundle  # noqa: E402
 
 TINY = preset("tiny")
@@ -39,7 +40,7 @@ def test_two_gloo_ranks_match_one_process_and_resume_on_one(tiny_dataset, tmp_pa
     # Two ranks through `rigspace train --nproc 2` (torchrun spawned, gloo), stopped at step 4.
     bundle = tmp_path / "two"
     done = subprocess.run(
-        [sys.executable, "-m", "rigspace.train", str(tiny_dataset), "--out",
+        [sys.executable, "-m", "rigspace.apps.train", str(tiny_dataset), "--out",
          str(bundle), "--preset", "tiny", "--steps", "4", "--no-int8", "--nproc", "2"],
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
@@ -76,7 +77,7 @@ def test_rigspace_train_rebuilds_its_command_for_torchrun():
     command = torchrun_argv(args, 2)
     assert command[:6] == [sys.executable, "-m", "torch.distributed.run", "--standalone",
                            "--nproc-per-node=2", "-m"]  # fmt: skip
-    assert command[6] == "rigspace.train"
+    assert command[6] == "rigspace.apps.train"
     again = parser.parse_args(command[7:])
     assert again.nproc == 1  # the ranks themselves run one process each
     assert {k: v for k, v in vars(again).items() if k != "nproc"} == {

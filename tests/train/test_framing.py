@@ -1,10 +1,10 @@
-"""How much of the frame the character fills (python -m rigspace.train.framing)."""
+"""How much of the frame the character fills (python -m rigspace.apps.framing)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from rigspace.train import framing
+from rigspace.apps import framing
 
 
 def test_centred_extent_is_the_square_around_the_frame_centre_holding_the_mask():

@@ -152,7 +152,7 @@ def test_the_check_names_a_missing_joints2d(bundle, tiny_dataset):
 def test_requantize_gives_an_fp32_only_conditioned_bundle_its_int8_graphs(
     run, tiny_dataset, tmp_path
 ):
-    """`python -m rigspace.train.quantize` on a conditioned bundle exported without int8
+    """`python -m rigspace.apps.quantize` on a conditioned bundle exported without int8
     (as before int8 was offered for one): the skeleton comes from the manifest."""
     out = tmp_path / "bundle"
     export_bundle(run, out, int8=False)

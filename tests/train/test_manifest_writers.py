@@ -14,10 +14,11 @@ import pytest
 
 pytest.importorskip("torch", reason="the writers are the train extra's (torch, onnx)")
 
+from rigspace.apps.graph_rewrite import main as rewrite_main
+from rigspace.apps.train import record_metrics
 from rigspace.sdk.bundle import BundleError
 from rigspace.sdk.capsules import Capsules, add_to_bundle
 from rigspace.train import graph_rewrite, quantize
-from rigspace.train.cli import record_metrics
 from tests.conftest import REPO
 
 SAMPLE = REPO / "samples" / "models" / "sample"
@@ -102,6 +103,6 @@ def test_the_graph_rewrite_command_says_why_it_refuses(tmp_path, capsys):
     bundle = tmp_path / "bundle"
     bundle.mkdir()
     (bundle / "manifest.json").write_text('{"format": "rigspace.bundle", "format_version": 9}')
-    assert graph_rewrite.main([str(bundle)]) == 1
+    assert rewrite_main([str(bundle)]) == 1
     err = capsys.readouterr().err
     assert "error:" in err and "format version 9" in err and "Traceback" not in err

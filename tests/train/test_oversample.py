@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from rigspace.apps import train as cli
 from rigspace.capture import dataset as ds
 from rigspace.capture.pack import pack
 from rigspace.sdk.rotations import rot6d_from_matrix
-from rigspace.train import cli
 from rigspace.train.config import ConfigError, TrainConfig, preset
 from rigspace.train.data import (
     Prefetcher,

@@ -9,9 +9,9 @@ import json
 import numpy as np
 import pytest
 
+from rigspace.apps.train import budget_shares
 from rigspace.sdk.bundle import BundleError, read_manifest
 from rigspace.sdk.cli import main
-from rigspace.train.cli import budget_shares
 from tests.blendshapes import write_blendshape_character
 from tests.capture.test_regions import _with_region
 

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from rigspace.apps import dataset as dataset_cli
 from rigspace.capture import dataset as ds
-from rigspace.capture import dataset_cli
 from rigspace.capture.pack import INDEX_FILE, pack
 from rigspace.sdk.exr import write_exr
 from rigspace.sdk.render import Maps

@@ -12,7 +12,7 @@ with warnings.catch_warnings():  # starlette 1.x suggests httpx2; httpx is what 
     warnings.simplefilter("ignore")
     from starlette.testclient import TestClient
 
-from rigspace.runtime.view.cli import build, in_background
+from rigspace.apps.view import build, in_background
 from rigspace.runtime.view.scene import SceneModel
 from rigspace.runtime.view.server import Viewer, create_app
 from rigspace.runtime.view.viewport import FrameService

@@ -48,7 +48,7 @@ def test_each_map_is_its_own_image(previs_served):
 
 
 def test_reference_views_side_by_side_and_error():
-    from rigspace.runtime.view.cli import build
+    from rigspace.apps.view import build
     from tests.view.conftest import PREVIS
 
     viewer = build(str(PREVIS), resolution=(160, 90), reference=True)

@@ -28,8 +28,8 @@ def test_page_and_assets_are_served_with_their_types(previs_client):
 @pytest.mark.parametrize(
     "url",
     [
-        "/static/../cli.py",
-        "/static/..%2fcli.py",
+        "/static/../scene.py",
+        "/static/..%2fscene.py",
         "/static/%2e%2e/%2e%2e/pyproject.toml",
         "/static//etc/passwd",
         "/static/..\\server.py",

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from rigspace.runtime.live.input_bench import decode_rates, jitter_error
+from rigspace.apps.input_bench import decode_rates, jitter_error
 
 
 def test_delayed_removes_most_of_the_jitter_error():
@@ -18,7 +18,7 @@ def test_decode_rates_are_measured():
 
 
 def test_frame_cost_compares_live_and_stage_frames():
-    from rigspace.runtime.live.input_bench import frame_cost
+    from rigspace.apps.input_bench import frame_cost
 
     r = frame_cost(frames=2, size=48)
     assert r["binding_status"] == "connected"  # the live engine really rendered the stream

@@ -6,8 +6,8 @@ import logging
 
 import pytest
 
+from rigspace.apps.live_fuzz import fuzz, main
 from rigspace.runtime.live.decoders.vmc import VmcDecoder
-from rigspace.runtime.live.fuzz import fuzz, main
 
 
 @pytest.mark.parametrize("name", ["vmc", "bvh", "ximu3", "evdev"])

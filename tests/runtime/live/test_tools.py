@@ -9,7 +9,8 @@ import time
 
 import pytest
 
-from rigspace.runtime.live import probe, send
+from rigspace.apps import live_probe as probe
+from rigspace.apps import live_send as send
 from rigspace.runtime.live.buffer import LiveBuffer
 from rigspace.runtime.live.sources import open_source
 from tests.conftest import free_port

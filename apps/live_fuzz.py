@@ -1,4 +1,4 @@
-"""Fuzz every decoder with random and mutated bytes: `python -m rigspace.runtime.live.fuzz`."""
+"""Fuzz every decoder with random and mutated bytes: `python -m rigspace.apps.live_fuzz`."""
 
 from __future__ import annotations
 
@@ -163,9 +163,7 @@ def fuzz(name: str, nbytes: int, seed: int = 0) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m rigspace.runtime.live.fuzz", description=__doc__
-    )
+    parser = argparse.ArgumentParser(prog="python -m rigspace.apps.live_fuzz", description=__doc__)
     parser.add_argument("--bytes", type=int, default=1_000_000, help="bytes per decoder")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--decoder", choices=[*_decoders(), "all"], default="all")

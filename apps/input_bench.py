@@ -1,4 +1,4 @@
-"""Measure live input: `python -m rigspace.runtime.live.input_bench [--json FILE]` (docs/live.md)."""
+"""Measure live input: `python -m rigspace.apps.input_bench [--json FILE]` (docs/live.md)."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from rigspace.runtime.live.source_frame import SourceFrame, quat_angle, quat_sle
 from rigspace.runtime.live.sources import open_source
 from rigspace.sdk.files import write_atomic
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[1]
 CLIP = REPO / "samples" / "motion" / "cmu_131_01.bvh"
 CHARACTER = REPO / "samples" / "character" / "sample_character.usda"
 
@@ -208,7 +208,7 @@ class _Performer:
         self.process: subprocess.Popen | None = None
 
     def __enter__(self) -> _Performer:
-        command = [sys.executable, "-m", "rigspace.runtime.live.send", self.url, "--bvh",
+        command = [sys.executable, "-m", "rigspace.apps.live_send", self.url, "--bvh",
                    str(CLIP), "--loop"]  # fmt: skip
         self.process = subprocess.Popen(command, stdout=subprocess.DEVNULL)
         return self
@@ -307,7 +307,7 @@ def end_to_end(seconds: float = 5.0, size: int = 256) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m rigspace.runtime.live.input_bench", description=__doc__
+        prog="python -m rigspace.apps.input_bench", description=__doc__
     )
     parser.add_argument("--seconds", type=float, default=2.0, help="per decode-rate measurement")
     parser.add_argument("--json", type=Path, help="also write the results here")

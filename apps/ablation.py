@@ -1,6 +1,6 @@
 """Ablation: network variants trained with the same steps, measured on the same held-out samples.
 
-    python -m rigspace.train.ablation DATASET --out DIR [--steps-per-level N] [--resolution R]
+    python -m rigspace.apps.ablation DATASET --out DIR [--steps-per-level N] [--resolution R]
 
 Each variant is the small preset with a few options changed (VARIANTS). It trains to
 `resolution` with `steps-per-level` steps at every level (the same steps for all: on a shared
@@ -17,7 +17,7 @@ With `--display HIRES` (a capture of the same ring at a higher resolution, `rigs
 (train/display.py): at 2x, 4x, ... its resolution, up to the training dataset's resolution and
 HIRES's, the model as the runtime draws it against the truth captured at that size.
 
-    python -m rigspace.train.ablation DATASET --out DIR --cost 128 --variants ...
+    python -m rigspace.apps.ablation DATASET --out DIR --cost 128 --variants ...
 
 prints what each distinct architecture among the variants costs at 128x128 (MFLOP, fp32 and
 int8 ms), untrained.
@@ -822,7 +822,7 @@ def main(argv: list[str] | None = None) -> int:
 def _parser() -> argparse.ArgumentParser:
     """The command line (the module doc)."""
     parser = argparse.ArgumentParser(
-        prog="python -m rigspace.train.ablation", description=__doc__.splitlines()[0]
+        prog="python -m rigspace.apps.ablation", description=__doc__.splitlines()[0]
     )
     parser.add_argument(
         "dataset", type=Path, help="a dataset folder written by `rigspace capture` (read only)"

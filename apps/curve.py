@@ -1,6 +1,6 @@
 """Quality against training time: a run's kept checkpoints, each evaluated on held-out samples.
 
-    python -m rigspace.train.curve MODEL DATASET --checkpoints DIR [--limit 200] \
+    python -m rigspace.apps.curve MODEL DATASET --checkpoints DIR [--limit 200] \
         [--out docs/images/training_curve.png] [--clock FILE] [--target-psnr 31] \
         [--device auto|cpu|cuda[:N]]
 
@@ -33,12 +33,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from rigspace.apps.ablation import save_figure
 from rigspace.capture.dataset import read_manifest
 from rigspace.sdk.conditioning import joints2d
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.files import write_atomic
 from rigspace.sdk.render import Maps
-from rigspace.train.ablation import save_figure
 from rigspace.train.budget import trained_levels
 from rigspace.train.conditioning import dataset_skeleton
 from rigspace.train.data import depth_scale
@@ -233,7 +233,7 @@ def plot(points: list[dict[str, Any]], path: Path, title: str) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m rigspace.train.curve", description=__doc__.split("\n\n")[0]
+        prog="python -m rigspace.apps.curve", description=__doc__.split("\n\n")[0]
     )
     parser.add_argument("model", type=Path, help="model bundle (or its training folder)")
     parser.add_argument("dataset", type=Path, help="the run's dataset (rigspace capture)")

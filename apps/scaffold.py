@@ -291,6 +291,8 @@ def _animated_extent(
             "holds one pose or none).",
             "export the character with its animation: capture renders it in many poses.",
         )
+    from rigspace.sdk.posing import centre_joint
+
     times = np.linspace(span[0], span[1], SAMPLES)
     found = centre_joint(rig, times)
     if found is None:
@@ -356,23 +358,6 @@ def _author_capture_ring(
         attr = prim.CreateAttribute(f"rigspace:captureRing:{key}", kind, custom=False)
         attr.SetVariability(Sdf.VariabilityUniform)
         attr.Set(value)
-
-
-def centre_joint(rig, times: np.ndarray) -> tuple[int, np.ndarray, list[np.ndarray]] | None:
-    """(the joint nearest the skinned meshes' bounding-box centre on average over `times`,
-    (T, J, 3) joint positions, the posed points per time); None without skinned meshes."""
-    centres, joints, points = [], [], []
-    for t in times:
-        meshes = rig.posed_meshes(float(t))
-        if not meshes:
-            return None
-        p = np.concatenate([m.points for m in meshes])
-        points.append(p)
-        centres.append((p.min(axis=0) + p.max(axis=0)) / 2)
-        joints.append(rig.world_transforms(float(t))[:, :3, 3])  # column vectors
-    positions = np.array(joints)
-    mean = np.mean(centres, axis=0)
-    return int(np.argmin(np.linalg.norm(positions.mean(axis=0) - mean, axis=1))), positions, points
 
 
 def _axes(up: str) -> tuple[Gf.Vec3d, Gf.Vec3d]:

@@ -1,4 +1,4 @@
-"""Print what a live source sends: `python -m rigspace.runtime.live.probe URL [--seconds S]`."""
+"""Print what a live source sends: `python -m rigspace.apps.live_probe URL [--seconds S]`."""
 
 from __future__ import annotations
 
@@ -68,7 +68,7 @@ def _enough(source, frames: int | None) -> bool:
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog=prog or "python -m rigspace.runtime.live.probe", description=__doc__
+        prog=prog or "python -m rigspace.apps.live_probe", description=__doc__
     )
     parser.add_argument("url", help="a live-source URL, such as vmc://127.0.0.1:39539")
     parser.add_argument("--seconds", type=float, default=10.0, help="how long to listen")

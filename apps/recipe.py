@@ -1,9 +1,9 @@
 """The GPU recipe: retrain the shipped sample model on a lent GPU machine, one command a side.
 
-    python -m rigspace.bench.recipe prepare                 # here: gathers what the GPU lacks
-    python3 bench/recipe.py run --out "$OUT"                # there: <= 9 minutes, no registry
-    python -m rigspace.bench.recipe unpack FILES            # here: the bundle and the GPU table
-    python -m rigspace.bench.recipe run --smoke --out DIR   # anywhere: the whole recipe on the
+    python -m rigspace.apps.recipe prepare                  # here: gathers what the GPU lacks
+    python3 apps/recipe.py run --out "$OUT"                 # there: <= 9 minutes, no registry
+    python -m rigspace.apps.recipe unpack FILES             # here: the bundle and the GPU table
+    python -m rigspace.apps.recipe run --smoke --out DIR    # anywhere: the whole recipe on the
                                                             # CPU at 32x32 in about a minute (CI)
 
 A lent GPU machine (docs/gpu.md) has torch with CUDA, numpy, numba, onnx, onnxruntime and
@@ -20,7 +20,7 @@ most 16 MiB come back. So:
 - `run` installs the payload (a script until then: it needs nothing but Python's standard
   library), captures the sample dataset with the gl renderer on the GPU, trains the sample
   recipe (RECIPE_FLAGS, on CUDA) for what the time budget leaves, exports, evaluates (held-out
-  views, the held-out clip, at display size), runs the GPU check (bench/gpu_check.py), and
+  views, the held-out clip, at display size), runs the GPU check (apps/gpu_check.py), and
   packs the bundle and every number into at most MAX_FILES files under --out, after each
   stage: a run stopped at its limit still returns what it finished.
 - `unpack` joins what came back, checks it, puts the bundle in samples/models/sample (or
@@ -29,16 +29,23 @@ most 16 MiB come back. So:
 
 from __future__ import annotations
 
+import os
+import sys
+
+if __name__ == "__main__" and sys.path:  # run as a script (`python3 apps/recipe.py`): apps/'s
+    # modules must not shadow anything, as apps/inspect.py would the standard library's inspect
+    # (dataclasses imports it below).
+    if os.path.realpath(sys.path[0]) == os.path.dirname(os.path.realpath(__file__)):
+        sys.path.pop(0)
+
 import argparse
 import hashlib
 import io
 import json
 import lzma
-import os
 import re
 import shutil
 import subprocess
-import sys
 import tarfile
 import tempfile
 import time
@@ -101,8 +108,9 @@ RECIPE_FLAGS = tuple(
 fp32: a bf16 head cannot place a coordinate within a texel of a 1,024-texel chart (8 bits of
 mantissa), and tf32 convolutions are nearly as fast on Hopper."""
 CAPACITY_FLAGS = ("--base-width", "128", "--min-width", "32", "--texture-branch", "texture")
-"""Capacity where the CPU measurements point (docs/gpu.md, "Capacity"): 32 channels at 64x64
-and 128x128 instead of 16, and the texture head on its own branch."""
+"""The recipe's hypothesis for capacity (docs/training.md, "Capacity"): 32 channels at 64x64
+and 128x128 instead of 16, and the texture head on its own branch. Its cost is measured on
+2 CPU cores (2.5x the network's); what it buys at 128x128 is the first GPU run's question."""
 
 
 @dataclass(frozen=True)
@@ -371,7 +379,7 @@ def install(r: Run, root: Path, payload: Path) -> None:
     if not (payload / SITE_ARCHIVE).is_file():
         raise RecipeError(
             f"rigspace is not installed here and there is no {payload / SITE_ARCHIVE}",
-            "run `python -m rigspace.bench.recipe prepare` on a machine with a registry and "
+            "run `python -m rigspace.apps.recipe prepare` on a machine with a registry and "
             f"carry {payload} to this one",
         )
     site = r.work / "site"
@@ -425,14 +433,14 @@ def stages(r: Run, root: Path) -> None:
     pack(r, model)
     _finish_warm(r, warm)
     gpu = work / "gpu_check.json"
-    if optional(r, "gpu check", "rigspace.bench.gpu_check", "--out", str(gpu),
+    if optional(r, "gpu check", "rigspace.apps.gpu_check", "--out", str(gpu),
                 *plan.gpu_check_flags):  # fmt: skip
         r.numbers["gpu_check"] = json.loads(gpu.read_text())
         pack(r, model)
     # int8 last: the runtime draws fp32 unless asked, and the export's check offered int8 at
     # no level of the sample model on 2 CPU cores; a bundle without them gets them here with
-    # `python -m rigspace.train.quantize samples/models/sample DATASET`.
-    if optional(r, "int8", "rigspace.train.quantize", str(model), str(dataset)):
+    # `python -m rigspace.apps.quantize samples/models/sample DATASET`.
+    if optional(r, "int8", "rigspace.apps.quantize", str(model), str(dataset)):
         r.numbers["int8"] = r.last_stderr.strip().splitlines()[-40:]
         pack(r, model)
 
@@ -594,7 +602,7 @@ def _replace_folder(new: Path, home: Path) -> None:
 def gpu_table(numbers: dict[str, Any]) -> str:
     """The GPU table in Markdown: the run's stages, training, the evaluations, the GPU check."""
     lines = ["# The GPU recipe's last run", ""]
-    lines.append(f"`python3 bench/recipe.py run` ({'smoke, on the CPU' if numbers['smoke'] else 'GPU'}), "
+    lines.append(f"`python3 apps/recipe.py run` ({'smoke, on the CPU' if numbers['smoke'] else 'GPU'}), "
                  f"{numbers.get('seconds', 0):.0f} s in all.")  # fmt: skip
     if "failed" in numbers:
         lines.append(f"\nIt stopped: {numbers['failed']}")
@@ -613,7 +621,7 @@ def gpu_table(numbers: dict[str, Any]) -> str:
         lines += ["", "At display size:", "", *_metric_rows(evaluation["display"])]
     check = numbers.get("gpu_check")
     if check:
-        lines += ["", "GPU check (bench/gpu_check.py):", "", "```",
+        lines += ["", "GPU check (apps/gpu_check.py):", "", "```",
                   json.dumps(check.get("parts", {}), indent=1)[:6000], "```"]  # fmt: skip
     return "\n".join(lines) + "\n"
 
@@ -666,7 +674,7 @@ def _say(line: str) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m rigspace.bench.recipe",
+        prog="python -m rigspace.apps.recipe",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -720,6 +728,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    if sys.path and Path(sys.path[0]).resolve() == Path(__file__).resolve().parent:
-        sys.path.pop(0)  # run as a script: bench/'s modules must not shadow anything
     sys.exit(main())

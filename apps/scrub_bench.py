@@ -1,4 +1,4 @@
-"""`python -m rigspace.runtime.view.scrub_bench SCENE`: scrub-to-paint in a real browser, and server ms.
+"""`python -m rigspace.apps.scrub_bench SCENE`: scrub-to-paint in a real browser, and server ms.
 
 Serves the scene as `rigspace view` does, opens the page in headless Chromium (Debian's
 /usr/bin/chromium through playwright), scrubs the timeline to `--scrubs` seeded random times
@@ -17,7 +17,7 @@ import sys
 
 import numpy as np
 
-from rigspace.runtime.view.cli import build, in_background
+from rigspace.apps.view import build, in_background
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.files import write_atomic
 
@@ -93,7 +93,7 @@ def measure(scene: str, scrubs: int, seed: int, resolution: tuple[int, int]) -> 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m rigspace.runtime.view.scrub_bench", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m rigspace.apps.scrub_bench", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     parser.add_argument("scene")
     parser.add_argument("--scrubs", type=int, default=30, help="random times to scrub to")

@@ -1,4 +1,7 @@
-"""`rigspace train` and `rigspace eval`: thin wrappers over train.loop, train.export, train.evaluate."""
+"""`rigspace train` and `rigspace eval`: thin wrappers over train.loop, train.export, train.evaluate.
+
+`python -m rigspace.apps.train DATASET --out MODEL ...` is `rigspace train`, the form torchrun
+runs (`--nproc N` spawns it)."""
 
 from __future__ import annotations
 
@@ -6,6 +9,7 @@ import argparse
 import dataclasses
 import json
 import os
+import subprocess
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -129,7 +133,7 @@ def run_train(args: argparse.Namespace) -> int:
         )
     check_out(out, resume=args.resume or args.upgrade, force=args.force)
     if args.nproc > 1 and not distributed.under_torchrun():
-        return distributed.launch(args, args.nproc)
+        return launch(args, args.nproc)
     from rigspace.train.loop import train  # torch: after the launch, which needs none
 
     ctx = distributed.context(args.device)  # under torchrun: joins the process group
@@ -358,6 +362,49 @@ def _upgrade(args: argparse.Namespace, out: Path) -> int:
     )
     # Every other output is bit-identical, so the recorded metrics still hold.
     return _export(args, out, metrics)
+
+
+def torchrun_argv(args: argparse.Namespace, nproc: int) -> list[str]:
+    """The torchrun command that runs `rigspace train` with `args` on `nproc` local ranks."""
+    from rigspace.train.config import TrainConfig
+
+    argv = [str(args.dataset), "--out", str(args.out), "--preset", args.preset]
+    if args.steps is not None:
+        argv += ["--steps", str(args.steps)]
+    if args.minutes is not None:
+        argv += ["--minutes", repr(args.minutes)]
+    argv += [f"--{f.replace('_', '-')}" for f in ("resume", "no_int8", "force") if getattr(args, f)]
+    if getattr(args, "device", None):
+        argv += ["--device", str(args.device)]
+    for f in TrainConfig.__dataclass_fields__.values():
+        value = getattr(args, f.name, None)
+        if f.name == "preset" or value is None:
+            continue
+        flag = "--" + f.name.replace("_", "-")
+        if isinstance(value, bool):
+            argv.append(flag if value else "--no-" + f.name.replace("_", "-"))
+        else:
+            argv += [flag, str(value)]
+    return [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        f"--nproc-per-node={nproc}",
+        "-m",
+        "rigspace.apps.train",
+        *argv,
+    ]
+
+
+def launch(args: argparse.Namespace, nproc: int) -> int:
+    """`rigspace train --nproc N`: run the same training under torchrun; its exit code."""
+    if args.upgrade:
+        raise RigspaceError(
+            "--upgrade trains a few heads on one process and cannot run with --nproc.",
+            "drop --nproc for --upgrade.",
+        )
+    return subprocess.run(torchrun_argv(args, nproc), check=False).returncode
 
 
 TRAIN_COMMAND = CommandSpec(
@@ -666,3 +713,9 @@ EVAL_COMMAND = CommandSpec(
     add_arguments=add_eval_arguments,
     run=run_eval,
 )
+
+
+if __name__ == "__main__":
+    from rigspace.sdk.cli import main
+
+    sys.exit(main(["train", *sys.argv[1:]]))

@@ -57,11 +57,11 @@ def run(args: argparse.Namespace) -> int:
             "run `rigspace live SCENE --out DIR`, or `rigspace live send|probe|calibrate ...`.",
         )
     if argv[0] == "send":
-        from rigspace.runtime.live.send import main as send_main
+        from rigspace.apps.live_send import main as send_main
 
         return send_main(argv[1:], prog="rigspace live send")
     if argv[0] == "probe":
-        from rigspace.runtime.live.probe import main as probe_main
+        from rigspace.apps.live_probe import main as probe_main
 
         return probe_main(argv[1:], prog="rigspace live probe")
     if argv[0] == "calibrate":
@@ -175,7 +175,7 @@ def live(args: argparse.Namespace) -> int:
     import cv2
     import numpy as np
 
-    from rigspace.runtime.cli import make_folder, remove_empty
+    from rigspace.apps.render import make_folder, remove_empty
     from rigspace.runtime.engine import Engine
     from rigspace.runtime.live.engine import Ticks
     from rigspace.runtime.output import VideoWriter

@@ -1,6 +1,6 @@
 """Measure the shadow stage on the previs scene: compiled kernels against numpy, split by sub-step.
 
-`python -m rigspace.runtime.shadows.timing [--scene S] [--frames N] [--sizes 256x256 640x360]
+`python -m rigspace.apps.shadow_timing [--scene S] [--frames N] [--sizes 256x256 640x360]
 [--kernels numba numpy]`: per size, two engines (ShadowBackend kernel "numba" and "numpy", or
 those named) render the same frames of the previs scene (samples/scenes/previs.usda of the
 source checkout, or --scene) with the sample character, one frame each in turn in one
@@ -34,7 +34,7 @@ from rigspace.runtime.shadows import kernels as shadow_kernels
 from rigspace.runtime.shadows import passes as shadow_pass
 
 KERNELS = ("numba", "numpy")
-SCENE = Path(__file__).resolve().parents[2] / "samples" / "scenes" / "previs.usda"
+SCENE = Path(__file__).resolve().parents[1] / "samples" / "scenes" / "previs.usda"
 """The previs scene of the source checkout (runtime/shadows/ -> the repository root): the
 installed package has no samples/, so there --scene is needed."""
 TIMES = np.linspace(100.0, 1400.0, 64)

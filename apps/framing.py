@@ -1,6 +1,6 @@
 """How much of the capture frame the character fills: would a tighter framing add resolution?
 
-    python -m rigspace.train.framing DATASET [--samples 600]
+    python -m rigspace.apps.framing DATASET [--samples 600]
 
 The capture ring frames the character with one camera distance and focal length for every
 pose, centred on the look-at joint (the runtime's billboard is placed the same way). A
@@ -56,7 +56,7 @@ def measure(dataset: str, samples: int = 600) -> dict[str, float]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m rigspace.train.framing", description=__doc__.split("\n\n")[0]
+        prog="python -m rigspace.apps.framing", description=__doc__.split("\n\n")[0]
     )
     parser.add_argument("dataset", help="a dataset folder written by `rigspace capture`")
     parser.add_argument("--samples", type=int, default=600, help="evenly spaced samples read")

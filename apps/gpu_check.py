@@ -1,6 +1,6 @@
 """The GPU check: the project's own code on a CUDA machine, in one command of a few minutes.
 
-    python -m rigspace.bench.gpu_check --out gpu_check.json [--dataset DATASET]
+    python -m rigspace.apps.gpu_check --out gpu_check.json [--dataset DATASET]
 
 Parts (each bounded; a part that cannot run says why and the others go on):
 
@@ -25,7 +25,7 @@ On a GPU machine, the whole check: capture the sample dataset there first (the g
 on the GPU's EGL took 60 s for all 49,920 samples on an H200 with 16 workers), then
 
     rigspace capture samples/scenes/previs.usda --out /tmp/ds --workers 16
-    python -m rigspace.bench.gpu_check --out gpu_check.json --dataset /tmp/ds
+    python -m rigspace.apps.gpu_check --out gpu_check.json --dataset /tmp/ds
 
 With the defaults it should take about 3 minutes on such a machine (estimated, not yet run on
 a GPU: the step part's 6 timings of 4 s, 6 predictor timings, the train part's cache build and
@@ -353,7 +353,7 @@ def _rows(rows: Any, line: Callable[[dict[str, Any]], str]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m rigspace.bench.gpu_check",
+        prog="python -m rigspace.apps.gpu_check",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
