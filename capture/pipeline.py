@@ -41,6 +41,7 @@ from rigspace.capture.settings import (
     print_warning,
     resolve_settings,
 )
+from rigspace.sdk.camera import Camera
 from rigspace.sdk.capsules import FILE_NAME as CAPSULES_FILE
 from rigspace.sdk.capsules import fit_capsules, write_capsules
 from rigspace.sdk.cli import sigterm_as_interrupt
@@ -48,7 +49,7 @@ from rigspace.sdk.exr import write_exr
 from rigspace.sdk.fields import CAPTURE_SETTINGS, read_checked
 from rigspace.sdk.files import write_atomic
 from rigspace.sdk.posing import CharacterRig
-from rigspace.sdk.render import DrawMesh, RenderSettings, choose_renderer
+from rigspace.sdk.render import DrawMesh, Maps, RenderSettings, choose_renderer
 from rigspace.sdk.rotations import rig_parameters
 from rigspace.sdk.stage import open_stage
 
@@ -176,7 +177,7 @@ class ItemWorker:
         rows: list[dict[str, list[Any]]] = [{k: [] for k in ROW_FIELDS} for _ in items]
         for t in first.times:
             start = time.perf_counter()
-            frame = self._pose(first.clip.name, t)
+            frame = self.pose(first.clip.name, t)
             timings["pose"] += time.perf_counter() - start
             for item, item_rows in zip(items, rows, strict=True):
                 for view in item.views:
@@ -190,13 +191,27 @@ class ItemWorker:
             done.append(ItemDone(item.samples, shared, columns["coverage"], columns["view"]))
         return done
 
-    def _pose(self, clip: str, t: float) -> PosedFrame:
+    def pose(self, clip: str, t: float, overrides: dict[str, float] | None = None) -> PosedFrame:
+        """The character at `t` of `clip` as captured, the shapes in `overrides` (name ->
+        weight) set apart from the frame's own weights (train/shapes.py's shape response)."""
         world = self.rig.world_transforms(t)
         weights = self.settings.frame_weights(self.rig, clip, t)
+        for name, value in (overrides or {}).items():
+            weights[self.rig.blend_shapes.index(name)] = value
         # Blend shapes, then skinning; texture AOVs (sdk/charts.py).
         meshes = self.rig.posed_meshes(t, charts=True, weights=weights)
         region = None if self.region is None else self.region.of(meshes)
         return PosedFrame(t, meshes, world, world[self.joint][:3, 3], weights, region)
+
+    def render(self, frame: PosedFrame, camera: Camera) -> Maps:
+        """The frame's maps from `camera`; for a region's capture, the region's surface where
+        it is the nearest."""
+        maps = self.renderer.render(frame.meshes, camera)
+        if frame.region is not None:
+            from rigspace.capture.regions import visible_region
+
+            maps = visible_region(maps, self.renderer.render(frame.region, camera))
+        return maps
 
     def _sample(
         self,
@@ -210,11 +225,7 @@ class ItemWorker:
         t, world, joint_position = frame.time, frame.world, frame.joint_position
         start = time.perf_counter()
         camera = view.camera(joint_position, self.lens)
-        maps = self.renderer.render(frame.meshes, camera)
-        if frame.region is not None:  # the region's surface where it is the nearest
-            from rigspace.capture.regions import visible_region
-
-            maps = visible_region(maps, self.renderer.render(frame.region, camera))
+        maps = self.render(frame, camera)
         timings["render"] += time.perf_counter() - start
         for phase, seconds in getattr(self.renderer, "last_timings", {}).items():
             timings[f"render.{phase}"] = timings.get(f"render.{phase}", 0.0) + seconds

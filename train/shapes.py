@@ -75,7 +75,6 @@ class MeshTruth:
         settings = CaptureSettings.from_json(json.loads((dataset / "capture.json").read_text()))
         self.settings = settings
         self.worker = ItemWorker(settings, dataset)
-        self.shapes = tuple(self.worker.rig.blend_shapes)
 
     def render(
         self, time: float, clip: int, camera_to_world: np.ndarray, weights: dict[str, float]
@@ -84,22 +83,13 @@ class MeshTruth:
         at `camera_to_world`, with `weights` (shape -> weight) over the frame's own."""
         from rigspace.sdk.camera import Camera
 
-        worker, settings = self.worker, self.settings
-        w = settings.frame_weights(worker.rig, settings.clips[clip].name, time)
-        for name, value in weights.items():
-            w[self.shapes.index(name)] = value
-        meshes = worker.rig.posed_meshes(time, charts=False, weights=w)
-        near, far = settings.clipping_range
+        worker, lens = self.worker, self.settings.lens
+        frame = worker.pose(self.settings.clips[clip].name, time, weights)
         camera = Camera(
-            np.asarray(camera_to_world, np.float64), settings.resolution, settings.resolution,
-            settings.focal_length, settings.horizontal_aperture, near=near, far=far,
+            np.asarray(camera_to_world, np.float64), lens.resolution, lens.resolution,
+            lens.focal_length, lens.horizontal_aperture, near=lens.near, far=lens.far,
         )  # fmt: skip
-        maps = worker.renderer.render(meshes, camera)
-        if worker.region is not None:  # a region's dataset: its surface alone, as captured
-            from rigspace.capture.regions import visible_region
-
-            maps = visible_region(maps, worker.renderer.render(worker.region.of(meshes), camera))
-        return maps
+        return worker.render(frame, camera)
 
     def close(self) -> None:
         self.worker.close()

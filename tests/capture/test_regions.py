@@ -165,7 +165,7 @@ def test_a_region_dataset_shows_its_surface_alone(face_scene, captured_face):
     _, _, region = _settings(face_scene)
     worker = ItemWorker(region, captured_face)
     try:
-        frame = worker._pose("talk", 6.0)
+        frame = worker.pose("talk", 6.0)
         assert frame.region is not None
         assert sum(len(m.triangles) for m in frame.region) < sum(
             len(m.triangles) for m in frame.meshes
