@@ -606,6 +606,16 @@ def _eyes(stage: Usd.Stage, rig: _Rig, look) -> None:
     _mesh(stage, "/Character/Eyes", rig.skeleton, ep, et, euv, eidx, ewts, look)
 
 
+REGIONS = {
+    "face": {"joint": ("token", '"head"'), "resolution": ("int", "64")},
+    "leftHand": {"joint": ("token", '"hand_l"'), "resolution": ("int", "32"), "viewsPerRing": ("int", "8")},
+    "rightHand": {"joint": ("token", '"hand_r"'), "resolution": ("int", "32"), "viewsPerRing": ("int", "8")},
+}
+"""The shot's regions (docs/regions.md): the head with every face shape at 64x64, each hand
+with its fingers at 32x32 on a ring of 8 views (a hand's ring costs as much as the face's per
+view and teaches less); the body network's 128x128 is spent on the body."""
+
+
 def write_scene(out: Path, drawn: list[str]) -> Path:
     """The previs shot around the film character: its set, camera, lights and capture ring,
     the ring drawing the face shapes its clips leave still, and its model (samples/models/film,
@@ -626,6 +636,22 @@ def write_scene(out: Path, drawn: list[str]) -> Path:
         "        uniform int rigspace:captureRing:heldOutViewsPerRing = 4\n"
         f"        uniform token[] rigspace:captureRing:blendShapeNames = [{names}]\n"
         f"        uniform float2[] rigspace:captureRing:blendShapeRanges = [{ranges}]\n",
+    )
+    text = text.replace(
+        '        prepend apiSchemas = ["RigspaceCaptureRingAPI", "RigspaceLiveBindingAPI:suit"]\n',
+        '        prepend apiSchemas = ["RigspaceCaptureRingAPI", "RigspaceLiveBindingAPI:suit", '
+        + ", ".join(f'"RigspaceRegionAPI:{name}"' for name in REGIONS)
+        + "]\n",
+    )
+    text = text.replace(
+        "        uniform int rigspace:captureRing:heldOutViewsPerRing = 4\n",
+        "        uniform int rigspace:captureRing:heldOutViewsPerRing = 4\n\n"
+        "        # Regions (docs/regions.md): the face and the hands at their own resolution\n"
+        + "".join(
+            f"        uniform {kind} rigspace:region:{name}:{attr} = {value}\n"
+            for name, attrs in REGIONS.items()
+            for attr, (kind, value) in attrs.items()
+        ),
     )
     text = text.replace("Previs: the sample character", "Film: the film-weight sample character", 1)
     path = out / SCENE_NAME

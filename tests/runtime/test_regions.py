@@ -362,3 +362,42 @@ def test_a_damaged_region_bundle_warns_and_the_body_draws(face, tmp_path, capsys
         assert hero["regions"][0]["decision"] == "skipped"
         assert said in hero["regions"][0]["reason"]
         assert np.array_equal(frame.beauty, alone.render(6.0).beauty)
+
+
+# -- python -m rigspace.apps.regions_report: the parts over their own pixels, draw by draw ----
+
+
+@pytest.mark.slow  # the face fixture trains two bundles (10-30 s)
+def test_the_regions_report_measures_each_part_with_and_without_its_region(face, tmp_path):
+    from rigspace.apps import regions_report
+
+    scene, _ = face
+    out = tmp_path / "report"
+    common = ["--frames", "6:7", "--step", "1", "--width", "96", "--height", "72"]
+    assert regions_report.main([str(scene), "--out", str(out), *common,
+                                "--part", "neck=neck"]) == 0  # fmt: skip
+    result = json.loads((out / "regions_report.json").read_text())
+    assert set(result["parts"]) == {"face", "neck"} and result["frames"] == [6.0, 7.0]
+    face_rows = result["parts"]["face"]
+    assert set(face_rows) == {"regions", "body"}
+    for row in face_rows.values():
+        assert row["frames"] == 2 and row["pixels"] > 2 * regions_report.MIN_PIXELS
+        assert 0 <= row["flip"] <= 1 and 0 <= row["mask_iou"] <= 1
+    # The face network draws the face's pixels: its numbers are not the body's.
+    assert face_rows["regions"]["psnr"] != face_rows["body"]["psnr"]
+    # The part image: a header, then per frame the reference and each draw side by side.
+    sheet = cv2.imread(str(out / "part_face.png"))
+    side = regions_report.CROP_PX
+    assert sheet.shape[1] == 3 * side and (sheet.shape[0] - 24) % side == 0
+    assert "| regions |" in (out / "regions_report.md").read_text()
+
+
+@pytest.mark.slow  # the face fixture trains two bundles (10-30 s)
+def test_the_regions_report_names_a_bad_part_and_writes_nothing(face, tmp_path, capsys):
+    from rigspace.apps import regions_report
+
+    scene, _ = face
+    out = tmp_path / "report"
+    argv = [str(scene), "--out", str(out), "--frames", "6:6", "--part", "tail=tail_01"]
+    assert regions_report.main(argv) == 1
+    assert "tail_01" in capsys.readouterr().err and not out.exists()
