@@ -608,12 +608,21 @@ def _eyes(stage: Usd.Stage, rig: _Rig, look) -> None:
 
 REGIONS = {
     "face": {"joint": ("token", '"head"'), "resolution": ("int", "64")},
-    "leftHand": {"joint": ("token", '"hand_l"'), "resolution": ("int", "32"), "viewsPerRing": ("int", "8")},
-    "rightHand": {"joint": ("token", '"hand_r"'), "resolution": ("int", "32"), "viewsPerRing": ("int", "8")},
+    "leftHand": {
+        "joint": ("token", '"hand_l"'),
+        "resolution": ("int", "32"),
+        "viewsPerRing": ("int", "8"),
+    },
+    "rightHand": {
+        "joint": ("token", '"hand_r"'),
+        "resolution": ("int", "32"),
+        "viewsPerRing": ("int", "8"),
+    },
 }
 """The shot's regions (docs/regions.md): the head with every face shape at 64x64, each hand
-with its fingers at 32x32 on a ring of 8 views (a hand's ring costs as much as the face's per
-view and teaches less); the body network's 128x128 is spent on the body."""
+with its fingers at 32x32 on a ring of 8 views (a third fewer samples than the face's: the
+capture's and the training's time goes to the face first); the body network's 128x128 is
+spent on the body."""
 
 
 def write_scene(out: Path, drawn: list[str]) -> Path:
