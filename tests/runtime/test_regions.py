@@ -401,3 +401,36 @@ def test_the_regions_report_names_a_bad_part_and_writes_nothing(face, tmp_path, 
     argv = [str(scene), "--out", str(out), "--frames", "6:6", "--part", "tail=tail_01"]
     assert regions_report.main(argv) == 1
     assert "tail_01" in capsys.readouterr().err and not out.exists()
+
+
+@pytest.mark.slow  # captures and trains a body and a region with texture heads (10-40 s)
+def test_a_region_with_a_texture_head_samples_the_characters_textures(tmp_path):
+    """The film character's regions train with the small preset's texture head: a region's
+    bundle then has texture charts of its own, and its layer samples the character's textures."""
+    from tests.capture.test_regions import _with_region
+    from tests.materials import CHARACTER, write_material_character
+
+    scene = write_material_character(tmp_path / "scene")
+    _with_region(scene, name="top", joint="root/mid/top", resolution=32, size=1.0)
+    dataset, bundle = tmp_path / "ds", tmp_path / "model"
+    capture = ["capture", str(scene), "--out", str(dataset), "--views", "2", "--every", "6",
+               "--resolution", "32", "--workers", "1", "--regions"]  # fmt: skip
+    assert main(capture) == 0
+    train = ["train", str(dataset), "--out", str(bundle), "--preset", "tiny", "--steps", "3",
+             "--no-int8", "--texture"]  # fmt: skip
+    assert main(train) == 0
+    region = json.loads((bundle / "regions" / "top" / "manifest.json").read_text())
+    assert (
+        region["texture"]["charts"] > 0 and (bundle / "regions" / "top" / "charts.json").is_file()
+    )
+    stage = Usd.Stage.Open(str(scene))
+    stage.GetPrimAtPath(CHARACTER).GetAttribute("rigspace:model").Set(str(bundle))
+    UsdGeom.Imageable(stage.GetPrimAtPath("/World/Asset")).CreatePurposeAttr("guide")
+    stage.GetRootLayer().Save()
+    with _engine(scene, 2.5) as engine:
+        (part,) = engine.characters[0].regions
+        assert part.textures is not None, part.no_texture
+        frame = engine.render(6.0)
+    (entry,) = frame.report["characters"][0]["regions"]
+    assert entry["decision"] == "evaluated", entry
+    assert entry["colour"].startswith("its textures on"), entry["colour"]
