@@ -73,12 +73,20 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         "then re-export",
     )
     parser.add_argument("--no-int8", action="store_true", help="export fp32 graphs only")
-    parser.add_argument(
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument(
         "--no-regions",
         action="store_true",
         help="train the body only, not the regions the dataset holds (DATASET/regions/NAME, "
         "from `rigspace capture --regions`); by default each trains after the body into "
         "OUT/regions/NAME, the budget shared by image size",
+    )
+    which.add_argument(
+        "--regions-only",
+        action="store_true",
+        help="train only the regions the dataset holds, into OUT/regions/NAME beside the body "
+        "bundle already in OUT (trained before), which then lists them; the body is not "
+        "touched; --minutes is shared by the regions' image sizes",
     )
     parser.add_argument(
         "--force",
@@ -131,7 +139,8 @@ def run_train(args: argparse.Namespace) -> int:
             "--force starts over and cannot be combined with --resume or --upgrade.",
             "drop --force to continue the run in --out, or drop --resume/--upgrade to replace it.",
         )
-    check_out(out, resume=args.resume or args.upgrade, force=args.force)
+    if not args.regions_only:  # the body bundle in --out is kept: _regions_only checks it
+        check_out(out, resume=args.resume or args.upgrade, force=args.force)
     if args.nproc > 1 and not distributed.under_torchrun():
         return launch(args, args.nproc)
     from rigspace.train.loop import train  # torch: after the launch, which needs none
@@ -139,6 +148,8 @@ def run_train(args: argparse.Namespace) -> int:
     ctx = distributed.context(args.device)  # under torchrun: joins the process group
     if args.upgrade:
         return _upgrade(args, out)
+    if args.regions_only:
+        return _regions_only(args, out, config, ctx)
     body = read_manifest(Path(args.dataset))  # a bad dataset fails before --force removes anything
     regions = [] if args.no_regions else region_datasets(Path(args.dataset))
     shares = budget_shares(body.resolution, [r for _, r in regions], args.minutes)
@@ -204,6 +215,45 @@ def budget_shares(body: int, regions: Sequence[int], minutes: float | None) -> l
         return [None] * (1 + len(regions))
     pixels = [body * body, *(r * r for r in regions)]
     return [minutes * p / sum(pixels) for p in pixels]
+
+
+def _regions_only(args: argparse.Namespace, out: Path, config: TrainConfig, ctx: Context) -> int:
+    """--regions-only: the dataset's regions trained into OUT/regions/NAME beside the body
+    bundle already in OUT, which is left as it is but for its manifest's list of regions."""
+    if args.upgrade:
+        raise RigspaceError(
+            "--regions-only trains new region networks; --upgrade brings a finished run up "
+            "to date.",
+            "pass one of them.",
+        )
+    if not (out / "manifest.json").is_file():
+        raise RigspaceError(
+            f"--regions-only adds regions to the body bundle in --out, and {out} holds none "
+            "(no manifest.json).",
+            "train the body first (rigspace train DATASET --out OUT --no-regions), or drop "
+            "--regions-only to train the body and its regions together.",
+        )
+    regions = region_datasets(Path(args.dataset))
+    if not regions:
+        raise RigspaceError(
+            f"{args.dataset} holds no region datasets ({REGIONS}/NAME), so --regions-only has "
+            "nothing to train.",
+            "capture them: rigspace capture SCENE --out DATASET --regions (or --region NAME "
+            "--out DATASET/regions/NAME).",
+        )
+    for name, _ in regions:
+        home = out / REGIONS / name
+        check_out(home, resume=args.resume, force=args.force)
+        if (home / TRAINING / RUN_FILE).is_file() and not (args.resume or args.force):
+            raise RigspaceError(
+                f"region {name} was trained into {home} before (its run is there).",
+                "pass --resume to continue it, or --force to train it anew.",
+            )
+        if args.force and ctx.is_main:
+            clear_bundle(home)
+    ctx.barrier()
+    shares = budget_shares(0, [r for _, r in regions], args.minutes)[1:]
+    return _train_regions(args, out, config, regions, shares, ctx)
 
 
 def _train_regions(

@@ -68,6 +68,37 @@ def test_train_trains_each_region_into_a_bundle_the_body_lists(region_dataset, t
     assert read_manifest(out).regions == () and not (out / "regions").exists()
 
 
+@pytest.mark.slow
+def test_regions_only_adds_regions_to_a_body_trained_before(region_dataset, tmp_path, capsys):
+    out = tmp_path / "model"
+    args = ["train", str(region_dataset), "--out", str(out), "--preset", "tiny", "--steps", "3",
+            "--no-int8"]  # fmt: skip
+    # Nothing to add the regions to yet: named, nothing written.
+    assert main([*args, "--regions-only"]) == 2
+    assert "holds none" in capsys.readouterr().err and not out.exists()
+    assert main([*args, "--no-regions"]) == 0
+    body_files = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    before = read_manifest(out)
+    assert before.regions == ()
+    assert main([*args, "--regions-only"]) == 0
+    assert "region face: training at 16x16" in capsys.readouterr().out
+    after = read_manifest(out)
+    assert [(r.name, r.folder) for r in after.regions] == [("face", out / "regions" / "face")]
+    # The body is untouched but for its manifest's list of regions.
+    for name, data in body_files.items():
+        if name != "manifest.json":
+            assert (out / name).read_bytes() == data, name
+    document = json.loads((out / "manifest.json").read_text())
+    del document["regions"]
+    assert document == json.loads(body_files["manifest.json"])
+    # Again: the region's run is there; without --resume or --force it is refused, by name.
+    capsys.readouterr()
+    assert main([*args, "--regions-only"]) == 2
+    assert "region face was trained into" in capsys.readouterr().err
+    assert main([*args, "--regions-only", "--force"]) == 0
+    assert read_manifest(out).regions[0].name == "face"
+
+
 def test_the_budget_is_shared_by_image_size():
     assert budget_shares(128, [64, 64], None) == [None, None, None]
     body, face, hand = budget_shares(128, [64, 32], 21.0)
