@@ -148,12 +148,13 @@ class DecodedCache:
         y0, y1, x0, x1 = (int(v) for v in self.boxes[row])
         begin, end = int(self.offsets[row]), int(self.offsets[row + 1])
         r = self.size
+        shape = (y1 - y0, x1 - x0)  # (0, 0): every pixel is the fill (a region not in view)
         half = np.empty((r, r, len(HALF)), np.float32)
         half[:] = self.fill_half[row]
-        half[y0:y1, x0:x1] = self.half[begin:end].reshape(y1 - y0, x1 - x0, -1)
+        half[y0:y1, x0:x1] = self.half[begin:end].reshape(*shape, len(HALF))
         floats = np.empty((r, r, self.floats), np.float32)
         floats[:] = self.fill_float[row]
-        floats[y0:y1, x0:x1] = self.float[begin:end].reshape(y1 - y0, x1 - x0, -1)
+        floats[y0:y1, x0:x1] = self.float[begin:end].reshape(*shape, self.floats)
         maps = Maps(
             albedo=half[..., 0:3],
             normal=half[..., 4:7],
@@ -162,7 +163,7 @@ class DecodedCache:
         )
         if self.chart is not None:
             chart = np.full((r, r), int(self.fill_chart[row]), np.int32)
-            chart[y0:y1, x0:x1] = self.chart[begin:end].reshape(y1 - y0, x1 - x0)
+            chart[y0:y1, x0:x1] = self.chart[begin:end].reshape(shape)
             maps.uv, maps.chart = floats[..., 1:3], chart
         return maps
 

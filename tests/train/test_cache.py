@@ -124,3 +124,26 @@ def test_train_decodes_the_dataset_once_unless_told_not_to(dataset, tmp_path):
     assert not (dataset / FOLDER).exists()
     loop.train(dataset, tmp_path / "b", preset("tiny"), steps=1, progress=False)
     assert stale_reason(dataset, read_manifest(dataset)) is None
+
+
+def test_a_sample_with_nothing_in_view_reads_back(dataset):
+    """A region's sample where the rest of the character hides the region entirely holds
+    only the fill: an empty box in the cache, read back as the EXR has it."""
+    from rigspace.sdk.exr import write_exr
+
+    manifest = read_manifest(dataset)
+    paths = paths_of(dataset)
+    full = read_exr(dataset / paths[3])
+    empty = replace(
+        full,
+        albedo=np.zeros_like(full.albedo),
+        normal=np.zeros_like(full.normal),
+        depth=np.full_like(full.depth, np.inf),
+        mask=np.zeros_like(full.mask),
+        uv=None if full.uv is None else np.zeros_like(full.uv),
+        chart=None if full.chart is None else np.zeros_like(full.chart),
+    )
+    write_exr(dataset / paths[3], empty)
+    cache = build_cache(dataset, manifest, paths, workers=1, progress=False)
+    assert tuple(int(v) for v in cache.boxes[3]) == (0, 0, 0, 0)
+    assert_same_maps(cache.maps(3), read_exr(dataset / paths[3]))
