@@ -138,6 +138,8 @@ class GLShading:
         self._ctx = moderngl.create_standalone_context(backend="egl", require=330)  # type: ignore[arg-type]
         self.renderer = str(self._ctx.info["GL_RENDERER"])
         """What draws: a GPU's name, or Mesa's "llvmpipe (LLVM ...)" on the CPU."""
+        self.name = self.renderer
+        """What lights (runtime/lighting.py's Lighting): the GL_RENDERER."""
         source = _FRAGMENT % {
             "max_lights": MAX_LIGHTS,
             "squarings": _squarings(),

@@ -384,6 +384,13 @@ class PrimShadows:
         self._regions[cache_key] = out
         return out
 
+    def shadow_regions(
+        self, lo: np.ndarray, hi: np.ndarray, light: Light, box: np.ndarray, camera: Camera
+    ) -> list[Region | None]:
+        """shadow_regions, compiled where the backend has the kernels."""
+        find = self._compiled.shadow_regions if self._compiled else shadow_regions
+        return find(lo, hi, light, box, camera)
+
     def lookup(self, handle: tuple, points: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
         """(N,) visibility past one map (a handle from `regions`), drawing it if needed."""
         shadow_map = self._map(*handle)
