@@ -9,7 +9,7 @@ import pytest
 
 from rigspace.runtime.character import Layer
 from rigspace.runtime.composite_kernel import composite, composite_reference
-from rigspace.runtime.engine import Engine
+from rigspace.runtime.engine import Engine, EngineSettings
 from rigspace.runtime.lights import AMBIENT, DISTANT, POINT, Light
 from rigspace.runtime.shading import shade
 from rigspace.sdk.camera import Camera
@@ -129,11 +129,20 @@ def test_a_previs_frame_lit_by_the_shader_matches_numpy():
     _needs_gl()
 
     def frame(where: str) -> tuple[np.ndarray, str]:
-        engine = Engine(PREVIS, width=320, height=180, precision="int8", prim_samples=1,
-                        renderer="gl", gl_lighting=where)  # fmt: skip
+        engine = Engine(
+            PREVIS,
+            EngineSettings(
+                width=320,
+                height=180,
+                precision="int8",
+                prim_samples=1,
+                renderer="gl",
+                gl_lighting=where,
+            ),
+        )
         try:
             f = engine.render(600.0)
-            return np.array(f.beauty), f.report["lighting_on"]
+            return np.array(f.beauty), f.report.lighting_on
         finally:
             engine.close()
 
