@@ -48,6 +48,7 @@ from rigspace.sdk.camera import Camera
 from rigspace.sdk.errors import SceneError
 from rigspace.sdk.model import BundleModel
 from rigspace.sdk.render import RenderSettings, choose_renderer
+from rigspace.sdk.render.gl import SharedContext
 from rigspace.sdk.stage import might_vary, open_stage
 
 __all__ = ["AOVS", "STAGES", "Engine", "EngineSettings", "Frame", "FrameReport", "use_models"]
@@ -78,12 +79,18 @@ class Engine:
         self.scene = SceneGeometry(self.stage)
         self.light_prims = light_prims(self.stage)
         spec = choose_renderer(settings.renderer)
-        self.renderer = spec.create(RenderSettings(settings.prim_samples))
+        self._gl = SharedContext() if spec.name == "gl" else None
+        """One EGL context for the renderers, the lighting and the capsule shadows."""
+        if self._gl is not None:
+            self._gl.acquire()  # held until close: its users come and go
+        self.renderer = spec.create(RenderSettings(settings.prim_samples, shared=self._gl))
         self.caches = FrameCaches()
-        self.shadows = FrameShadows(spec, settings.shadow_backend)
+        self.shadows = FrameShadows(spec, settings.shadow_backend, self._gl)
         """The frame's shadows (runtime/shadows/frame.py); `shadows.record` keeps a frame's
         shadow passes to run again (the shadow timing tool)."""
-        self.lighting = choose_lighting(spec, settings.gl_lighting, settings.lighting_kernel)
+        self.lighting = choose_lighting(
+            spec, settings.gl_lighting, settings.lighting_kernel, self._gl
+        )
         """What lights the prims and the characters' layers (runtime/lighting.py)."""
         self.overlap = True
         """Light the prims while the networks run (False: one after the other, the same
@@ -93,7 +100,7 @@ class Engine:
         the process's, all threads, while the stage ran (a profiling aid: the shadow timing
         tool, `python -m rigspace.apps.shadow_timing`)."""
         self.character_stages = CharacterStages(
-            self.characters, self.live, settings, spec, self.caches, self.weight_overrides
+            self.characters, self.live, settings, spec, self.caches, self.weight_overrides, self._gl
         )
         self.prim_stages = PrimStages(self.renderer, self.shadows, self.lighting, self.caches)
         self.composite = CompositeStage(self.shadows, self.lighting, self.caches)
@@ -194,6 +201,9 @@ class Engine:
         self.renderer.close()
         self.shadows.close()
         self.lighting.close()
+        if self._gl is not None:
+            self._gl.release()
+            self._gl = None
 
     def use_shadow_backend(self, backend: ShadowBackend) -> None:
         """Compute the shadows with `backend` from the next call on (the shadow maps drawn so

@@ -19,6 +19,7 @@ from rigspace.runtime.gl_shading import open_gl_shading
 from rigspace.runtime.lights import Light
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.render import Maps, RendererSpec
+from rigspace.sdk.render.gl import SharedContext
 
 
 class Lighting(Protocol):
@@ -71,10 +72,14 @@ class CompiledLighting:
         pass
 
 
-def choose_lighting(renderer: RendererSpec, gl_lighting: str, kernel: str = "numba") -> Lighting:
+def choose_lighting(
+    renderer: RendererSpec, gl_lighting: str, kernel: str = "numba", shared: object = None
+) -> Lighting:
     """The fragment shader where `gl_lighting` asks for it with this renderer (gl_shading's
-    open_gl_shading), else the CPU's `kernel` ("numba" or "numpy")."""
-    shader = open_gl_shading(renderer, gl_lighting)
+    open_gl_shading, in the `shared` GL context where one is given), else the CPU's `kernel`
+    ("numba" or "numpy")."""
+    context = shared if isinstance(shared, SharedContext) else None
+    shader = open_gl_shading(renderer, gl_lighting, context)
     if shader is not None:
         return shader
     return CompiledLighting() if kernel == "numba" else NumpyLighting()

@@ -34,8 +34,12 @@ def casts_shadows(lights: Sequence[Light]) -> bool:
 class FrameShadows:
     """The prims' shadow maps and the passes that shadow the prims and the characters' layers."""
 
-    def __init__(self, spec: RendererSpec, backend: ShadowBackend | None = None) -> None:
-        self.maps = PrimShadows(spec)
+    def __init__(
+        self, spec: RendererSpec, backend: ShadowBackend | None = None, shared: object = None
+    ) -> None:
+        """`shared`: the device resources the maps and the capsule shader draw with
+        (RenderSettings.shared: the engine's GL context)."""
+        self.maps = PrimShadows(spec, shared=shared)
         """The prims' shadow maps per light (drawn on demand, kept while they hold)."""
         self.record: dict[str, Callable[[], Any]] | None = None
         """None, or a dict that each frame fills with its shadow passes, each a call that runs

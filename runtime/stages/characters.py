@@ -36,8 +36,12 @@ class CharacterStages:
         spec: RendererSpec,
         caches: FrameCaches,
         weight_overrides: dict[str, dict[str, float]],
+        shared: object = None,
     ) -> None:
+        """`shared`: the device resources the reference mode's renderer draws with
+        (RenderSettings.shared: the engine's GL context)."""
         self.characters, self.live, self.settings = characters, live, settings
+        self._shared = shared
         self.caches, self.weight_overrides = caches, weight_overrides
         self._spec = spec
         self._network = ThreadPoolExecutor(max_workers=1, thread_name_prefix="rigspace-network")
@@ -277,7 +281,8 @@ class CharacterStages:
         """The reference mode's layers: each candidate's skinned mesh (with its texture charts,
         the uv and chart AOVs to compare with) drawn alone over the whole frame."""
         if self._mesh_renderer is None:
-            self._mesh_renderer = self._spec.create(RenderSettings(self.settings.prim_samples))
+            samples = self.settings.prim_samples
+            self._mesh_renderer = self._spec.create(RenderSettings(samples, shared=self._shared))
         for c in f.candidates:
             meshes = c.character.rig.posed_meshes(
                 f.time, charts=True, weights=self.weights_of(c.character, f.time)
