@@ -185,21 +185,11 @@ def live(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise RigspaceError(f"--out {out} is a file, not a folder.", "choose a folder.")
     width, height = args.resolution
-    engine = Engine(
-        args.scene,
-        EngineSettings(
-            camera=args.camera,
-            width=width,
-            height=height,
-            renderer=args.renderer,
-            aovs=("beauty",),
-            prim_samples=args.prim_samples,
-            max_level=args.max_level,
-            sources=dict(args.source),
-            predictor=args.predictor,
-            regions=not args.no_regions,
-        ),
-    )
+    engine = Engine(args.scene, EngineSettings(
+        camera=args.camera, width=width, height=height, renderer=args.renderer,
+        aovs=("beauty",), prim_samples=args.prim_samples, max_level=args.max_level,
+        sources=dict(args.source), predictor=args.predictor, regions=not args.no_regions,
+    ))  # fmt: skip
     video = recorder = None
     result = None
     try:

@@ -125,40 +125,21 @@ def run(args: argparse.Namespace) -> int:
         )
     width, height = args.resolution
     aovs = args.aovs or AOVS
-    engine = Engine(
-        args.scene,
-        EngineSettings(
-            camera=args.camera,
-            width=width,
-            height=height,
-            renderer=args.renderer,
-            precision="int8" if args.int8 else "fp32",
-            aovs=aovs,
-            prim_samples=args.prim_samples,
-            max_level=args.max_level,
-            textures=not args.no_textures,
-            predictor=args.predictor,
-            models=dict(args.model),
-            regions=not args.no_regions,
-        ),
-    )
+    settings = EngineSettings(
+        camera=args.camera, width=width, height=height, renderer=args.renderer,
+        precision="int8" if args.int8 else "fp32", aovs=aovs, prim_samples=args.prim_samples,
+        max_level=args.max_level, textures=not args.no_textures, predictor=args.predictor,
+        models=dict(args.model), regions=not args.no_regions,
+    )  # fmt: skip
+    engine = Engine(args.scene, settings)
     truth = None
     video = None
     try:
         if args.reference:
-            truth = Engine(
-                args.scene,
-                EngineSettings(
-                    camera=args.camera,
-                    width=width,
-                    height=height,
-                    renderer=args.renderer,
-                    reference=True,
-                    aovs=aovs,
-                    prim_samples=args.prim_samples,
-                    models=dict(args.model),
-                ),
-            )
+            truth = Engine(args.scene, EngineSettings(
+                camera=args.camera, width=width, height=height, renderer=args.renderer,
+                reference=True, aovs=aovs, prim_samples=args.prim_samples, models=dict(args.model),
+            ))  # fmt: skip
         times = frame_times(args.frames, args.step, engine.stage)
         if truth is not None:
             check_reference_poses(truth, times)

@@ -102,15 +102,10 @@ def measure(
         runs: dict[str, tuple[Engine, list[dict], float, _Timers]] = {}
         try:
             for kernel in kernels:
-                engine = Engine(
-                    scene,
-                    EngineSettings(
-                        width=width,
-                        height=height,
-                        prim_samples=1,
-                        shadow_backend=ShadowBackend(kernel),
-                    ),
+                settings = EngineSettings(
+                    width=width, height=height, prim_samples=1, shadow_backend=ShadowBackend(kernel)
                 )
+                engine = Engine(scene, settings)
                 engine.report_cpu = True  # the report's cpu_seconds per stage
                 start = clock.perf_counter()
                 engine.render(float(times[0]))  # warm-up (numba: load or compile the kernels)

@@ -156,18 +156,10 @@ class FrameService:
             self.error = self.live_error = None
             camera = camera or self.camera
             try:
-                full = Engine(
-                    self.scene,
-                    EngineSettings(
-                        camera=camera,
-                        width=self.width,
-                        height=self.height,
-                        renderer=self.renderer,
-                        sources=self.sources,
-                        predictor=self.predictor,
-                        regions=self.regions,
-                    ),
-                )
+                full = Engine(self.scene, EngineSettings(
+                    camera=camera, width=self.width, height=self.height, renderer=self.renderer,
+                    sources=self.sources, predictor=self.predictor, regions=self.regions,
+                ))  # fmt: skip
             except RigspaceError as exc:
                 self.error = str(exc)
                 return
@@ -175,32 +167,18 @@ class FrameService:
             preview = None
             if not full.live.active:  # a live pose is drawn at full quality only
                 s = PREVIEW["scale"]
-                preview = Engine(
-                    self.scene,
-                    EngineSettings(
-                        camera=self.camera,
-                        width=max(self.width // s, 1),
-                        height=max(self.height // s, 1),
-                        renderer=self.renderer,
-                        live=False,
-                        predictor=self.predictor,
-                        regions=self.regions,
-                        prim_samples=PREVIEW["prim_samples"],
-                        max_level=PREVIEW["max_level"],
-                    ),
-                )
+                preview = Engine(self.scene, EngineSettings(
+                    camera=self.camera, width=max(self.width // s, 1),
+                    height=max(self.height // s, 1), renderer=self.renderer, live=False,
+                    predictor=self.predictor, regions=self.regions,
+                    prim_samples=PREVIEW["prim_samples"], max_level=PREVIEW["max_level"],
+                ))  # fmt: skip
             truth = None
             if self.with_reference:
-                truth = Engine(
-                    self.scene,
-                    EngineSettings(
-                        camera=self.camera,
-                        width=self.width,
-                        height=self.height,
-                        renderer=self.renderer,
-                        reference=True,
-                    ),
-                )
+                truth = Engine(self.scene, EngineSettings(
+                    camera=self.camera, width=self.width, height=self.height,
+                    renderer=self.renderer, reference=True,
+                ))  # fmt: skip
             self.engines = Engines(full, preview, truth)
             # The first frame of a fresh engine draws its shadow maps and warms its sessions
             # (seconds): done here, so that the page's first scrub is not the slow one.
