@@ -273,16 +273,18 @@ def part_frames(frames: int, folder: Path) -> list[dict[str, Any]]:
     """ms per 1920x1080 frame of the previs shot, 1 and 8 characters (Engine, auto), and the
     one-character frame again lit on the CPU (gl_lighting "never": what the shader saves)."""
     from rigspace.bench.scenes import crowd_scene
-    from rigspace.runtime.engine import STAGES, Engine
+    from rigspace.runtime.engine import STAGES, Engine, EngineSettings
 
     rows = []
     for count, lighting in ((1, "hardware"), (8, "hardware"), (1, "never")):
         scene = PREVIS if count == 1 else crowd_scene(folder, count)
-        engine = Engine(scene, width=1920, height=1080, prim_samples=1, gl_lighting=lighting)
+        engine = Engine(
+            scene, EngineSettings(width=1920, height=1080, prim_samples=1, gl_lighting=lighting)
+        )
         try:
             times = np.linspace(100.0, 1400.0, frames + 1)
             engine.render(float(times[0]))
-            reports = [engine.render(float(t)).report for t in times[1:]]
+            reports = [engine.render(float(t)).report.to_json() for t in times[1:]]
             runs_on = sorted({c.model.runner.description for c in engine.characters})
             runs_on.append(f"lighting: {reports[-1]['lighting_on']}")
         finally:

@@ -223,14 +223,14 @@ def frame_cost(frames: int = 40, size: int = 256) -> dict:
     """The same time codes of live.usda rendered from the stage animation and with its suit
     binding fed over real UDP (both evaluate the network: both poses change every frame),
     alternating; and the live work alone per frame (pose, retarget, report)."""
-    from rigspace.runtime.engine import Engine
+    from rigspace.runtime.engine import Engine, EngineSettings
 
     codes = 100.0 + np.arange(frames)
     shape = {"width": size, "height": size}
     with _Performer() as performer:
         with (
-            Engine(LIVE_SCENE, live=False, **shape) as stage,
-            Engine(LIVE_SCENE, sources={"suit": performer.url}, **shape) as live,
+            Engine(LIVE_SCENE, EngineSettings(live=False, **shape)) as stage,
+            Engine(LIVE_SCENE, EngineSettings(sources={"suit": performer.url}, **shape)) as live,
         ):
             live.open_live()
             end = time.monotonic() + 10.0  # the sender starts (an interpreter, the clip)
@@ -243,8 +243,8 @@ def frame_cost(frames: int = 40, size: int = 256) -> dict:
             for t in codes:
                 for name, engine in (("stage", stage), ("live", live)):
                     report = engine.render(float(t)).report
-                    seconds[name].append(report["seconds"]["total"])
-                    seconds[f"{name}_rig"].append(report["seconds"]["rig"])
+                    seconds[name].append(report.seconds["total"])
+                    seconds[f"{name}_rig"].append(report.seconds["rig"])
                 start = time.perf_counter()
                 live.live.local(hero, float(t), {})
                 live.live.report()

@@ -176,7 +176,7 @@ def live(args: argparse.Namespace) -> int:
     import numpy as np
 
     from rigspace.apps.render import make_folder, remove_empty
-    from rigspace.runtime.engine import Engine
+    from rigspace.runtime.engine import Engine, EngineSettings
     from rigspace.runtime.live.engine import Ticks
     from rigspace.runtime.output import VideoWriter
     from rigspace.sdk.color import linear_to_srgb
@@ -185,11 +185,11 @@ def live(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise RigspaceError(f"--out {out} is a file, not a folder.", "choose a folder.")
     width, height = args.resolution
-    engine = Engine(
-        args.scene, camera=args.camera, width=width, height=height, renderer=args.renderer,
+    engine = Engine(args.scene, EngineSettings(
+        camera=args.camera, width=width, height=height, renderer=args.renderer,
         aovs=("beauty",), prim_samples=args.prim_samples, max_level=args.max_level,
         sources=dict(args.source), predictor=args.predictor, regions=not args.no_regions,
-    )  # fmt: skip
+    ))  # fmt: skip
     video = recorder = None
     result = None
     try:
@@ -307,7 +307,7 @@ def _loop(engine, out, video, start_code, fps, t0, ticks, cv2, np, linear_to_srg
                 video.write(rgb)
             written = time.monotonic()
             last_rgb = rgb
-            report = frame.report
+            report = frame.report.to_json()
             report["tick"] = k
             report["written_seconds"] = round(written - t0, 4)
             latency = {}

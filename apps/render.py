@@ -115,7 +115,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import cv2
 
-    from rigspace.runtime.engine import AOVS, Engine
+    from rigspace.runtime.engine import AOVS, Engine, EngineSettings
     from rigspace.runtime.output import VideoWriter
 
     out = Path(args.out)
@@ -125,19 +125,21 @@ def run(args: argparse.Namespace) -> int:
         )
     width, height = args.resolution
     aovs = args.aovs or AOVS
-    engine = Engine(
-        args.scene, camera=args.camera, width=width, height=height,
-        renderer=args.renderer, precision="int8" if args.int8 else "fp32", aovs=aovs,
-        prim_samples=args.prim_samples, max_level=args.max_level, textures=not args.no_textures,
-        predictor=args.predictor, models=dict(args.model), regions=not args.no_regions,
+    settings = EngineSettings(
+        camera=args.camera, width=width, height=height, renderer=args.renderer,
+        precision="int8" if args.int8 else "fp32", aovs=aovs, prim_samples=args.prim_samples,
+        max_level=args.max_level, textures=not args.no_textures, predictor=args.predictor,
+        models=dict(args.model), regions=not args.no_regions,
     )  # fmt: skip
+    engine = Engine(args.scene, settings)
     truth = None
     video = None
     try:
         if args.reference:
-            truth = Engine(args.scene, camera=args.camera, width=width, height=height,
-                           renderer=args.renderer, reference=True, aovs=aovs,
-                           prim_samples=args.prim_samples, models=dict(args.model))  # fmt: skip
+            truth = Engine(args.scene, EngineSettings(
+                camera=args.camera, width=width, height=height, renderer=args.renderer,
+                reference=True, aovs=aovs, prim_samples=args.prim_samples, models=dict(args.model),
+            ))  # fmt: skip
         times = frame_times(args.frames, args.step, engine.stage)
         if truth is not None:
             check_reference_poses(truth, times)
@@ -204,18 +206,19 @@ def _render_frames(engine, truth, video, times, out: Path, aovs) -> tuple[list[d
             video.write(rgb)
         if k in picks:
             thumbs.append(png)
+        report = frame.report.to_json()  # with what render adds: reference, covered_px
         if truth is not None:
-            frame.report["reference"] = compare_with_reference(
+            report["reference"] = compare_with_reference(
                 frame,
                 truth.render(float(t)),
                 out / f"compare_{t:08.1f}.png",
                 coverages(engine, truth, float(t)),
             )
-        for entry in frame.report["characters"]:  # what each drawn character covers
+        for entry in report["characters"]:  # what each drawn character covers
             if entry.get("decision") in ("evaluated", "reused"):
                 coverage = engine.coverage_of(entry["path"], float(t))
                 entry["covered_px"] = 0 if coverage is None else int((coverage >= 0.5).sum())
-        reports.append(frame.report)
+        reports.append(report)
     return reports, thumbs
 
 

@@ -11,7 +11,7 @@ the shadows package's functions below are wrapped while a frame renders), and th
 frame's time (for numba, loading or compiling the kernels); then the same fraction in CPU
 time (the process's, all threads: the report's shadows `cpu_seconds`, Engine.report_cpu,
 against the whole render), which a loaded machine distorts less than the wall clock; then
-the prims' shadow passes and the character layer's of one frame (Engine.shadow_passes) run
+the prims' shadow passes and the character layer's of one frame (Engine.shadows.record) run
 again and again on the same inputs, both ways: the best and the median CPU milliseconds of
 the thread they run in, the least noisy comparison on a shared machine.
 """
@@ -26,9 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rigspace.runtime import engine as engine_module
 from rigspace.runtime import shadows
-from rigspace.runtime.engine import STAGES, Engine
+from rigspace.runtime.engine import STAGES, Engine, EngineSettings
 from rigspace.runtime.shadows import ShadowBackend
 from rigspace.runtime.shadows import kernels as shadow_kernels
 from rigspace.runtime.shadows import passes as shadow_pass
@@ -40,14 +39,14 @@ installed package has no samples/, so there --scene is needed."""
 TIMES = np.linspace(100.0, 1400.0, 64)
 """The frames rendered (the first a warm-up): bench/frame_stages.py's."""
 PASSES = {"prims": "prims' passes", "layer": "layer"}
-"""Engine.shadow_passes' names, and what the lines call them."""
+"""The names in Engine.shadows.record, and what the lines call them."""
 
 # Sub-step: the functions whose own time it is (module or class, attribute).
 
 SUBSTEPS: dict[str, list[tuple[object, str]]] = {
     "draw maps": [(shadows.PrimShadows, "_render")],
     "screen regions": [
-        (shadows, "shadow_regions"), (engine_module, "shadow_regions"),
+        (shadows, "shadow_regions"), (shadows.PrimShadows, "shadow_regions"),
         (shadows.PrimShadows, "regions"),
     ],
     "kernels": [(shadow_kernels, "sparse_pass"), (shadow_kernels, "points_visibility")],
@@ -103,10 +102,10 @@ def measure(
         runs: dict[str, tuple[Engine, list[dict], float, _Timers]] = {}
         try:
             for kernel in kernels:
-                engine = Engine(
-                    scene, width=width, height=height, prim_samples=1,
-                    shadow_backend=ShadowBackend(kernel),
-                )  # fmt: skip
+                settings = EngineSettings(
+                    width=width, height=height, prim_samples=1, shadow_backend=ShadowBackend(kernel)
+                )
+                engine = Engine(scene, settings)
                 engine.report_cpu = True  # the report's cpu_seconds per stage
                 start = clock.perf_counter()
                 engine.render(float(times[0]))  # warm-up (numba: load or compile the kernels)
@@ -119,9 +118,10 @@ def measure(
                         report = engine.render(float(t)).report
                     finally:
                         timers.unwrap()
-                    seconds = report["seconds"]
+                    assert report.cpu_seconds is not None  # report_cpu
+                    seconds = dict(report.seconds)
                     seconds["cpu"] = clock.process_time() - start
-                    seconds["cpu shadows"] = report["cpu_seconds"]["shadows"]
+                    seconds["cpu shadows"] = report.cpu_seconds["shadows"]
                     reports.append(seconds)
         finally:
             for engine, _, _, _ in runs.values():
@@ -159,18 +159,18 @@ def passes(
     kernels: Sequence[str] = KERNELS,
 ) -> list[str]:
     """Lines: per size, the prims' passes (their maps drawn) and the character layer's of
-    the frame at time 600 (Engine.shadow_passes) again and again on the same inputs, numba
+    the frame at time 600 (Engine.shadows.record) again and again on the same inputs, numba
     against numpy (best and median CPU milliseconds of this thread, where both run: the
     process's would count onnxruntime's threads spinning after the frame's inference)."""
     lines = []
     for width, height in sizes:
-        engine = Engine(scene, width=width, height=height, prim_samples=1)
+        engine = Engine(scene, EngineSettings(width=width, height=height, prim_samples=1))
         found: dict[tuple[str, str], tuple[float, float]] = {}
         try:
             engine.render(500.0)
-            engine.shadow_passes = {}  # the next frame's passes, kept to run again
+            engine.shadows.record = {}  # the next frame's passes, kept to run again
             engine.render(600.0)
-            recorded = dict(engine.shadow_passes)
+            recorded = dict(engine.shadows.record)
             for name, run in recorded.items():
                 for kernel in kernels:
                     engine.use_shadow_backend(ShadowBackend(kernel))

@@ -34,7 +34,7 @@ import numpy as np
 from pxr import Gf, Usd, UsdGeom
 
 from rigspace.capture.settings import resolve_settings
-from rigspace.runtime.engine import Engine
+from rigspace.runtime.engine import Engine, EngineSettings
 from rigspace.runtime.scene import SceneGeometry
 from rigspace.sdk import schema
 from rigspace.sdk.camera import Camera, to_gf
@@ -218,15 +218,17 @@ def _runtime_error(
     region: (map_metrics per sample, an image strip per sample)."""
     path = f"/AccuracyCameras/{name.replace('-', '_')}"
     size = {"width": samples[0][1].width, "height": samples[0][1].height}
-    neural = Engine(layer, camera=path, precision=precision, aovs=AOVS, textures=False, **size)
-    truth_engine = Engine(layer, camera=path, reference=True, aovs=AOVS, **size)
+    neural = Engine(
+        layer, EngineSettings(camera=path, precision=precision, aovs=AOVS, textures=False, **size)
+    )
+    truth_engine = Engine(layer, EngineSettings(camera=path, reference=True, aovs=AOVS, **size))
     rows, strips = [], []
     try:
         for time, _ in samples:
             frame = neural.render(time)
             truth_frame = truth_engine.render(time)
             region = next(
-                c["region"] for c in frame.report["characters"] if c["path"] == str(prim.GetPath())
+                c["region"] for c in frame.report.characters if c["path"] == str(prim.GetPath())
             )
             a, b = _crop(frame.maps, region), _crop(truth_frame.maps, region)
             rows.append(map_metrics(a, b, height))

@@ -18,7 +18,7 @@ import numpy as np
 from rigspace.bench.predictors import for_precision
 from rigspace.bench.scenes import PREVIS, crowd_scene
 from rigspace.bench.timing import summary
-from rigspace.runtime.engine import STAGES, Engine
+from rigspace.runtime.engine import STAGES, Engine, EngineSettings
 
 TIMES = np.linspace(100.0, 1400.0, 64)
 
@@ -28,12 +28,12 @@ def frame_reports(
 ) -> list[dict[str, Any]]:
     """The Engine's reports of the frames at times[1:], after a warm-up frame at times[0]
     (sessions, GL buffers); with `again`, the last frame once more at the end."""
-    engine = Engine(scene, width=size, height=size, **engine_options)
+    engine = Engine(scene, EngineSettings(width=size, height=size, **engine_options))
     try:
         engine.render(float(times[0]))
-        reports = [engine.render(float(t)).report for t in times[1:]]
+        reports = [engine.render(float(t)).report.to_json() for t in times[1:]]
         if again:
-            reports.append(engine.render(float(times[-1])).report)
+            reports.append(engine.render(float(times[-1])).report.to_json())
     finally:
         engine.close()
     return reports

@@ -44,16 +44,16 @@ def measure(characters: int, size: int, precision: str, frames: int) -> dict[str
 
     from rigspace.bench.frame_stages import TIMES
     from rigspace.bench.scenes import PREVIS, crowd_scene
-    from rigspace.runtime.engine import Engine
+    from rigspace.runtime.engine import Engine, EngineSettings
 
     rss["imports"] = _max_rss_kib()
     with tempfile.TemporaryDirectory() as tmp:
         scene = PREVIS if characters == 1 else crowd_scene(Path(tmp), characters)
-        engine = Engine(scene, width=size, height=size, precision=precision)
+        engine = Engine(scene, EngineSettings(width=size, height=size, precision=precision))
         rss["engine"] = _max_rss_kib()
         try:
             engine.render(float(TIMES[0]))  # warm-up: sessions, renderer buffers
-            reports = [engine.render(float(t)).report for t in TIMES[1 : frames + 1]]
+            reports = [engine.render(float(t)).report.to_json() for t in TIMES[1 : frames + 1]]
         finally:
             engine.close()
         rss["frames"] = _max_rss_kib()

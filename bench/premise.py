@@ -172,11 +172,13 @@ def _mesh_bytes(engine) -> int:
 def _engines(scene: Path, width: int, height: int) -> tuple[dict[str, Any], dict[str, Stopwatch]]:
     """The two paths' engines over `scene`, and the bench's stopwatches: the mesh path's
     skinning (the compiled rig's posed_meshes) and the network path's graphs."""
-    from rigspace.runtime.engine import Engine
+    from rigspace.runtime.engine import Engine, EngineSettings
     from rigspace.sdk.skinning import CompiledRig
 
-    mesh = Engine(scene, width=width, height=height, reference=True)
-    network = Engine(scene, width=width, height=height)  # textures on: `rigspace render`
+    mesh = Engine(scene, EngineSettings(width=width, height=height, reference=True))
+    network = Engine(
+        scene, EngineSettings(width=width, height=height)
+    )  # textures on: `rigspace render`
     watches = {"skinning": Stopwatch(), "graphs": Stopwatch()}
     for character in mesh.characters:
         character.rig = CompiledRig(character.prim)
@@ -215,10 +217,10 @@ def measure(
                         records[name].append(
                             {
                                 "wall": wall,
-                                **frame.report["seconds"],
+                                **frame.report.seconds,
                                 "skinning": watches["skinning"].lap(),
                                 "graphs": watches["graphs"].lap(),
-                                "entries": frame.report["characters"],
+                                "entries": frame.report.characters,
                             }
                         )
                 mesh_bytes = _mesh_bytes(engines["mesh"])

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from rigspace.bench.scenes import PREVIS
-from rigspace.runtime.engine import Engine
+from rigspace.runtime.engine import Engine, EngineSettings
 from rigspace.runtime.reference import compare_regions, coverages
 
 TIMES = np.linspace(0.0, 1600.0, 17)
@@ -32,10 +32,12 @@ def measure(sizes: tuple[tuple[int, int], ...], frames: int) -> list[dict[str, A
     times = TIMES[np.unique(np.linspace(0, len(TIMES) - 1, frames).round().astype(int))]
     for width, height in sizes:
         engines = {
-            "textures": Engine(PREVIS, width=width, height=height),
-            "albedo branch": Engine(PREVIS, width=width, height=height, textures=False),
+            "textures": Engine(PREVIS, EngineSettings(width=width, height=height)),
+            "albedo branch": Engine(
+                PREVIS, EngineSettings(width=width, height=height, textures=False)
+            ),
         }
-        truth = Engine(PREVIS, width=width, height=height, reference=True)
+        truth = Engine(PREVIS, EngineSettings(width=width, height=height, reference=True))
         records: dict[str, list[dict[str, Any]]] = {m: [] for m in MODES}
         try:
             for engine in (*engines.values(), truth):  # warm-up: sessions, kernels, buffers
@@ -49,12 +51,12 @@ def measure(sizes: tuple[tuple[int, int], ...], frames: int) -> list[dict[str, A
                         for r in compare_regions(frame, reference, coverages(engine, truth, t))
                         if r["psnr"] is not None
                     ]
-                    (entry,) = frame.report["characters"]  # the shot's one character
+                    (entry,) = frame.report.characters  # the shot's one character
                     records[mode].append(
                         {
                             "time": float(t),
-                            "total_ms": 1e3 * frame.report["seconds"]["total"],
-                            "network_ms": 1e3 * frame.report["seconds"]["network"],
+                            "total_ms": 1e3 * frame.report.seconds["total"],
+                            "network_ms": 1e3 * frame.report.seconds["network"],
                             "texture_ms": entry.get("texture_ms"),
                             "size_px": entry.get("size_px"),
                             "regions": regions,

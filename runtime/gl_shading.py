@@ -27,7 +27,7 @@ from rigspace.runtime.shading import (
 )
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.render import RendererSpec
-from rigspace.sdk.render.gl import FULL_SCREEN_VERTEX_SHADER
+from rigspace.sdk.render.gl import FULL_SCREEN_VERTEX_SHADER, SharedContext, share
 
 GL_LIGHTING = ("hardware", "always", "never")
 """Where the engine lights in the fragment shader: "hardware" with the gl renderer on a GPU
@@ -114,30 +114,35 @@ def _squarings() -> int:
     return exponent.bit_length() - 1
 
 
-def open_gl_shading(renderer: RendererSpec, where: str) -> GLShading | None:
+def open_gl_shading(
+    renderer: RendererSpec, where: str, shared: SharedContext | None = None
+) -> GLShading | None:
     """The shader an Engine drawing with `renderer` lights with, per `where` (GL_LIGHTING);
     None: numpy (shading.shade). A software rasteriser (`cost_grows_with_triangles`) counts
-    as no GPU; no EGL context is made unless the shader will be used."""
+    as no GPU; no EGL context is made unless the shader will be used. `shared`: the
+    context it draws in (the engine's, its renderer's too; None: one of its own)."""
     if where not in GL_LIGHTING:
         raise ValueError(f"gl_lighting {where!r} is not one of {GL_LIGHTING}")
     if where == "never" or renderer.name != "gl" or renderer.unavailable() is not None:
         return None
     if where == "hardware" and renderer.cost_grows_with_triangles():
         return None
-    return GLShading()
+    return GLShading(shared)
 
 
 class GLShading:
-    """An EGL context of its own with the shading program, and one set of textures grown to
-    the largest region lit so far (a frame's full-screen prims, its characters' layers)."""
+    """The shading program in an EGL context (shared with the engine's renderer, or its own),
+    and one set of textures grown to the largest region lit so far (a frame's full-screen
+    prims, its characters' layers)."""
 
-    def __init__(self) -> None:
-        import moderngl
-
-        # moderngl's stub types `backend` as a dict; its documented use is the string "egl".
-        self._ctx = moderngl.create_standalone_context(backend="egl", require=330)  # type: ignore[arg-type]
-        self.renderer = str(self._ctx.info["GL_RENDERER"])
+    def __init__(self, shared: SharedContext | None = None) -> None:
+        self._shared = share(shared)
+        self._ctx = self._shared.acquire()
+        with self._ctx:
+            self.renderer = str(self._ctx.info["GL_RENDERER"])
         """What draws: a GPU's name, or Mesa's "llvmpipe (LLVM ...)" on the CPU."""
+        self.name = self.renderer
+        """What lights (runtime/lighting.py's Lighting): the GL_RENDERER."""
         source = _FRAGMENT % {
             "max_lights": MAX_LIGHTS,
             "squarings": _squarings(),
@@ -247,13 +252,16 @@ class GLShading:
         return textures
 
     def close(self) -> None:
+        if self._ctx is None:  # closed already
+            return
         with self._ctx:
             if self._targets:
                 _release(self._targets)
             self._targets = {}
             self._vao.release()
             self._program.release()
-        self._ctx.release()
+        self._shared.release()
+        self._ctx = None
 
 
 def _release(textures: dict[str, Any]) -> None:

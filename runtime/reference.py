@@ -45,7 +45,7 @@ def compare_regions(frame, truth, coverage: dict | None = None) -> list[dict]:
     A character drawn with regions of its own (the face, a hand: docs/regions.md) also gets
     the same numbers over each region's own square (`regions`), where its network drew."""
     results = []
-    for entry in frame.report["characters"]:
+    for entry in frame.report.characters:
         if "region" not in entry:
             results.append({"path": entry["path"], "psnr": None, "reason": entry.get("reason", "")})
             continue

@@ -39,6 +39,7 @@ from rigspace.runtime.lights import DISTANT, POINT, Light
 from rigspace.runtime.shadows.gl import GLCapsuleShadows
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.render import DrawMesh, Renderer, RendererSpec, RenderSettings, render_depth
+from rigspace.sdk.render.gl import SharedContext
 
 SHADOW_MAP_SIZE = 512
 """Texels per side of the still prims' map (drawn once; 6 scene units a texel over the
@@ -239,10 +240,14 @@ class PrimShadows:
         spec: RendererSpec,
         backend: ShadowBackend | None = None,
         compiled: CompiledPasses | None = None,
+        shared: object = None,
     ) -> None:
         """`compiled`: the kernels' passes (shadow_pass.COMPILED) when `backend.kernel` is
-        "numba"; None computes with this module's numpy functions."""
+        "numba"; None computes with this module's numpy functions. `shared`: the device
+        resources its renderer and capsule shader draw with (RenderSettings.shared: the
+        engine's GL context)."""
         self._spec = spec
+        self._shared = shared
         self.backend = backend or ShadowBackend()
         self._compiled = compiled
         self._renderer: Renderer | None = None
@@ -315,7 +320,7 @@ class PrimShadows:
 
     def _render(self, meshes: list[DrawMesh], camera: Camera) -> np.ndarray:
         if self._renderer is None:
-            self._renderer = self._spec.create(RenderSettings(1))
+            self._renderer = self._spec.create(RenderSettings(1, shared=self._shared))
         return render_depth(self._renderer, meshes, camera)  # its depth-only pass
 
     def close(self) -> None:
@@ -348,7 +353,8 @@ class PrimShadows:
             where = self.backend.gl_capsules
             wanted = where != "never" and self._spec.name == "gl"
             if wanted and self._spec.unavailable() is None:
-                self._gl = GLCapsuleShadows(MIN_VISIBILITY)
+                shared = self._shared if isinstance(self._shared, SharedContext) else None
+                self._gl = GLCapsuleShadows(MIN_VISIBILITY, shared)
                 software = any(name in self._gl.renderer.lower() for name in SOFTWARE_GL)
                 if software and where != "always":
                     self._gl.close()
@@ -383,6 +389,13 @@ class PrimShadows:
                     out.append((rects, (index, name, key, meshes)))
         self._regions[cache_key] = out
         return out
+
+    def shadow_regions(
+        self, lo: np.ndarray, hi: np.ndarray, light: Light, box: np.ndarray, camera: Camera
+    ) -> list[Region | None]:
+        """shadow_regions, compiled where the backend has the kernels."""
+        find = self._compiled.shadow_regions if self._compiled else shadow_regions
+        return find(lo, hi, light, box, camera)
 
     def lookup(self, handle: tuple, points: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
         """(N,) visibility past one map (a handle from `regions`), drawing it if needed."""

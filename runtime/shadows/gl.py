@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from rigspace.runtime.lights import DISTANT, Light
-from rigspace.sdk.render.gl import FULL_SCREEN_VERTEX_SHADER
+from rigspace.sdk.render.gl import FULL_SCREEN_VERTEX_SHADER, SharedContext, share
 
 MAX_CAPSULES = 64
 """Capsules per draw; more are drawn in batches whose visibilities multiply. Each count gets
@@ -133,15 +133,14 @@ def _spheres(a: np.ndarray, b: np.ndarray, radius: np.ndarray, groups) -> np.nda
 
 
 class GLCapsuleShadows:
-    """An EGL context of its own (the renderer plugin's is private to it) with the capsule
-    program; textures grow with the largest batch of receivers seen."""
+    """The capsule programs in an EGL context (shared with the engine's renderer, or its
+    own); textures grow with the largest batch of receivers seen."""
 
-    def __init__(self, min_visibility: float) -> None:
-        import moderngl
-
-        # moderngl's stub types `backend` as a dict; its documented use is the string "egl".
-        self._ctx = moderngl.create_standalone_context(backend="egl", require=330)  # type: ignore[arg-type]
-        self.renderer = str(self._ctx.info["GL_RENDERER"])
+    def __init__(self, min_visibility: float, shared: SharedContext | None = None) -> None:
+        self._shared = share(shared)
+        self._ctx = self._shared.acquire()
+        with self._ctx:
+            self.renderer = str(self._ctx.info["GL_RENDERER"])
         """What draws: a GPU's name, or Mesa's "llvmpipe (LLVM ...)" on the CPU."""
         self._floor = min_visibility
         self._programs: dict[tuple[int, int], tuple[Any, Any]] = {}
@@ -237,4 +236,4 @@ class GLCapsuleShadows:
                 vao.release()
                 program.release()
             self._programs = {}
-        self._ctx.release()
+        self._shared.release()

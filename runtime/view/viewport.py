@@ -12,7 +12,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from rigspace.runtime.engine import Engine, Frame
+from rigspace.runtime.engine import Engine, EngineSettings, Frame
 from rigspace.sdk import schema
 from rigspace.sdk.color import linear_to_srgb
 from rigspace.sdk.errors import RigspaceError
@@ -156,9 +156,10 @@ class FrameService:
             self.error = self.live_error = None
             camera = camera or self.camera
             try:
-                full = Engine(self.scene, camera=camera, width=self.width, height=self.height,
-                              renderer=self.renderer, sources=self.sources,
-                              predictor=self.predictor, regions=self.regions)  # fmt: skip
+                full = Engine(self.scene, EngineSettings(
+                    camera=camera, width=self.width, height=self.height, renderer=self.renderer,
+                    sources=self.sources, predictor=self.predictor, regions=self.regions,
+                ))  # fmt: skip
             except RigspaceError as exc:
                 self.error = str(exc)
                 return
@@ -166,16 +167,18 @@ class FrameService:
             preview = None
             if not full.live.active:  # a live pose is drawn at full quality only
                 s = PREVIEW["scale"]
-                preview = Engine(
-                    self.scene, camera=self.camera, width=max(self.width // s, 1),
+                preview = Engine(self.scene, EngineSettings(
+                    camera=self.camera, width=max(self.width // s, 1),
                     height=max(self.height // s, 1), renderer=self.renderer, live=False,
                     predictor=self.predictor, regions=self.regions,
                     prim_samples=PREVIEW["prim_samples"], max_level=PREVIEW["max_level"],
-                )  # fmt: skip
+                ))  # fmt: skip
             truth = None
             if self.with_reference:
-                truth = Engine(self.scene, camera=self.camera, width=self.width,
-                               height=self.height, renderer=self.renderer, reference=True)  # fmt: skip
+                truth = Engine(self.scene, EngineSettings(
+                    camera=self.camera, width=self.width, height=self.height,
+                    renderer=self.renderer, reference=True,
+                ))  # fmt: skip
             self.engines = Engines(full, preview, truth)
             # The first frame of a fresh engine draws its shadow maps and warms its sessions
             # (seconds): done here, so that the page's first scrub is not the slow one.
@@ -264,7 +267,7 @@ class FrameService:
             if self._last is not None and self._last[0] is frame.beauty and live:
                 # The engine reused its composite (same pose, still camera): so do we.
                 if self._last[1:3] == (map_name, view):
-                    header = {**self._last[3], "report": frame.report, "reused": True}
+                    header = {**self._last[3], "report": frame.report.to_json(), "reused": True}
                     return {**header, "server_ms": _ms(start)}, self._last[4]
             rgb = map_image(frame, map_name)
         else:
@@ -278,10 +281,10 @@ class FrameService:
             "map": map_name,
             "view": view,
             "quality": quality,
-            "width": engine.width,
-            "height": engine.height,
+            "width": engine.settings.width,
+            "height": engine.settings.height,
             "image_width": rgb.shape[1],
-            "report": frame.report,
+            "report": frame.report.to_json(),
             "cached": False,
         }
         if live:

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
-from rigspace.runtime.engine import Engine
+from rigspace.runtime.engine import Engine, EngineSettings
 from rigspace.sdk.color import linear_to_srgb
 
 SAMPLES = Path(__file__).resolve().parents[1]
@@ -91,12 +91,12 @@ def main() -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     author(out / "shot.usda")
-    with Engine(out / "shot.usda", width=width, height=height) as engine:
+    with Engine(out / "shot.usda", EngineSettings(width=width, height=height)) as engine:
         for t in np.arange(first, last + step / 2, step):
             frame = engine.render(float(t))
-            hero = frame.report["characters"][0]
+            hero = frame.report.characters[0]
             print(f"frame {t:g}: {hero['decision']}, level {hero.get('level')}, "
-                  f"{1e3 * frame.report['seconds']['total']:.0f} ms")  # fmt: skip
+                  f"{1e3 * frame.report.seconds['total']:.0f} ms")  # fmt: skip
             rgb = (linear_to_srgb(frame.beauty) * 255 + 0.5).astype(np.uint8)
             cv2.imwrite(str(out / f"shot_{t:05.0f}.png"), rgb[..., ::-1])
 

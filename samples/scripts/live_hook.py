@@ -19,7 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rigspace.runtime.engine import Engine
+from rigspace.runtime.engine import Engine, EngineSettings
 from rigspace.sdk.color import linear_to_srgb
 
 SCENE = Path(__file__).resolve().parents[1] / "scenes" / "live.usda"
@@ -51,16 +51,18 @@ def main() -> None:
     stop = threading.Event()
     sender = streamer(args.url, args.send, stop) if args.send else None
     # The hook: the engine opens the binding's source at the first frame, closes it at the end.
-    with Engine(SCENE, sources={"suit": args.url}, width=width, height=height) as engine:
+    with Engine(
+        SCENE, EngineSettings(sources={"suit": args.url}, width=width, height=height)
+    ) as engine:
         engine.open_live()  # listen before anything is sent
         if sender is not None:
             sender.start()
             time.sleep(0.1)
         for k in range(args.frames):
             frame = engine.render(float(k * 3))
-            suit = frame.report["live"][0]
+            suit = frame.report.live[0]
             print(f"frame {k}: {suit['status']}, {suit['samples']} samples, "
-                  f"{frame.report['characters'][0]['decision']}")  # fmt: skip
+                  f"{frame.report.characters[0]['decision']}")  # fmt: skip
             rgb = (linear_to_srgb(frame.beauty) * 255 + 0.5).astype(np.uint8)
             cv2.imwrite(str(out / f"hook_{k:03d}.png"), rgb[..., ::-1])
             time.sleep(0.1)

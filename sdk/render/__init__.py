@@ -339,6 +339,10 @@ class RenderSettings:
 
     samples_per_axis: int = 2
     """Stratified samples per pixel along each axis (s x s per pixel), at (k + 0.5) / s."""
+    shared: Any = field(default=None, compare=False, repr=False)
+    """Device resources to draw with instead of the renderer's own: for gl, a
+    gl.SharedContext (an Engine shares one EGL context among its renderers, its lighting
+    and its capsule shadows); renderers that have none ignore it."""
 
     def __post_init__(self) -> None:
         s = self.samples_per_axis

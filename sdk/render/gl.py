@@ -192,6 +192,39 @@ def _context() -> Any:
     return moderngl.create_standalone_context(backend="egl", require=GL_VERSION)  # type: ignore[arg-type]
 
 
+class SharedContext:
+    """One EGL context for several users: an Engine's renderers (the prims', the shadow maps',
+    the reference meshes'), its lighting (runtime/gl_shading.py) and its capsule shadows
+    (runtime/shadows/gl.py). Each user `acquire`s it and `release`s it when closed; the last
+    release frees it. Each makes it current around its calls (`with ctx:`) and sets the
+    state it draws with (program, textures, framebuffer, viewport, depth test) every time:
+    what one leaves bound does not change what the next draws."""
+
+    def __init__(self) -> None:
+        self._ctx: Any = _context()
+        with self._ctx:  # moderngl reads `info` once, from the context current then
+            self._ctx.info  # noqa: B018
+        self._users = 0
+
+    def acquire(self) -> Any:
+        """The moderngl context, counted as used until `release`."""
+        if self._ctx is None:
+            raise RuntimeError("the shared GL context was released by its last user")
+        self._users += 1
+        return self._ctx
+
+    def release(self) -> None:
+        self._users -= 1
+        if self._users == 0:
+            self._ctx.release()
+            self._ctx = None
+
+
+def share(settings_shared: Any) -> SharedContext:
+    """The SharedContext a GL user draws in: the one given, else one of its own."""
+    return settings_shared if isinstance(settings_shared, SharedContext) else SharedContext()
+
+
 @functools.cache
 def unavailable() -> str | None:
     """None when an EGL context can be created here, else why not (probed once per process)."""
@@ -313,7 +346,8 @@ class GLRenderer:
         self.resolve = resolve
         self.settings = settings
         self._gl = moderngl
-        self._ctx = _context()
+        self._shared = share(settings.shared)
+        self._ctx = self._shared.acquire()
         with self._ctx:
             self._program = self._ctx.program(
                 vertex_shader=VERTEX_SHADER, fragment_shader=FRAGMENT_SHADER
@@ -656,7 +690,7 @@ class GLRenderer:
                 self._resolve_program.release()
             self._depth_program.release()
             self._program.release()
-        self._ctx.release()
+        self._shared.release()
         self._ctx = None
 
     def __enter__(self) -> GLRenderer:

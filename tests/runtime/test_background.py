@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
-from rigspace.runtime.engine import Engine
+from rigspace.runtime.engine import Engine, EngineSettings
 from rigspace.runtime.lights import background, light_prims, lights_at
 from rigspace.sdk.camera import Camera
 
@@ -35,7 +35,7 @@ def _stage(tmp_path: Path, build, yaw: float = 0.0) -> Path:
 
 
 def _render(scene: Path):
-    engine = Engine(scene, width=WIDTH, height=HEIGHT)
+    engine = Engine(scene, EngineSettings(width=WIDTH, height=HEIGHT))
     try:
         return engine.render(0.0)
     finally:
@@ -54,7 +54,7 @@ def test_a_dome_colour_fills_what_nothing_covers(tmp_path):
     assert empty.sum() > 0.8 * WIDTH * HEIGHT and (~empty).any()
     assert np.allclose(frame.beauty[empty], [0.8, 1.6, 2.4], atol=1e-6)
     assert frame.opaque and np.all(frame.alpha == 1.0)
-    assert frame.report["background"] == "/Sky"
+    assert frame.report.background == "/Sky"
     # The cube's fully covered pixels keep their own (ambient-lit) colour.
     solid = frame.maps.mask == 1.0
     assert np.allclose(frame.beauty[solid], frame.maps.albedo[solid] * [0.8, 1.6, 2.4], atol=1e-5)
@@ -68,7 +68,7 @@ def test_without_a_dome_the_background_stays_black_and_transparent(tmp_path):
     empty = frame.maps.mask == 0
     assert np.all(frame.beauty[empty] == 0.0)
     assert not frame.opaque and np.array_equal(frame.alpha, frame.maps.mask)
-    assert frame.report["background"] is None
+    assert frame.report.background is None
 
 
 def _latlong(path: Path) -> None:
@@ -135,5 +135,5 @@ def test_a_dome_map_in_another_layout_is_left_out_with_its_name(tmp_path, capsys
     frame = _render(_stage(tmp_path, build))
     err = capsys.readouterr().err
     assert "DomeLight /Sky" in err and "latlong" in err
-    assert frame.report["lights_left_out"] and frame.report["background"] is None
+    assert frame.report.lights_left_out and frame.report.background is None
     assert np.all(frame.beauty[frame.maps.mask == 0] == 0.0)

@@ -9,7 +9,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from rigspace.runtime.engine import Engine
+from rigspace.runtime.engine import Engine, EngineSettings
 from rigspace.runtime.lights import light_prims
 from rigspace.runtime.output import CHANNELS
 from rigspace.sdk.cli import main
@@ -21,23 +21,23 @@ PREVIS = REPO / "samples" / "scenes" / "previs.usda"
 
 @pytest.fixture(scope="module")
 def engine():
-    e = Engine(PREVIS, width=160, height=90)
+    e = Engine(PREVIS, EngineSettings(width=160, height=90))
     yield e
     e.close()
 
 
 def test_a_frame_composites_the_character_with_the_scene(engine):
     frame = engine.render(100.0)
-    (hero,) = frame.report["characters"]
+    (hero,) = frame.report.characters
     assert hero["decision"] == "evaluated" and hero["level"] in (32, 64, 128)
     # Every UsdLux light of the scene: the sun, the lamp (and the sky's DomeLight).
     lights = len(light_prims(engine.stage))
-    assert lights >= 2 and frame.report["lights"] == lights
-    assert frame.report["scene_prims"]["meshes"] == 5
+    assert lights >= 2 and frame.report.lights == lights
+    assert frame.report.scene_prims["meshes"] == 5
     assert frame.beauty.shape == (90, 160, 3) and np.all(np.isfinite(frame.beauty))
     covered = frame.maps.mask > 0.5
     assert np.all(np.isfinite(frame.maps.depth[covered]))
-    assert set(frame.report["seconds"]) >= {
+    assert set(frame.report.seconds) >= {
         "scene",
         "rig",
         "network",
@@ -51,8 +51,8 @@ def test_a_frame_composites_the_character_with_the_scene(engine):
 def test_same_pose_and_camera_reuses_everything(engine):
     engine.render(200.0)
     again = engine.render(200.0)
-    assert again.report["characters"][0]["decision"] == "reused"
-    assert again.report["scene_prims"]["reused"] is False or again.report["scene_prims"]["reused"]
+    assert again.report.characters[0]["decision"] == "reused"
+    assert again.report.scene_prims["reused"] is False or again.report.scene_prims["reused"]
 
 
 def test_yoga_hold_reuses_the_character_while_the_camera_is_still(tmp_path):
@@ -63,11 +63,9 @@ def test_yoga_hold_reuses_the_character_while_the_camera_is_still(tmp_path):
     start = text.index("        float xformOp:rotateY.timeSamples = {")
     end = text.index("}", start) + 1
     scene.write_text(text[:start] + "        float xformOp:rotateY = 10" + text[end:])
-    e = Engine(scene, width=96, height=54)
+    e = Engine(scene, EngineSettings(width=96, height=54))
     try:
-        decisions = [
-            e.render(t).report["characters"][0]["decision"] for t in (1400.0, 1401.0, 1402.0)
-        ]
+        decisions = [e.render(t).report.characters[0]["decision"] for t in (1400.0, 1401.0, 1402.0)]
     finally:
         e.close()
     assert decisions == ["evaluated", "reused", "reused"]
@@ -91,9 +89,9 @@ def test_render_command_writes_exr_png_video_and_report(tmp_path):
 
 def test_bad_viewport_and_camera(tmp_path):
     with pytest.raises(SceneError, match="0x90"):
-        Engine(PREVIS, width=0, height=90)
+        Engine(PREVIS, EngineSettings(width=0, height=90))
     with pytest.raises(SceneError, match="not a Camera"):
-        Engine(PREVIS, camera="/World/Hero")
+        Engine(PREVIS, EngineSettings(camera="/World/Hero"))
 
 
 def test_rendering_a_frame_loads_no_torch():
@@ -102,10 +100,10 @@ def test_rendering_a_frame_loads_no_torch():
 
     code = (
         "import sys\n"
-        "from rigspace.runtime.engine import Engine\n"
-        f"e = Engine({str(PREVIS)!r}, width=64, height=36)\n"
+        "from rigspace.runtime.engine import Engine, EngineSettings\n"
+        f"e = Engine({str(PREVIS)!r}, EngineSettings(width=64, height=36))\n"
         "frame = e.render(10.0)\n"
-        "assert frame.report['characters'][0]['decision'] == 'evaluated'\n"
+        "assert frame.report.characters[0]['decision'] == 'evaluated'\n"
         "assert not any(m == 'torch' or m.startswith('torch.') for m in sys.modules), 'torch loaded'\n"
     )
     result = subprocess.run(
@@ -144,13 +142,13 @@ def test_reference_mode_compares_the_network_with_the_mesh(tmp_path):
 
 
 def test_reference_engine_draws_the_mesh_not_the_network():
-    e = Engine(PREVIS, width=96, height=54, reference=True)
+    e = Engine(PREVIS, EngineSettings(width=96, height=54, reference=True))
     try:
         frame = e.render(700.0)
     finally:
         e.close()
-    assert frame.report["characters"][0]["decision"] == "reference"
-    assert frame.report["scene_prims"]["meshes"] == 5  # the prims; the mesh is the layer
+    assert frame.report.characters[0]["decision"] == "reference"
+    assert frame.report.scene_prims["meshes"] == 5  # the prims; the mesh is the layer
     assert frame.maps.mask.max() == 1
 
 
@@ -159,12 +157,12 @@ def test_the_reference_differs_from_the_network_only_in_the_character():
     capsule shadow, so the set around the character is the same image in both modes."""
     frames, coverage = {}, {}
     for reference in (False, True):
-        e = Engine(PREVIS, width=320, height=180, reference=reference)
+        e = Engine(PREVIS, EngineSettings(width=320, height=180, reference=reference))
         try:
             frame = e.render(1000.0)
             frames[reference] = np.array(frame.beauty)
             coverage[reference] = e.coverage_of(e.characters[0].path, 1000.0)
-            assert frame.report["shadows"]["casters"] == 1
+            assert frame.report.shadows["casters"] == 1
         finally:
             e.close()
     outside = (coverage[False] == 0) & (coverage[True] == 0)
@@ -178,7 +176,7 @@ def test_the_reference_differs_from_the_network_only_in_the_character():
 
 
 def test_nan_animation_skips_the_character_for_that_frame_only(monkeypatch, capsys):
-    e = Engine(PREVIS, width=64, height=36)
+    e = Engine(PREVIS, EngineSettings(width=64, height=36))
     try:
         (hero,) = e.characters
         real = hero.rig.world_transforms
@@ -188,7 +186,7 @@ def test_nan_animation_skips_the_character_for_that_frame_only(monkeypatch, caps
             return world * np.nan if t == 11.0 else world
 
         monkeypatch.setattr(hero.rig, "world_transforms", broken)
-        decisions = [e.render(t).report["characters"][0] for t in (10.0, 11.0, 12.0)]
+        decisions = [e.render(t).report.characters[0] for t in (10.0, 11.0, 12.0)]
     finally:
         e.close()
     assert [d["decision"] for d in decisions] == ["evaluated", "skipped", "evaluated"]
@@ -210,21 +208,21 @@ def test_a_damaged_bundle_fails_before_the_first_frame(tmp_path):
     text = PREVIS.read_text().replace("@../character/", f"@{REPO / 'samples' / 'character'}/")
     scene.write_text(text.replace("@../models/sample@", f"@{bundle}@"))
     with pytest.raises(BundleError, match=r"geometry_64\.onnx cannot be loaded"):
-        Engine(scene, width=64, height=36)
+        Engine(scene, EngineSettings(width=64, height=36))
 
 
 def test_a_repeated_frame_is_answered_from_the_frame_cache(engine):
     first = engine.render(300.0)
     again = engine.render(300.0)
-    assert again.report["repeat_of_last_frame"] and again.report["counts"]["reused"] == 1
+    assert again.report.repeat_of_last_frame and again.report.counts["reused"] == 1
     assert np.array_equal(first.beauty, again.beauty)
-    assert again.report["seconds"]["total"] < first.report["seconds"]["total"]
+    assert again.report.seconds["total"] < first.report.seconds["total"]
 
 
 def test_an_edit_to_the_stage_invalidates_what_was_read_as_still(tmp_path):
     from pxr import UsdLux
 
-    e = Engine(_overlay(tmp_path), width=64, height=36)
+    e = Engine(_overlay(tmp_path), EngineSettings(width=64, height=36))
     try:
         first = e.render(300.0)
         lamp = UsdLux.LightAPI(e.stage.GetPrimAtPath("/World/Lights/Lamp"))
@@ -233,8 +231,8 @@ def test_an_edit_to_the_stage_invalidates_what_was_read_as_still(tmp_path):
         second = e.render(300.0)
     finally:
         e.close()
-    assert "repeat_of_last_frame" not in second.report
-    assert second.report["lights"] == first.report["lights"] - 1
+    assert not second.report.repeat_of_last_frame
+    assert second.report.lights == first.report.lights - 1
     # Without the sun and the lamp the prims and the character darken (a sky still shows).
     covered = second.maps.mask > 0.5
     assert second.beauty[covered].sum() < 0.5 * first.beauty[covered].sum()
@@ -243,14 +241,14 @@ def test_an_edit_to_the_stage_invalidates_what_was_read_as_still(tmp_path):
 def test_characters_sharing_a_bundle_run_as_one_batch(tmp_path):
     from rigspace.bench.scenes import crowd_scene
 
-    e = Engine(crowd_scene(tmp_path, 4), width=128, height=72)
+    e = Engine(crowd_scene(tmp_path, 4), EngineSettings(width=128, height=72))
     try:
         assert len({id(c.model) for c in e.characters}) == 1  # one set of sessions
         frame = e.render(700.0)
     finally:
         e.close()
-    evaluated = [c for c in frame.report["characters"] if c["decision"] == "evaluated"]
-    assert len(frame.report["characters"]) == 4 and evaluated
+    evaluated = [c for c in frame.report.characters if c["decision"] == "evaluated"]
+    assert len(frame.report.characters) == 4 and evaluated
     same_level = [c for c in evaluated if c["level"] == evaluated[0]["level"]]
     assert all(c["batch"] == len(same_level) for c in same_level)
 
@@ -269,17 +267,17 @@ def test_a_reused_character_is_relit_when_a_light_changes(tmp_path, monkeypatch)
         "            float inputs:intensity.timeSamples = {1400: 1, 1402: 4}\n",
     )
     scene.write_text(text)
-    e = Engine(scene, width=96, height=54)
+    e = Engine(scene, EngineSettings(width=96, height=54))
     try:
         first, second = e.render(1400.0), e.render(1402.0)
-        layer = e._layers["/World/Hero"].layer
-        assert e._prims is not None
-        x, y, w, h = second.report["characters"][0]["region"]
+        layer = e.caches.layers["/World/Hero"].layer
+        assert e.caches.prims is not None
+        x, y, w, h = second.report.characters[0]["region"]
         # Only the character's own pixels: covered by it and in front of the prims.
-        hero = (layer.mask > 0.5) & (layer.depth < e._prims.depth[y : y + h, x : x + w])
+        hero = (layer.mask > 0.5) & (layer.depth < e.caches.prims.depth[y : y + h, x : x + w])
     finally:
         e.close()
-    assert second.report["characters"][0]["decision"] == "reused" and hero.sum() > 20
+    assert second.report.characters[0]["decision"] == "reused" and hero.sum() > 20
     before = first.beauty[y : y + h, x : x + w][hero].mean()
     after = second.beauty[y : y + h, x : x + w][hero].mean()
     assert after > 1.5 * before
@@ -301,17 +299,17 @@ def _overlay(tmp_path, *inactive: str):
 
 def test_an_unlit_unoccluded_character_runs_its_albedo_branch_only(tmp_path):
     scene = _overlay(tmp_path, "/World/Lights", "/World/Set")
-    unlit = Engine(scene, width=160, height=90, aovs=("beauty", "mask"))
-    full = Engine(scene, width=160, height=90)
+    unlit = Engine(scene, EngineSettings(width=160, height=90, aovs=("beauty", "mask")))
+    full = Engine(scene, EngineSettings(width=160, height=90))
     try:
         a, b = unlit.render(700.0), full.render(700.0)
     finally:
         unlit.close()
         full.close()
-    (hero,) = a.report["characters"]
+    (hero,) = a.report.characters
     assert hero["mode"] == "unlit" and hero["branches"] == ["albedo"]
-    assert a.report["counts"]["unlit"] == 1 and a.report["counts"]["evaluated"] == 1
-    (other,) = b.report["characters"]
+    assert a.report.counts["unlit"] == 1 and a.report.counts["evaluated"] == 1
+    (other,) = b.report.characters
     assert other["branches"] == ["albedo", "geometry"]
     assert other["mode_reason"] == "the normal or depth AOV is asked for"
     # The albedo branch's alpha draws nearly the silhouette of the geometry branch's mask
@@ -327,9 +325,11 @@ def test_lights_or_a_prim_behind_the_billboard_need_the_geometry_branch(tmp_path
         (("/World/Set",), "lights reach it: normals and depth are shaded"),
         (("/World/Lights",), "a scene prim overlaps its billboard: depth-tested"),
     ):
-        e = Engine(_overlay(tmp_path, *inactive), width=160, height=90, aovs=("beauty",))
+        e = Engine(
+            _overlay(tmp_path, *inactive), EngineSettings(width=160, height=90, aovs=("beauty",))
+        )
         try:
-            (hero,) = e.render(700.0).report["characters"]
+            (hero,) = e.render(700.0).report.characters
         finally:
             e.close()
         assert hero["branches"] == ["albedo", "geometry"] and hero["mode_reason"] == reason
@@ -344,12 +344,12 @@ def test_overlapping_characters_are_depth_tested(tmp_path):
     twin.GetReferences().AddInternalReference("/World/Hero")
     UsdGeom.XformCommonAPI(twin).SetTranslate(Gf.Vec3d(30.0, 0, -60.0))
     stage.GetRootLayer().Save()
-    e = Engine(scene, width=160, height=90, aovs=("beauty",))
+    e = Engine(scene, EngineSettings(width=160, height=90, aovs=("beauty",)))
     try:
         frame = e.render(700.0)
     finally:
         e.close()
-    reasons = {c["mode_reason"] for c in frame.report["characters"]}
+    reasons = {c["mode_reason"] for c in frame.report.characters}
     assert reasons == {"another character overlaps its billboard: depth-tested"}
 
 
@@ -360,7 +360,7 @@ def test_aovs_choose_the_exr_channels_and_bad_names_are_refused(tmp_path):
     spec = oiio.ImageInput.open(str(out / "frame_000010.0.exr")).spec()
     assert list(spec.channelnames) == ["R", "G", "B", "A", "Z"]
     with pytest.raises(SceneError, match="Unknown AOV"):
-        Engine(PREVIS, width=8, height=8, aovs=("beauty", "specular"))
+        Engine(PREVIS, EngineSettings(width=8, height=8, aovs=("beauty", "specular")))
     with pytest.raises(SystemExit):
         main([*args, "--aovs", "beauty,specular"])
 
@@ -372,21 +372,21 @@ def test_a_light_with_a_nan_intensity_is_left_out_loudly(tmp_path, capsys):
     stage = Usd.Stage.Open(str(scene))
     UsdLux.LightAPI(stage.GetPrimAtPath("/World/Lights/Lamp")).GetIntensityAttr().Set(float("nan"))
     stage.GetRootLayer().Save()
-    e = Engine(scene, width=64, height=36)
+    e = Engine(scene, EngineSettings(width=64, height=36))
     try:
         frame = e.render(700.0)
     finally:
         e.close()
-    assert frame.report["lights"] == len(light_prims(e.stage)) - 1
-    assert "/World/Lights/Lamp" in frame.report["lights_left_out"][0]
+    assert frame.report.lights == len(light_prims(e.stage)) - 1
+    assert "/World/Lights/Lamp" in frame.report.lights_left_out[0]
     assert np.all(np.isfinite(frame.beauty))
     assert "left out" in capsys.readouterr().err
 
 
 def test_max_level_caps_the_level_of_detail():
-    e = Engine(PREVIS, width=320, height=180, max_level=32)
+    e = Engine(PREVIS, EngineSettings(width=320, height=180, max_level=32))
     try:
-        (hero,) = e.render(10.0).report["characters"]
+        (hero,) = e.render(10.0).report.characters
     finally:
         e.close()
     assert hero["level"] == 32 and hero["level_reason"].startswith("capped by max_level 32")
@@ -395,12 +395,12 @@ def test_max_level_caps_the_level_of_detail():
 def test_lighting_the_prims_while_the_network_runs_changes_no_pixel():
     images = {}
     for overlap in (True, False):
-        e = Engine(PREVIS, width=160, height=90)
+        e = Engine(PREVIS, EngineSettings(width=160, height=90))
         e.overlap = overlap
         try:
             frames = [e.render(t) for t in (300.0, 310.0, 900.0)]
             images[overlap] = [np.array(f.beauty) for f in frames]
-            assert all(f.report["counts"]["evaluated"] == 1 for f in frames)
+            assert all(f.report.counts["evaluated"] == 1 for f in frames)
         finally:
             e.close()
     for a, b in zip(images[True], images[False], strict=True):
@@ -414,7 +414,7 @@ def test_the_prims_are_drawn_once_a_frame_whichever_stage_asks_first(tmp_path):
         (PREVIS, "lights reach it: normals and depth are shaded"),
         (_overlay(tmp_path, "/World/Lights"), "a scene prim overlaps its billboard: depth-tested"),
     ):
-        e = Engine(scene, width=160, height=90, aovs=("beauty",))
+        e = Engine(scene, EngineSettings(width=160, height=90, aovs=("beauty",)))
         draws: list = []
 
         def counted(meshes, camera, draws=draws, draw=e.renderer.render):
@@ -426,6 +426,6 @@ def test_the_prims_are_drawn_once_a_frame_whichever_stage_asks_first(tmp_path):
             frames = [e.render(t) for t in (700.0, 701.0, 702.0)]
         finally:
             e.close()
-        assert {f.report["characters"][0]["mode_reason"] for f in frames} == {reason}
-        drawn = [not f.report["scene_prims"]["reused"] for f in frames]
+        assert {f.report.characters[0]["mode_reason"] for f in frames} == {reason}
+        drawn = [not f.report.scene_prims["reused"] for f in frames]
         assert drawn[0] and len(draws) == sum(drawn)

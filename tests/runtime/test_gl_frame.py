@@ -9,9 +9,10 @@ import pytest
 
 from rigspace.runtime.character import Layer
 from rigspace.runtime.composite_kernel import composite, composite_reference
-from rigspace.runtime.engine import Engine
+from rigspace.runtime.engine import Engine, EngineSettings
 from rigspace.runtime.lights import AMBIENT, DISTANT, POINT, Light
 from rigspace.runtime.shading import shade
+from rigspace.runtime.shadows import ShadowBackend
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.render import choose_renderer
 from rigspace.sdk.render import gl as gl_module
@@ -129,17 +130,50 @@ def test_a_previs_frame_lit_by_the_shader_matches_numpy():
     _needs_gl()
 
     def frame(where: str) -> tuple[np.ndarray, str]:
-        engine = Engine(PREVIS, width=320, height=180, precision="int8", prim_samples=1,
-                        renderer="gl", gl_lighting=where)  # fmt: skip
+        engine = Engine(
+            PREVIS,
+            EngineSettings(
+                width=320,
+                height=180,
+                precision="int8",
+                prim_samples=1,
+                renderer="gl",
+                gl_lighting=where,
+            ),
+        )
         try:
             f = engine.render(600.0)
-            return np.array(f.beauty), f.report["lighting_on"]
+            return np.array(f.beauty), f.report.lighting_on
         finally:
             engine.close()
 
     (on_gl, used), (on_numpy, reference) = frame("always"), frame("never")
     assert reference == "numba" and used != "numba"  # the GL_RENDERER string
     assert np.abs(on_gl - on_numpy).max() < GL_TOLERANCE * on_numpy.max()
+
+
+def test_the_renderers_the_lighting_and_the_capsule_shadows_share_one_gl_context(monkeypatch):
+    """An Engine opens one EGL context (gl.SharedContext) for the prims' renderer, the shadow
+    maps' renderer, the lighting shader and the capsule shader; closing it frees it."""
+    _needs_gl()
+    gl_module.software()  # the probes' own contexts, made once per process, not counted
+    made = []
+    real = gl_module._context
+    monkeypatch.setattr(gl_module, "_context", lambda: made.append(1) or real())
+    settings = EngineSettings(
+        width=160, height=90, prim_samples=1, renderer="gl", gl_lighting="always",
+        shadow_backend=ShadowBackend(gl_capsules="always"),
+    )  # fmt: skip
+    engine = Engine(PREVIS, settings)
+    try:
+        frame = engine.render(600.0)
+        assert frame.report.lighting_on != "numba" and engine.shadows.capsule_backend == "gl"
+        assert frame.report.shadows["maps_drawn"] > 0 and frame.report.shadows["casters"] == 1
+        shared = engine.renderer.settings.shared
+        assert shared is not None and shared._users == 5  # the engine and its four users
+    finally:
+        engine.close()
+    assert len(made) == 1 and shared._ctx is None
 
 
 def test_the_shader_is_used_only_with_the_gl_renderer_on_a_gpu():

@@ -6,9 +6,11 @@ import numpy as np
 import pytest
 from pxr import Gf, Usd, UsdGeom, UsdLux
 
-from rigspace.runtime.lights import AMBIENT, DISTANT, POINT, light_prims, lights_at
+from rigspace.runtime.lighting import CompiledLighting, NumpyLighting, reshade
+from rigspace.runtime.lights import AMBIENT, DISTANT, POINT, Light, light_prims, lights_at
 from rigspace.runtime.shading import SPECULAR, shade
 from rigspace.sdk.camera import Camera
+from rigspace.sdk.render import Maps
 from tests.conftest import REPO
 
 SHADE_TOLERANCE = 1e-5
@@ -140,3 +142,44 @@ def test_shading_only_covered_pixels_equals_shading_every_pixel():
     every = shade_pixels(albedo, normal, points, mask, camera.world_to_camera, lights)
     assert np.allclose(fast, every, atol=SHADE_TOLERANCE)
     assert np.all(fast[mask == 0] == 0)
+
+
+# -- reshade (runtime/lighting.py): scattered pixels lit again ----------------------------------
+
+
+def _gbuffer(h: int, w: int) -> tuple[Maps, Camera]:
+    rng = np.random.default_rng(5)
+    normal = rng.normal(size=(h, w, 3)).astype(np.float32)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    mask = np.where(rng.random((h, w)) < 0.8, 1.0, rng.random((h, w))).astype(np.float32)
+    albedo = (rng.random((h, w, 3)) * mask[..., None]).astype(np.float32)
+    depth = rng.uniform(50.0, 80.0, (h, w)).astype(np.float32)
+    world = np.eye(4)
+    world[:3, 3] = (3.0, 40.0, 10.0)
+    return Maps(albedo, normal, depth, mask), Camera(world, w, h, 60.0, w / 2, h / 2)
+
+
+@pytest.mark.parametrize("lighting", [NumpyLighting(), CompiledLighting()], ids=["numpy", "numba"])
+def test_reshade_lights_the_pixels_given_as_the_whole_frame_would(lighting):
+    h, w = 40, 64
+    maps, camera = _gbuffer(h, w)
+    lights = [
+        Light(AMBIENT, np.array([0.1, 0.12, 0.15])),
+        Light(DISTANT, np.ones(3), direction=np.array([0.3, -0.9, -0.3]) / np.sqrt(0.99)),
+        Light(
+            POINT, np.full(3, 5.0), position=np.array([10.0, 60.0, -30.0]), area=300.0, radius=5.0
+        ),
+    ]
+    rng = np.random.default_rng(6)
+    shadow = [None, rng.random((h, w)).astype(np.float32), rng.random((h, w)).astype(np.float32)]
+    whole = lighting.shade(
+        maps.albedo, maps.normal, maps.depth, maps.mask, camera, lights, visibility=shadow
+    )
+    beauty = np.full((h, w, 3), -1.0, np.float32)
+    pixels = np.flatnonzero((rng.random((h, w)) < 0.05) & (maps.mask > 0))
+    pixels = pixels[(pixels % w > 5) & (pixels // w > 3)]  # a window that is not the frame
+    reshade(lighting, beauty, maps, camera, lights, pixels, shadow)
+    flat, expected = beauty.reshape(-1, 3), whole.reshape(-1, 3)
+    assert np.array_equal(flat[pixels], expected[pixels])
+    others = np.setdiff1d(np.arange(h * w), pixels)
+    assert np.all(flat[others] == -1.0)  # nothing else is written

@@ -17,7 +17,9 @@ PSNR_FLOOR_DB = 120.0
 def frame(beauty: np.ndarray, characters: list[dict]) -> SimpleNamespace:
     """What compare_regions reads of an Engine frame: beauty, albedo, the characters' report."""
     return SimpleNamespace(
-        beauty=beauty, maps=SimpleNamespace(albedo=beauty.copy()), report={"characters": characters}
+        beauty=beauty,
+        maps=SimpleNamespace(albedo=beauty.copy()),
+        report=SimpleNamespace(characters=characters),
     )
 
 

@@ -16,7 +16,7 @@ from pxr import Gf, Usd, UsdGeom
 
 from rigspace.runtime.billboard import Billboard
 from rigspace.runtime.character import COVERAGE_EPSILON, Layer
-from rigspace.runtime.engine import Engine
+from rigspace.runtime.engine import Engine, EngineSettings
 from rigspace.runtime.regions import (
     DEPTH_TOLERANCE,
     FEATHER_PX,
@@ -229,7 +229,7 @@ def face(tmp_path_factory):
 
 def _engine(scene, distance: float | None = None, **options) -> Engine:
     """An engine of the face scene at 96x72, its camera `distance` in front of the head."""
-    engine = Engine(scene, width=96, height=72, **options)
+    engine = Engine(scene, EngineSettings(width=96, height=72, **options))
     if distance is not None:
         with Usd.EditContext(engine.stage, engine.stage.GetSessionLayer()):
             UsdGeom.XformCommonAPI(engine.camera_prim).SetTranslate(Gf.Vec3d(0, 1.0, distance))
@@ -256,14 +256,14 @@ def test_a_close_camera_draws_the_face_over_the_body(face):
     with _engine(scene, 2.5) as engine, _engine(scene, 2.5, regions=False) as body_only:
         calls = _region_calls(engine)
         frame = engine.render(6.0)
-        (hero,) = frame.report["characters"]
+        (hero,) = frame.report.characters
         (region,) = hero["regions"]
         assert hero["size_px"] > hero["level"]  # the body is magnified on screen
         assert region["name"] == "face" and region["decision"] == "evaluated"
         assert region["level"] == 16 and len(region["region"]) == 4 and calls == [1]
-        assert frame.report["counts"]["regions evaluated"] == 1
+        assert frame.report.counts["regions evaluated"] == 1
         alone = body_only.render(6.0)
-        (off,) = alone.report["characters"][0]["regions"]
+        (off,) = alone.report.characters[0]["regions"]
         assert off["decision"] == "skipped" and "turned off" in off["reason"]
         # The face changes the body's image inside its own square only.
         x, y, w, h = region["region"]
@@ -273,8 +273,8 @@ def test_a_close_camera_draws_the_face_over_the_body(face):
         assert not changed.any()
         # The same time again: the frame is repeated, the face reused, no network call.
         again = engine.render(6.0)
-        assert again.report["characters"][0]["regions"][0]["decision"] == "reused"
-        assert again.report["counts"]["regions reused"] == 1 and calls == [1]
+        assert again.report.characters[0]["regions"][0]["decision"] == "reused"
+        assert again.report.counts["regions reused"] == 1 and calls == [1]
 
 
 @pytest.mark.slow  # the face fixture trains two bundles (10-30 s)
@@ -283,15 +283,15 @@ def test_far_or_without_its_body_the_face_is_skipped_and_runs_nothing(face):
     with _engine(scene, 60.0) as engine:
         calls = _region_calls(engine)
         far = engine.render(6.0)
-        hero = far.report["characters"][0]
+        hero = far.report.characters[0]
         assert hero["decision"] == "evaluated" and hero["size_px"] <= hero["level"]
         (region,) = hero["regions"]
         assert region["decision"] == "skipped" and "not magnified" in region["reason"]
-        assert far.report["counts"]["regions skipped"] == 1
+        assert far.report.counts["regions skipped"] == 1
         with Usd.EditContext(engine.stage, engine.stage.GetSessionLayer()):
             UsdGeom.XformCommonAPI(engine.camera_prim).SetRotate(Gf.Vec3f(0, 180, 0))
         behind = engine.render(7.0)
-        hero = behind.report["characters"][0]
+        hero = behind.report.characters[0]
         assert hero["decision"] == "skipped" and hero["reason"] == "behind the camera"
         assert hero["regions"][0]["reason"] == "its character is not drawn this frame"
         assert calls == [0]
@@ -357,7 +357,7 @@ def test_a_damaged_region_bundle_warns_and_the_body_draws(face, tmp_path, capsys
         assert said in warning and str(copy / "regions" / "face") in warning
         assert "Fix:" in warning and "--no-regions" in warning
         frame = engine.render(6.0)
-        hero = frame.report["characters"][0]
+        hero = frame.report.characters[0]
         assert hero["decision"] == "evaluated"
         assert hero["regions"][0]["decision"] == "skipped"
         assert said in hero["regions"][0]["reason"]

@@ -7,7 +7,7 @@ import numpy as np
 
 from rigspace.bench.scenes import PREVIS
 from rigspace.runtime.character import COVERAGE_EPSILON
-from rigspace.runtime.engine import Engine
+from rigspace.runtime.engine import Engine, EngineSettings
 from rigspace.sdk.texturing import region_warper
 
 
@@ -33,7 +33,7 @@ def _both(character, billboard, camera, region, coverage, normal_w, offset_w):
 
 
 def test_the_compiled_geometry_equals_the_reference():
-    engine = Engine(PREVIS, width=256, height=144)
+    engine = Engine(PREVIS, EngineSettings(width=256, height=144))
     try:
         character, billboard, camera, region, coverage, normal_w, offset_w = _warped(engine, 600)
         # Edge cases on a copy: a zero-length normal, coverage at epsilon, negative coverage.

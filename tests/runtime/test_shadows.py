@@ -11,7 +11,7 @@ import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
 from rigspace.runtime import shadows
-from rigspace.runtime.engine import Engine
+from rigspace.runtime.engine import Engine, EngineSettings
 from rigspace.runtime.lights import DISTANT, POINT, Light
 from rigspace.runtime.shadows import (
     PosedCapsules,
@@ -20,6 +20,8 @@ from rigspace.runtime.shadows import (
     cone_occlusion,
 )
 from rigspace.runtime.shadows import passes as shadow_pass
+from rigspace.runtime.shadows.frame import FrameShadows
+from rigspace.runtime.shadows.numpy_passes import world_points
 from rigspace.sdk.camera import Camera
 from rigspace.sdk.capsules import (
     CapsuleError,
@@ -99,13 +101,13 @@ def _sun(stage: Usd.Stage, tilt_z: float, tilt_x: float = -90.0) -> None:
 
 
 def _pixel(engine: Engine, point) -> tuple[int, int]:
-    camera = Camera.from_usd(engine.camera_prim, 0.0, engine.width, engine.height)
+    camera = Camera.from_usd(engine.camera_prim, 0.0, engine.settings.width, engine.settings.height)
     xy, _ = camera.project(np.asarray(point, float)[None])
     return int(xy[0, 1]), int(xy[0, 0])
 
 
 def _render(scene: Path, without_capsules: bool = False):
-    engine = Engine(scene, camera="/World/Test/Cam", width=SIZE[0], height=SIZE[1])
+    engine = Engine(scene, EngineSettings(camera="/World/Test/Cam", width=SIZE[0], height=SIZE[1]))
     try:
         if without_capsules:
             for character in engine.characters:
@@ -126,7 +128,7 @@ def test_the_capsules_darken_the_ground_under_the_character_and_nowhere_else(tmp
     scene = _stage(tmp_path, "sunny", build)
     engine, lit = _render(scene)
     _, bare = _render(scene, without_capsules=True)
-    assert lit.report["shadows"]["casters"] == 1 and bare.report["shadows"]["casters"] == 0
+    assert lit.report.shadows["casters"] == 1 and bare.report.shadows["casters"] == 0
     # Where the pelvis's shadow lands (its height along the 45-degree light), and a ground
     # point on the side the light comes from.
     under = _pixel(engine, pelvis + np.array((pelvis[1], -pelvis[1], 0)))
@@ -161,7 +163,7 @@ def _roofed(tmp_path: Path, roof: bool) -> Path:
 def test_a_prim_between_the_light_and_the_character_darkens_it_and_the_ground(tmp_path):
     engine, shaded = _render(_roofed(tmp_path, True))
     _, open_sky = _render(_roofed(tmp_path, False))
-    (hero,) = shaded.report["characters"]
+    (hero,) = shaded.report.characters
     x0, y0, w, h = hero["region"]
     region = np.s_[y0 : y0 + h, x0 : x0 + w]
     # The character's own pixels (the ground's albedo is a flat 0.5 grey): lit by the sky
@@ -186,7 +188,7 @@ def test_no_light_no_shadows(tmp_path):
         _camera(stage, pelvis + np.array((0, 150, 700)), -12.0)
 
     _, frame = _render(_stage(tmp_path, "dark", build))
-    assert frame.report["shadows"] == {"maps_drawn": 0, "casters": 0}
+    assert frame.report.shadows == {"maps_drawn": 0, "casters": 0}
     assert np.array_equal(frame.beauty, frame.maps.albedo)  # unlit: nothing darkened
 
 
@@ -207,16 +209,17 @@ def test_a_moving_light_redraws_the_maps_and_the_frame(tmp_path):
         _camera(stage, pelvis + np.array((0, 150, 700)), -12.0)
 
     engine = Engine(
-        _stage(tmp_path, "moving", build), camera="/World/Test/Cam", width=80, height=45
+        _stage(tmp_path, "moving", build),
+        EngineSettings(camera="/World/Test/Cam", width=80, height=45),
     )
     try:
         first, second = engine.render(0.0), engine.render(10.0)
     finally:
         engine.close()
     # The crate's map is drawn for the first frame and again for the turned light.
-    assert first.report["shadows"]["maps_drawn"] == 1
-    assert second.report["shadows"]["maps_drawn"] == 1
-    assert not second.report["composite_reused"]
+    assert first.report.shadows["maps_drawn"] == 1
+    assert second.report.shadows["maps_drawn"] == 1
+    assert not second.report.composite_reused
     assert not np.array_equal(first.beauty, second.beauty)
 
 
@@ -237,7 +240,9 @@ def test_a_still_camera_reuses_the_lit_prims_and_shadows_them_as_a_fresh_engine_
     scene = _stage(tmp_path, "still", build)
 
     def frames(*times):
-        engine = Engine(scene, camera="/World/Test/Cam", width=SIZE[0], height=SIZE[1])
+        engine = Engine(
+            scene, EngineSettings(camera="/World/Test/Cam", width=SIZE[0], height=SIZE[1])
+        )
         try:
             return [engine.render(t) for t in times]
         finally:
@@ -245,8 +250,8 @@ def test_a_still_camera_reuses_the_lit_prims_and_shadows_them_as_a_fresh_engine_
 
     first, second, third = frames(0.0, 12.0, 24.0)
     fresh_second, fresh_third = frames(12.0), frames(24.0)
-    assert not first.report["scene_prims"]["lit_reused"]
-    assert second.report["scene_prims"]["lit_reused"] and third.report["scene_prims"]["lit_reused"]
+    assert not first.report.scene_prims["lit_reused"]
+    assert second.report.scene_prims["lit_reused"] and third.report.scene_prims["lit_reused"]
     assert not np.array_equal(first.beauty, second.beauty)  # the character walked
     for reused, fresh in ((second, fresh_second[0]), (third, fresh_third[0])):
         assert np.abs(reused.beauty - fresh.beauty).max() < 1e-5
@@ -412,16 +417,19 @@ def test_a_bundle_without_capsules_casts_no_shadow_and_says_so_once(tmp_path, ca
         model = stage.GetPrimAtPath("/World/Hero").GetAttribute("rigspace:model")
         model.Set(Sdf.AssetPath(str(bundle)))
 
-    engine = Engine(_stage(tmp_path, "bare", build), camera="/World/Test/Cam", width=80, height=45)
+    engine = Engine(
+        _stage(tmp_path, "bare", build),
+        EngineSettings(camera="/World/Test/Cam", width=80, height=45),
+    )
     try:
         first, second = engine.render(0.0), engine.render(1.0)
     finally:
         engine.close()
     err = capsys.readouterr().err
     assert err.count("casts no shadow") == 1 and "capsules.json" in err
-    assert first.report["shadows"]["without_capsules"] == ["/World/Hero"]
-    assert "without_capsules" not in second.report["shadows"]
-    assert first.report["shadows"]["casters"] == 0
+    assert first.report.shadows["without_capsules"] == ["/World/Hero"]
+    assert "without_capsules" not in second.report.shadows
+    assert first.report.shadows["casters"] == 0
     # Adding the fit to the bundle gives it its shadow.
     add_to_bundle(fit_capsules(_rig()), bundle)
     assert json.loads((bundle / "manifest.json").read_text())["capsules"] == "capsules.json"
@@ -530,20 +538,26 @@ def test_blending_leaves_out_what_lies_far_from_the_candidates_with_the_same_res
 def test_the_previs_frame_blended_matches_every_pixel_evaluated(monkeypatch):
     """The engine's shadows with blending against every candidate pixel evaluated, on a
     previs frame with the character's shadow, the crates' and the ball's (both lights)."""
-    from rigspace.runtime import engine as engine_module
+    from rigspace.runtime.shadows import numpy_passes
 
     def frame():
         engine = Engine(
-            PREVIS, width=320, height=180, precision="int8", prim_samples=1,
-            shadow_backend=ShadowBackend("numpy"),  # the engine's numpy passes
-        )  # fmt: skip
+            PREVIS,
+            EngineSettings(
+                width=320,
+                height=180,
+                precision="int8",
+                prim_samples=1,
+                shadow_backend=ShadowBackend("numpy"),
+            ),  # the engine's numpy passes
+        )
         try:
             return np.array(engine.render(600.0).beauty)
         finally:
             engine.close()
 
     blended = frame()
-    monkeypatch.setattr(engine_module, "sparse_visibility", _full_visibility)
+    monkeypatch.setattr(numpy_passes, "sparse_visibility", _full_visibility)
     full = frame()
     gap = np.abs(blended - full).max(axis=-1)
     # Measured: 4 of 57,600 pixels differ by more than 2/255 of the linear beauty, the most
@@ -557,7 +571,7 @@ def test_the_previs_frame_blended_matches_every_pixel_evaluated(monkeypatch):
 def test_the_depth_only_pass_draws_the_maps_depth(name):
     from rigspace.sdk.render import RenderSettings, choose_renderer, render_depth
 
-    engine = Engine(PREVIS, width=64, height=36, prim_samples=1)
+    engine = Engine(PREVIS, EngineSettings(width=64, height=36, prim_samples=1))
     try:
         meshes = engine.scene.meshes(600.0)
     finally:
@@ -657,8 +671,17 @@ def test_the_previs_frame_through_the_shader_matches_numpy(monkeypatch):
         pytest.skip(f"the gl renderer cannot run here: {gl_module.unavailable()}")
 
     def frame(where: str) -> tuple[np.ndarray, str]:
-        engine = Engine(PREVIS, width=320, height=180, precision="int8", prim_samples=1,
-                        renderer="gl", shadow_backend=ShadowBackend(gl_capsules=where))  # fmt: skip
+        engine = Engine(
+            PREVIS,
+            EngineSettings(
+                width=320,
+                height=180,
+                precision="int8",
+                prim_samples=1,
+                renderer="gl",
+                shadow_backend=ShadowBackend(gl_capsules=where),
+            ),
+        )
         try:
             return np.array(engine.render(600.0).beauty), engine.shadows.capsule_backend
         finally:
@@ -710,15 +733,13 @@ KERNEL_MEAN_TOLERANCE = 1e-5
 """Mean visibility gap over the frame's pixels (8e-7 measured)."""
 
 
-_PRIM_SHADOWS = Engine._prim_shadows
+_PRIM_SHADOWS = FrameShadows.prims
 """The engine's own (the tests below record what it returns)."""
 
 
 def _shadow_terms(monkeypatch, kernel: str, times, size=(320, 180)):
     """Per time: the beauty and the prims' per-light shadow factors (maps', capsules') that
     the engine shaded with, through the numba kernels or the numpy passes."""
-    from rigspace.runtime import engine as engine_module
-
     terms = []
 
     def recording(self, *args):
@@ -726,11 +747,17 @@ def _shadow_terms(monkeypatch, kernel: str, times, size=(320, 180)):
         terms.append(out)
         return out
 
-    monkeypatch.setattr(engine_module.Engine, "_prim_shadows", recording)
+    monkeypatch.setattr(FrameShadows, "prims", recording)
     engine = Engine(
-        PREVIS, width=size[0], height=size[1], precision="int8", prim_samples=1,
-        shadow_backend=ShadowBackend(kernel),
-    )  # fmt: skip
+        PREVIS,
+        EngineSettings(
+            width=size[0],
+            height=size[1],
+            precision="int8",
+            prim_samples=1,
+            shadow_backend=ShadowBackend(kernel),
+        ),
+    )
     try:
         frames = [np.array(engine.render(float(t)).beauty) for t in times]
     finally:
@@ -831,8 +858,8 @@ def test_the_kernels_compile_once_and_later_processes_load_them():
     script = (
         "import numpy as np\n"
         "from rigspace.runtime.shadows import kernels as k\n"
-        "from rigspace.runtime.engine import Engine\n"
-        f"e = Engine({str(PREVIS)!r}, width=64, height=36, prim_samples=1)\n"
+        "from rigspace.runtime.engine import Engine, EngineSettings\n"
+        f"e = Engine({str(PREVIS)!r}, EngineSettings(width=64, height=36, prim_samples=1))\n"
         "e.render(600.0); e.close()\n"
         "kernels = (k.sparse_pass, k.shadow_regions, k.points_visibility, k.capsule_arrays)\n"
         "used = [f for f in kernels if f.signatures]\n"
@@ -879,19 +906,25 @@ def test_the_compiled_passes_match_numpy_with_several_characters(tmp_path, monke
     frames = {}
     for kernel in ("numba", "numpy"):
         engine = Engine(
-            scene, width=240, height=135, precision="int8", prim_samples=1,
-            shadow_backend=ShadowBackend(kernel),
-        )  # fmt: skip
+            scene,
+            EngineSettings(
+                width=240,
+                height=135,
+                precision="int8",
+                prim_samples=1,
+                shadow_backend=ShadowBackend(kernel),
+            ),
+        )
         try:
             frame = engine.render(700.0)
         finally:
             engine.close()
-        assert frame.report["shadows"]["casters"] == 3
+        assert frame.report.shadows["casters"] == 3
         frames[kernel] = np.array(frame.beauty)
     assert np.abs(frames["numba"] - frames["numpy"]).max() < KERNEL_TOLERANCE
 
 
-_LAYER_VISIBILITY = Engine._layer_visibility
+_LAYER_VISIBILITY = FrameShadows.layer
 GROUND_CONTACT = 3.0
 """World y (cm) below which a layer pixel touches or lies under the ground (y = 0): within
 the ground shadow map's depth bias, numpy and the kernels disagree there (the ground casts
@@ -902,8 +935,6 @@ def test_the_character_layer_blended_matches_every_pixel_evaluated_by_numpy(tmp_
     """The character's own shadow factors (the maps', per light) blended coarse to fine by
     the kernels against numpy evaluating every pixel of the layer: three previs frames, and
     a roof whose shadow's edge crosses the character."""
-    from rigspace.runtime import engine as engine_module
-
     pelvis = _pelvis()
 
     def build(stage):
@@ -939,7 +970,7 @@ def test_the_character_layer_blended_matches_every_pixel_evaluated_by_numpy(tmp_
             # test_the_compiled_shadow_passes_match_numpy_on_previs_frames), so they are left
             # out; how many there are depends on the model's depth, not on the kernels.
             r, c = np.mgrid[rows, cols]
-            points, _ = engine_module._world_points(
+            points, _ = world_points(
                 layer.depth[rows, cols].ravel(), r.ravel(), c.ravel(),
                 np.zeros((r.size, 3), np.float32), camera, (layer.x0, layer.y0),
             )  # fmt: skip
@@ -953,18 +984,21 @@ def test_the_character_layer_blended_matches_every_pixel_evaluated_by_numpy(tmp_
             )
             return out
 
-        monkeypatch.setattr(engine_module.Engine, "_layer_visibility", recording)
+        monkeypatch.setattr(FrameShadows, "layer", recording)
         engine = Engine(
-            PREVIS, width=320, height=180, precision="int8", prim_samples=1,
-            shadow_backend=backend,
-        )  # fmt: skip
+            PREVIS,
+            EngineSettings(
+                width=320, height=180, precision="int8", prim_samples=1, shadow_backend=backend
+            ),
+        )
         try:
             for t in (250.0, 750.0, 850.0):
                 engine.render(t)
         finally:
             engine.close()
         engine = Engine(
-            half_roof, camera="/World/Test/Cam", width=320, height=180, shadow_backend=backend
+            half_roof,
+            EngineSettings(camera="/World/Test/Cam", width=320, height=180, shadow_backend=backend),
         )
         try:
             engine.render(0.0)
@@ -998,21 +1032,22 @@ def test_the_character_layer_blended_matches_every_pixel_evaluated_by_numpy(tmp_
 
 
 def test_the_engine_keeps_a_frames_shadow_passes_to_run_again():
-    """Engine.shadow_passes: the frame's passes run again on the same inputs, the same each
+    """Engine.shadows.record: the frame's passes run again on the same inputs, the same each
     time, and with the numpy backend the prims' match within the kernels' tolerance (the
     layer's differ at the feet: test_the_character_layer_blended_matches_every_pixel...);
     Engine.report_cpu adds each stage's CPU seconds."""
-    engine = Engine(PREVIS, width=96, height=54, prim_samples=1)
+    engine = Engine(PREVIS, EngineSettings(width=96, height=54, prim_samples=1))
     try:
-        assert "cpu_seconds" not in engine.render(500.0).report
-        assert engine.shadow_passes is None
-        engine.shadow_passes, engine.report_cpu = {}, True
+        assert engine.render(500.0).report.cpu_seconds is None
+        assert engine.shadows.record is None
+        engine.shadows.record, engine.report_cpu = {}, True
         frame = engine.render(600.0)
-        assert set(engine.shadow_passes) == {"prims", "layer"}
-        cpu = frame.report["cpu_seconds"]
-        assert set(cpu) == set(frame.report["seconds"]) - {"total"}
+        assert set(engine.shadows.record) == {"prims", "layer"}
+        cpu = frame.report.cpu_seconds
+        assert cpu is not None
+        assert set(cpu) == set(frame.report.seconds) - {"total"}
         assert cpu["shadows"] > 0 and min(cpu.values()) >= 0
-        runs = dict(engine.shadow_passes)
+        runs = dict(engine.shadows.record)
         (mapped, hidden), layer = runs["prims"](), runs["layer"]()
         again = runs["layer"]()
         engine.use_shadow_backend(ShadowBackend("numpy"))

@@ -16,7 +16,7 @@ torch = pytest.importorskip("torch", reason="these tests train a tiny model (the
 from pxr import Sdf, Usd, UsdGeom, UsdShade  # noqa: E402
 
 from rigspace.capture.pipeline import capture  # noqa: E402
-from rigspace.runtime.engine import Engine  # noqa: E402
+from rigspace.runtime.engine import Engine, EngineSettings  # noqa: E402
 from rigspace.train.config import preset  # noqa: E402
 from rigspace.train.export import export_bundle  # noqa: E402
 from rigspace.train.loop import train  # noqa: E402
@@ -57,9 +57,9 @@ def textured(tmp_path_factory):
 
 
 def _frame(scene, capsys):
-    with Engine(scene, camera="/World/Camera", width=160, height=120) as engine:
+    with Engine(scene, EngineSettings(camera="/World/Camera", width=160, height=120)) as engine:
         frame = engine.render(6.0)
-    entry = next(c for c in frame.report["characters"] if c["path"] == CHARACTER)
+    entry = next(c for c in frame.report.characters if c["path"] == CHARACTER)
     return frame, entry, capsys.readouterr().err
 
 

@@ -18,7 +18,7 @@ import pytest
 from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdShade, UsdSkel
 
 from rigspace.capture.settings import resolve_settings
-from rigspace.runtime.engine import Engine
+from rigspace.runtime.engine import Engine, EngineSettings
 from rigspace.sdk import validation
 from rigspace.sdk.bundle import BundleError
 from rigspace.sdk.cli import main
@@ -102,7 +102,7 @@ def refusal(purpose: str, scene: Path) -> RigspaceError | None:
         if purpose == "capture":
             resolve_settings(scene, HERO, warn=lambda _text: None)
         else:
-            Engine(scene, width=32, height=18).close()
+            Engine(scene, EngineSettings(width=32, height=18)).close()
     except RigspaceError as exc:
         return exc
     return None

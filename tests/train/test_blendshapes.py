@@ -74,7 +74,7 @@ def test_the_runtime_feeds_the_animations_weights_and_re_evaluates_when_only_the
     """The face's joints hold still from time code 12 on (the neck stops bending) while its
     weights are those of 12: a copy whose weights keep changing must be evaluated each frame,
     not reused as 'the same pose'."""
-    from rigspace.runtime.engine import Engine
+    from rigspace.runtime.engine import Engine, EngineSettings
 
     stage = Usd.Stage.Open(str(face))
     anim = stage.GetPrimAtPath("/World/Asset/Skel/Anim")
@@ -85,13 +85,15 @@ def test_the_runtime_feeds_the_animations_weights_and_re_evaluates_when_only_the
     stage.GetPrimAtPath(CHARACTER).GetAttribute("rigspace:model").Set(str(bundle))
     scene = tmp_path / "still.usda"
     stage.GetRootLayer().Export(str(scene))
-    engine = Engine(scene, camera="/World/Camera", width=96, height=64, renderer="gl")
+    engine = Engine(
+        scene, EngineSettings(camera="/World/Camera", width=96, height=64, renderer="gl")
+    )
     try:
         decisions = []
         frames = []
         for t in (3.0, 4.0, 4.0):
             frame = engine.render(t)
-            (entry,) = frame.report["characters"]
+            (entry,) = frame.report.characters
             decisions.append(entry["decision"])
             frames.append(frame.beauty.copy())
     finally:
@@ -158,13 +160,15 @@ def test_a_live_vmc_face_stream_moves_the_rendered_face(face, bundle, tmp_path):
     """An independent sender's weights reach the network: by exact name (jawOpen), by a VRM
     preset ("Blink" drives the character's blink), loosely (Frown_ -> frown); the rendered
     face changes with them; a name the face lacks is ignored."""
-    from rigspace.runtime.engine import Engine
+    from rigspace.runtime.engine import Engine, EngineSettings
     from tests.conftest import free_port
     from tests.runtime.live.conftest import wait_for
 
     port = free_port()
     scene = _live_face(face, bundle, tmp_path, port)
-    with Engine(scene, camera="/World/Camera", width=96, height=64, renderer="gl") as engine:
+    with Engine(
+        scene, EngineSettings(camera="/World/Camera", width=96, height=64, renderer="gl")
+    ) as engine:
         engine.render(6.0)  # opens the source
         runtime = engine.live.characters[CHARACTER].runtimes[0]
         frames = {}

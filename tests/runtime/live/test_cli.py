@@ -186,8 +186,8 @@ def test_sender_stopping_goes_stale_then_lost_frames_keep_coming_and_it_reconnec
             state["phase"] = "first"
             return False
         state["ticks"] = getattr(engine.live, "ticks", None)
-        shown[frame.report["time"]] = live.last_local.copy()  # what this frame used
-        entry = frame.report["characters"][0]["live"][0]
+        shown[frame.report.time] = live.last_local.copy()  # what this frame used
+        entry = frame.report.characters[0]["live"][0]
         phases[state["phase"]].append(entry)
         settled = entry["status"] == "connected" and not live.runtimes[0].fading
         state["settled"] = state["settled"] + 1 if settled else 0

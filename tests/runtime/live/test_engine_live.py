@@ -7,7 +7,7 @@ import socket
 import numpy as np
 import pytest
 
-from rigspace.runtime.engine import Engine
+from rigspace.runtime.engine import Engine, EngineSettings
 from rigspace.runtime.live.decoders.vmc import encode_frame
 from rigspace.runtime.live.retarget import PRESETS
 from rigspace.runtime.live.transports import LiveSourceError
@@ -39,21 +39,23 @@ def held_pose(angle: float) -> np.ndarray:
 
 def test_a_still_source_costs_a_reused_frame_and_every_frame_reports_the_binding():
     port = free_port()
-    with Engine(LIVE_SCENE, sources={"suit": f"vmc://127.0.0.1:{port}"}, **SMALL) as engine:
+    with Engine(
+        LIVE_SCENE, EngineSettings(sources={"suit": f"vmc://127.0.0.1:{port}"}, **SMALL)
+    ) as engine:
         assert not udp_port_bound(port)  # sources open lazily, at the first frame
         first = engine.render(10.0)
         assert udp_port_bound(port)
-        (entry,) = first.report["characters"]
+        (entry,) = first.report.characters
         assert entry["live"] == [{"binding": "suit", "status": "waiting", "weight": 0.0}]
-        assert first.report["live"][0]["samples"] == 0
+        assert first.report.live[0]["samples"] == 0
         live = engine.live.characters["/World/Hero"]
         for k in range(3):  # a performer holding still: the same values, new timestamps
             send_pose(port, HELD, held_pose(0.6), 0.01 * k)
         runtime = live.runtimes[0]
         assert wait_for(lambda: runtime.counters().samples >= 3 * len(HELD))
         moved = engine.render(11.0)
-        assert moved.report["characters"][0]["live"][0]["status"] == "connected"
-        assert moved.report["characters"][0]["decision"] == "evaluated"
+        assert moved.report.characters[0]["live"][0]["status"] == "connected"
+        assert moved.report.characters[0]["decision"] == "evaluated"
         # The connect fades in from the stage pose (issue 21: no pop); the held pose after it.
         # The performer holds still meanwhile (a gap would hold the fade where it was).
         assert runtime.fading
@@ -72,29 +74,29 @@ def test_a_still_source_costs_a_reused_frame_and_every_frame_reports_the_binding
         # A later stage time, the same live pose: the character's layer is reused (no network
         # call), while the set's props go on moving with the stage.
         still = engine.render(12.0)
-        assert still.report["characters"][0]["decision"] == "reused"
-        assert still.report["seconds"]["network"] < 1e-4  # no network evaluation
-        assert still.report["live"][0]["samples"] == sent[0] * (len(HELD) + 1)
+        assert still.report.characters[0]["decision"] == "reused"
+        assert still.report.seconds["network"] < 1e-4  # no network evaluation
+        assert still.report.live[0]["samples"] == sent[0] * (len(HELD) + 1)
         # The same time code with a new live pose is not the last frame repeated.
         send_pose(port, HELD, held_pose(-0.4), 0.01 * sent[0])
         assert wait_for(lambda: runtime.counters().samples >= (sent[0] + 1) * (len(HELD) + 1))
         changed = engine.render(12.0)
-        assert "repeat_of_last_frame" not in changed.report
-        assert changed.report["characters"][0]["decision"] == "evaluated"
+        assert not changed.report.repeat_of_last_frame
+        assert changed.report.characters[0]["decision"] == "evaluated"
     assert not udp_port_bound(port)  # closed with the engine
 
 
 def test_the_stage_animation_is_not_reused_without_a_live_binding():
-    with Engine(LIVE_SCENE, live=False, **SMALL) as engine:
+    with Engine(LIVE_SCENE, EngineSettings(live=False, **SMALL)) as engine:
         assert not engine.live.active
         engine.render(11.0)
         frame = engine.render(12.0)
-    assert frame.report["characters"][0]["decision"] == "evaluated"  # the animation moves
-    assert "live" not in frame.report and "live" not in frame.report["characters"][0]
+    assert frame.report.characters[0]["decision"] == "evaluated"  # the animation moves
+    assert frame.report.live is None and "live" not in frame.report.characters[0]
 
 
 def test_a_disabled_binding_leaves_the_stage_animation():
-    with Engine(PREVIS, **SMALL) as engine:
+    with Engine(PREVIS, EngineSettings(**SMALL)) as engine:
         assert not engine.live.active  # previs authors its suit binding disabled
 
 
@@ -102,7 +104,9 @@ def test_a_binding_whose_source_cannot_open_is_one_error_naming_it():
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
         taken.bind(("127.0.0.1", 0))
         port = taken.getsockname()[1]
-        engine = Engine(LIVE_SCENE, sources={"suit": f"vmc://127.0.0.1:{port}"}, **SMALL)
+        engine = Engine(
+            LIVE_SCENE, EngineSettings(sources={"suit": f"vmc://127.0.0.1:{port}"}, **SMALL)
+        )
         with pytest.raises(LiveSourceError) as error:
             engine.render(0.0)
         engine.close()

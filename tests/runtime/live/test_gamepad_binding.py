@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from pxr import Usd
 
-from rigspace.runtime.engine import Engine
+from rigspace.runtime.engine import Engine, EngineSettings
 from rigspace.runtime.live.binding import open_binding
 from rigspace.runtime.live.decoders.evdev import (
     ABS_CODES,
@@ -125,7 +125,7 @@ def test_the_binding_map_turns_joints_and_blends_the_stage_towards_a_clip(tmp_pa
     read_end, write_end = os.pipe()  # a real fd read through select/os.read, as /dev/input
     url = f"gamepad:///proc/self/fd/{read_end}"
     try:
-        with Engine(pad_scene(tmp_path), sources={"pad": url}, **SMALL) as engine:
+        with Engine(pad_scene(tmp_path), EngineSettings(sources={"pad": url}, **SMALL)) as engine:
             engine.open_live()
             hero = engine.characters[0]
             live = engine.live.characters[hero.path]
@@ -168,7 +168,7 @@ def test_a_url_map_overrides_the_binding_and_unknown_clips_are_named(tmp_path):
     read_end, write_end = os.pipe()
     try:
         url = f"gamepad:///proc/self/fd/{read_end}?axes=ABS_X:neck_01:X:10"
-        with Engine(pad_scene(tmp_path), sources={"pad": url}, **SMALL) as engine:
+        with Engine(pad_scene(tmp_path), EngineSettings(sources={"pad": url}, **SMALL)) as engine:
             engine.open_live()
             (runtime,) = engine.live.characters[engine.characters[0].path].runtimes
             assert runtime.source.bones == ("neck_01",)  # the URL's axes=, the stage's clips
@@ -176,7 +176,10 @@ def test_a_url_map_overrides_the_binding_and_unknown_clips_are_named(tmp_path):
         # Inspect stops a scene whose pad names a clip the character lacks, before any frame.
         scene = pad_scene(tmp_path, clips=["ABS_RZ:dance"], name="dance")
         with pytest.raises(RigspaceError, match=r"gamepadClips entry 'ABS_RZ:dance'.*walk, wave"):
-            Engine(scene, sources={"pad": f"gamepad:///proc/self/fd/{read_end}"}, **SMALL)
+            Engine(
+                scene,
+                EngineSettings(sources={"pad": f"gamepad:///proc/self/fd/{read_end}"}, **SMALL),
+            )
         # open_binding itself names it too (for callers that skip validation).
         stage = Usd.Stage.Open(str(PREVIS))
         (binding,) = [b for b in read_live_bindings(stage.GetPrimAtPath("/World/Hero"))]
