@@ -227,13 +227,16 @@ def run(args: argparse.Namespace) -> tuple[dict, list[Part], list[str]]:
     from tqdm import tqdm
 
     from rigspace.runtime.engine import Engine
+    from rigspace.runtime.settings import EngineSettings
     from rigspace.sdk.render import RenderSettings, choose_renderer
 
     draws = _draws(args)
     size = {"width": args.width, "height": args.height, "camera": args.camera}
     opened: list = []
     try:
-        truth = Engine(args.scene, reference=True, renderer=args.renderer, live=False, **size)
+        truth = Engine(
+            args.scene, EngineSettings(reference=True, renderer=args.renderer, live=False, **size)
+        )
         opened.append(truth)
         if len(truth.characters) != 1:
             raise SystemExit(
@@ -241,8 +244,9 @@ def run(args: argparse.Namespace) -> tuple[dict, list[Part], list[str]]:
             )
         parts = _parts(args, truth.characters[0])
         for _, bundle, regions in draws:
-            models = {"": bundle} if bundle else None
-            opened.append(Engine(args.scene, live=False, regions=regions, models=models, **size))
+            models = {"": bundle} if bundle else {}
+            settings = EngineSettings(live=False, regions=regions, models=models, **size)
+            opened.append(Engine(args.scene, settings))
         renderer = choose_renderer(args.renderer).create(RenderSettings(2))
         opened.append(renderer)
         tallies = {(p.name, label): Tally() for p in parts for label, _, _ in draws}
