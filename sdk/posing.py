@@ -177,6 +177,11 @@ class CharacterRig:
         return np.concatenate([self.blend_weights(time), self.control_values(time)])
 
     @property
+    def has_skinned_meshes(self) -> bool:
+        """Whether the skeleton skins any of the character's meshes (else all are cached)."""
+        return bool(self._meshes)
+
+    @property
     def cached_meshes(self) -> list[Usd.Prim]:
         """The point-cached Mesh prims, in drawing order."""
         return [m.prim for m in self._cached]
