@@ -59,7 +59,8 @@ class TakeRecorder:
             if w.shape != (len(self._scalars),) or not np.isfinite(w).all():
                 raise TakeError(
                     f"A take frame's blend shape weights and control values have shape "
-                    f"{w.shape} or are not finite; expected {len(self._scalars)} finite values.",
+                    f"{w.shape} or are not finite; expected {len(self._scalars)} finite weights "
+                    "(the blend shapes', then the controls').",
                     "record one weight per blend shape, then one value per control "
                     "(CharacterRig.scalar_names order).",
                 )
