@@ -308,10 +308,11 @@ def _weights(value: Any, controls: Any = None) -> dict[str, dict[str, float]]:
     engine takes both as overrides: Engine.set_weights), at most MAX_WEIGHTS numbers in all
     (ValueError: malformed; the names are checked by the engine)."""
     out: dict[str, dict[str, float]] = {}
-    for kind, given, limit in (("blend shape", value, 2.0), ("control", controls, MAX_CONTROL)):
+    kinds = (("blend shape", "weights", value, 2.0), ("control", "values", controls, MAX_CONTROL))
+    for kind, plural, given, limit in kinds:
         given = {} if given is None else given
         if not isinstance(given, dict) or not all(isinstance(w, dict) for w in given.values()):
-            raise ValueError(f"{kind} values must be {{character path: {{{kind}: number}}}}")
+            raise ValueError(f"{kind} {plural} must be {{character path: {{{kind}: number}}}}")
         for path, shapes in given.items():
             for name, number in shapes.items():
                 if (

@@ -90,6 +90,13 @@ def test_rigspace_render_draws_the_cached_character_with_the_engine(arm, tmp_pat
     assert frames, report
 
 
+def test_eval_measures_the_model_on_the_cached_frames(arm, capsys):
+    _, bundle = arm
+    dataset = bundle.parent / "ds"
+    assert main(["eval", str(bundle), str(dataset), "--no-baselines", "--limit", "4"]) == 0
+    assert "| model |" in capsys.readouterr().out
+
+
 def test_the_runtime_feeds_the_stage_control_and_re_evaluates_when_only_it_changes(arm, tmp_path):
     """The arm's elbow holds still while its control keeps moving: each new value is a new
     evaluation (not 'the same pose'); a repeated one is reused."""
