@@ -113,7 +113,7 @@ def _check_controls(prim: Usd.Prim) -> Iterator[Issue]:
                     "(capture records it as a rig parameter).",
                 )
                 break
-        values = np.array([attr.Get(t) for t in times], dtype=np.float64) if times else []
+        values = np.array([attr.Get(t) for t in times] if times else [], dtype=np.float64)
         if not problem and len(values) and np.all(np.isfinite(values)):
             outside = (values < control.low) | (values > control.high)
             if outside.any():

@@ -191,8 +191,7 @@ class CharacterRig:
     @property
     def triangle_count(self) -> int:
         """Triangles a posed frame draws (every skinned and cached mesh, after triangulation)."""
-        meshes = [*self._meshes, *self._cached]
-        return sum(len(part.triangles) for mesh in meshes for part in mesh.parts)
+        return sum(len(part.triangles) for part in self.mesh_sources())
 
     def mesh_name(self, mesh: MeshSource) -> str:
         """A skinned mesh's (or material subset's) path relative to the character prim (how
@@ -222,7 +221,8 @@ class CharacterRig:
     def mesh_sources(self) -> list[MeshSource]:
         """The meshes' parts (topology, uvs and albedo): the skinned ones in skinning order,
         then the point-cached ones (posed_meshes order)."""
-        return [part for m in [*self._meshes, *self._cached] for part in m.parts]
+        meshes: list[_SkinnedMesh | _CachedMesh] = [*self._meshes, *self._cached]
+        return [part for m in meshes for part in m.parts]
 
     def dominant_joints(self) -> list[np.ndarray]:
         """Per posed mesh (posed_meshes order), (N,) int: the skeleton index (`joints`) of the
@@ -383,7 +383,7 @@ class CharacterRig:
         elif weights is not None:
             weights = np.asarray(weights)[: len(self.blend_shapes)]
         meshes = []
-        posed = [
+        posed: list[tuple[_SkinnedMesh | _CachedMesh, np.ndarray]] = [
             (m, self._world_points(m, skinning, to_world, weights, time)) for m in self._meshes
         ]
         posed += [(m, self._cached_points(m, time)) for m in self._cached]

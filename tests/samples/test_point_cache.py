@@ -41,7 +41,8 @@ def test_the_deformations_are_centimetres_from_lbs_and_none_without_flexion_or_t
     assert offsets[1] > 3.0 and summary["largest_offset_cm"] > 3.0  # the wave: several cm
     assert offsets[3] < 1e-3  # the stretch clip at 720 bends no elbow and turns no arm
     assert {"bicepsBulge_r", "armTwist_r"} <= set(baked["controls"])  # what these frames move
-    assert not [c for c in baked["controls"] if c.startswith("forearmTwist")]  # no clip turns a wrist
+    # No clip turns a wrist: the forearm's twist never moves, so it is no control.
+    assert not [c for c in baked["controls"] if c.startswith("forearmTwist")]
     assert baked["controls"]["armTwist_r"].max() == pytest.approx(90.0, abs=0.5)
 
 
