@@ -152,8 +152,11 @@ def test_render_and_eval_name_the_field_and_leave_no_output(tmp_path, capsys, pa
 
 def test_a_wrong_type_in_a_dataset_manifest_is_a_named_error(tmp_path, tiny_dataset):
     manifest = json.loads((tiny_dataset / "manifest.json").read_text())
+    # A rig with named controls adds its `controls` (docs/point_caches.md; the tiny one has none).
+    manifest["controls"] = [{"name": "bulge", "range": [0.0, 1.0]}]
     fields = [f for f in DATASET_MANIFEST if present(manifest, f)]
     assert len(fields) >= len(DATASET_MANIFEST) - 2
+    assert {f.path for f in fields} >= {"controls", "controls[].name", "controls[].range"}
     for field in fields:
         folder = tmp_path / field.path.replace("[]", "-each")  # clips and clips[]: two folders
         folder.mkdir()
@@ -268,6 +271,7 @@ def test_the_dataset_and_run_specs_are_their_dataclasses():
     keys = {f.name for f in dataclasses.fields(DatasetManifest)} - unkeyed
     assert keys <= paths and "path" not in paths
     assert [f.path for f in TRAINING_RUN if f.required] == ["config", "dataset", "joints",
+                                                            "controls[].name", "controls[].range",
                                                             "plan.steps_per_level"]  # fmt: skip
     assert {f.name for f in dataclasses.fields(RunRecord)} <= {f.path for f in TRAINING_RUN}
 
