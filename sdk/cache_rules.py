@@ -172,8 +172,8 @@ def _mesh_issues(mesh: Usd.Prim, path) -> tuple[list[float], list[Issue]]:
             error(
                 "CachePointCount",
                 f"Point cache {mesh.GetPath()} (of {path}) does not match its topology: "
-                f"{_frames(len(wrong))} of its {len(samples)} have another point count, the first "
-                f"at time {t:g} with {n} points where its faces need {expected}. Fix: {RE_EXPORT}.",
+                f"another point count in {len(wrong)} of its {len(samples)} frames, the first at "
+                f"time {t:g} with {n} points where its faces need {expected}. Fix: {RE_EXPORT}.",
                 purposes=(CAPTURE,),
             )
         )

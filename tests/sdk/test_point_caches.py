@@ -69,7 +69,7 @@ def test_a_frame_the_cache_cannot_give_is_a_scene_error(tmp_path):
     [
         ("frames", "CacheFramesDisagree", "has 13 frames (0-12), but point cache /World/Asset/Arm "
          "has 14 frames (0-13)"),
-        ("points", "CachePointCount", "1 frame of its 13 have another point count, the first at "
+        ("points", "CachePointCount", "another point count in 1 of its 13 frames, the first at "
          "time 5 with 107 points where its faces need 108"),
         ("nan", "CachePointsNotFinite", "NaN or Inf points in 1 frame, the first at time 7"),
     ],
