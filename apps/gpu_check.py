@@ -88,6 +88,7 @@ def sample_recipe() -> tuple[Any, Any]:
         parents=tuple(section["parents"]),
         charts=int(section["charts"]),
         blend_shapes=int(section.get("blend_shapes", 0)),
+        controls=int(section.get("controls", 0)),
     )
     return config, shape
 

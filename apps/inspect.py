@@ -21,7 +21,10 @@ from pxr import Usd, UsdGeom, UsdLux, UsdSkel
 
 from rigspace.sdk import schema, validation
 from rigspace.sdk.bindings import bound_animation
+from rigspace.sdk.cache_rules import cache_frames, control_spans
+from rigspace.sdk.character_rules import point_cached_meshes
 from rigspace.sdk.cli import CommandSpec
+from rigspace.sdk.controls import STILL_VALUE
 from rigspace.sdk.stage import meters_per_unit, open_stage, up_axis
 
 
@@ -111,6 +114,25 @@ def _camera_info(prim: Usd.Prim) -> dict[str, Any]:
     }
 
 
+def _rig_info(prim: Usd.Prim) -> dict[str, Any] | None:
+    """A character's rig beyond UsdSkel (docs/point_caches.md): its cached frames (the pose
+    space), its point-cached meshes, and which controls vary over those frames and which never
+    do (None for a UsdSkel-only character)."""
+    controls = schema.read_controls(prim)
+    if not schema.has_point_cache(prim) and not controls:
+        return None
+    frames = cache_frames(prim)
+    spans = control_spans(prim, frames)
+    return {
+        "cachedFrames": len(frames),
+        "frameRange": [frames[0], frames[-1]] if frames else None,
+        "pointCaches": [str(m.GetPath()) for m in point_cached_meshes(prim)[0]],
+        "controls": [{"name": c.name, "range": list(c.range)} for c in controls],
+        "controlsVarying": [n for n, s in spans.items() if s > STILL_VALUE],
+        "controlsConstant": [n for n, s in spans.items() if s <= STILL_VALUE],
+    }
+
+
 def describe_prim(prim: Usd.Prim) -> dict[str, Any] | None:
     """A summary of a prim rigspace cares about, or None for the others."""
     entry: dict[str, Any] = {"path": str(prim.GetPath()), "type": prim.GetTypeName()}
@@ -119,6 +141,9 @@ def describe_prim(prim: Usd.Prim) -> dict[str, Any] | None:
         entry["appliedSchemas"] = list(prim.GetAppliedSchemas())
         entry["values"] = _schema_values(prim)
         entry["authored"] = _authored(prim)
+        rig = _rig_info(prim)
+        if rig is not None:
+            entry["rig"] = rig
     elif prim.IsA(UsdSkel.Root):
         entry["kind"] = "skelRoot"
     elif prim.IsA(UsdSkel.Skeleton):
@@ -142,8 +167,12 @@ def describe_prim(prim: Usd.Prim) -> dict[str, Any] | None:
         binding = UsdSkel.BindingAPI(prim)
         skinned = bool(binding.GetJointIndicesPrimvar().IsDefined())
         entry["kind"] = "skinnedMesh" if skinned else "mesh"
-        entry["points"] = len(mesh.GetPointsAttr().Get() or [])
+        samples = mesh.GetPointsAttr().GetTimeSamples()
+        first = samples[0] if samples else Usd.TimeCode.Default()
+        entry["points"] = len(mesh.GetPointsAttr().Get(first) or [])
         entry["triangles"] = _triangles(mesh)
+        if len(samples) > 1:
+            entry["cachedFrames"] = len(samples)
         if skinned:
             entry["influences"] = binding.GetJointIndicesPrimvar().GetElementSize()
             shapes = binding.GetBlendShapesAttr().Get() or []
@@ -198,6 +227,7 @@ def _details(info: dict[str, Any]) -> str:
     if kind in ("skinnedMesh", "mesh"):
         text = f"{info['points']} points, {info['triangles']} triangles"
         text += f", {info['influences']} influences" if kind == "skinnedMesh" else ""
+        text += f", point cache of {info['cachedFrames']} frames" if "cachedFrames" in info else ""
         shapes = info.get("blendShapes")
         return text + (f", blend shapes {', '.join(shapes)}" if shapes else "")
     if kind == "geometry":
@@ -214,6 +244,29 @@ def _details(info: dict[str, Any]) -> str:
         moving = ", animated" if info["animated"] else ""
         return f"intensity {info['intensity']:g}, exposure {info['exposure']:g}, color ({color}){moving}"
     return ""
+
+
+def _rig_lines(rig: dict[str, Any]) -> list[str]:
+    """The lines a character's point caches and controls add to its entry."""
+    span = rig["frameRange"]
+    where = f" ({span[0]:g}-{span[1]:g})" if span else ""
+    caches = rig["pointCaches"]
+    lines = [
+        f"      pose space: {rig['cachedFrames']} cached frames{where}"
+        + (f", point caches {', '.join(caches)}" if caches else ", no point cache")
+    ]
+    if rig["controls"]:
+        lines.append(
+            "      controls: "
+            + ", ".join(
+                f"{c['name']} ({c['range'][0]:g}..{c['range'][1]:g})" for c in rig["controls"]
+            )
+        )
+        lines.append(f"      varying: {', '.join(rig['controlsVarying']) or 'none'}")
+        lines.append(
+            f"      never varying (cannot be learned): {', '.join(rig['controlsConstant']) or 'none'}"
+        )
+    return lines
 
 
 def _count(items: list, noun: str) -> str:
@@ -241,6 +294,8 @@ def format_report(report: dict[str, Any], shown_path: str | None = None) -> str:
             for name, value in p["values"].items():
                 fallback = "" if name in p["authored"] else "  (fallback)"
                 lines.append(f"      {name} = {json.dumps(value)}{fallback}")
+            if "rig" in p:
+                lines += _rig_lines(p["rig"])
     if not report["prims"]:
         lines.append("  (none)")
     errors, warnings = report["errors"], report["warnings"]

@@ -137,7 +137,11 @@ class _TakeThread(threading.Thread):
             engine, start_code, fps, t0, ticks,
         )  # fmt: skip
         self.takes = {
-            path: TakeRecorder(live.character.rig.joints, live.character.rig.blend_shapes)
+            path: TakeRecorder(
+                live.character.rig.joints,
+                live.character.rig.blend_shapes,
+                [c.name for c in live.character.rig.controls],
+            )
             for path, live in engine.live.characters.items()
         }
         self.halt = threading.Event()
@@ -164,8 +168,8 @@ class _TakeThread(threading.Thread):
                     local, poses = self.engine.live.merged(live.character, code, take=True)
                     if local is not None:
                         weights = self.engine.live.weights(live.character, code, poses)
-                        if weights is None and live.character.rig.blend_shapes:
-                            weights = live.character.rig.blend_weights(code)  # the animation's
+                        if weights is None and live.character.rig.scalar_names:
+                            weights = live.character.rig.scalars(code)  # the stage's
                         self.takes[path].add(code, local, weights)
         except BaseException as exc:  # reported by the main thread, which owns the exit
             self.error = exc

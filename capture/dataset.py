@@ -38,6 +38,7 @@ import numpy as np
 from rigspace.capture.ring import HELDOUT_CLIPS, HELDOUT_VIEWS, SPLITS, TRAIN, RingView
 from rigspace.capture.settings import CaptureSettings, Clip
 from rigspace.sdk.charts import ChartTable, parse_charts
+from rigspace.sdk.controls import Control, controls_from_json, controls_json
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.exr import read_exr
 from rigspace.sdk.fields import Field, Positive, Size, problems, spec_of
@@ -259,6 +260,9 @@ class DatasetManifest:
     """The Skeleton prim's path."""
     blend_shapes: tuple[str, ...] = ()
     """Blend shapes whose weights params.npz's `blend` holds, in its order (none: no column)."""
+    controls: tuple[Control, ...] = ()
+    """Named controls whose values params.npz's `controls` holds, in its order, with their
+    ranges (none: no column; docs/point_caches.md)."""
     look_at_joint: str = ""
     rotation_encoding: str = "rot6d"
     up_axis: str = "Y"
@@ -321,6 +325,7 @@ class DatasetManifest:
             "skeleton": self.skeleton,
             "joints": list(self.joints),
             "blend_shapes": list(self.blend_shapes) or None,
+            "controls": controls_json(self.controls),
             "look_at_joint": self.look_at_joint,
             "rotation_encoding": self.rotation_encoding,
             "up_axis": self.up_axis,
@@ -387,6 +392,7 @@ def _typed_manifest(data: dict[str, Any], path: Path) -> DatasetManifest:
         character=data.get("character", ""),
         skeleton=data.get("skeleton", ""),
         blend_shapes=tuple(data.get("blend_shapes") or ()),
+        controls=controls_from_json(data.get("controls")),
         look_at_joint=data.get("look_at_joint", ""),
         rotation_encoding=data.get("rotation_encoding", "rot6d"),
         up_axis=data.get("up_axis", "Y"),
@@ -714,6 +720,11 @@ def _params_json(settings: CaptureSettings, table: dict[str, np.ndarray]) -> dic
             if settings.blend_shapes
             else {}
         ),
+        **(
+            {"controls": "per named control (controls order) the frame's value"}
+            if settings.controls
+            else {}
+        ),
         "columns": sorted(table),
     }
 
@@ -736,6 +747,7 @@ def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> 
         skeleton=settings.skeleton,
         joints=tuple(settings.joints),
         blend_shapes=tuple(settings.blend_shapes),
+        controls=tuple(settings.controls),
         look_at_joint=settings.look_at_joint,
         rotation_encoding="rot6d",
         up_axis=settings.up_axis,

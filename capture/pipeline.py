@@ -130,7 +130,8 @@ class PosedFrame:
     joint_position: np.ndarray
     """The look-at joint's world position: the ring cameras aim at it."""
     weights: np.ndarray
-    """The blend shape weights posed (empty for a rig without shapes)."""
+    """The blend shape weights posed, then the controls' values (empty for a rig without
+    either: CaptureSettings.frame_weights)."""
     region: list[DrawMesh] | None = None
     """A region's capture: its triangles of `meshes` (capture/regions.py), else None."""
 
@@ -139,7 +140,8 @@ ROW_FIELDS = (
     "path", "sha256", "rig", "joint_camera", "camera_to_world", "intrinsics",
     "clip", "time", "view", "elevation", "azimuth", "split", "coverage", "blend",
 )  # fmt: skip
-"""What a work item's record holds per sample (dataset.py; `blend` only for a rig with shapes)."""
+"""What a work item's record holds per sample (dataset.py; `blend` only for a rig with shapes,
+split into `blend` and `controls` columns for a rig with named controls)."""
 
 
 class ItemWorker:
@@ -267,8 +269,13 @@ class ItemWorker:
             "split": np.array(rows["split"], dtype=np.int8),
             "coverage": np.array(rows["coverage"], dtype=np.float32),
         }
-        if self.rig.blend_shapes:  # a rig without blend shapes writes the columns it always did
-            columns["blend"] = np.array(rows["blend"], dtype=np.float32)
+        # A rig without blend shapes or controls writes the columns it always did.
+        scalars = np.array(rows["blend"], dtype=np.float32).reshape(len(rows["path"]), -1)
+        shapes = len(self.rig.blend_shapes)
+        if shapes:
+            columns["blend"] = scalars[:, :shapes]
+        if self.rig.controls:
+            columns["controls"] = scalars[:, shapes:]
         return columns
 
     def close(self) -> None:

@@ -19,10 +19,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pxr import Usd, UsdSkel
+from pxr import Usd
 
 from rigspace.capture.ring import Lens, RingView, ring_views
 from rigspace.sdk import schema, timecodes
+from rigspace.sdk.controls import Control
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.posing import CharacterRig, centre_joint
 from rigspace.sdk.stage import meters_per_unit, open_stage, up_axis
@@ -147,6 +148,8 @@ class CaptureSettings:
     """Every Nth frame of each clip is captured (1: all)."""
     blend_shapes: tuple[str, ...] = ()
     """The character's blend shapes (CharacterRig.blend_shapes): the weight vector's order."""
+    controls: tuple[Control, ...] = ()
+    """The character's named controls (CharacterRig.controls), recorded after the weights."""
     blend_draws: tuple[tuple[str, str, float, float], ...] = ()
     """(clip, shape, low, high): a shape whose weight the clip does not move, drawn per frame
     within the ring's blendShapeRanges (`frame_weights`); for a region, every one of its
@@ -182,7 +185,7 @@ class CaptureSettings:
         if self.every == 1:  # as captures before the option recorded it (resume compares)
             del data["every"]
         # likewise, for a rig without blend shapes, and for the whole character
-        for key in ("blend_shapes", "blend_draws", "region", "region_joints"):
+        for key in ("blend_shapes", "controls", "blend_draws", "region", "region_joints"):
             if not data[key]:
                 del data[key]
         return data
@@ -199,16 +202,21 @@ class CaptureSettings:
         for key in ("joints", "elevations", "held_out_elevations", "clipping_range"):
             values[key] = tuple(values[key])
         values["blend_shapes"] = tuple(values.get("blend_shapes", ()))
+        values["controls"] = tuple(
+            Control(str(c["name"]), tuple(float(v) for v in c["range"]))
+            for c in values.get("controls", ())
+        )
         values["blend_draws"] = tuple(tuple(d) for d in values.get("blend_draws", ()))
         values["region_joints"] = tuple(values.get("region_joints", ()))
         return cls(**values)
 
     def frame_weights(self, rig: CharacterRig, clip: str, time: float) -> np.ndarray:
-        """(B,) the blend shape weights of a captured frame: the animation's, except the shapes
-        `blend_draws` names for this clip, drawn uniformly in their range from a hash of
-        (clip, time, shape), so every view of the frame, a resumed capture and another worker
-        all draw the same weight."""
-        weights = rig.blend_weights(time)
+        """(B + C,) the blend shape weights of a captured frame, then its controls' values as
+        the stage gives them: the animation's weights, except the shapes `blend_draws` names
+        for this clip, drawn uniformly in their range from a hash of (clip, time, shape), so
+        every view of the frame, a resumed capture and another worker all draw the same
+        weight."""
+        weights = rig.scalars(time)
         for name, shape, low, high in self.blend_draws:  # a region's: every clip ("*")
             if name in (clip, "*"):
                 key = f"{clip}|{time:.6f}|{shape}".encode()
@@ -315,12 +323,10 @@ def _resolve_clips(
 
 
 def animation_time_samples(rig: CharacterRig) -> np.ndarray:
-    """Every authored time code of the character's animation, sorted (what clips snap to)."""
-    anim = UsdSkel.Animation(rig.animation)
-    times: list[float] = []
-    for attr in (anim.GetTranslationsAttr(), anim.GetRotationsAttr(), anim.GetScalesAttr()):
-        times += attr.GetTimeSamples()
-    return np.unique(np.asarray(times, dtype=np.float64))
+    """Every authored time code of the character's animation, sorted (what clips snap to):
+    its joints', and its point caches' and controls' (the cached frames: CharacterRig.
+    time_samples)."""
+    return rig.time_samples()
 
 
 def character_reach(rig: CharacterRig, joint: int, clips: tuple[Clip, ...]) -> float:
@@ -553,6 +559,7 @@ def resolve_settings(
         frames_per_item=overrides.frames_per_item,
         every=overrides.every,
         blend_shapes=rig.blend_shapes,
+        controls=rig.controls,
         blend_draws=draws,
     )
     return settings, rig

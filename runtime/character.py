@@ -107,6 +107,24 @@ def blend_order(model_shapes: tuple[str, ...], shapes: tuple[str, ...], where: s
     return np.array([shapes.index(name) for name in model_shapes], dtype=np.int64)
 
 
+def scalar_order(model: BundleModel, rig: CharacterRig, where: str) -> np.ndarray:
+    """Indices into the character's rig vector after the joints (`CharacterRig.scalar_names`:
+    blend shapes, then controls) of what the model reads there (its blend shapes, then its
+    controls), or a SceneError naming what the character lacks."""
+    shapes = blend_order(model.blend_shapes, rig.blend_shapes, where)
+    names = [c.name for c in rig.controls]
+    missing = [name for name in model.controls if name not in names]
+    if missing:
+        raise SceneError(
+            f"{where}: the model reads controls the character does not declare: "
+            f"{', '.join(missing)}.",
+            "apply RigspaceControlAPI:NAME for each (rigspace inspect names them), or retrain "
+            "on this character.",
+        )
+    controls = [len(rig.blend_shapes) + names.index(name) for name in model.controls]
+    return np.concatenate([shapes, np.array(controls, dtype=np.int64)])
+
+
 class NeuralPart:
     """What one model bundle draws of a neural character: the whole body (NeuralCharacter
     itself), or a region of it with a network of its own (the face, a hand; docs/regions.md).
@@ -133,8 +151,9 @@ class NeuralPart:
         """"body", or the region's name."""
         manifest = model.manifest
         self.order = joint_order(model.joints, rig.joints, where)
-        self.blend_order = blend_order(model.blend_shapes, rig.blend_shapes, where)
-        """Indices into the character's blend shapes of the model's (its input order)."""
+        self.scalar_order = scalar_order(model, rig, where)
+        """Indices into the character's blend shapes and controls (`rig.scalar_names`) of the
+        model's (its input order after the joints)."""
         self.look_at = schema.find_joint(
             manifest.look_at_joint or look_at or rig.joints[0], rig.joints
         )
@@ -196,8 +215,9 @@ class NeuralPart:
         camera: Camera,
         weights: np.ndarray | None = None,
     ) -> np.ndarray:
-        """(1, J*6 + B) the network's input: the joints' rotations in the virtual camera, then
-        the blend shape weights (`weights`, model order) when the model reads any."""
+        """(1, J*6 + B + C) the network's input: the joints' rotations in the virtual camera,
+        then the blend shape weights and the controls' values (`weights`, model order) when the
+        model reads any."""
         virtual = np.eye(4)
         virtual[:3, :3] = billboard.virtual_camera_to_world(camera)
         rotations = rig_parameters(world[self.order], virtual)[None]
@@ -367,20 +387,34 @@ class NeuralCharacter(NeuralPart):
     def weights(
         self, time: float, live: np.ndarray | None = None, part: NeuralPart | None = None
     ) -> np.ndarray:
-        """(B,) the blend shape weights the model reads at `time`, in its order: the
-        animation's, or `live` (the character's order, from a live source) where given.
+        """(B + C,) the blend shape weights and the controls' values the model reads at
+        `time`, in its order: the stage's (the animation's weights, the controls' values), or
+        `live` (the character's `rig.scalar_names` order, from a live source or an override)
+        where given; a `live` of the blend shape weights alone takes the stage's controls.
         `part`: those one of its regions reads, in its model's order (default: the body's)."""
         part = part or self
-        if not len(part.blend_order):
+        if not len(part.scalar_order):
             return np.zeros(0, dtype=np.float32)
-        weights = self.rig.blend_weights(time) if live is None else np.asarray(live, np.float32)
-        weights = weights[part.blend_order]
+        if live is None:
+            weights = self.rig.scalars(time)
+        else:
+            weights = np.asarray(live, np.float32)
+            if len(weights) == len(self.rig.blend_shapes) and self.rig.controls:
+                weights = np.concatenate([weights, self.rig.control_values(time)])
+        weights = weights[part.scalar_order]
         if not np.all(np.isfinite(weights)):
-            bad = part.model.blend_shapes[int(np.argmax(~np.isfinite(weights)))]
+            names = (*part.model.blend_shapes, *part.model.controls)
+            column = int(np.argmax(~np.isfinite(weights)))
+            if column < len(part.model.blend_shapes):
+                what, fix = f"blend shape {names[column]} has", "SkelAnimation's blendShapeWeights"
+            else:
+                what, fix = (
+                    f"control {names[column]} has",
+                    f"rigspace:control:{names[column]}:value",
+                )
             raise SceneError(
-                f"Neural character {self.path}: blend shape {bad} has a NaN or Inf weight at "
-                f"time {time:g}.",
-                "fix the SkelAnimation's blendShapeWeights at that time (or the live source's).",
+                f"Neural character {self.path}: {what} a NaN or Inf value at time {time:g}.",
+                f"fix the {fix} at that time (or the live source's).",
             )
         return weights
 

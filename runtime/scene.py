@@ -3,7 +3,8 @@
 Mesh, Cube, Sphere, Cylinder, Cone, Capsule and Plane are supported, coloured by their
 UsdPreviewSurface diffuse colour or texture, else displayColor (rigspace.sdk.geometry).
 Prims under a neural character are its source asset and are not drawn (the network draws
-the character). Invisible prims and prims whose purpose is guide or proxy are skipped. A
+the character), nor are the point-cached meshes a character declares wherever they are
+(RigspacePointCacheAPI: they are the character). Invisible prims and prims whose purpose is guide or proxy are skipped. A
 prim whose world transform and points did not change since the last call returns the very
 same DrawMesh, so renderers reuse what they uploaded and the engine can tell that nothing
 moved.
@@ -18,6 +19,7 @@ from pxr import Usd, UsdGeom
 
 from rigspace.sdk import schema
 from rigspace.sdk.camera import from_gf
+from rigspace.sdk.character_rules import point_cached_meshes
 from rigspace.sdk.geometry import MeshSource, read_albedo, read_mesh_source
 from rigspace.sdk.render import DrawMesh, vertex_normals
 from rigspace.sdk.stage import might_vary
@@ -157,11 +159,13 @@ class SceneGeometry:
 
     def __init__(self, stage: Usd.Stage) -> None:
         self.stage = stage
-        characters = [str(p.GetPath()) for p in schema.neural_characters(stage)]
+        found = schema.neural_characters(stage)
+        characters = [str(p.GetPath()) for p in found]
+        cached = {str(m.GetPath()) for p in found for m in point_cached_meshes(p)[0]}
         self.prims: list[Usd.Prim] = []
         for prim in stage.Traverse():
             path = str(prim.GetPath())
-            if any(path == c or path.startswith(c + "/") for c in characters):
+            if any(path == c or path.startswith(c + "/") for c in characters) or path in cached:
                 continue
             if prim.IsA(UsdGeom.Mesh) or any(prim.IsA(t) for t in SHAPES):
                 self.prims.append(prim)

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from rigspace.sdk.controls import Control, controls_from_json
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.fields import BUNDLE_MANIFEST, Size, problems
 from rigspace.sdk.files import write_atomic
@@ -121,6 +122,10 @@ class ModelManifest:
     format_version: int = FORMAT_VERSION
     blend_shapes: tuple[str, ...] = ()
     """Blend shapes whose weights follow the rotations in the rig input (manifest order)."""
+    controls: tuple[Control, ...] = ()
+    """Named float controls (RigspaceControlAPI) whose values follow the blend shape weights
+    in the rig input, with their ranges (manifest order; none in a bundle of a UsdSkel-only
+    rig, whose manifest has no `controls`)."""
     trunk: GraphFiles | None = None
     levels: tuple[Level, ...] = ()
     depth_scale: float = 1.0
@@ -282,6 +287,7 @@ def _sections(
         training_resolution=int(camera["resolution"]) if "resolution" in camera else None,
         format_version=version,
         blend_shapes=tuple(data.get("blend_shapes") or ()),
+        controls=_controls(data.get("controls") or [], file),
         trunk=GraphFiles.from_json(trunk) if isinstance(trunk, dict) else None,
         levels=tuple(
             Level(int(level["resolution"]), GraphFiles.from_json(level))
@@ -332,6 +338,24 @@ def _regions(entries: list[dict[str, Any]], file: Path) -> tuple[RegionBundle, .
             )
         regions.append(RegionBundle(entry["name"], entry["joint"], file.parent / relative))
     return tuple(regions)
+
+
+def _controls(entries: list[dict[str, Any]], file: Path) -> tuple[Control, ...]:
+    """The manifest's controls (their fields already checked): each range two finite numbers
+    with low < high, each name once and none a blend shape's."""
+    controls = controls_from_json(entries)
+    names = [c.name for c in controls]
+    for control in controls:
+        problem = control.problem()
+        repeated = names.count(control.name) > 1
+        if problem or repeated:
+            raise BundleError(
+                f"Model bundle manifest {file}: control {control.name!r} "
+                + (problem if problem else "is listed twice")
+                + ".",
+                "re-export the bundle with `rigspace train`; the manifest is damaged.",
+            )
+    return controls
 
 
 def _json_type(value: Any) -> str:

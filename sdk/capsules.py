@@ -13,6 +13,11 @@ pose for the vertices a joint dominates):
   segment spans their extent along the axis (END_QUANTILE at each end) less one radius, so
   the rounded caps end where the vertices do.
 
+A character with no skinned mesh, only point caches (docs/point_caches.md), is fitted at its
+first cached frame instead: each cached point belongs to the joint whose bone (the segment
+to its only child; a leaf's continues its parent's; a fork's is the joint) is nearest, in that frame's joint transforms, which
+then stand in for the bind pose (the capsules ride the joints as the cache deforms).
+
     rig = CharacterRig(stage.GetPrimAtPath("/World/Hero"))
     write_capsules(fit_capsules(rig), "dataset/capsules.json")
 
@@ -107,10 +112,40 @@ def _dominant_points(rig: CharacterRig) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(points), np.concatenate(owners)
 
 
+def _nearest_bones(rig: CharacterRig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A point-cached character's points at its first cached frame in skeleton space (N, 3),
+    the joint whose bone is nearest each (N,), and the joints' skeleton-space transforms
+    then (J, 4, 4), which stand in for the bind pose."""
+    time = float(rig.time_samples()[0])
+    to_skel = np.linalg.inv(rig.skeleton_to_world(time))
+    frames = to_skel @ rig.world_transforms(time)
+    meshes = rig.posed_meshes(time)
+    points = np.concatenate([m.points for m in meshes]).astype(np.float64)
+    points = points @ to_skel[:3, :3].T + to_skel[:3, 3]
+    parents = np.asarray(UsdSkel.Topology(rig.skeleton.GetJointsAttr().Get()).GetParentIndices())
+    heads = frames[:, :3, 3]
+    tails = heads.copy()
+    for j in range(len(heads)):
+        children = np.flatnonzero(parents == j)
+        if len(children) == 1:
+            tails[j] = heads[children[0]]
+        elif not len(children) and parents[j] >= 0:  # a leaf: its parent's bone, continued
+            tails[j] = 2 * heads[j] - heads[parents[j]]
+    bone = tails - heads  # (J, 3); zero for a fork: the joint itself
+    length2 = np.maximum((bone**2).sum(axis=1), 1e-12)
+    s = np.clip(((points[:, None] - heads[None]) * bone[None]).sum(axis=2) / length2, 0.0, 1.0)
+    nearest = heads[None] + s[..., None] * bone[None]
+    owners = np.linalg.norm(points[:, None] - nearest, axis=2).argmin(axis=1)
+    return points, owners, frames
+
+
 def fit_capsules(rig: CharacterRig) -> Capsules:
     """One capsule per joint that dominates at least MIN_POINTS vertices (module docstring)."""
-    points, owners = _dominant_points(rig)
-    bind = from_gf(rig.skeleton.GetBindTransformsAttr().Get())
+    if rig.has_skinned_meshes:
+        points, owners = _dominant_points(rig)
+        bind = from_gf(rig.skeleton.GetBindTransformsAttr().Get())
+    else:  # point caches only: the first cached frame stands in for the bind pose
+        points, owners, bind = _nearest_bones(rig)
     parents = np.asarray(UsdSkel.Topology(rig.skeleton.GetJointsAttr().Get()).GetParentIndices())
     joints, ends_a, ends_b, radii = [], [], [], []
     for j in np.flatnonzero(np.bincount(owners, minlength=len(rig.joints)) >= MIN_POINTS):

@@ -67,19 +67,66 @@ def animation_time_range(anim: Usd.Prim) -> tuple[float, float] | None:
 
 @dataclass
 class CharacterBinding:
-    """A neural character's skeleton, animation and skinned meshes, resolved as UsdSkel does."""
+    """A neural character's skeleton, animation and skinned meshes, resolved as UsdSkel does,
+    and its point-cached meshes (RigspacePointCacheAPI), which are drawn as the stage
+    evaluates them and never skinned."""
 
     skeleton: Usd.Prim
     joints: list[str]
     animation: Usd.Prim
     skel: SkelBinding = field(repr=False)
+    cached: list[Usd.Prim] = field(default_factory=list)
+    """The point-cached Meshes, in the order rigspace:pointCache:meshes reaches them."""
+
+
+def point_cached_meshes(prim: Usd.Prim) -> tuple[list[Usd.Prim], Issue | None]:
+    """The visible Meshes rigspace:pointCache:meshes reaches (a Mesh target, or every Mesh
+    below another target), in order, each once; or the first target that cannot be used."""
+    if not schema.has_point_cache(prim):
+        return [], None
+    stage, path = prim.GetStage(), prim.GetPath()
+    meshes: list[Usd.Prim] = []
+    targets = schema.point_cache_targets(prim)
+    if not targets:
+        return [], error(
+            "PointCacheEmpty",
+            f"Neural character {path} has RigspacePointCacheAPI applied but "
+            f"{schema.POINT_CACHE_MESHES} targets nothing. Fix: target the point-cached Meshes "
+            "(or a prim above them), or remove the API.",
+        )
+    for target in targets:
+        found = stage.GetPrimAtPath(target)
+        if not found:
+            return [], error(
+                "PointCacheTargetMissing",
+                f"Neural character {path}: {schema.POINT_CACHE_MESHES} targets {target}, which "
+                "does not exist on the stage. Fix: correct the path, or load the layer that "
+                "defines it.",
+            )
+        below = [
+            p
+            for p in Usd.PrimRange(found, Usd.TraverseInstanceProxies())
+            if p.IsA(UsdGeom.Mesh)
+            and UsdGeom.Imageable(p).ComputeVisibility() != UsdGeom.Tokens.invisible
+        ]
+        if not below:
+            return [], error(
+                "PointCacheNoMesh",
+                f"Neural character {path}: {schema.POINT_CACHE_MESHES} targets {target} "
+                f"({found.GetTypeName() or 'untyped prim'}), which is not a visible Mesh and has "
+                "none below it. Fix: target the point-cached Mesh prims.",
+            )
+        meshes += [m for m in below if m not in meshes]
+    return meshes, None
 
 
 def resolve_character(prim: Usd.Prim) -> tuple[CharacterBinding | None, Issue | None]:
     """What posing a neural character needs (`CharacterRig`), or the first error that stops it.
 
     In order: exactly one rigspace:skeleton target that is a Skeleton with joints; a
-    SkelAnimation (rigspace:animationSource, else the one UsdSkel binds); a skinned Mesh.
+    SkelAnimation (rigspace:animationSource, else the one UsdSkel binds); the point-cached
+    meshes when it declares them (RigspacePointCacheAPI); a skinned or point-cached Mesh.
+    A point-cached mesh is left out of the skinned ones (it is drawn from its cache).
     """
     path = prim.GetPath()
     character = schema.read_neural_character(prim)
@@ -142,14 +189,20 @@ def resolve_character(prim: Usd.Prim) -> tuple[CharacterBinding | None, Issue | 
             f"names a SkelAnimation){hint}. Fix: bind a SkelAnimation to the skeleton or its "
             "SkelRoot, or set rigspace:animationSource.",
         )
-    if not binding.skinning:
+    cached, problem = point_cached_meshes(prim)
+    if problem is not None:
+        return None, problem
+    binding.skinning = [q for q in binding.skinning if q.GetPrim() not in cached]
+    if not binding.skinning and not cached:
         return None, error(
             "NoSkinnedMesh",
             f"Neural character {path}: no skinned mesh is bound to skeleton {targets[0]} (a "
-            "visible Mesh under its SkelRoot with primvars:skel:jointIndices and jointWeights). "
-            "Fix: bind the character's meshes to the skeleton with UsdSkelBindingAPI skin weights.",
+            "visible Mesh under its SkelRoot with primvars:skel:jointIndices and jointWeights), "
+            "and it declares no point-cached mesh. Fix: bind the character's meshes to the "
+            "skeleton with UsdSkelBindingAPI skin weights, or apply RigspacePointCacheAPI and "
+            f"target its point-cached meshes with {schema.POINT_CACHE_MESHES}.",
         )
-    return CharacterBinding(target, joints, anim, binding), None
+    return CharacterBinding(target, joints, anim, binding, cached), None
 
 
 def _animation_values(anim: Usd.Prim, path: Sdf.Path) -> Iterator[Issue]:
@@ -347,6 +400,17 @@ def check_character_model(prim: Usd.Prim) -> Iterator[Issue]:
                 f"meshes lack: {', '.join(lacking)} (they have "
                 f"{', '.join(have) or 'none'}). Fix: bind the meshes the model was trained on "
                 "(their skel:blendShapes), or retrain on this character.",
+            )
+    if manifest.controls:
+        have_controls = schema.control_names(prim)
+        lacking = [c.name for c in manifest.controls if c.name not in have_controls]
+        if lacking:
+            yield error(
+                "ModelControlsMissing",
+                f"Neural character {path}: the model {manifest.path} reads controls the "
+                f"character does not declare: {', '.join(lacking)} (it declares "
+                f"{', '.join(have_controls) or 'none'}). Fix: apply RigspaceControlAPI:NAME for "
+                "each (with the values the model was trained on), or retrain on this character.",
             )
     skeleton = character_skeleton(prim)
     if skeleton is not None:

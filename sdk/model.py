@@ -95,6 +95,8 @@ class BundleModel:
         self.joints = list(self.manifest.joints)
         self.blend_shapes: tuple[str, ...] = manifest.blend_shapes
         """Blend shapes whose weights follow the rotations in the rig input (manifest order)."""
+        self.controls: tuple[str, ...] = tuple(c.name for c in manifest.controls)
+        """Named controls whose values follow the blend shape weights (manifest order)."""
         self.charts = manifest.texture.charts if manifest.texture else 0
         """K texture charts the texture head predicts (0: no texture head)."""
         self.texture_branch = manifest.texture.branch if manifest.texture else "albedo"
@@ -168,15 +170,18 @@ class BundleModel:
     def check_rig(self, rig: np.ndarray) -> np.ndarray:
         rig = np.ascontiguousarray(rig, dtype=np.float32)
         rotations = len(self.joints) * 6
-        expected = rotations + len(self.blend_shapes)
+        scalars = (*self.blend_shapes, *self.controls)
+        expected = rotations + len(scalars)
         if rig.ndim != 2 or rig.shape[1] != expected:
             weights = (
                 f" + {len(self.blend_shapes)} blend shape weights" if self.blend_shapes else ""
             )
+            weights += f" + {len(self.controls)} control values" if self.controls else ""
             raise BundleError(
                 f"Rig parameters have shape {rig.shape}; the model reads (N, {expected}) "
                 f"({len(self.joints)} joints x 6{weights}).",
-                "map the skeleton's joints (and blend shapes) to the manifest's order first.",
+                "map the skeleton's joints (and blend shapes and controls) to the manifest's "
+                "order first.",
             )
         if not np.all(np.isfinite(rig)):
             bad = np.argwhere(~np.isfinite(rig))[0]
@@ -184,7 +189,9 @@ class BundleModel:
             what = (
                 f"joint {self.joints[column // 6]}"
                 if column < rotations
-                else f"blend shape {self.blend_shapes[column - rotations]}"
+                else f"blend shape {scalars[column - rotations]}"
+                if column < rotations + len(self.blend_shapes)
+                else f"control {scalars[column - rotations]}"
             )
             raise BundleError(
                 f"Rig parameters hold NaN or Inf (sample {bad[0]}, {what}).",

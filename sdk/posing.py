@@ -1,4 +1,4 @@
-"""Pose a neural character's skeleton at a time: joint transforms and skinned meshes via UsdSkel.
+"""Pose a neural character at a time: joint transforms, skinned meshes (UsdSkel), point caches.
 
 `CharacterRig` is the one place that turns "stage + character + time" into joint
 transforms. Local joint transforms come from a SkelAnimation (the character's
@@ -9,6 +9,11 @@ seam the runtime uses). Skinning is USD's own
 `SkinningQuery.ComputeSkinnedPoints` (the reference; sdk.skinning.CompiledRig replaces it and
 the normals with compiled kernels, the mesh path a CPU user runs). Matrices leave this module as numpy in the
 column-vector convention (p' = M @ p); Gf matrices are row-vector (camera.from_gf).
+
+A character whose rig no game engine runs (docs/point_caches.md) brings point-cached meshes
+(RigspacePointCacheAPI): they are drawn as the stage evaluates them at each time code, after
+the skinned ones, and never skinned; its named float controls (RigspaceControlAPI) are rig
+parameters after the blend shape weights (`scalar_names`, `scalars`).
 """
 
 from __future__ import annotations
@@ -18,9 +23,11 @@ from dataclasses import dataclass
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdSkel, Vt
 
+from rigspace.sdk import schema
 from rigspace.sdk.camera import from_gf
 from rigspace.sdk.character_rules import blend_shape_names, resolve_character
 from rigspace.sdk.charts import ChartTable, chart_table
+from rigspace.sdk.controls import Control
 from rigspace.sdk.errors import SceneError
 from rigspace.sdk.geometry import MeshSource, read_mesh_parts
 from rigspace.sdk.render import DrawMesh, freeze, vertex_normals
@@ -58,8 +65,30 @@ class _BlendShapes:
         )
 
 
+@dataclass
+class _CachedMesh:
+    """A point-cached mesh: its points as the stage evaluates them at each time code."""
+
+    prim: Usd.Prim
+    parts: list[MeshSource]
+    """The mesh by material, read at its first cached frame (the topology and the charts'
+    rest points)."""
+    points: Usd.Attribute
+
+    def samples(self) -> list[float]:
+        return list(self.points.GetTimeSamples())
+
+
+def _cached_mesh(prim: Usd.Prim) -> _CachedMesh:
+    points = UsdGeom.Mesh(prim).GetPointsAttr()
+    samples = points.GetTimeSamples()
+    first = Usd.TimeCode(samples[0]) if samples else None
+    return _CachedMesh(prim, read_mesh_parts(prim, first), points)
+
+
 class CharacterRig:
-    """A neural character's skeleton, animation and skinned meshes, ready to pose per time."""
+    """A neural character's skeleton, animation, skinned and point-cached meshes and controls,
+    ready to pose per time."""
 
     def __init__(self, character: Usd.Prim) -> None:
         # The validation rule's look-up and words: inspect reports what this refuses.
@@ -93,6 +122,18 @@ class CharacterRig:
         self._animated = np.array([index.get(n, -1) for n in self.blend_shapes], dtype=np.int64)
         """Per character blend shape, its index in the animation's blendShapes (-1: not
         animated, weight 0 as UsdSkel says)."""
+        self._cached = [_cached_mesh(prim) for prim in found.cached]
+        """Its point-cached meshes (RigspacePointCacheAPI), drawn after the skinned ones."""
+        self.controls: tuple[Control, ...] = schema.read_controls(character)
+        """Its named float controls (RigspaceControlAPI), in applied order."""
+        self._control_values = [
+            schema.control_value_attribute(character, c.name) for c in self.controls
+        ]
+        self.scalar_names: tuple[str, ...] = self.blend_shapes + tuple(
+            c.name for c in self.controls
+        )
+        """The rig vector's names after the joints: the blend shapes, then the controls (the
+        order of `scalars`, of a live source's weights and of `rigspace view`'s sliders)."""
         self._charts: ChartTable | None = None
 
     def _read_blend_shapes(self) -> tuple[str, ...]:
@@ -121,12 +162,36 @@ class CharacterRig:
         out[have] = values[self._animated[have]]
         return out
 
+    def control_values(self, time: float) -> np.ndarray:
+        """(C,) the controls' values at `time` (as the stage evaluates them: held or
+        interpolated between samples), in `controls` order."""
+        code = Usd.TimeCode(time)
+        values = [attr.Get(code) if attr else None for attr in self._control_values]
+        return np.array([0.0 if v is None else v for v in values], dtype=np.float32)
+
+    def scalars(self, time: float) -> np.ndarray:
+        """(B + C,) the rig parameters after the joints at `time`: the animation's blend shape
+        weights, then the controls' values (`scalar_names` order)."""
+        if not self.controls:
+            return self.blend_weights(time)
+        return np.concatenate([self.blend_weights(time), self.control_values(time)])
+
+    @property
+    def has_skinned_meshes(self) -> bool:
+        """Whether the skeleton skins any of the character's meshes (else all are cached)."""
+        return bool(self._meshes)
+
+    @property
+    def cached_meshes(self) -> list[Usd.Prim]:
+        """The point-cached Mesh prims, in drawing order."""
+        return [m.prim for m in self._cached]
+
     # -- texture charts -----------------------------------------------------------------
 
     @property
     def triangle_count(self) -> int:
-        """Triangles a posed frame draws (every skinned mesh, after triangulation)."""
-        return sum(len(part.triangles) for mesh in self._meshes for part in mesh.parts)
+        """Triangles a posed frame draws (every skinned and cached mesh, after triangulation)."""
+        return sum(len(part.triangles) for part in self.mesh_sources())
 
     def mesh_name(self, mesh: MeshSource) -> str:
         """A skinned mesh's (or material subset's) path relative to the character prim (how
@@ -154,13 +219,16 @@ class CharacterRig:
         return self._charts
 
     def mesh_sources(self) -> list[MeshSource]:
-        """The skinned meshes' parts (topology, uvs and albedo), in skinning order."""
-        return [part for m in self._meshes for part in m.parts]
+        """The meshes' parts (topology, uvs and albedo): the skinned ones in skinning order,
+        then the point-cached ones (posed_meshes order)."""
+        meshes: list[_SkinnedMesh | _CachedMesh] = [*self._meshes, *self._cached]
+        return [part for m in meshes for part in m.parts]
 
     def dominant_joints(self) -> list[np.ndarray]:
         """Per posed mesh (posed_meshes order), (N,) int: the skeleton index (`joints`) of the
         joint with the largest skinning weight on each of its points (-1: no joint weighs
-        on it). A rigidly deformed mesh gives every point its one influence set's."""
+        on it). A rigidly deformed mesh gives every point its one influence set's; a
+        point-cached mesh, which no joint skins, -1 everywhere."""
         out = []
         for mesh in self._meshes:
             query = mesh.query
@@ -178,16 +246,35 @@ class CharacterRig:
             if query.IsRigidlyDeformed() or len(local) == 1:
                 local = np.full(points, local[0] if len(local) else -1)
             out += [local] * len(mesh.parts)
+        for cached in self._cached:
+            out += [np.full(len(cached.parts[0].rest_points), -1)] * len(cached.parts)
         return out
 
     # -- time range ---------------------------------------------------------------------
 
+    def time_samples(self) -> np.ndarray:
+        """Every authored time code of what poses the character, sorted: the animation's
+        joints, and the point caches' and controls' samples (a cached character's pose space
+        is its cached frames; validation holds those to the same samples)."""
+        anim = UsdSkel.Animation(self.animation)
+        times: list[float] = []
+        for attr in (anim.GetTranslationsAttr(), anim.GetRotationsAttr(), anim.GetScalesAttr()):
+            times += attr.GetTimeSamples()
+        for cached in self._cached:
+            times += cached.samples()
+        for value in self._control_values:
+            times += value.GetTimeSamples() if value else []
+        return np.unique(np.asarray(times, dtype=np.float64))
+
     def time_range(self) -> tuple[float, float] | None:
-        """First and last time sample of the animation (None when it is not time-sampled)."""
+        """First and last time sample of the animation's rotations and translations, and of
+        the point caches (None when none is time-sampled)."""
         samples: list[float] = []
         anim = UsdSkel.Animation(self.animation)
         for attr in (anim.GetRotationsAttr(), anim.GetTranslationsAttr()):
             samples += attr.GetTimeSamples()
+        for cached in self._cached:
+            samples += cached.samples()
         return (min(samples), max(samples)) if samples else None
 
     # -- joint transforms ---------------------------------------------------------------
@@ -251,7 +338,24 @@ class CharacterRig:
         p = np.asarray(points, dtype=np.float64)
         return (p @ to_world[:3, :3].T + to_world[:3, 3]).astype(np.float32)
 
-    def _normals(self, mesh: _SkinnedMesh, world: np.ndarray) -> np.ndarray:
+    def _cached_points(self, mesh: _CachedMesh, time: float) -> np.ndarray:
+        """(N, 3) float32 world points of a point-cached mesh at `time`: its points as the
+        stage evaluates them, through its own local-to-world transform."""
+        value = mesh.points.Get(Usd.TimeCode(time))
+        expected = len(mesh.parts[0].rest_points)
+        p = np.asarray(value if value is not None else (), dtype=np.float64).reshape(-1, 3)
+        if len(p) != expected or not np.all(np.isfinite(p)):
+            what = f"{len(p)} points for its {expected}" if len(p) != expected else "NaN or Inf"
+            raise SceneError(
+                f"Point cache {mesh.prim.GetPath()} has {what} at time {time:g}.",
+                "re-export the cache with the mesh's topology and finite points at every frame "
+                "(rigspace inspect names each bad frame).",
+            )
+        xf = UsdGeom.XformCache(Usd.TimeCode(time))
+        to_world = from_gf(xf.GetLocalToWorldTransform(mesh.prim))
+        return (p @ to_world[:3, :3].T + to_world[:3, 3]).astype(np.float32)
+
+    def _normals(self, mesh: _SkinnedMesh | _CachedMesh, world: np.ndarray) -> np.ndarray:
         """(N, 3) float32 unit vertex normals of `mesh` posed at `world`."""
         return vertex_normals(world, np.concatenate([p.triangles for p in mesh.parts]))
 
@@ -263,9 +367,10 @@ class CharacterRig:
         weights: np.ndarray | None = None,
     ) -> list[DrawMesh]:
         """The character's meshes at `time`, in world space: blend shapes applied (`weights`, in
-        `blend_shapes` order; default the animation's at `time`), then skinned by UsdSkel. With
-        `charts`, textured meshes carry their texture charts (renderers then give uv and chart
-        maps)."""
+        `blend_shapes` order, or `scalar_names` order: the controls after them change no
+        mesh; default the animation's at `time`), then skinned by UsdSkel; then the
+        point-cached meshes as the stage evaluates them at `time`. With `charts`, textured
+        meshes carry their texture charts (renderers then give uv and chart maps)."""
         charted = {}
         if charts:
             charted = {m.mesh: m.triangle_chart for m in self.texture_charts().meshes}
@@ -275,9 +380,14 @@ class CharacterRig:
         to_world = self.skeleton_to_world(time)
         if self.blend_shapes and weights is None:
             weights = self.blend_weights(time)
+        elif weights is not None:
+            weights = np.asarray(weights)[: len(self.blend_shapes)]
         meshes = []
-        for mesh in self._meshes:
-            world = self._world_points(mesh, skinning, to_world, weights, time)
+        posed: list[tuple[_SkinnedMesh | _CachedMesh, np.ndarray]] = [
+            (m, self._world_points(m, skinning, to_world, weights, time)) for m in self._meshes
+        ]
+        posed += [(m, self._cached_points(m, time)) for m in self._cached]
+        for mesh, world in posed:
             # Normals once per pose, not once per camera that renders it.
             normals = self._normals(mesh, world)
             freeze(world, normals)  # renderers keep what they build from them (DrawMesh)

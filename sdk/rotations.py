@@ -137,17 +137,24 @@ def decode(x: np.ndarray, encoding: str = ROT6D) -> np.ndarray:
     )
 
 
-def rig_inputs(rig: np.ndarray, blend: np.ndarray | None = None) -> np.ndarray:
+def rig_inputs(
+    rig: np.ndarray, blend: np.ndarray | None = None, controls: np.ndarray | None = None
+) -> np.ndarray:
     """The network's input rows: each sample's rig parameters (N, J, k) or (N, J*k), then its
-    blend shape weights (N, B) when the character has any -> (N, J*k + B) float32. The
-    paper's rig parameters are joint rotations, blend shapes or cage positions; rigspace
-    feeds rotations and blend shape weights (the manifest's `blend_shapes` order)."""
+    blend shape weights (N, B) when the character has any, then its named controls' values
+    (N, C) when it has any -> (N, J*k + B + C) float32. The paper's rig parameters are joint
+    rotations, blend shapes or cage positions; rigspace feeds rotations, blend shape weights
+    (the manifest's `blend_shapes` order) and controls (its `controls` order)."""
     rig = np.asarray(rig, dtype=np.float32)
     rows = rig.reshape(len(rig), -1)
-    if blend is None or np.size(blend) == 0:
+    parts = [rows] + [
+        np.asarray(extra, dtype=np.float32).reshape(len(rows), -1)
+        for extra in (blend, controls)
+        if extra is not None and np.size(extra) > 0
+    ]
+    if len(parts) == 1:
         return np.ascontiguousarray(rows)
-    weights = np.asarray(blend, dtype=np.float32).reshape(len(rows), -1)
-    return np.ascontiguousarray(np.concatenate([rows, weights], axis=1))
+    return np.ascontiguousarray(np.concatenate(parts, axis=1))
 
 
 def rig_parameters(

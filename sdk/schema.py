@@ -13,11 +13,15 @@ from pathlib import Path
 
 from pxr import Sdf, Usd, UsdSkel
 
+from rigspace.sdk.controls import DEFAULT_RANGE, Control
 from rigspace.usd_schemas import (
     CAPTURE_RING_API,
+    CONTROL_API,
+    CONTROL_NAMESPACE,
     LIVE_BINDING_API,
     LIVE_NAMESPACE,
     NEURAL_CHARACTER,
+    POINT_CACHE_API,
     REGION_API,
     REGION_NAMESPACE,
 )
@@ -299,6 +303,40 @@ def read_regions(prim: Usd.Prim) -> list[Region]:
             )
         )
     return regions
+
+
+POINT_CACHE_MESHES = "rigspace:pointCache:meshes"
+
+
+def has_point_cache(prim: Usd.Prim) -> bool:
+    return POINT_CACHE_API in prim.GetAppliedSchemas()
+
+
+def point_cache_targets(prim: Usd.Prim) -> tuple[str, ...]:
+    """The targets of rigspace:pointCache:meshes (Meshes, or prims above them), as authored."""
+    return _targets(prim, POINT_CACHE_MESHES)
+
+
+def control_names(prim: Usd.Prim) -> list[str]:
+    """The RigspaceControlAPI instances applied to `prim`, in their applied order (the rig
+    vector's order)."""
+    prefix = CONTROL_API + ":"
+    return [s[len(prefix) :] for s in prim.GetAppliedSchemas() if s.startswith(prefix)]
+
+
+def control_value_attribute(prim: Usd.Prim, name: str) -> Usd.Attribute:
+    """The time-sampled value of control `name` (rigspace:control:NAME:value)."""
+    return prim.GetAttribute(f"{CONTROL_NAMESPACE}:{name}:value")
+
+
+def read_controls(prim: Usd.Prim) -> tuple[Control, ...]:
+    """The character's controls (name and range; the schema's fallback range where
+    unauthored) in their applied order. Their values are read per time code by posing."""
+    controls = []
+    for name in control_names(prim):
+        value = _get(prim, f"{CONTROL_NAMESPACE}:{name}:range", DEFAULT_RANGE)
+        controls.append(Control(name, tuple(float(v) for v in value)))
+    return tuple(controls)
 
 
 def skeleton_joints(skeleton_prim: Usd.Prim) -> list[str]:

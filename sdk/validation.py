@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pxr import Sdf, Tf, Usd, UsdValidation
 
 from rigspace.sdk import schema
+from rigspace.sdk.cache_rules import CONTROLS, POINT_CACHE
 from rigspace.sdk.character_rules import (
     CHARACTER_MODEL,
     CHARACTER_SKELETON,
@@ -61,10 +62,12 @@ __all__ = [
     "CAPTURE_RING",
     "CHARACTER_MODEL",
     "CHARACTER_SKELETON",
+    "CONTROLS",
     "ERROR",
     "LIVE_BINDING",
     "MAX_RESOLUTION",
     "MIN_RESOLUTION",
+    "POINT_CACHE",
     "PURPOSES",
     "RENDER",
     "STAGE_METADATA",
@@ -122,6 +125,8 @@ BUILTIN = (
     CAPTURE_RING,
     LIVE_BINDING,
     TEXTURES,
+    POINT_CACHE,
+    CONTROLS,
 )
 """Always run; the entry-point group adds plugins' rules (the built-ins are declared there
 too, for discovery's sake, and are not run twice)."""
@@ -289,7 +294,8 @@ _warned: set[tuple[str, str]] = set()
 
 
 def _read_prims(stage: Usd.Stage, prims: Sequence[Usd.Prim] | None) -> list[Usd.Prim]:
-    """The prims a command reads: every prim, or the given characters and their skinned meshes."""
+    """The prims a command reads: every prim, or the given characters and their skinned and
+    point-cached meshes (their textures are read too)."""
     if prims is None:
         return list(stage.Traverse(Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
     read = []
@@ -299,6 +305,7 @@ def _read_prims(stage: Usd.Stage, prims: Sequence[Usd.Prim] | None) -> list[Usd.
             found, _ = resolve_character(prim)
             if found is not None:
                 read += [query.GetPrim() for query in found.skel.skinning]
+                read += found.cached
     return read
 
 

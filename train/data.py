@@ -159,6 +159,9 @@ ITEM_COLUMNS = ["rig", "joint_camera"]
 BLEND_COLUMN = "blend"
 """The blend shape weights of a character that has blend shapes (absent otherwise): they
 follow the rig parameters in the network's input (rigspace.sdk.rotations.rig_inputs)."""
+CONTROL_COLUMN = "controls"
+"""The named controls' values of a character that has controls (absent otherwise): they
+follow the blend shape weights in the network's input (docs/point_caches.md)."""
 POSE_COLUMNS = ("clip", "time", "camera_to_world")
 """The params.npz columns pose rarity needs besides the rig: which frame a row shows (its
 views share one pose) and the camera, to take the rig out of the camera's frame."""
@@ -207,8 +210,8 @@ class SplitInfo:
 
     def make_item(self, maps: Maps, row: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """A sample's item from its maps and its params row (ITEM_COLUMNS, and BLEND_COLUMN
-        when there is one): rig (J*6 + B,), albedo (3,R,R), mask (1,R,R), normal (3,R,R),
-        depth (1,R,R)."""
+        and CONTROL_COLUMN when there are): rig (J*6 + B + C,), albedo (3,R,R), mask (1,R,R),
+        normal (3,R,R), depth (1,R,R)."""
         joint_depth = -np.float32(row["joint_camera"][2])
         mask = maps.mask[None]
         hit = mask > 0
@@ -221,7 +224,9 @@ class SplitInfo:
             self.dataset_resolution // self.resolution,
         )
         item = {
-            "rig": rig_inputs(np.asarray(row["rig"])[None], row.get(BLEND_COLUMN))[0],
+            "rig": rig_inputs(
+                np.asarray(row["rig"])[None], row.get(BLEND_COLUMN), row.get(CONTROL_COLUMN)
+            )[0],
             "albedo": albedo.astype(np.float32),
             "mask": mask.astype(np.float32),
             "normal": normal.astype(np.float32),
@@ -282,13 +287,17 @@ class SampleSet(SplitInfo):
         with np.load(self.folder / "params.npz", allow_pickle=False) as table:
             self.rows = np.flatnonzero(table["split"] == SPLITS.index(split))
             blend = table[BLEND_COLUMN] if BLEND_COLUMN in table.files else None
-            self.rig = rig_inputs(table["rig"], blend)
-            """The network's input rows (rig parameters, then blend shape weights)."""
+            controls = table[CONTROL_COLUMN] if CONTROL_COLUMN in table.files else None
+            self.rig = rig_inputs(table["rig"], blend, controls)
+            """The network's input rows (rig parameters, then blend shape weights, then the
+            controls' values)."""
             self.paths = table["path"]
             self.joint_depth = -table["joint_camera"][:, 2].astype(np.float32)
             self.columns = {c: table[c] for c in ITEM_COLUMNS}
             if blend is not None:
                 self.columns[BLEND_COLUMN] = blend
+            if controls is not None:
+                self.columns[CONTROL_COLUMN] = controls
         super().__init__(manifest, split, resolution)
         self.cache = open_cache(self.folder, manifest)
         self._rarity: np.ndarray | None = None

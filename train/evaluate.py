@@ -113,9 +113,13 @@ class DatasetTable:
 
     def rig_inputs(self, indices: np.ndarray) -> np.ndarray:
         """The network's input rows of samples `indices`: rig parameters, then blend shape
-        weights when the dataset has them (rigspace.sdk.rotations.rig_inputs)."""
-        blend = self.column("blend")[indices] if "blend" in self._params.files else None
-        return rig_inputs(self.column("rig")[indices], blend)
+        weights and controls' values when the dataset has them
+        (rigspace.sdk.rotations.rig_inputs)."""
+        blend, controls = (
+            self.column(name)[indices] if name in self._params.files else None
+            for name in ("blend", "controls")
+        )
+        return rig_inputs(self.column("rig")[indices], blend, controls)
 
     def __len__(self) -> int:
         return len(self.column("path"))

@@ -57,6 +57,7 @@ from rigspace.sdk.bundle import (
 from rigspace.sdk.capsules import FILE_NAME as CAPSULES
 from rigspace.sdk.capsules import read_capsules
 from rigspace.sdk.conditioning import Skeleton2D
+from rigspace.sdk.controls import controls_json
 from rigspace.sdk.files import replacing, write_atomic
 from rigspace.sdk.predictors import GraphSet, OrtRunner
 from rigspace.sdk.weights import write_safetensors
@@ -308,9 +309,10 @@ def _write_graphs(
 
 
 RIG_INPUT = (
-    "float32 (N, joints*6 + blend_shapes): per joint the world rotation in the camera frame, "
-    "first two matrix columns (r00 r10 r20 r01 r11 r21), then each blend shape's weight "
-    "(manifest blend_shapes order, when there are any); input of the trunk graph"
+    "float32 (N, joints*6 + blend_shapes + controls): per joint the world rotation in the "
+    "camera frame, first two matrix columns (r00 r10 r20 r01 r11 r21), then each blend "
+    "shape's weight (manifest blend_shapes order, when there are any), then each named "
+    "control's value (manifest controls order, when there are any); input of the trunk graph"
 )
 JOINTS2D_INPUT = (
     "float32 (N, joints*2): per joint (u, v), the joint by forward kinematics from the "
@@ -355,6 +357,7 @@ def bundle_manifest(
         "format_version": FORMAT_VERSION,
         "joints": list(run.joints),
         **({"blend_shapes": list(run.blend_shapes)} if run.blend_shapes else {}),
+        **({"controls": controls_json(run.controls)} if run.controls else {}),
         "rotation_encoding": "rot6d",
         "look_at_joint": data_manifest.look_at_joint,
         "maps": ["albedo", "normal", "depth", "mask"],
@@ -435,6 +438,7 @@ def add_weights(
         "parents": list(model.shape.parents),
         "charts": model.shape.charts,
         **({"blend_shapes": model.shape.blend_shapes} if model.shape.blend_shapes else {}),
+        **({"controls": model.shape.controls} if model.shape.controls else {}),
     }
     manifest["torch"]["check"] = {"split": split, **check_weights(out, manifest, rows, skeleton)}
     return WEIGHTS

@@ -36,6 +36,7 @@ import torch
 
 from rigspace.capture.dataset import DatasetError, DatasetManifest, read_manifest
 from rigspace.sdk.cli import sigterm_as_interrupt
+from rigspace.sdk.controls import Control, controls_from_json, controls_json
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.fields import Field, problems, read_checked, spec_of
 from rigspace.sdk.files import replacing, write_atomic
@@ -90,6 +91,8 @@ class RunRecord:
     """The dataset manifest's checksum ("" when not recorded)."""
     blend_shapes: tuple[str, ...] = ()
     """Blend shapes whose weights follow the rotations in the rig input (none: not written)."""
+    controls: tuple[Control, ...] = ()
+    """Named controls whose values follow the blend shape weights (none: not written)."""
     charts: int | None = None
     """The texture head's charts; None for a run without one."""
     plan: dict[str, Any] | None = None
@@ -115,6 +118,7 @@ class RunRecord:
             joints=tuple(data["joints"]),
             dataset_checksum=data.get("dataset_checksum", ""),
             blend_shapes=tuple(data.get("blend_shapes") or ()),
+            controls=controls_from_json(data.get("controls")),
             charts=data.get("charts"),
             plan=copy.deepcopy(data["plan"]) if data.get("plan") else None,
         )
@@ -126,6 +130,7 @@ class RunRecord:
             "dataset_checksum": self.dataset_checksum,
             "joints": list(self.joints),
             "blend_shapes": list(self.blend_shapes) or None,
+            "controls": controls_json(self.controls),
             "charts": self.charts,
             "plan": copy.deepcopy(self.plan),
         }
@@ -297,6 +302,7 @@ def run_record(dataset: Path, manifest: DatasetManifest, config: TrainConfig) ->
         dataset_checksum=manifest.checksum,
         joints=manifest.joints,
         blend_shapes=manifest.blend_shapes,  # the input's weights (none: not written)
+        controls=manifest.controls,  # then the controls' values (none: not written)
         charts=None if boxes is None else len(boxes[0]) - 1,  # the texture head's size
     )
 
@@ -509,6 +515,7 @@ def _set_up(
         parents=parents_of(samples.joints),
         charts=0 if boxes is None else len(boxes[0]) - 1,
         blend_shapes=len(manifest.blend_shapes),
+        controls=len(manifest.controls),
     )
     model = Rig2Image(shape, config)
     if model.conditioned:  # every item gets joints2d (train.conditioning)
@@ -697,6 +704,7 @@ def build_model(
         parents=parents_of(list(run.joints)),
         charts=run.charts or 0,
         blend_shapes=len(run.blend_shapes),
+        controls=len(run.controls),
     )
     model = Rig2Image(shape, replace(config, channels_last=False))
     state = load_checkpoint(checkpoint or run_folder / CHECKPOINT)

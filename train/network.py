@@ -60,10 +60,12 @@ class Shape:
     """Texture charts K of the character (rigspace.sdk.charts); 0: no texture head."""
     blend_shapes: int = 0
     """Blend shape weights B that follow the joints' rotations in the input (0: none)."""
+    controls: int = 0
+    """Named controls' values C that follow the blend shape weights in the input (0: none)."""
 
     @property
     def inputs(self) -> int:
-        return self.joints * self.encoding + self.blend_shapes
+        return self.joints * self.encoding + self.blend_shapes + self.controls
 
 
 def width(config: TrainConfig, resolution: int) -> int:

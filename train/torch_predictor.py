@@ -101,6 +101,7 @@ def build_network(folder, manifest: ModelManifest):
             parents=tuple(int(p) for p in section.get("parents", ())),
             charts=int(section.get("charts", 0)),
             blend_shapes=int(section.get("blend_shapes", 0)),
+            controls=int(section.get("controls", 0)),
         )
         model = Rig2Image(shape, config)
         model.load_state_dict({k: torch.from_numpy(v.copy()) for k, v in tensors.items()})

@@ -74,7 +74,10 @@ def upgrade(
             f"pass the dataset it names: {run.dataset}.",
         )
     torch.manual_seed(config.seed)
-    model = Rig2Image(Shape(len(run.joints), blend_shapes=len(run.blend_shapes)), config)
+    model = Rig2Image(
+        Shape(len(run.joints), blend_shapes=len(run.blend_shapes), controls=len(run.controls)),
+        config,
+    )
     model.load_state_dict(checkpoint["model"])
     heads = list(model.albedo.heads)
     for parameter in model.parameters():

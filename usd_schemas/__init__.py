@@ -16,13 +16,19 @@ LIVE_BINDING_API = "RigspaceLiveBindingAPI"
 LIVE_NAMESPACE = "rigspace:live"
 REGION_API = "RigspaceRegionAPI"
 REGION_NAMESPACE = "rigspace:region"
+POINT_CACHE_API = "RigspacePointCacheAPI"
+CONTROL_API = "RigspaceControlAPI"
+CONTROL_NAMESPACE = "rigspace:control"
 
 __all__ = [
     "CAPTURE_RING_API",
+    "CONTROL_API",
+    "CONTROL_NAMESPACE",
     "LIVE_BINDING_API",
     "LIVE_NAMESPACE",
     "NEURAL_CHARACTER",
     "PLUGIN_NAME",
+    "POINT_CACHE_API",
     "REGION_API",
     "REGION_NAMESPACE",
     "SchemaRegistrationError",

@@ -34,7 +34,8 @@ class LiveCharacter:
     last_poses: list = field(default_factory=list)
     """(binding runtime, LivePose) of the last frame, for its blend shape weights."""
     weight_ranges: tuple[np.ndarray, np.ndarray] | None = None
-    """(low, high) per blend shape (the rig's order) that live weights are clamped into."""
+    """(low, high) per blend shape and control (the rig's `scalar_names` order) that live
+    weights and control values are clamped into."""
     shown: dict[int, tuple[np.ndarray, list]] = field(default_factory=dict)
     """Tick -> (local transforms, poses) evaluated and still wanted by a frame or the take."""
     next_tick: int = 0
@@ -111,16 +112,23 @@ def with_source(binding: schema.LiveBinding, url: str) -> schema.LiveBinding:
 
 
 def weight_ranges(prim: Usd.Prim, shapes: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-    """(low, high) per shape of `shapes`: the capture ring's blendShapeRanges where it declares
-    the shape (the weights the network was trained on), else WEIGHT_RANGE."""
+    """(low, high) per name of `shapes` (blend shapes, then controls: `CharacterRig.
+    scalar_names`): a control's own range (RigspaceControlAPI), the capture ring's
+    blendShapeRanges where it declares a shape (the weights the network was trained on), else
+    WEIGHT_RANGE."""
     from rigspace.runtime.live.binding import WEIGHT_RANGE
 
+    shapes = list(shapes)
     low, high = np.full(len(shapes), WEIGHT_RANGE[0]), np.full(len(shapes), WEIGHT_RANGE[1])
     if schema.has_capture_ring(prim):
         ring = schema.read_capture_ring(prim)
         for name, (lo, hi) in zip(ring.blend_shape_names, ring.blend_shape_ranges, strict=False):
             if name in shapes:
                 low[shapes.index(name)], high[shapes.index(name)] = lo, hi
+    for control in schema.read_controls(prim):
+        if control.name in shapes and not control.problem():
+            k = shapes.index(control.name)
+            low[k], high[k] = control.low, control.high
     return low, high
 
 
@@ -302,14 +310,17 @@ class LiveInput:
     def weights(
         self, character: NeuralCharacter, time_code: float, poses: list | None = None
     ) -> np.ndarray | None:
-        """(B,) the character's blend shape weights (its order) with the live weights of
-        `poses` ((runtime, LivePose) pairs; default the last frame's) merged in by each
-        binding's weight (a lost source lets go as its bones do); None when no binding sent a
-        weight for one of its shapes (the animation's apply). Live weights are clamped into
-        their shapes' ranges (`weight_ranges`): a source's 5.0 is its shape's high end, never
-        a pose the network was not trained on (the frames, and so the takes, hold only those)."""
+        """(B + C,) the character's blend shape weights and controls' values (its
+        `rig.scalar_names` order) with the live values of `poses` ((runtime, LivePose) pairs;
+        default the last frame's) merged in by each binding's weight (a lost source lets go as
+        its bones do); None when no binding sent a value for one of its shapes or controls
+        (the stage's apply). A source names a control as it names a shape (VMC
+        /VMC/Ext/Blend/Val, or the plain OSC /rigspace/control NAME VALUE). Live values are
+        clamped into their ranges (`weight_ranges`): a source's 5.0 is its shape's high end,
+        never a pose the network was not trained on (the frames, and so the takes, hold only
+        those)."""
         live = self.characters.get(character.path)
-        shapes = character.rig.blend_shapes
+        shapes = character.rig.scalar_names
         if live is None or not shapes:
             return None
         if live.weight_ranges is None:
@@ -319,7 +330,7 @@ class LiveInput:
         for runtime, pose in live.last_poses if poses is None else poses:
             indices, values = runtime.blend_weights(pose, shapes)
             if len(indices):
-                out = character.rig.blend_weights(time_code) if out is None else out
+                out = character.rig.scalars(time_code) if out is None else out
                 values = np.clip(values, low[indices], high[indices])
                 out[indices] += (values - out[indices]) * float(pose.weight)
         return out

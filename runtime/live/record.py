@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from rigspace.sdk.errors import RigspaceError
+from rigspace.usd_schemas import CONTROL_NAMESPACE
 
 
 class TakeError(RigspaceError):
@@ -22,14 +23,22 @@ class TakeRecorder:
     `Retargeter.apply` returns); they are decomposed with UsdSkel's own DecomposeTransforms, so
     the written translations, rotations and scales recompose to them. A time code recorded twice
     keeps the later pose. Memory: 128 bytes a joint a frame (22 joints at 30 fps: 5 MB an hour).
+    A character's named controls (RigspaceControlAPI) are recorded beside the weights, as
+    time-sampled `rigspace:control:NAME:value` attributes of the take's SkelAnimation prim (the
+    attribute a character's control reads: copy it onto the character to play the take there).
     """
 
-    def __init__(self, joints: Sequence[str], blend_shapes: Sequence[str] = ()) -> None:
+    def __init__(
+        self, joints: Sequence[str], blend_shapes: Sequence[str] = (), controls: Sequence[str] = ()
+    ) -> None:
         if not joints:
             raise TakeError("A take needs the skeleton's joints.", "pass Skeleton.joints.")
         self.joints = tuple(joints)
         self.blend_shapes = tuple(blend_shapes)
         """The character's blend shapes: a take of a face records their weights too."""
+        self.controls = tuple(controls)
+        """The character's named controls: their values follow the weights in `add`."""
+        self._scalars = self.blend_shapes + self.controls
         self._frames: dict[float, np.ndarray] = {}
         self._weights: dict[float, np.ndarray] = {}
 
@@ -37,20 +46,23 @@ class TakeRecorder:
         return len(self._frames)
 
     def add(self, time_code: float, local: np.ndarray, weights: np.ndarray | None = None) -> None:
-        """Record the pose at `time_code` (and the blend shape weights, `blend_shapes` order)."""
+        """Record the pose at `time_code` (and the blend shape weights, `blend_shapes` order,
+        then the controls' values, `controls` order)."""
         local = np.asarray(local, dtype=np.float64)
         if local.shape != (len(self.joints), 4, 4):
             raise TakeError(
                 f"A take frame has shape {local.shape}, expected ({len(self.joints)}, 4, 4).",
                 "record the skeleton's local transforms (one 4x4 per joint).",
             )
-        if self.blend_shapes:  # checked before anything is kept: a refused frame leaves no trace
-            w = np.zeros(len(self.blend_shapes)) if weights is None else np.asarray(weights, float)
-            if w.shape != (len(self.blend_shapes),) or not np.isfinite(w).all():
+        if self._scalars:  # checked before anything is kept: a refused frame leaves no trace
+            w = np.zeros(len(self._scalars)) if weights is None else np.asarray(weights, float)
+            if w.shape != (len(self._scalars),) or not np.isfinite(w).all():
                 raise TakeError(
-                    f"A take frame's blend shape weights have shape {w.shape} or are not "
-                    f"finite; expected {len(self.blend_shapes)} finite weights.",
-                    "record one weight per blend shape (CharacterRig.blend_shapes order).",
+                    f"A take frame's blend shape weights and control values have shape "
+                    f"{w.shape} or are not finite; expected {len(self._scalars)} finite weights "
+                    "(the blend shapes', then the controls').",
+                    "record one weight per blend shape, then one value per control "
+                    "(CharacterRig.scalar_names order).",
                 )
             self._weights[float(time_code)] = w.astype(np.float32)
         self._frames[float(time_code)] = local.copy()
@@ -85,11 +97,18 @@ class TakeRecorder:
         anim = UsdSkel.Animation.Define(stage, Sdf.Path(prim_path))
         stage.SetDefaultPrim(anim.GetPrim())
         anim.GetJointsAttr().Set(Vt.TokenArray(list(self.joints)))
+        shapes = len(self.blend_shapes)
         if self.blend_shapes:
             anim.CreateBlendShapesAttr(Vt.TokenArray(list(self.blend_shapes)))
             weights = anim.CreateBlendShapeWeightsAttr()
             for t in times:
-                weights.Set(Vt.FloatArray.FromNumpy(self._weights[t]), t)
+                weights.Set(Vt.FloatArray.FromNumpy(self._weights[t][:shapes]), t)
+        for k, name in enumerate(self.controls):
+            value = anim.GetPrim().CreateAttribute(
+                f"{CONTROL_NAMESPACE}:{name}:value", Sdf.ValueTypeNames.Float
+            )
+            for t in times:
+                value.Set(float(self._weights[t][shapes + k]), t)
         for t in times:
             translations, rotations, scales = UsdSkel.DecomposeTransforms(
                 Vt.Matrix4dArray.FromNumpy(self._frames[t])
@@ -118,8 +137,10 @@ class Take:
     """(F,) seconds from the take's first sample."""
     meters_per_unit: float
     blend_shapes: tuple[str, ...] = ()
+    """The names a replay sends weights for: the take's blend shapes, then its controls."""
     blend_weights: np.ndarray | None = None
-    """(F, S) the blend shape weights at each rotation sample (None: the take has none)."""
+    """(F, S) the blend shape weights, then the controls' values, at each rotation sample
+    (None: the take has none)."""
 
 
 def read_take(path: str | Path) -> Take:
@@ -184,6 +205,10 @@ def read_take(path: str | Path) -> Take:
             roots[k] = _sample(path, translations_attr, t, len(joints), 3)[root]
     rotations /= np.linalg.norm(rotations, axis=2, keepdims=True)
     shapes, weights = _blend_channels(path, anim, times)
+    controls, values = _control_channels(path, anim.GetPrim(), times)
+    if controls:
+        shapes = shapes + controls
+        weights = values if weights is None else np.concatenate([weights, values], axis=1)
     tcps = stage.GetTimeCodesPerSecond()
     return Take(
         joints,
@@ -211,6 +236,35 @@ def _blend_channels(path: Path, anim, times) -> tuple[tuple[str, ...], np.ndarra
         return (), None
     weights = np.array([_sample(path, weights_attr, t, len(shapes), 1)[:, 0] for t in times])
     return shapes, weights
+
+
+def _control_channels(path: Path, prim, times) -> tuple[tuple[str, ...], np.ndarray]:
+    """A take's controls (its rigspace:control:NAME:value attributes) and their values at
+    each rotation sample, checked like the rotations."""
+    from pxr import Sdf
+
+    names, columns = [], []
+    prefix, suffix = CONTROL_NAMESPACE + ":", ":value"
+    for attr in prim.GetAttributes():
+        name = attr.GetName()
+        if not (name.startswith(prefix) and name.endswith(suffix)):
+            continue
+        _check_type(path, attr, (Sdf.ValueTypeNames.Float, Sdf.ValueTypeNames.Double))
+        names.append(name[len(prefix) : -len(suffix)])
+        columns.append([_number(path, attr, t) for t in times])
+    return tuple(names), np.array(columns, dtype=np.float64).T.reshape(len(times), len(names))
+
+
+def _number(path: Path, attr, t: float) -> float:
+    """A scalar attribute's value at time code `t`, finite, or a TakeError."""
+    value = attr.Get(t)
+    if value is None or not np.isfinite(float(value)):
+        raise TakeError(
+            f"Take {path}: '{attr.GetName()}' at time code {t:g} is missing or not finite "
+            "(NaN or inf).",
+            RECORD_AGAIN,
+        )
+    return float(value)
 
 
 RECORD_AGAIN = "record the take again (rigspace live --record), or restore the file."

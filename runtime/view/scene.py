@@ -322,6 +322,11 @@ def _bundle(prim: Usd.Prim) -> dict[str, Any] | None:
         "format": f"{data.get('format')} v{data.get('format_version')}",
         "joints": len(data.get("joints", [])),
         "blend_shapes": list(data.get("blend_shapes", [])),
+        "controls": [
+            {"name": str(c.get("name")), "range": list(c.get("range", [0, 1]))}
+            for c in data.get("controls") or []
+            if isinstance(c, dict)
+        ],
         "levels": levels,
         "maps": data.get("maps"),
         "training": {

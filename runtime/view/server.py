@@ -290,31 +290,45 @@ def parse_request(text: str, cameras: list[str]) -> dict[str, Any]:
         raise ValueError("id must be a whole number")
     return {"id": request_id, "time": float(time), "map": message.get("map", "beauty"),
             "view": message.get("view", "neural"), "quality": message.get("quality", "auto"),
-            "camera": camera, "weights": _weights(message.get("weights", {}))}  # fmt: skip
+            "camera": camera, "weights": _weights(message.get("weights", {}),
+                                                  message.get("controls", {}))}  # fmt: skip
 
 
 MAX_WEIGHTS = 256
-"""Blend shape weights a request may set (per request, over all characters)."""
+"""Blend shape weights and control values a request may set (per request, over all
+characters)."""
+MAX_CONTROL = 1e6
+"""A control's value in a request is at most this far from 0 (its own units; the control's
+range is the slider's, docs/point_caches.md)."""
 
 
-def _weights(value: Any) -> dict[str, dict[str, float]]:
-    """The sliders' weights: {character path: {shape: number in [-2, 2]}}, at most MAX_WEIGHTS
-    numbers (ValueError: malformed; the names are checked by the engine)."""
-    if not isinstance(value, dict) or not all(isinstance(w, dict) for w in value.values()):
-        raise ValueError("weights must be {character path: {blend shape: number}}")
-    if sum(len(w) for w in value.values()) > MAX_WEIGHTS:
-        raise ValueError(f"at most {MAX_WEIGHTS} weights")
+def _weights(value: Any, controls: Any = None) -> dict[str, dict[str, float]]:
+    """The sliders' weights: {character path: {shape: number in [-2, 2]}}, and the control
+    sliders' values {character path: {control: finite number}}, merged per character (the
+    engine takes both as overrides: Engine.set_weights), at most MAX_WEIGHTS numbers in all
+    (ValueError: malformed; the names are checked by the engine)."""
     out: dict[str, dict[str, float]] = {}
-    for path, shapes in value.items():
-        for name, number in shapes.items():
-            if (
-                not isinstance(number, int | float)
-                or isinstance(number, bool)
-                or not math.isfinite(number)
-                or abs(number) > 2
-            ):
-                raise ValueError("a blend shape weight must be a number in [-2, 2]")
-            out.setdefault(str(path), {})[str(name)] = float(number)
+    kinds = (("blend shape", "weights", value, 2.0), ("control", "values", controls, MAX_CONTROL))
+    for kind, plural, given, limit in kinds:
+        given = {} if given is None else given
+        if not isinstance(given, dict) or not all(isinstance(w, dict) for w in given.values()):
+            raise ValueError(f"{kind} {plural} must be {{character path: {{{kind}: number}}}}")
+        for path, shapes in given.items():
+            for name, number in shapes.items():
+                if (
+                    not isinstance(number, int | float)
+                    or isinstance(number, bool)
+                    or not math.isfinite(number)
+                    or abs(number) > limit
+                ):
+                    if kind == "control":
+                        raise ValueError(
+                            f"a control value must be a finite number within ±{limit:g}"
+                        )
+                    raise ValueError("a blend shape weight must be a number in [-2, 2]")
+                out.setdefault(str(path), {})[str(name)] = float(number)
+    if sum(len(w) for w in out.values()) > MAX_WEIGHTS:
+        raise ValueError(f"at most {MAX_WEIGHTS} weights")
     return out
 
 

@@ -59,11 +59,53 @@ BLEND_FIELDS = ("blend_shapes", "torch.blend_shapes")
 """What a bundle of a character with blend shapes adds (the sample character has none)."""
 REGION_FIELDS = ("regions", "regions[]", "regions[].name", "regions[].joint", "regions[].bundle")
 """What a bundle with regions adds (docs/regions.md; the sample bundle has none)."""
+CONTROL_FIELDS = (
+    "controls", "controls[]", "controls[].name", "controls[].range", "torch.controls",
+)  # fmt: skip
+"""What a bundle of a rig with named controls adds (docs/point_caches.md; the sample has none)."""
 
 
 def test_the_sample_bundle_has_almost_every_field():
-    others = [f for f in BUNDLE_MANIFEST if f.path not in BLEND_FIELDS + REGION_FIELDS]
+    added = BLEND_FIELDS + REGION_FIELDS + CONTROL_FIELDS
+    others = [f for f in BUNDLE_MANIFEST if f.path not in added]
     assert len(BUNDLE_FIELDS) >= len(others) - 2  # all but capsules' text etc.
+
+
+@pytest.mark.parametrize("path", [p for p in CONTROL_FIELDS if p != "controls[]"])
+def test_a_wrong_type_in_a_control_field_is_a_named_error(tmp_path, path):
+    data = copy.deepcopy(SAMPLE_MANIFEST)
+    data["controls"] = [{"name": "bulge", "range": [0.0, 1.0]}]
+    data["torch"]["controls"] = 1
+    field = next(f for f in BUNDLE_MANIFEST if f.path == path)
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    (bundle / "manifest.json").write_text(json.dumps(broken(data, field)))
+    with pytest.raises(BundleError, match="Fix:") as info:
+        read_manifest(bundle)
+    assert f"'{path.replace('[]', '[0]').removesuffix('[0]')}" in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("controls", "said"),
+    [
+        ([{"name": "bulge", "range": [1.0, 0.0]}], "does not have low < high"),
+        ([{"name": "bulge", "range": [0.0]}], "is not two finite numbers"),
+        ([{"name": "bulge", "range": [0, 1]}] * 2, "is listed twice"),
+    ],
+)
+def test_a_bad_control_in_a_bundle_is_a_named_error(tmp_path, controls, said):
+    data = copy.deepcopy(SAMPLE_MANIFEST) | {"controls": controls}
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    (bundle / "manifest.json").write_text(json.dumps(data))
+    with pytest.raises(BundleError, match=said):
+        read_manifest(bundle)
+
+
+def test_a_bundle_without_controls_reads_none():
+    """A bundle exported before controls (the committed sample) reads exactly as before."""
+    manifest = read_manifest(SAMPLE)
+    assert manifest.controls == () and "controls" not in SAMPLE_MANIFEST
 
 
 @pytest.mark.parametrize(("path", "value"), [("blend_shapes", "smile"), ("torch.blend_shapes", -1)])
@@ -110,8 +152,11 @@ def test_render_and_eval_name_the_field_and_leave_no_output(tmp_path, capsys, pa
 
 def test_a_wrong_type_in_a_dataset_manifest_is_a_named_error(tmp_path, tiny_dataset):
     manifest = json.loads((tiny_dataset / "manifest.json").read_text())
+    # A rig with named controls adds its `controls` (docs/point_caches.md; the tiny one has none).
+    manifest["controls"] = [{"name": "bulge", "range": [0.0, 1.0]}]
     fields = [f for f in DATASET_MANIFEST if present(manifest, f)]
     assert len(fields) >= len(DATASET_MANIFEST) - 2
+    assert {f.path for f in fields} >= {"controls", "controls[].name", "controls[].range"}
     for field in fields:
         folder = tmp_path / field.path.replace("[]", "-each")  # clips and clips[]: two folders
         folder.mkdir()
@@ -226,6 +271,7 @@ def test_the_dataset_and_run_specs_are_their_dataclasses():
     keys = {f.name for f in dataclasses.fields(DatasetManifest)} - unkeyed
     assert keys <= paths and "path" not in paths
     assert [f.path for f in TRAINING_RUN if f.required] == ["config", "dataset", "joints",
+                                                            "controls[].name", "controls[].range",
                                                             "plan.steps_per_level"]  # fmt: skip
     assert {f.name for f in dataclasses.fields(RunRecord)} <= {f.path for f in TRAINING_RUN}
 

@@ -272,6 +272,34 @@ def test_blend_shape_sliders_override_the_animations_weights(browser, tmp_path_f
         page.close()
 
 
+def test_a_rigs_controls_get_sliders_over_their_ranges(browser, tmp_path_factory):
+    """A character whose model reads a named control (docs/point_caches.md) gets a slider for
+    it over the control's own range, and a slider moved travels in the frame request (the
+    engine takes it as an override once Engine.set_weights accepts controls: see
+    tests/train/test_point_caches.py's xfail)."""
+    from tests.point_caches import CONTROL, trained_arm
+
+    scene, _ = trained_arm(tmp_path_factory)
+    with served(scene) as (_, url):
+        page, errors = open_page(browser, url)
+        wait_frame(page, "h.quality === 'full'")
+        page.click('.node[data-path="/World/Hero"]')
+        page.locator("#control-sliders").wait_for()
+        found = page.locator("#control-sliders input").evaluate_all(
+            "nodes => nodes.map(n => [n.dataset.control, n.min, n.max])"
+        )
+        assert found == [[CONTROL, "0", "1"]]
+        page.evaluate(
+            "() => { const s = document.querySelector('input[data-control=\"bulge\"]');"
+            " s.value = 0.5; s.dispatchEvent(new Event('input')); }"
+        )
+        assert page.evaluate("window.rigspaceView.state.controls['/World/Hero']") == {CONTROL: 0.5}
+        page.click("#controls-reset")
+        assert not page.evaluate("window.rigspaceView.state.controls['/World/Hero']")
+        assert not errors, errors
+        page.close()
+
+
 def test_a_characters_regions_show_in_the_overlay_and_the_decisions(browser, tmp_path_factory):
     """A character whose bundle has a face region: the face's square is drawn on the overlay
     (its own toggle, apart from the characters' overlay) and its decision has a row of its own

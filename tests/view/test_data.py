@@ -47,7 +47,7 @@ def test_properties_at_a_time_authored_fallback_samples_and_targets(previs_clien
     assert "RigspaceCaptureRingAPI" in hero["metadata"]["apiSchemas"]
     bundle = hero["bundle"]
     assert bundle["manifest"].endswith("manifest.json") and bundle["levels"][-1] == 128
-    assert bundle["blend_shapes"] == []  # the sample character has none
+    assert bundle["blend_shapes"] == [] and bundle["controls"] == []  # the sample has none
     model_rows = [r for r in bundle["metrics"] if r["predictor"] == "model"]
     assert model_rows and all(r["albedo_psnr"] > 15 for r in model_rows)
     anim = previs_client.get(

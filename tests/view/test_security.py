@@ -225,3 +225,22 @@ def test_a_request_with_malformed_blend_shape_weights_is_refused(weights):
         json.dumps({"op": "frame", "time": 1, "weights": {"/World/Hero": {"jawOpen": 0.25}}}), []
     )
     assert good["weights"] == {"/World/Hero": {"jawOpen": 0.25}}
+
+
+def test_a_requests_control_values_join_its_weights_and_bad_ones_are_refused():
+    """The control sliders' values (docs/point_caches.md) travel as `controls`, in the
+    control's own units (not the blend shapes' [-2, 2]), and are merged with the character's
+    weights for the engine; a value that is not a finite number within the bound is refused."""
+    message = {"op": "frame", "time": 1, "weights": {"/World/Hero": {"jawOpen": 0.25}},
+               "controls": {"/World/Hero": {"twist": -45.0}, "/World/Other": {"bulge": 1}}}  # fmt: skip
+    good = parse_request(json.dumps(message), [])
+    assert good["weights"] == {
+        "/World/Hero": {"jawOpen": 0.25, "twist": -45.0},
+        "/World/Other": {"bulge": 1.0},
+    }
+    for controls in ([1], {"/World/Hero": {"twist": "left"}}, {"/World/Hero": {"twist": 1e9}}):
+        with pytest.raises(ValueError, match="control"):
+            parse_request(json.dumps({"op": "frame", "time": 1, "controls": controls}), [])
+    many = {"/World/Hero": {f"c{k}": 0.1 for k in range(300)}}
+    with pytest.raises(ValueError, match="at most 256"):
+        parse_request(json.dumps({"op": "frame", "time": 1, "controls": many}), [])

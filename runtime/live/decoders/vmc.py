@@ -1,4 +1,9 @@
-"""The VMC protocol (OSC over UDP, Unity conventions) decoded with python-osc, frames on OK/T."""
+"""The VMC protocol (OSC over UDP, Unity conventions) decoded with python-osc, frames on OK/T.
+
+Besides VMC's own messages, a plain OSC control message `/rigspace/control NAME VALUE` sets a
+character's named control (RigspaceControlAPI) or blend shape: any OSC sender (a fader box,
+a DCC's OSC out) drives a rig's controls without speaking VMC.
+"""
 
 from __future__ import annotations
 
@@ -52,6 +57,11 @@ MAX_BLEND_WEIGHT = 10.0
 overdrive a shape to 2 at most, so a weight beyond 10 is garbage (1e30 turned the network's
 output into NaN), counted as malformed like NaN. Within it, the runtime clamps each weight
 into its shape's range (binding.WEIGHT_RANGE, or the capture ring's blendShapeRanges)."""
+CONTROL = "/rigspace/control"
+MAX_CONTROL_VALUE = 1e6
+"""Largest control value magnitude accepted: a control's units are its own (degrees, cm, a
+0-1 slider), so the bound only stops garbage (NaN, Inf, 1e30); within it the runtime clamps
+each value into its control's range (RigspaceControlAPI range)."""
 TIME = "/VMC/Ext/T"
 MAX_SENDERS = 8
 """Senders (source addresses) whose frames are assembled apart at once; one more forgets the one
@@ -213,6 +223,26 @@ class VmcDecoder:
         elif address == BLEND_APPLY:
             state.blend_applied.update(state.blend_pending)
             state.blend_pending.clear()
+        elif address == CONTROL:
+            if (
+                len(params) < 2
+                or type(params[0]) is not str
+                or type(params[1]) not in _NUMBER
+                or not abs(params[1]) <= MAX_CONTROL_VALUE  # NaN, Inf or absurd
+                or (
+                    params[0] not in self._blend_names and len(self._blend_names) >= MAX_BLEND_NAMES
+                )
+            ):
+                c.malformed += 1
+                return
+            self._blend_names.add(params[0])
+            state.blend_applied[params[0]] = float(params[1])  # applied at once: no Apply
+            if not state.pending and not state.sender_time:
+                # Between frames (or from a sender that sends controls alone): a frame of its
+                # own now; inside a VMC frame, OK or T carries it.
+                frame = self._close(state, received)
+                if frame is not None:
+                    frames.append(frame)
         elif address == OK:
             if not state.sender_time:
                 frame = self._close(state, received)

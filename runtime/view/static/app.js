@@ -5,7 +5,7 @@ import { Viewport } from "./viewport.js";
 
 class App {
   constructor() {
-    this.state = { time: 0, map: "beauty", view: "neural", camera: null, selected: null, playing: false, weights: {} };
+    this.state = { time: 0, map: "beauty", view: "neural", camera: null, selected: null, playing: false, weights: {}, controls: {} };
     this.findingMarks = new Map();
     this.paints = [];      // scrub-to-paint measurements, read by the bench and the tests
     this.pending = new Map();  // time -> performance.now() of the input that asked for it
@@ -111,8 +111,8 @@ class App {
 
   request(quality, id = this.nextId++) {
     if (!this.ws || this.ws.readyState !== WebSocket.OPEN) return;
-    const { time, map, view, camera, weights } = this.state;
-    this.ws.send(JSON.stringify({ op: "frame", id, time, map, view, camera, quality, weights }));
+    const { time, map, view, camera, weights, controls } = this.state;
+    this.ws.send(JSON.stringify({ op: "frame", id, time, map, view, camera, quality, weights, controls }));
   }
 
   setTime(time, quality = "auto") {

@@ -100,6 +100,7 @@ export class PropertiesPanel {
     ];
     if (data.bundle) parts.push(...this.bundle(data.bundle));
     if (data.bundle && (data.bundle.blend_shapes || []).length) parts.push(...this.sliders(path, data.bundle.blend_shapes));
+    if (data.bundle && (data.bundle.controls || []).length) parts.push(...this.controlSliders(path, data.bundle.controls));
     this.box.replaceChildren(...parts);
   }
   sliders(path, shapes) {
@@ -125,6 +126,31 @@ export class PropertiesPanel {
     return [el("div", { class: "section" }, "blend shapes (drag to override the animation)"),
       el("table", { id: "blend-sliders", class: "props" }, ...rows), reset];
   }
+  controlSliders(path, controls) {
+    // The rig's named controls (RigspaceControlAPI), each over its own range: a slider moved
+    // overrides the stage's (and a live source's) value of that control until reset.
+    const app = this.app;
+    const mine = () => app.state.controls[path] || {};
+    const set = (name, value) => {
+      const next = { ...mine() };
+      if (value === null) delete next[name]; else next[name] = value;
+      if (Object.keys(next).length) app.state.controls[path] = next; else delete app.state.controls[path];
+      app.request("auto");
+    };
+    const rows = controls.map(({ name, range }) => {
+      const [low, high] = range;
+      const value = mine()[name];
+      const label = el("td", { class: "value num" }, value === undefined ? "stage" : value.toFixed(2));
+      const step = String((high - low) / 100);
+      const input = el("input", { type: "range", min: String(low), max: String(high), step, value: String(value ?? low), "data-control": name });
+      input.addEventListener("input", () => { label.textContent = Number(input.value).toFixed(2); set(name, Number(input.value)); });
+      return el("tr", {}, el("td", { class: "name" }, name), el("td", {}, input), label);
+    });
+    const reset = el("button", { id: "controls-reset" }, "reset to the stage");
+    reset.addEventListener("click", () => { delete app.state.controls[path]; app.request("auto"); this.load(path, app.state.time); });
+    return [el("div", { class: "section" }, "controls (drag to override the stage)"),
+      el("table", { id: "control-sliders", class: "props" }, ...rows), reset];
+  }
   bundle(b) {
     const out = [el("div", { class: "section" }, "model bundle")];
     if (b.error) out.push(el("div", { class: "empty", style: "color:var(--err)" }, b.error));
@@ -134,6 +160,7 @@ export class PropertiesPanel {
       el("tr", {}, el("td", { class: "name" }, "format"), el("td", { class: "value" }, b.format)),
       el("tr", {}, el("td", { class: "name" }, "joints"), el("td", { class: "value" }, b.joints)),
       el("tr", {}, el("td", { class: "name" }, "blend shapes"), el("td", { class: "value" }, (b.blend_shapes || []).join(", ") || "none")),
+      el("tr", {}, el("td", { class: "name" }, "controls"), el("td", { class: "value" }, (b.controls || []).map((c) => `${c.name} ${c.range[0]}..${c.range[1]}`).join(", ") || "none")),
       el("tr", {}, el("td", { class: "name" }, "levels"), el("td", { class: "value" }, b.levels.join(", "))),
       el("tr", {}, el("td", { class: "name" }, "maps"), el("td", { class: "value" }, (b.maps || []).join(", "))),
       el("tr", {}, el("td", { class: "name" }, "training"), el("td", { class: "value" }, `${b.training.preset || "?"}, ${b.training.steps ?? "?"} steps`)),

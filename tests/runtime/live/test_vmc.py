@@ -550,3 +550,27 @@ def test_an_absurd_blend_weight_is_malformed_and_one_out_of_range_passes_to_be_c
     (frame,) = decoder.feed(_osc("/VMC/Ext/OK", 1), 1.0)
     assert frame.weights == {"mouthSmileLeft": 5.0, "eyeBlinkLeft": -3.0}
     assert decoder.counters.malformed == 1
+
+
+def test_a_plain_osc_control_message_applies_at_once_and_is_checked():
+    """`/rigspace/control NAME VALUE` (any OSC sender, no VMC framing): between frames it is a
+    frame of its own at once; inside a VMC frame the frame's OK carries it; its values are
+    checked like Blend/Val's, with a bound that fits a control's own units."""
+    decoder = VmcDecoder()
+    (frame,) = decoder.feed(_osc("/rigspace/control", "bulge", 0.5), 1.0)
+    assert frame.weights == {"bulge": 0.5} and len(frame.indices) == 0 and frame.timestamp == 1.0
+    (frame,) = decoder.feed(_osc("/rigspace/control", "twist", -45), 1.5)  # an int, degrees
+    assert frame.weights == {"twist": -45.0}
+    decoder.feed(_osc("/VMC/Ext/Bone/Pos", "Head", 0.0, 0.1, 0.0, 0.0, 0.0, 0.0, 1.0), 2.0)
+    assert decoder.feed(_osc("/rigspace/control", "bulge", 0.75), 2.0) == []  # inside a frame
+    (frame,) = decoder.feed(_osc("/VMC/Ext/OK", 1), 2.0)
+    assert frame.weights == {"bulge": 0.75} and len(frame.indices) == 1
+    before = decoder.counters.malformed
+    for bad in (
+        _osc("/rigspace/control", "bulge", float("nan")),
+        _osc("/rigspace/control", "bulge", 1e30),
+        _osc("/rigspace/control", "bulge"),
+        _osc("/rigspace/control", 3, 0.5),
+    ):
+        assert decoder.feed(bad, 3.0) == []
+    assert decoder.counters.malformed == before + 4
