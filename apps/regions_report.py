@@ -281,7 +281,7 @@ def _measure(t: float, truth, engines, renderer, parts, labels, tallies) -> None
 
     reference = truth.render(t)
     frames = [e.render(t) for e in engines]
-    camera = Camera.from_usd(truth.camera_prim, t, truth.width, truth.height)
+    camera = Camera.from_usd(truth.camera_prim, t, truth.settings.width, truth.settings.height)
     character = truth.characters[0]
     posed = character.rig.posed_meshes(t, charts=False)
     mesh_cover = truth.coverage_of(character.path, t)

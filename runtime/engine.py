@@ -371,15 +371,15 @@ class Engine:
         return full
 
     def set_weights(self, path: str, weights: dict[str, float]) -> None:
-        """Override blend shape weights of the character at `path` from the next frame on (an
-        empty dict clears them). A name the character's meshes lack, or a weight that is not a
-        finite number, is a ValueError naming it."""
+        """Override blend shape weights or controls (RigspaceControlAPI) of the character at
+        `path` from the next frame on (an empty dict clears them). A name the character lacks,
+        or a weight that is not a finite number, is a ValueError naming it."""
         character = next((c for c in self.characters if c.path == path), None)
         if character is None:
             raise ValueError(f"{path} is not a neural character of this stage")
         for name, value in weights.items():
-            if name not in character.rig.blend_shapes:
-                raise ValueError(f"{path} has no blend shape {name!r}")
+            if name not in character.rig.scalar_names:
+                raise ValueError(f"{path} has no blend shape or control {name!r}")
             if not isinstance(value, int | float) or not np.isfinite(value):
                 raise ValueError(f"the weight of {name!r} must be a finite number")
         before = self.weight_overrides.get(path)

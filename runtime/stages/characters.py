@@ -146,15 +146,19 @@ class CharacterStages:
         return entries
 
     def weights_of(self, character: NeuralCharacter, time: float) -> np.ndarray | None:
-        """The character's blend shape weights (its order) with live sources' and then the
-        overrides' merged in; None when neither applies (the animation's)."""
+        """The character's blend shape weights and controls (`rig.scalar_names` order; a live
+        source's blend shape weights alone where no override names a control) with live
+        sources' and then the overrides' merged in; None when neither applies (the stage's)."""
         weights = self.live.weights(character, time)
         override = self.weight_overrides.get(character.path)
         if override:
+            rig = character.rig
             if weights is None:
-                weights = character.rig.blend_weights(time)
+                weights = rig.scalars(time)
+            elif len(weights) == len(rig.blend_shapes) and rig.controls:
+                weights = np.concatenate([weights, rig.control_values(time)])
             for name, value in override.items():
-                weights[character.rig.blend_shapes.index(name)] = value
+                weights[rig.scalar_names.index(name)] = value
         return weights
 
     def needs_coverage(self, f: FrameState) -> bool:
@@ -284,9 +288,10 @@ class CharacterStages:
             samples = self.settings.prim_samples
             self._mesh_renderer = self._spec.create(RenderSettings(samples, shared=self._shared))
         for c in f.candidates:
-            meshes = c.character.rig.posed_meshes(
-                f.time, charts=True, weights=self.weights_of(c.character, f.time)
-            )
+            weights = self.weights_of(c.character, f.time)
+            if weights is not None:  # the meshes take the blend shapes; controls are inputs
+                weights = weights[: len(c.character.rig.blend_shapes)]
+            meshes = c.character.rig.posed_meshes(f.time, charts=True, weights=weights)
             maps = self._mesh_renderer.render(meshes, f.camera)
             layer = Layer(0, 0, maps.albedo, maps.mask, maps.depth, maps.normal, 0, BOTH,
                           uv=maps.uv, chart=maps.chart)  # fmt: skip

@@ -431,6 +431,6 @@ def test_a_region_with_a_texture_head_samples_the_characters_textures(tmp_path):
         (part,) = engine.characters[0].regions
         assert part.textures is not None, part.no_texture
         frame = engine.render(6.0)
-    (entry,) = frame.report["characters"][0]["regions"]
+    (entry,) = frame.report.characters[0]["regions"]
     assert entry["decision"] == "evaluated", entry
     assert entry["colour"].startswith("its textures on"), entry["colour"]

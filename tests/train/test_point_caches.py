@@ -101,6 +101,7 @@ def test_the_runtime_feeds_the_stage_control_and_re_evaluates_when_only_it_chang
     """The arm's elbow holds still while its control keeps moving: each new value is a new
     evaluation (not 'the same pose'); a repeated one is reused."""
     from rigspace.runtime.engine import Engine
+    from rigspace.runtime.settings import EngineSettings
 
     scene, _ = arm
     stage = Usd.Stage.Open(str(scene))
@@ -110,14 +111,16 @@ def test_the_runtime_feeds_the_stage_control_and_re_evaluates_when_only_it_chang
         rotations.Set(still, t)
     path = tmp_path / "still.usda"
     stage.GetRootLayer().Export(str(path))
-    with Engine(path, camera="/World/Camera", width=64, height=48, renderer="gl") as engine:
+    with Engine(
+        path, EngineSettings(camera="/World/Camera", width=64, height=48, renderer="gl")
+    ) as engine:
         character = engine.characters[0]
         assert character.weights(3.0) == pytest.approx([bulge_at(3.0)])
         # A source of the blend shape weights alone (none here) takes the stage's controls.
         assert character.weights(3.0, np.zeros(0, np.float32)) == pytest.approx([bulge_at(3.0)])
         decisions = []
         for t in (3.0, 4.0, 4.0):
-            (entry,) = engine.render(t).report["characters"]
+            (entry,) = engine.render(t).report.characters
             decisions.append(entry["decision"])
     assert decisions[1:] == ["evaluated", "reused"] and decisions[0] in ("evaluated", "skipped")
 
@@ -176,13 +179,16 @@ def test_live_controls_arrive_by_vmc_and_plain_osc_clamped_into_their_range(arm,
 
     from rigspace.runtime.engine import Engine
     from rigspace.runtime.live.record import TakeRecorder, read_take
+    from rigspace.runtime.settings import EngineSettings
     from tests.conftest import free_port
     from tests.runtime.live.conftest import wait_for
 
     scene, _ = arm
     port = free_port()
     path = _live_arm(scene, tmp_path, port)
-    with Engine(path, camera="/World/Camera", width=64, height=48, renderer="gl") as engine:
+    with Engine(
+        path, EngineSettings(camera="/World/Camera", width=64, height=48, renderer="gl")
+    ) as engine:
         engine.render(6.0)  # opens the source
         character = engine.characters[0]
         runtime = engine.live.characters[CHARACTER].runtimes[0]
@@ -214,21 +220,20 @@ def test_live_controls_arrive_by_vmc_and_plain_osc_clamped_into_their_range(arm,
     assert layer.GetAttributeAtPath(f"/Take.rigspace:control:{CONTROL}:value") is not None
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="runtime/engine.py (being refactored on another branch) still checks overrides "
-    "against the blend shapes alone: Engine.set_weights must accept rig.scalar_names and "
-    "Engine._weights_of start from rig.scalars(time) (see docs/point_caches.md, 'Runtime')",
-)
 def test_an_override_of_a_control_reaches_the_network(arm):
     """`rigspace view`'s control sliders and Engine.set_weights: an override of the control
     replaces the stage's value in the frame's rig vector."""
     from rigspace.runtime.engine import Engine
+    from rigspace.runtime.settings import EngineSettings
 
     scene, _ = arm
-    with Engine(scene, camera="/World/Camera", width=64, height=48, renderer="gl") as engine:
+    with Engine(
+        scene, EngineSettings(camera="/World/Camera", width=64, height=48, renderer="gl")
+    ) as engine:
         engine.set_weights(CHARACTER, {CONTROL: 0.75})
-        (entry,) = engine.render(3.0).report["characters"]
+        (entry,) = engine.render(3.0).report.characters
         character = engine.characters[0]
-        assert character.weights(3.0, engine._weights_of(character, 3.0)) == pytest.approx([0.75])
+        assert character.weights(
+            3.0, engine.character_stages.weights_of(character, 3.0)
+        ) == pytest.approx([0.75])
         assert entry["decision"] in ("evaluated", "skipped")
