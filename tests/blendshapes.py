@@ -39,17 +39,20 @@ def weights_at(t: float) -> list[float]:
     return [s, 1.0 - s, 1.2 * s, 0.5 + 0.5 * np.sin(2 * t), 0.3]
 
 
-def _cylinder() -> tuple[np.ndarray, np.ndarray]:
-    angle = np.linspace(0, 2 * np.pi, SEGMENTS, endpoint=False)
-    height = np.linspace(0, HEIGHT, RINGS + 1)
+def cylinder(
+    segments: int = SEGMENTS, rings: int = RINGS, height: float = HEIGHT, radius: float = RADIUS
+) -> tuple[np.ndarray, np.ndarray]:
+    """(points, quads) of an open cylinder standing on y = 0 (the test characters' body)."""
+    angle = np.linspace(0, 2 * np.pi, segments, endpoint=False)
+    levels = np.linspace(0, height, rings + 1)
     points = np.array(
-        [(RADIUS * np.sin(a), h, RADIUS * np.cos(a)) for h in height for a in angle], np.float32
+        [(radius * np.sin(a), h, radius * np.cos(a)) for h in levels for a in angle], np.float32
     )
     faces = []
-    for r in range(RINGS):
-        for k in range(SEGMENTS):
-            a, b = r * SEGMENTS + k, r * SEGMENTS + (k + 1) % SEGMENTS
-            faces.append((a, b, b + SEGMENTS, a + SEGMENTS))
+    for r in range(rings):
+        for k in range(segments):
+            a, b = r * segments + k, r * segments + (k + 1) % segments
+            faces.append((a, b, b + segments, a + segments))
     return points, np.array(faces)
 
 
@@ -100,7 +103,7 @@ def write_blendshape_character(folder: Path) -> Path:
         [animation.GetPath()]
     )
 
-    points, faces = _cylinder()
+    points, faces = cylinder()
     mesh = UsdGeom.Mesh.Define(stage, "/World/Asset/Head")
     mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(points))
     mesh.CreateFaceVertexCountsAttr([4] * len(faces))

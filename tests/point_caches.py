@@ -24,6 +24,7 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 
 import rigspace.sdk  # noqa: F401  (schemas registered before the stage is made)
+from tests.blendshapes import cylinder
 from tests.materials import CHARACTER as CHARACTER  # the character prim (re-exported)
 from tests.materials import add_character, new_asset_stage
 
@@ -44,18 +45,9 @@ def bulge_at(t: float) -> float:
     return float(t) / (FRAMES - 1)
 
 
-def _cylinder() -> tuple[np.ndarray, np.ndarray]:
-    angle = np.linspace(0, 2 * np.pi, SEGMENTS, endpoint=False)
-    height = np.linspace(0, HEIGHT, RINGS + 1)
-    points = np.array(
-        [(RADIUS * np.sin(a), h, RADIUS * np.cos(a)) for h in height for a in angle], np.float32
-    )
-    faces = []
-    for r in range(RINGS):
-        for k in range(SEGMENTS):
-            a, b = r * SEGMENTS + k, r * SEGMENTS + (k + 1) % SEGMENTS
-            faces.append((a, b, b + SEGMENTS, a + SEGMENTS))
-    return points, np.array(faces)
+def arm_mesh() -> tuple[np.ndarray, np.ndarray]:
+    """The arm's rest points and quads (a cylinder of this module's size)."""
+    return cylinder(SEGMENTS, RINGS, HEIGHT, RADIUS)
 
 
 def cached_points(rest: np.ndarray, t: float) -> np.ndarray:
@@ -96,7 +88,7 @@ def write_point_cache_character(folder: Path, broken: str = "") -> Path:
         [animation.GetPath()]
     )
 
-    rest_points, faces = _cylinder()
+    rest_points, faces = arm_mesh()
     mesh = UsdGeom.Mesh.Define(stage, MESH)
     mesh.CreateFaceVertexCountsAttr([4] * len(faces))
     mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(faces.reshape(-1).tolist()))

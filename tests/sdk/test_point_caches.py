@@ -18,7 +18,7 @@ from tests.point_caches import (
     CONTROL,
     FRAMES,
     MESH,
-    _cylinder,
+    arm_mesh,
     bulge_at,
     cached_points,
     write_point_cache_character,
@@ -45,7 +45,7 @@ def test_the_meshes_are_the_cache_and_the_controls_follow_the_weights(arm):
     assert rig.joints == ["root", "root/elbow"] and rig.blend_shapes == ()
     assert rig.scalar_names == (CONTROL,) and rig.cached_meshes[0].GetPath() == MESH
     assert not rig.has_skinned_meshes and len(rig.time_samples()) == FRAMES
-    rest = _cylinder()[0]
+    rest = arm_mesh()[0]
     for t in (0.0, 5.0, 12.0):
         (mesh,) = rig.posed_meshes(t)
         assert np.abs(mesh.points - cached_points(rest, t)).max() < POINTS_TOLERANCE
