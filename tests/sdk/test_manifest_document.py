@@ -35,7 +35,11 @@ def test_a_committed_bundle_is_written_back_byte_for_byte(tmp_path, name):
     written = write_manifest_document(folder, read_manifest_document(folder))
     assert (folder / "manifest.json").read_bytes() == (MODELS / name / "manifest.json").read_bytes()
     committed = read_manifest(MODELS / name)
-    assert written == dataclasses.replace(committed, path=folder / "manifest.json")
+    regions = tuple(  # a region's bundle folder is where the manifest is read from
+        dataclasses.replace(r, folder=folder / r.folder.relative_to(MODELS / name))
+        for r in committed.regions
+    )
+    assert written == dataclasses.replace(committed, path=folder / "manifest.json", regions=regions)
     assert [p.name for p in folder.iterdir()] == ["manifest.json"]
 
 
