@@ -78,20 +78,29 @@ def _skin(stage, mesh, skeleton, points, split: float) -> None:
     binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1))
 
 
-def write_blendshape_character(folder: Path) -> Path:
-    """The scene (see the module doc) in `folder`; returns its path."""
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / "face.usda"
+def two_joint_asset(
+    path: Path, joints: list[str]
+) -> tuple[Usd.Stage, UsdSkel.Skeleton, UsdSkel.Animation]:
+    """A new asset stage at `path` with a skeleton of two joints one unit apart up y and its
+    animation's joints, translations and scales (the rotations are each character's)."""
     stage, skeleton = new_asset_stage(path)
-    skeleton.CreateJointsAttr(JOINTS)
+    skeleton.CreateJointsAttr(joints)
     bind = [Gf.Matrix4d(1).SetTranslate(Gf.Vec3d(0, y, 0)) for y in (0.0, 1.0)]
     rest = [Gf.Matrix4d(1).SetTranslate(Gf.Vec3d(0, y, 0)) for y in (0.0, 1.0)]
     skeleton.CreateBindTransformsAttr(Vt.Matrix4dArray(bind))
     skeleton.CreateRestTransformsAttr(Vt.Matrix4dArray(rest))
     animation = UsdSkel.Animation.Define(stage, "/World/Asset/Skel/Anim")
-    animation.CreateJointsAttr(JOINTS)
+    animation.CreateJointsAttr(joints)
     animation.CreateTranslationsAttr(Vt.Vec3fArray([(0, 0, 0), (0, 1.0, 0)]))
     animation.CreateScalesAttr(Vt.Vec3hArray([(1, 1, 1)] * 2))
+    return stage, skeleton, animation
+
+
+def write_blendshape_character(folder: Path) -> Path:
+    """The scene (see the module doc) in `folder`; returns its path."""
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "face.usda"
+    stage, skeleton, animation = two_joint_asset(path, JOINTS)
     animation.CreateBlendShapesAttr(ANIMATED)
     rotations = animation.CreateRotationsAttr()
     weights = animation.CreateBlendShapeWeightsAttr()

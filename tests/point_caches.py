@@ -24,9 +24,9 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 
 import rigspace.sdk  # noqa: F401  (schemas registered before the stage is made)
-from tests.blendshapes import cylinder
+from tests.blendshapes import cylinder, two_joint_asset
 from tests.materials import CHARACTER as CHARACTER  # the character prim (re-exported)
-from tests.materials import add_character, new_asset_stage
+from tests.materials import add_character
 
 SEGMENTS, RINGS, HEIGHT, RADIUS = 12, 8, 2.0, 0.35
 JOINTS = ["root", "root/elbow"]
@@ -70,16 +70,7 @@ def write_point_cache_character(folder: Path, broken: str = "") -> Path:
     """The scene (see the module doc) in `folder`; returns its path."""
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "arm.usda"
-    stage, skeleton = new_asset_stage(path)
-    skeleton.CreateJointsAttr(JOINTS)
-    bind = [Gf.Matrix4d(1).SetTranslate(Gf.Vec3d(0, y, 0)) for y in (0.0, 1.0)]
-    rest = [Gf.Matrix4d(1).SetTranslate(Gf.Vec3d(0, y, 0)) for y in (0.0, 1.0)]
-    skeleton.CreateBindTransformsAttr(Vt.Matrix4dArray(bind))
-    skeleton.CreateRestTransformsAttr(Vt.Matrix4dArray(rest))
-    animation = UsdSkel.Animation.Define(stage, "/World/Asset/Skel/Anim")
-    animation.CreateJointsAttr(JOINTS)
-    animation.CreateTranslationsAttr(Vt.Vec3fArray([(0, 0, 0), (0, 1.0, 0)]))
-    animation.CreateScalesAttr(Vt.Vec3hArray([(1, 1, 1)] * 2))
+    stage, skeleton, animation = two_joint_asset(path, JOINTS)
     rotations = animation.CreateRotationsAttr()
     for t in range(FRAMES):
         bend = Gf.Quatf(Gf.Rotation(Gf.Vec3d(1, 0, 0), elbow_angle(t)).GetQuat())
