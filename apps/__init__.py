@@ -12,6 +12,6 @@ Subcommands (entry-point group `rigspace.commands`, the front door is rigspace.s
 Tools (`python -m rigspace.apps.NAME`): `capsules`, `render_timing`, `capture_rates`,
 `framing`, `ablation`, `curve`, `graph_rewrite`, `quantize`, `shadow_timing`, `live_send`,
 `live_probe`, `live_fuzz`, `input_bench`, `scrub_bench`, `stability`, `memory`, `gpu_check`,
-`regions_report` (docs/regions.md),
+`regions_report` (docs/regions.md), `rerig_report` (docs/point_caches.md),
 `recipe` (also `python3 apps/recipe.py`, on a machine without rigspace installed).
 """

@@ -50,14 +50,14 @@ def arm_mesh() -> tuple[np.ndarray, np.ndarray]:
     return cylinder(SEGMENTS, RINGS, HEIGHT, RADIUS)
 
 
-def cached_points(rest: np.ndarray, t: float) -> np.ndarray:
+def cached_points(rest: np.ndarray, t: float, bulge: bool = True) -> np.ndarray:
     """The rig's points at time code t: the upper half bent about the elbow (y = 1), and the
     ring around the elbow pushed out by the bulge (not something the joints' skinning
-    gives: it follows the control)."""
+    gives: it follows the control). Without `bulge`, the bend alone: the re-rig's points."""
     points = rest.astype(np.float64).copy()
     radial = points * np.array([1.0, 0.0, 1.0]) / RADIUS
     near = np.exp(-(((points[:, 1] - 1.0) / 0.3) ** 2))[:, None]
-    points += 0.25 * bulge_at(t) * near * radial
+    points += 0.25 * bulge_at(t) * bulge * near * radial
     angle = np.radians(elbow_angle(t))
     c, s = np.cos(angle), np.sin(angle)
     upper = points[:, 1] > 1.0
@@ -66,8 +66,9 @@ def cached_points(rest: np.ndarray, t: float) -> np.ndarray:
     return points.astype(np.float32)
 
 
-def write_point_cache_character(folder: Path, broken: str = "") -> Path:
-    """The scene (see the module doc) in `folder`; returns its path."""
+def write_point_cache_character(folder: Path, broken: str = "", bulge: bool = True) -> Path:
+    """The scene (see the module doc) in `folder`; returns its path. Without `bulge` the
+    cache holds the bend alone (what re-rigging the arm for a game engine gives)."""
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "arm.usda"
     stage, skeleton, animation = two_joint_asset(path, JOINTS)
@@ -88,7 +89,7 @@ def write_point_cache_character(folder: Path, broken: str = "") -> Path:
     points = mesh.CreatePointsAttr()
     cached = FRAMES + 1 if broken == "frames" else FRAMES
     for t in range(cached):
-        frame = cached_points(rest_points, t)
+        frame = cached_points(rest_points, t, bulge)
         if broken == "points" and t == 5:
             frame = frame[:-1]
         if broken == "nan" and t == 7:

@@ -249,11 +249,11 @@ def _weights(binding: UsdSkel.BindingAPI, joints: int) -> np.ndarray:
     return dense / dense.sum(axis=1, keepdims=True)
 
 
-def bake(frames: np.ndarray) -> dict:
-    """The body's LBS and baked points (F, N, 3) in skeleton space, the controls per frame and
-    what a bake measures: the deformations' largest offset from LBS (cm), and the largest
-    difference between this script's LBS and UsdSkel's (the check that its skinning is
-    UsdSkel's)."""
+def _usd_skinning(frames: np.ndarray) -> tuple:
+    """The sample's stage and skinning cache (which the queries need alive), its skeleton
+    query, the body's skinning query, joints, bind transforms
+    (column-vector), rest points in skeleton space, skin weights, and the joints' skeleton-space
+    transforms (column-vector) at each of `frames`."""
     base = Usd.Stage.Open(str(BASE))
     skeleton = UsdSkel.Skeleton(base.GetPrimAtPath("/Character/Skel"))
     body = base.GetPrimAtPath("/Character/Body")
@@ -262,45 +262,68 @@ def bake(frames: np.ndarray) -> dict:
     skel_query = cache.GetSkelQuery(skeleton)
     skinning = cache.GetSkinningQuery(body)
     joints = [str(j) for j in skeleton.GetJointsAttr().Get()]
-    bind = np.array(skeleton.GetBindTransformsAttr().Get()).transpose(0, 2, 1)  # column-vector
+    bind = np.array(skeleton.GetBindTransformsAttr().Get()).transpose(0, 2, 1)
     rest = np.array(UsdGeom.Mesh(body).GetPointsAttr().Get(), dtype=np.float64)
     geom_bind = np.array(skinning.GetGeomBindTransform()).T
     rest = rest @ geom_bind[:3, :3].T + geom_bind[:3, 3]
     weights = _weights(UsdSkel.BindingAPI(body), len(joints))
-    arms = [Arm(side, joints, bind, weights, rest) for side in SIDES]
     worlds = [
         np.array(skel_query.ComputeJointSkelTransforms(Usd.TimeCode(float(t)))).transpose(0, 2, 1)
         for t in frames
     ]
+    return (base, cache), skel_query, skinning, joints, bind, rest, weights, worlds
+
+
+def _usd_difference(skel_query, skinning, rest: np.ndarray, t: float, posed: np.ndarray) -> float:
+    """The largest difference between this script's LBS and UsdSkel's at time t."""
+    xforms = skel_query.ComputeSkinningTransforms(Usd.TimeCode(t))
+    points = Vt.Vec3fArray.FromNumpy(rest.astype(np.float32))
+    skinning.ComputeSkinnedPoints(xforms, points, Usd.TimeCode(t))
+    return float(np.abs(np.array(points) - posed).max())
+
+
+KINDS = {
+    "bicepsBulge": Arm.bulge_amount,
+    "armTwist": Arm.arm_twist,
+    "forearmTwist": Arm.wrist_twist,
+}
+"""Each control kind and the Arm method that measures it in a pose."""
+
+
+def _bake_pose(arms, rest, weights, world, bind, values: dict) -> np.ndarray:
+    """One pose baked: its twists taken out, skinned, bulged and twisted back; the pose's
+    control values appended to `values`."""
+    untwisted = world
+    twists = []
+    for arm in arms:
+        for kind, measure in KINDS.items():
+            values[f"{kind}_{arm.side}"].append(measure(arm, world))
+        untwisted, hand, upper = arm.untwist(untwisted)
+        twists.append((hand, upper))
+    points = skin(rest, weights, untwisted, bind)
+    for arm, (hand, upper) in zip(arms, twists, strict=True):
+        arm.deform(points, untwisted, hand, upper)
+    return points
+
+
+def bake(frames: np.ndarray) -> dict:
+    """The body's LBS and baked points (F, N, 3) in skeleton space, the controls per frame and
+    what a bake measures: the deformations' largest offset from LBS (cm), and the largest
+    difference between this script's LBS and UsdSkel's (the check that its skinning is
+    UsdSkel's)."""
+    from tqdm import tqdm
+
+    _alive, skel_query, skinning, joints, bind, rest, weights, worlds = _usd_skinning(frames)
+    arms = [Arm(side, joints, bind, weights, rest) for side in SIDES]
     for arm in arms:
         arm.find_front(worlds)
+    values: dict[str, list[float]] = {f"{kind}_{a.side}": [] for kind in KINDS for a in arms}
     lbs, baked = [], []
-    kinds = {
-        "bicepsBulge": Arm.bulge_amount,
-        "armTwist": Arm.arm_twist,
-        "forearmTwist": Arm.wrist_twist,
-    }
-    values: dict[str, list[float]] = {f"{kind}_{a.side}": [] for kind in kinds for a in arms}
-    usd_difference = 0.0
-    for t, world in zip(frames, worlds, strict=True):
-        posed = skin(rest, weights, world, bind)
-        if t == frames[0]:  # this LBS is UsdSkel's: checked on the first frame
-            xforms = skel_query.ComputeSkinningTransforms(Usd.TimeCode(float(t)))
-            points = Vt.Vec3fArray.FromNumpy(rest.astype(np.float32))
-            skinning.ComputeSkinnedPoints(xforms, points, Usd.TimeCode(float(t)))
-            usd_difference = float(np.abs(np.array(points) - posed).max())
-        lbs.append(posed)
-        untwisted = world
-        twists = []
-        for arm in arms:
-            for kind, measure in kinds.items():
-                values[f"{kind}_{arm.side}"].append(measure(arm, world))
-            untwisted, hand, upper = arm.untwist(untwisted)
-            twists.append((hand, upper))
-        points = skin(rest, weights, untwisted, bind)
-        for arm, (hand, upper) in zip(arms, twists, strict=True):
-            arm.deform(points, untwisted, hand, upper)
-        baked.append(points)
+    for world in tqdm(worlds, unit="frame", desc="bake"):
+        lbs.append(skin(rest, weights, world, bind))
+        baked.append(_bake_pose(arms, rest, weights, world, bind, values))
+    # This LBS is UsdSkel's: checked on the first frame.
+    usd_difference = _usd_difference(skel_query, skinning, rest, float(frames[0]), lbs[0])
     offsets = np.linalg.norm(np.array(baked) - np.array(lbs), axis=2)
     # A control that never moves over the bake cannot be learned (validation's
     # ControlConstant): only the ones the clips move are authored.
