@@ -278,6 +278,30 @@ def test_a_close_camera_draws_the_face_over_the_body(face):
 
 
 @pytest.mark.slow  # the face fixture trains two bundles (10-30 s)
+def test_the_region_reads_at_a_ring_camera_the_rig_its_dataset_recorded(face):
+    """The face's network input in the runtime (its billboard at its own joint, the joints'
+    rotations in its virtual camera) equals the row its capture recorded at that camera."""
+    from rigspace.sdk.camera import Camera
+
+    scene, bundle = face
+    table = np.load(bundle.parent / "ds" / "regions" / "face" / "params.npz")
+    with _engine(scene, 2.5) as engine:
+        hero = engine.characters[0]
+        (part,) = hero.regions
+        joints = len(part.order) * 6
+        for k in range(0, len(table["time"]), max(1, len(table["time"]) // 5)):
+            size = round(2 * table["intrinsics"][k][2])
+            camera = Camera(table["camera_to_world"][k], size, size,
+                            focal_length=part.view.focal_length,
+                            horizontal_aperture=part.view.horizontal_aperture)  # fmt: skip
+            world = hero.pose(float(table["time"][k]))
+            billboard = part.place(world, camera)
+            assert np.allclose(billboard.rotation, np.eye(3), atol=1e-6)  # it looks at the head
+            ours = part.parameters(world, billboard, camera)[0, :joints]
+            assert np.abs(ours - table["rig"][k][part.order].reshape(-1)).max() < 1e-4
+
+
+@pytest.mark.slow  # the face fixture trains two bundles (10-30 s)
 def test_far_or_without_its_body_the_face_is_skipped_and_runs_nothing(face):
     scene, _ = face
     with _engine(scene, 60.0) as engine:
