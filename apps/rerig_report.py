@@ -7,8 +7,9 @@ DATASET is the capture of a character whose meshes are point caches (the truth: 
 production rig evaluated, docs/point_caches.md); BUNDLE the network trained on it; LBS_DATASET
 the capture of the **re-rig**: the same skeleton skinning the rest mesh by linear blend
 skinning (what moving the character to a game engine's deformers gives), from the same capture
-ring over the same frames, so that each sample of DATASET has its twin there (same time code,
-view and camera; a sample without one is an error naming it).
+ring over the same clips, so that each sample of DATASET has its twin there (same time code,
+view and camera; a sample without one is an error naming it). The re-rig may be captured
+`--every N` frames: the samples of DATASET at frames it did not capture are left out.
 
 For each sample of the split (or `--limit` of them, evenly spaced), the pixels where the truth
 **departs from LBS** are those where the two masks disagree, or both cover the pixel and the
@@ -108,6 +109,20 @@ def departing(truth: Maps, lbs: Maps, cm_per_unit: float) -> np.ndarray:
         far = np.abs(truth.depth - lbs.depth) * cm_per_unit > DEPART_DEPTH_CM
     turned = angles_deg(truth.normal, lbs.normal) > DEPART_ANGLE_DEG
     return (t ^ r) | (both & (far | turned))
+
+
+def with_twin_times(table, twin, rows: np.ndarray) -> np.ndarray:
+    """`rows` at the time codes the twin captured (a re-rig captured `--every N` frames)."""
+    from rigspace.capture.dataset import DatasetError
+
+    times = np.unique(np.round(twin.column("time"), 3))
+    kept = rows[np.isin(np.round(table.column("time")[rows], 3), times)]
+    if kept.size == 0:
+        raise DatasetError(
+            f"{twin.folder} has none of the time codes of {table.folder}'s samples.",
+            "capture the re-rig's shot over the same clips (samples/point_cache/README.md).",
+        )
+    return kept
 
 
 def match_rows(table, twin, rows: np.ndarray) -> np.ndarray:
@@ -214,7 +229,7 @@ def run(args: argparse.Namespace) -> tuple[dict, np.ndarray]:
     from rigspace.train.predictor import BundlePredictor
 
     table, twin = DatasetTable(args.dataset), DatasetTable(args.rerig)
-    rows = evenly_spaced(table.indices(args.split), args.limit)
+    rows = evenly_spaced(with_twin_times(table, twin, table.indices(args.split)), args.limit)
     twins = match_rows(table, twin, rows)
     network = BundlePredictor(Path(args.model), table)
     cm_per_unit = 100.0 * (table.manifest.meters_per_unit or 0.01)

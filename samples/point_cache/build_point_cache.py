@@ -51,6 +51,7 @@ BASE = SAMPLES / "character" / "sample_character.usda"
 PREVIS = SAMPLES / "scenes" / "previs.usda"
 USD_NAME = "point_cache_character.usdc"
 SCENE_NAME = "point_cache.usda"
+RERIG_NAME = "rerig.usda"
 SIDES = ("l", "r")
 
 BULGE_CM = 4.0
@@ -378,22 +379,21 @@ def write_character(out: Path, baked: dict) -> Path:
     return path
 
 
-def write_scene(out: Path, baked: dict, clips: list[tuple[str, float, float]]) -> Path:
-    """The previs shot around the baked character, with its point cache and controls and the
-    capture ring's clips cut to the baked frames."""
+HELD_OUT_CLIP = "walk"
+"""The clip held out of training. Not the previs shot's wave: the wave clip turns the upper arms
+by up to 90 degrees, the largest departure from LBS in the clips, so it is trained on (held
+out, the training clips would depart from LBS by under a pixel a sample); the walk, whose arms
+swing with little flexion or twist, is held out instead."""
+
+
+def _shot_text(clips: list[tuple[str, float, float]]) -> str:
+    """The previs shot's text with the capture ring's clips cut to the baked frames and
+    HELD_OUT_CLIP held out (when baked), no model yet; its character's reference unchanged."""
     text = PREVIS.read_text()
-    text = text.replace("@../character/sample_character.usda@", f"@./{USD_NAME}@")
     text = text.replace(
         "        # Trained on this scene's capture: `rigspace train /tmp/sample_ds --out samples/models/sample`\n"
         "        uniform asset rigspace:model = @../models/sample@\n",
         "        # No model yet: capture and train this shot (docs/point_caches.md)\n",
-    )
-    controls = baked["controls"]
-    applied = ", ".join(f'"RigspaceControlAPI:{name}"' for name in controls)
-    text = text.replace(
-        '        prepend apiSchemas = ["RigspaceCaptureRingAPI", "RigspaceLiveBindingAPI:suit"]\n',
-        '        prepend apiSchemas = ["RigspaceCaptureRingAPI", "RigspaceLiveBindingAPI:suit", '
-        f'"RigspacePointCacheAPI", {applied}]\n',
     )
     names = ", ".join(f'"{n}"' for n, _, _ in clips)
     ranges = ", ".join(f"({a:g}, {b:g})" for _, a, b in clips)
@@ -403,10 +403,27 @@ def write_scene(out: Path, baked: dict, clips: list[tuple[str, float, float]]) -
         f"        uniform token[] rigspace:captureRing:clipNames = [{names}]\n"
         f"        uniform float2[] rigspace:captureRing:clipRanges = [{ranges}]\n",
     )
-    if "wave" not in {n for n, _, _ in clips}:
-        text = text.replace(
-            '        uniform token[] rigspace:captureRing:heldOutClips = ["wave"]\n', ""
-        )
+    held_out = (
+        f'        uniform token[] rigspace:captureRing:heldOutClips = ["{HELD_OUT_CLIP}"]\n'
+        if HELD_OUT_CLIP in {n for n, _, _ in clips}
+        else ""
+    )
+    return text.replace(
+        '        uniform token[] rigspace:captureRing:heldOutClips = ["wave"]\n', held_out
+    )
+
+
+def write_scene(out: Path, baked: dict, clips: list[tuple[str, float, float]]) -> Path:
+    """The previs shot around the baked character, with its point cache and controls and the
+    capture ring's clips cut to the baked frames."""
+    text = _shot_text(clips).replace("@../character/sample_character.usda@", f"@./{USD_NAME}@")
+    controls = baked["controls"]
+    applied = ", ".join(f'"RigspaceControlAPI:{name}"' for name in controls)
+    text = text.replace(
+        '        prepend apiSchemas = ["RigspaceCaptureRingAPI", "RigspaceLiveBindingAPI:suit"]\n',
+        '        prepend apiSchemas = ["RigspaceCaptureRingAPI", "RigspaceLiveBindingAPI:suit", '
+        f'"RigspacePointCacheAPI", {applied}]\n',
+    )
     frames = baked["frames"]
     lines = [
         "\n        # The point cache (docs/point_caches.md): the body as the rig evaluated it\n",
@@ -425,6 +442,22 @@ def write_scene(out: Path, baked: dict, clips: list[tuple[str, float, float]]) -
         1,
     )
     path = out / SCENE_NAME
+    path.write_text(text)
+    return path
+
+
+def write_rerig_scene(out: Path, clips: list[tuple[str, float, float]]) -> Path:
+    """The re-rig's shot: the same shot, ring and clips around the sample character as UsdSkel
+    skins it (LBS: what moving the rig to a game engine's deformers gives), whose capture is
+    the twin of the cached character's, sample for sample (apps/rerig_report.py)."""
+    base = os.path.relpath(BASE, out).replace(os.sep, "/")
+    text = _shot_text(clips).replace("@../character/sample_character.usda@", f"@{base}@")
+    text = text.replace(
+        "Previs: the sample character",
+        "Re-rig: the sample character skinned by LBS, the point cache shot's twin",
+        1,
+    )
+    path = out / RERIG_NAME
     path.write_text(text)
     return path
 
@@ -448,10 +481,13 @@ def build(out: Path, first: int = 0, last: int = 1619, every: int = 1) -> dict:
     frames = np.arange(first, last + 1, every, dtype=np.float64)
     baked = bake(frames)
     usd = write_character(out, baked)
-    scene = write_scene(out, baked, clip_ranges(frames))
+    clips = clip_ranges(frames)
+    scene = write_scene(out, baked, clips)
+    rerig = write_rerig_scene(out, clips)
     return {
         "usd": str(usd),
         "scene": str(scene),
+        "rerig": str(rerig),
         "frames": len(frames),
         "largest_offset_cm": round(baked["largest_offset_cm"], 2),
         "controls": list(baked["controls"]),
@@ -470,7 +506,7 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"baked {built['frames']} frames into {built['usd']} in {built['seconds']} s: the "
         f"deformations move the body up to {built['largest_offset_cm']} cm from LBS; controls "
-        f"{', '.join(built['controls'])}; shot {built['scene']}"
+        f"{', '.join(built['controls'])}; shot {built['scene']}, its LBS re-rig {built['rerig']}"
     )
     return 0
 

@@ -90,3 +90,27 @@ def test_the_shot_validates_and_poses_the_cache(built):
     (body,) = rig.posed_meshes(480.0)
     np.testing.assert_allclose(body.points, baked["baked"][1], atol=1e-3)
     assert rig.scalars(480.0) == pytest.approx([v[1] for v in baked["controls"].values()], abs=1e-3)
+
+
+def test_the_rerig_shot_skins_the_same_body_by_lbs_on_the_same_ring(built):
+    """The re-rig's shot (its capture is the cached character's twin, apps/rerig_report.py):
+    the same capture ring and clips, the body skinned by UsdSkel (no cache, no controls), its
+    LBS the bake's at every baked frame."""
+    from rigspace.sdk.posing import CharacterRig
+    from rigspace.sdk.stage import open_stage
+    from rigspace.sdk.validation import validate
+
+    _, baked, summary = built
+    stages = [open_stage(summary[k]) for k in ("scene", "rerig")]  # kept alive
+    cached, rerig = (stage.GetPrimAtPath("/World/Hero") for stage in stages)
+    ring = [p.GetName() for p in cached.GetProperties() if "captureRing" in p.GetName()]
+    assert "rigspace:captureRing:clipRanges" in ring
+    for name in ring:
+        assert rerig.GetAttribute(name).Get() == cached.GetAttribute(name).Get(), name
+    findings = validate(rerig.GetStage(), include_usd=False)
+    assert not [f for f in findings if f.severity == "error"], findings
+    rig = CharacterRig(rerig)
+    assert rig.has_skinned_meshes and not rig.controls
+    for k, t in enumerate(baked["frames"]):
+        (body,) = rig.posed_meshes(float(t))
+        np.testing.assert_allclose(body.points, baked["lbs"][k], atol=1e-2)
