@@ -581,6 +581,24 @@ def _empty_views(manifest: ds.DatasetManifest | None, tally: _Tally) -> tuple[di
     return empty, tally.done
 
 
+def _capture_settings(
+    scene: str | Path,
+    character: str,
+    overrides: CaptureOverrides | None,
+    region: str | None,
+    warn: Warn,
+) -> tuple[CaptureSettings, CharacterRig]:
+    """The capture's settings (with `region`, that region's), its renderer chosen by name."""
+    settings, rig = resolve_settings(scene, character, overrides, warn=warn)
+    if region is not None:
+        from rigspace.capture.regions import find_region, region_settings
+
+        settings = region_settings(settings, rig, find_region(rig.character, region), warn)
+    # A concrete name, so the dataset records it (and every worker renders with it).
+    renderer = choose_renderer(settings.renderer, rig.triangle_count)
+    return replace(settings, renderer=renderer.name), rig
+
+
 def capture(
     scene: str | Path,
     character: str,
@@ -601,21 +619,13 @@ def capture(
     `runner` renders the unfinished items and yields each one's ItemDone as it commits:
     local_items (this machine's processes) by default, capture/ray_capture.py's on Ray.
     """
-    runner = runner or local_items
     warnings: list[str] = []
 
     def note(text: str) -> None:
         warnings.append(text)
         warn(text)
 
-    settings, rig = resolve_settings(scene, character, overrides, warn=note)
-    if region is not None:
-        from rigspace.capture.regions import find_region, region_settings
-
-        settings = region_settings(settings, rig, find_region(rig.character, region), note)
-    # A concrete name, so the dataset records it (and every worker renders with it).
-    renderer = choose_renderer(settings.renderer, rig.triangle_count)
-    settings = replace(settings, renderer=renderer.name)
+    settings, rig = _capture_settings(scene, character, overrides, region, note)
     folder = Path(out)
     created = prepare_folder(folder, settings, resume, sharded=shard[1] > 1)
     items, repaired, mine = _plan_items(folder, settings, rig, shard, created)
@@ -630,7 +640,7 @@ def capture(
         remove_on_error=created and shard[1] == 1,
         workers=workers,
         progress=progress,
-        runner=runner,
+        runner=runner or local_items,
     )
     complete = all(ds.record_path(folder, i).is_file() for i in items)
     manifest = _complete_dataset(folder, settings, rig, items) if complete else None

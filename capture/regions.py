@@ -196,25 +196,9 @@ def region_settings(
             "the region has no surface.",
             f"name the joints that move its surface ({where}:joints).",
         )
+    _check_resolution_and_shapes(rig, region, where)
     resolution = region.resolution
-    if resolution < MIN_RESOLUTION or resolution > MAX_RESOLUTION or resolution & (resolution - 1):
-        raise CaptureError(
-            f"{where}:resolution is {resolution}.",
-            f"use a power of two from {MIN_RESOLUTION} to {MAX_RESOLUTION}.",
-        )
     low, high = region.blend_shape_range
-    if not (math.isfinite(low) and math.isfinite(high) and low <= high):
-        raise CaptureError(
-            f"{where}:blendShapeRange is ({low:g}, {high:g}).",
-            "author a finite (low, high) with low <= high, e.g. (0, 1).",
-        )
-    unknown = [s for s in region.blend_shapes if s not in rig.blend_shapes]
-    if unknown:
-        raise CaptureError(
-            f"{where}:blendShapes names {', '.join(unknown)}, which the character's meshes do "
-            f"not have (they have {', '.join(rig.blend_shapes) or 'none'}).",
-            "name shapes of the skinned meshes' skel:blendShapes.",
-        )
     shapes = region.blend_shapes or moving_shapes(rig, points, body.clips[0].first)
     reach = region_reach(rig, joint, points, body.clips)
     half = region.size / 2 if region.size > 0 else reach
@@ -223,13 +207,7 @@ def region_settings(
             f"{where}:size is {region.size:g}.", "author the region's side in scene units (> 0)."
         )
     radius = fit_radius(half, body.focal_length, body.horizontal_aperture)
-    views = region.views_per_ring or body.views_per_ring
-    elevations = region.elevations or body.elevations
-    if any(not -89 <= e <= 89 for e in elevations) or not 1 <= views <= 360:
-        raise CaptureError(
-            f"{where}: {views} views per ring at elevations {list(elevations)}.",
-            "use 1-360 views and elevations within [-89, 89] degrees.",
-        )
+    views, elevations = _region_rings(body, region, where)
     if shapes:
         warn(
             f"region {region.name}: the weights of {', '.join(shapes)} are drawn in every "
@@ -249,3 +227,42 @@ def region_settings(
         region=region.name,
         region_joints=tuple(rig.joints[j] for j in joints),
     )
+
+
+def _check_resolution_and_shapes(rig: CharacterRig, region: schema.Region, where: str) -> None:
+    """The region's resolution is a power of two in range, its blendShapeRange a finite
+    (low, high) and its blendShapes the character's (else CaptureError)."""
+    resolution = region.resolution
+    if resolution < MIN_RESOLUTION or resolution > MAX_RESOLUTION or resolution & (resolution - 1):
+        raise CaptureError(
+            f"{where}:resolution is {resolution}.",
+            f"use a power of two from {MIN_RESOLUTION} to {MAX_RESOLUTION}.",
+        )
+    low, high = region.blend_shape_range
+    if not (math.isfinite(low) and math.isfinite(high) and low <= high):
+        raise CaptureError(
+            f"{where}:blendShapeRange is ({low:g}, {high:g}).",
+            "author a finite (low, high) with low <= high, e.g. (0, 1).",
+        )
+    unknown = [s for s in region.blend_shapes if s not in rig.blend_shapes]
+    if unknown:
+        raise CaptureError(
+            f"{where}:blendShapes names {', '.join(unknown)}, which the character's meshes do "
+            f"not have (they have {', '.join(rig.blend_shapes) or 'none'}).",
+            "name shapes of the skinned meshes' skel:blendShapes.",
+        )
+
+
+def _region_rings(
+    body: CaptureSettings, region: schema.Region, where: str
+) -> tuple[int, tuple[float, ...]]:
+    """The region's views per ring and elevations, else the body's (CaptureError when out of
+    range)."""
+    views = region.views_per_ring or body.views_per_ring
+    elevations = region.elevations or body.elevations
+    if any(not -89 <= e <= 89 for e in elevations) or not 1 <= views <= 360:
+        raise CaptureError(
+            f"{where}: {views} views per ring at elevations {list(elevations)}.",
+            "use 1-360 views and elevations within [-89, 89] degrees.",
+        )
+    return views, elevations

@@ -269,6 +269,15 @@ def _resolve_clips(
     sample; a clip that reaches past the range is clamped with a warning; one wholly
     outside it, or not finite, is refused.
     """
+    clips, source = _chosen_clips(ring, overrides, span)
+    return tuple(_fit_clip(clip, source, span, samples, warn) for clip in clips)
+
+
+def _chosen_clips(
+    ring: schema.CaptureRing | None, overrides: CaptureOverrides, span: tuple[float, float]
+) -> tuple[list[Clip], str]:
+    """The clips asked for, as authored, and where they come from: --frames, else the ring's
+    clips (those --clips names), else the whole animation."""
     held = set(ring.held_out_clips) if ring else set()
     if ring and ring.clip_names:
         clips = [
@@ -292,34 +301,38 @@ def _resolve_clips(
         first, last = overrides.frames
         clips = [Clip("frames", float(first), float(last))]
         source = "--frames"
-    fitted = []
-    for clip in clips:
-        named = (
-            f"--frames {clip.first:g}:{clip.last:g}"
-            if source == "--frames"
-            else (f"Clip {clip.name!r} ({clip.first:g}-{clip.last:g}) of {source}")
+    return clips, source
+
+
+def _fit_clip(
+    clip: Clip, source: str, span: tuple[float, float], samples: np.ndarray, warn: Warn
+) -> Clip:
+    """`clip` fitted to the animated range `span`, its ends snapped to `samples`."""
+    named = (
+        f"--frames {clip.first:g}:{clip.last:g}"
+        if source == "--frames"
+        else (f"Clip {clip.name!r} ({clip.first:g}-{clip.last:g}) of {source}")
+    )
+    if not (math.isfinite(clip.first) and math.isfinite(clip.last)):
+        raise CaptureError(
+            f"{named} is not a range of finite time codes.",
+            f"use A:B with finite numbers inside {span[0]:g}-{span[1]:g}.",
         )
-        if not (math.isfinite(clip.first) and math.isfinite(clip.last)):
-            raise CaptureError(
-                f"{named} is not a range of finite time codes.",
-                f"use A:B with finite numbers inside {span[0]:g}-{span[1]:g}.",
-            )
-        if clip.first > clip.last and not timecodes.same_time(clip.first, clip.last):
-            raise CaptureError(f"{named} ends before it starts.", "use A:B with A <= B.")
-        inside = timecodes.clamp_range(clip.first, clip.last, *span)
-        if inside is None:
-            raise CaptureError(
-                f"{named} lies outside the animation's time samples ({span[0]:g}-{span[1]:g}).",
-                "capture frames inside the animated range (--frames or the ring's clipRanges).",
-            )
-        first, last = (float(t) for t in timecodes.snap(inside, samples))
-        if not (timecodes.same_time(first, clip.first) and timecodes.same_time(last, clip.last)):
-            warn(
-                f"{named} reaches past the animation's time samples ({span[0]:g}-{span[1]:g}); "
-                f"capturing {first:g}-{last:g}."
-            )
-        fitted.append(Clip(clip.name, first, last, clip.held_out))
-    return tuple(fitted)
+    if clip.first > clip.last and not timecodes.same_time(clip.first, clip.last):
+        raise CaptureError(f"{named} ends before it starts.", "use A:B with A <= B.")
+    inside = timecodes.clamp_range(clip.first, clip.last, *span)
+    if inside is None:
+        raise CaptureError(
+            f"{named} lies outside the animation's time samples ({span[0]:g}-{span[1]:g}).",
+            "capture frames inside the animated range (--frames or the ring's clipRanges).",
+        )
+    first, last = (float(t) for t in timecodes.snap(inside, samples))
+    if not (timecodes.same_time(first, clip.first) and timecodes.same_time(last, clip.last)):
+        warn(
+            f"{named} reaches past the animation's time samples ({span[0]:g}-{span[1]:g}); "
+            f"capturing {first:g}-{last:g}."
+        )
+    return Clip(clip.name, first, last, clip.held_out)
 
 
 def animation_time_samples(rig: CharacterRig) -> np.ndarray:
@@ -499,6 +512,12 @@ def _warn_all_held_out(clips: tuple[Clip, ...], warn: Warn) -> None:
         )
 
 
+_DEFAULT_RING = schema.CaptureRing(
+    12, (0.0,), 0.0, 50.0, 20.955, 128, (0.1, 1e4), "", (), (), (), 0, ()
+)
+"""The capture ring of a character without RigspaceCaptureRingAPI (the schema's fallbacks)."""
+
+
 def resolve_settings(
     scene: str | Path,
     character: str,
@@ -512,18 +531,12 @@ def resolve_settings(
     without training samples) goes to `warn`.
     """
     overrides = overrides or CaptureOverrides()
-    stage = open_stage(scene)
-    require_readable(stage, "capture", exception=CaptureError)  # before the character is sought
-    prim = _character_prim(stage, character)
-    rig = CharacterRig(prim)  # no skeleton, no animation, no skin weights: SceneError
-    require_valid(stage, "capture", [prim], exception=CaptureError, warn=warn)  # inspect's checks
+    stage, prim, rig = _open_character(scene, character, warn)
     span = rig.time_range()
     assert span is not None, "require_valid refuses an animation without time samples"
     ring = schema.read_capture_ring(prim) if schema.has_capture_ring(prim) else None
     info = schema.read_neural_character(prim)
-    defaults = ring or schema.CaptureRing(
-        12, (0.0,), 0.0, 50.0, 20.955, 128, (0.1, 1e4), "", (), (), (), 0, ()
-    )
+    defaults = ring or _DEFAULT_RING
     resolution = _check_resolution(defaults, overrides)
     views, elevations = _check_rings(defaults, overrides)
     near, far = _check_clipping_range(defaults)
@@ -563,6 +576,19 @@ def resolve_settings(
         blend_draws=draws,
     )
     return settings, rig
+
+
+def _open_character(
+    scene: str | Path, character: str, warn: Warn
+) -> tuple[Usd.Stage, Usd.Prim, CharacterRig]:
+    """The scene's stage and the character's prim and rig, refused (CaptureError, SceneError)
+    as inspect and posing refuse them."""
+    stage = open_stage(scene)
+    require_readable(stage, "capture", exception=CaptureError)  # before the character is sought
+    prim = _character_prim(stage, character)
+    rig = CharacterRig(prim)  # no skeleton, no animation, no skin weights: SceneError
+    require_valid(stage, "capture", [prim], exception=CaptureError, warn=warn)  # inspect's checks
+    return stage, prim, rig
 
 
 STILL_WEIGHT = 1e-6

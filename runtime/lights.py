@@ -125,15 +125,8 @@ def lights_at(
         radiance = _radiance(UsdLux.LightAPI(prim), when)
         xf = from_gf(cache.GetLocalToWorldTransform(prim))
         path = str(prim.GetPath())
-        # Shading is float32: a radiance beyond its range is Inf there, and Inf * 0 is NaN.
-        if not (np.all(np.abs(radiance) <= FLOAT32_MAX) and np.all(np.isfinite(xf))):
-            problem = SceneError(
-                f"Light {path} at time {time:g}: intensity * 2^exposure * color is "
-                f"{radiance.tolist()} and its transform is "
-                f"{'finite' if np.all(np.isfinite(xf)) else 'not finite'}.",
-                "give inputs:intensity, inputs:exposure, inputs:color and the xformOps finite "
-                "values (radiance below 3e38).",
-            )
+        problem = _unusable(path, time, radiance, xf)
+        if problem is not None:
             if on_problem is None:
                 raise problem
             on_problem(problem)
@@ -169,6 +162,21 @@ def lights_at(
             if dome is not None:
                 lights.append(dome)
     return lights
+
+
+def _unusable(path: str, time: float, radiance: np.ndarray, xf: np.ndarray) -> SceneError | None:
+    """Why a light cannot be shaded (a radiance or transform that is not finite in float32),
+    or None when it can."""
+    # Shading is float32: a radiance beyond its range is Inf there, and Inf * 0 is NaN.
+    if np.all(np.abs(radiance) <= FLOAT32_MAX) and np.all(np.isfinite(xf)):
+        return None
+    return SceneError(
+        f"Light {path} at time {time:g}: intensity * 2^exposure * color is "
+        f"{radiance.tolist()} and its transform is "
+        f"{'finite' if np.all(np.isfinite(xf)) else 'not finite'}.",
+        "give inputs:intensity, inputs:exposure, inputs:color and the xformOps finite "
+        "values (radiance below 3e38).",
+    )
 
 
 TEXTURE_FORMATS = ("automatic", "latlong")

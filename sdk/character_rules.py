@@ -15,7 +15,7 @@ from pxr import Sdf, Usd, UsdGeom, UsdSkel
 
 from rigspace.sdk import schema
 from rigspace.sdk.bindings import SkelBinding, ignored_animation_sources, skel_binding
-from rigspace.sdk.bundle import BundleError, read_manifest
+from rigspace.sdk.bundle import BundleError, ModelManifest, read_manifest
 from rigspace.sdk.geometry import albedo_texture
 from rigspace.sdk.issues import CAPTURE, RENDER, Issue, ValidatorSpec, error, warning
 from rigspace.sdk.stage import unreadable_layers
@@ -130,30 +130,10 @@ def resolve_character(prim: Usd.Prim) -> tuple[CharacterBinding | None, Issue | 
     """
     path = prim.GetPath()
     character = schema.read_neural_character(prim)
-    stage = prim.GetStage()
     targets = character.skeleton_targets
-    if len(targets) != 1:
-        listed = f"it has {len(targets)}: {', '.join(targets)}" if targets else "it has none"
-        code = "SeveralSkeletons" if targets else "NoSkeleton"
-        return None, error(
-            code,
-            f"Neural character {path} has no single rigspace:skeleton target ({listed}). Fix: "
-            "point rigspace:skeleton at the one UsdSkel Skeleton that drives the character.",
-        )
-    target = stage.GetPrimAtPath(targets[0])
-    if not target:
-        return None, error(
-            "SkeletonMissing",
-            f"Neural character {path}: rigspace:skeleton targets {targets[0]}, which does not "
-            "exist on the stage. Fix: correct the path, or load the layer that defines it.",
-        )
-    if not target.IsA(UsdSkel.Skeleton):
-        return None, error(
-            "NotASkeleton",
-            f"Neural character {path}: rigspace:skeleton targets {targets[0]}, a "
-            f"{target.GetTypeName() or 'untyped prim'}, not a Skeleton. Fix: target the "
-            "Skeleton prim (UsdSkel) instead.",
-        )
+    target, problem = _skeleton_target(prim, targets)
+    if target is None:
+        return None, problem
     joints = schema.skeleton_joints(target)
     if not joints:
         return None, error(
@@ -162,33 +142,9 @@ def resolve_character(prim: Usd.Prim) -> tuple[CharacterBinding | None, Issue | 
             "its joints, bindTransforms and restTransforms.",
         )
     binding = skel_binding(target)
-    if character.animation_targets:
-        anim = stage.GetPrimAtPath(character.animation_targets[0])
-        if not anim or not anim.IsA(UsdSkel.Animation):
-            kind = anim.GetTypeName() if anim else "nothing"
-            return None, error(
-                "NotAnAnimation",
-                f"Neural character {path}: rigspace:animationSource targets "
-                f"{character.animation_targets[0]} ({kind}), not a SkelAnimation. Fix: target a "
-                "SkelAnimation prim, or clear the relationship to use the skeleton's own binding.",
-            )
-    else:
-        anim = binding.animation
+    anim, problem = _animation_source(prim, character, target, binding)
     if anim is None:
-        ignored = ignored_animation_sources(target)
-        hint = (
-            f" ({', '.join(ignored)} authors skel:animationSource without SkelBindingAPI, so "
-            "UsdSkel ignores it: apply the API there)"
-            if ignored
-            else ""
-        )
-        return None, error(
-            "NoAnimation",
-            f"Neural character {path}: skeleton {targets[0]} has no animation (neither "
-            "rigspace:animationSource nor a skel:animationSource on the skeleton or an ancestor "
-            f"names a SkelAnimation){hint}. Fix: bind a SkelAnimation to the skeleton or its "
-            "SkelRoot, or set rigspace:animationSource.",
-        )
+        return None, problem
     cached, problem = point_cached_meshes(prim)
     if problem is not None:
         return None, problem
@@ -203,6 +159,75 @@ def resolve_character(prim: Usd.Prim) -> tuple[CharacterBinding | None, Issue | 
             f"target its point-cached meshes with {schema.POINT_CACHE_MESHES}.",
         )
     return CharacterBinding(target, joints, anim, binding, cached), None
+
+
+def _skeleton_target(
+    prim: Usd.Prim, targets: tuple[str, ...]
+) -> tuple[Usd.Prim | None, Issue | None]:
+    """The one Skeleton rigspace:skeleton targets, or why there is none."""
+    path = prim.GetPath()
+    if len(targets) != 1:
+        listed = f"it has {len(targets)}: {', '.join(targets)}" if targets else "it has none"
+        code = "SeveralSkeletons" if targets else "NoSkeleton"
+        return None, error(
+            code,
+            f"Neural character {path} has no single rigspace:skeleton target ({listed}). Fix: "
+            "point rigspace:skeleton at the one UsdSkel Skeleton that drives the character.",
+        )
+    target = prim.GetStage().GetPrimAtPath(targets[0])
+    if not target:
+        return None, error(
+            "SkeletonMissing",
+            f"Neural character {path}: rigspace:skeleton targets {targets[0]}, which does not "
+            "exist on the stage. Fix: correct the path, or load the layer that defines it.",
+        )
+    if not target.IsA(UsdSkel.Skeleton):
+        return None, error(
+            "NotASkeleton",
+            f"Neural character {path}: rigspace:skeleton targets {targets[0]}, a "
+            f"{target.GetTypeName() or 'untyped prim'}, not a Skeleton. Fix: target the "
+            "Skeleton prim (UsdSkel) instead.",
+        )
+    return target, None
+
+
+def _animation_source(
+    prim: Usd.Prim,
+    character: schema.CharacterAttributes,
+    skeleton: Usd.Prim,
+    binding: SkelBinding,
+) -> tuple[Usd.Prim | None, Issue | None]:
+    """The SkelAnimation rigspace:animationSource targets, else the one UsdSkel binds to the
+    skeleton; or why there is none."""
+    path = prim.GetPath()
+    targets = character.animation_targets
+    if targets:
+        anim = prim.GetStage().GetPrimAtPath(targets[0])
+        if not anim or not anim.IsA(UsdSkel.Animation):
+            kind = anim.GetTypeName() if anim else "nothing"
+            return None, error(
+                "NotAnAnimation",
+                f"Neural character {path}: rigspace:animationSource targets {targets[0]} "
+                f"({kind}), not a SkelAnimation. Fix: target a SkelAnimation prim, or clear the "
+                "relationship to use the skeleton's own binding.",
+            )
+        return anim, None
+    if binding.animation is not None:
+        return binding.animation, None
+    ignored = ignored_animation_sources(skeleton)
+    hint = (
+        f" ({', '.join(ignored)} authors skel:animationSource without SkelBindingAPI, so "
+        "UsdSkel ignores it: apply the API there)"
+        if ignored
+        else ""
+    )
+    return None, error(
+        "NoAnimation",
+        f"Neural character {path}: skeleton {character.skeleton_targets[0]} has no animation "
+        "(neither rigspace:animationSource nor a skel:animationSource on the skeleton or an "
+        f"ancestor names a SkelAnimation){hint}. Fix: bind a SkelAnimation to the skeleton or its "
+        "SkelRoot, or set rigspace:animationSource.",
+    )
 
 
 def _animation_values(anim: Usd.Prim, path: Sdf.Path) -> Iterator[Issue]:
@@ -360,68 +385,112 @@ def check_character_model(prim: Usd.Prim) -> Iterator[Issue]:
         return
     path = prim.GetPath()
     character = schema.read_neural_character(prim)
+    manifest, problem = _character_manifest(character, path)
+    if manifest is None:
+        if problem is not None:
+            yield problem
+        return
+    yield from _graph_issues(manifest, path)
+    yield from _model_blend_shape_issues(prim, manifest, path)
+    yield from _model_control_issues(prim, manifest, path)
+    yield from _model_joint_issues(prim, manifest, path)
+    yield from _character_disagreements(character, manifest, path)
+
+
+def _character_manifest(
+    character: schema.CharacterAttributes, path: Sdf.Path
+) -> tuple[ModelManifest | None, Issue | None]:
+    """The manifest of the bundle rigspace:model names, or why there is none (a warning when
+    it names none)."""
     if not character.model:
-        yield warning(
+        return None, warning(
             "NoModel",
             f"Neural character {path} has no model bundle (rigspace:model is empty): it can be "
             "captured but the runtime cannot draw it. Fix: train one with `rigspace train` and "
             "set rigspace:model to the bundle folder, or draw it with `rigspace render --model "
             "BUNDLE`.",
         )
-        return
     manifest_file = schema.resolve_model_path(character)
     if manifest_file is None:
-        yield error(
+        return None, error(
             "ModelNotFound",
             f"Neural character {path}: rigspace:model @{character.model}@ does not resolve to a "
             "bundle folder or manifest.json. Fix: correct the path (relative paths are relative "
             "to the layer that authors them) or export the bundle there.",
         )
-        return
     try:
-        manifest = read_manifest(manifest_file)
+        return read_manifest(manifest_file), None
     except BundleError as exc:
-        yield error("BadModel", f"Neural character {path}: {exc}", exception=BundleError)
-        return
-    if manifest.trunk is not None or manifest.levels:  # a manifest alone: nothing to load
+        return None, error("BadModel", f"Neural character {path}: {exc}", exception=BundleError)
+
+
+def _graph_issues(manifest: ModelManifest, path: Sdf.Path) -> Iterator[Issue]:
+    """The bundle's graphs load (a manifest alone has none to load)."""
+    if manifest.trunk is not None or manifest.levels:
         from rigspace.sdk.model import graphs_problem  # onnxruntime, only once a bundle resolves
 
         problem = graphs_problem(manifest.folder)
         if problem:
             yield error("BadModel", f"Neural character {path}: {problem}", exception=BundleError)
+
+
+def _model_blend_shape_issues(
+    prim: Usd.Prim, manifest: ModelManifest, path: Sdf.Path
+) -> Iterator[Issue]:
+    """The character's meshes have every blend shape the model reads."""
     wanted = manifest.blend_shapes
-    if wanted:
-        have = character_blend_shapes(prim)
-        lacking = [name for name in wanted if name not in have]
-        if lacking:
-            yield error(
-                "ModelBlendShapesMissing",
-                f"Neural character {path}: the model {manifest.path} reads blend shapes its "
-                f"meshes lack: {', '.join(lacking)} (they have "
-                f"{', '.join(have) or 'none'}). Fix: bind the meshes the model was trained on "
-                "(their skel:blendShapes), or retrain on this character.",
-            )
-    if manifest.controls:
-        have_controls = schema.control_names(prim)
-        lacking = [c.name for c in manifest.controls if c.name not in have_controls]
-        if lacking:
-            yield error(
-                "ModelControlsMissing",
-                f"Neural character {path}: the model {manifest.path} reads controls the "
-                f"character does not declare: {', '.join(lacking)} (it declares "
-                f"{', '.join(have_controls) or 'none'}). Fix: apply RigspaceControlAPI:NAME for "
-                "each (with the values the model was trained on), or retrain on this character.",
-            )
+    if not wanted:
+        return
+    have = character_blend_shapes(prim)
+    lacking = [name for name in wanted if name not in have]
+    if lacking:
+        yield error(
+            "ModelBlendShapesMissing",
+            f"Neural character {path}: the model {manifest.path} reads blend shapes its "
+            f"meshes lack: {', '.join(lacking)} (they have "
+            f"{', '.join(have) or 'none'}). Fix: bind the meshes the model was trained on "
+            "(their skel:blendShapes), or retrain on this character.",
+        )
+
+
+def _model_control_issues(
+    prim: Usd.Prim, manifest: ModelManifest, path: Sdf.Path
+) -> Iterator[Issue]:
+    """The character declares every control the model reads."""
+    if not manifest.controls:
+        return
+    have_controls = schema.control_names(prim)
+    lacking = [c.name for c in manifest.controls if c.name not in have_controls]
+    if lacking:
+        yield error(
+            "ModelControlsMissing",
+            f"Neural character {path}: the model {manifest.path} reads controls the "
+            f"character does not declare: {', '.join(lacking)} (it declares "
+            f"{', '.join(have_controls) or 'none'}). Fix: apply RigspaceControlAPI:NAME for "
+            "each (with the values the model was trained on), or retrain on this character.",
+        )
+
+
+def _model_joint_issues(prim: Usd.Prim, manifest: ModelManifest, path: Sdf.Path) -> Iterator[Issue]:
+    """The character's skeleton has every joint the model reads."""
     skeleton = character_skeleton(prim)
-    if skeleton is not None:
-        missing = _missing_joints(manifest.joints, schema.skeleton_joints(skeleton))
-        if missing:
-            yield error(
-                "ModelJointsMissing",
-                f"Neural character {path}: the model {manifest.path} needs joints that skeleton "
-                f"{skeleton.GetPath()} lacks: {', '.join(missing)}. Fix: bind the skeleton the "
-                "model was trained on, or retrain the model on this skeleton.",
-            )
+    if skeleton is None:
+        return
+    missing = _missing_joints(manifest.joints, schema.skeleton_joints(skeleton))
+    if missing:
+        yield error(
+            "ModelJointsMissing",
+            f"Neural character {path}: the model {manifest.path} needs joints that skeleton "
+            f"{skeleton.GetPath()} lacks: {', '.join(missing)}. Fix: bind the skeleton the "
+            "model was trained on, or retrain the model on this skeleton.",
+        )
+
+
+def _character_disagreements(
+    character: schema.CharacterAttributes, manifest: ModelManifest, path: Sdf.Path
+) -> Iterator[Issue]:
+    """What the character authors agrees with the manifest: joints, rotation encoding, and a
+    training camera (the character's, else the manifest's) to scale the billboard by."""
     if character.joints and tuple(character.joints) != manifest.joints:
         yield error(
             "JointsDisagree",

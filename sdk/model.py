@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from rigspace.sdk.bundle import BundleError, ModelManifest, read_manifest
+from rigspace.sdk.bundle import BundleError, GraphFiles, ModelManifest, read_manifest
 from rigspace.sdk.charts import parse_charts
 from rigspace.sdk.conditioning import Skeleton2D, joints2d
 from rigspace.sdk.predictors import AUTO, GraphSet, Runner, open_predictor
@@ -61,32 +61,9 @@ class BundleModel:
         """Levels where int8 met the accuracy aim and was MIN_SPEEDUP faster at export
         (rigspace.train.int8check): the only ones to run int8 at for speed. None: a check
         older than that judgement (every level whose graphs passed is then offered)."""
-        for level in manifest.levels:
-            graphs = level.files.int8 if precision == "int8" else level.files.fp32
-            if precision == "int8" and not graphs:
-                raise BundleError(
-                    f"{self.manifest.path} has no int8 graphs.",
-                    "evaluate the fp32 graphs, or export with int8 (drop --no-int8).",
-                )
-            if precision == "int8":
-                graphs = {b: self._checked(g, level.files.fp32[b]) for b, g in graphs.items()}
-            self.levels[level.resolution] = graphs
-        trunk = (manifest.trunk.int8 if precision == "int8" else manifest.trunk.fp32)["trunk"]
-        if precision == "int8":
-            trunk = self._checked(trunk, manifest.trunk.fp32["trunk"])
-        if self.int8_fallbacks:
-            warnings.warn(
-                f"Model bundle {self.manifest.folder}: int8 graphs "
-                f"{', '.join(sorted(self.int8_fallbacks))} failed the export's check against "
-                "fp32 (manifest int8_check); their fp32 graphs run instead.",
-                stacklevel=2,
-            )
-        self._trunk_file = trunk
-        graphs = {trunk: ("trunk", 8)}
-        for resolution, files in self.levels.items():
-            graphs |= {file: (branch, resolution) for branch, file in files.items()}
+        self._trunk_file = self._choose_graphs(manifest.trunk, precision)
         self.runner: Runner = open_predictor(
-            predictor, GraphSet(self.manifest, precision, threads, graphs, device)
+            predictor, GraphSet(self.manifest, precision, threads, self._graph_table(), device)
         )
         """The predictor running the graphs (runner.description says which, on what)."""
         self.depth_scale = manifest.depth_scale
@@ -107,12 +84,7 @@ class BundleModel:
             b for b in ("albedo", "geometry", "texture") if b in top
         )
         """The branches the bundle's graphs give (`predict`'s default: all of them)."""
-        if manifest.texture and self.texture_branch not in self.branch_names:
-            raise BundleError(
-                f"{self.manifest.path}: its texture head is on the {self.texture_branch} "
-                f"branch, which has no graphs (levels list {', '.join(self.branch_names)}).",
-                "re-export the bundle with `rigspace train`.",
-            )
+        self._check_texture_branch()
         self.skeleton = Skeleton2D.of_conditioning(manifest.conditioning)
         """The skeleton a pose-conditioned bundle projects (None: the rig is the only input)."""
 
@@ -145,6 +117,47 @@ class BundleModel:
                 "re-export the bundle with `rigspace train`.",
             )
         return table
+
+    def _choose_graphs(self, trunk_files: GraphFiles, precision: str) -> str:
+        """Fill `levels` with each level's graph files at `precision` and return the trunk's:
+        an int8 graph whose export check failed gives way to its fp32 graph (with a warning)."""
+        for level in self.manifest.levels:
+            graphs = level.files.int8 if precision == "int8" else level.files.fp32
+            if precision == "int8" and not graphs:
+                raise BundleError(
+                    f"{self.manifest.path} has no int8 graphs.",
+                    "evaluate the fp32 graphs, or export with int8 (drop --no-int8).",
+                )
+            if precision == "int8":
+                graphs = {b: self._checked(g, level.files.fp32[b]) for b, g in graphs.items()}
+            self.levels[level.resolution] = graphs
+        trunk = (trunk_files.int8 if precision == "int8" else trunk_files.fp32)["trunk"]
+        if precision == "int8":
+            trunk = self._checked(trunk, trunk_files.fp32["trunk"])
+        if self.int8_fallbacks:
+            warnings.warn(
+                f"Model bundle {self.manifest.folder}: int8 graphs "
+                f"{', '.join(sorted(self.int8_fallbacks))} failed the export's check against "
+                "fp32 (manifest int8_check); their fp32 graphs run instead.",
+                stacklevel=3,  # the caller of BundleModel(), as when this ran in __init__
+            )
+        return trunk
+
+    def _graph_table(self) -> dict[str, tuple[str, int]]:
+        """Every graph file the bundle runs -> (its branch, or "trunk", and its resolution)."""
+        graphs = {self._trunk_file: ("trunk", 8)}
+        for resolution, files in self.levels.items():
+            graphs |= {file: (branch, resolution) for branch, file in files.items()}
+        return graphs
+
+    def _check_texture_branch(self) -> None:
+        """A texture head's branch has graphs (else BundleError)."""
+        if self.manifest.texture and self.texture_branch not in self.branch_names:
+            raise BundleError(
+                f"{self.manifest.path}: its texture head is on the {self.texture_branch} "
+                f"branch, which has no graphs (levels list {', '.join(self.branch_names)}).",
+                "re-export the bundle with `rigspace train`.",
+            )
 
     def _checked(self, int8: str, fp32: str) -> str:
         if int8 not in self.manifest.int8_failed:

@@ -212,42 +212,54 @@ def _check_clips(prim: Usd.Prim, ring: schema.CaptureRing) -> Iterator[Issue]:
             f"Capture ring on {path}: clips {', '.join(backwards)} end before they start. Fix: "
             "author (first, last) with first <= last.",
         )
+    yield from _clips_in_animation(prim, ring)
+    yield from _ring_look_at_joint(prim, ring)
+
+
+def _clips_in_animation(prim: Usd.Prim, ring: schema.CaptureRing) -> Iterator[Issue]:
+    """The clips lie inside the character's animation, as capture fits them (sdk/timecodes.py):
+    an end within the tolerance is the same frame, a clip reaching past the range is clamped,
+    one wholly outside is refused."""
+    path = prim.GetPath()
     anim = character_animation(prim) if schema.is_neural_character(prim) else None
     span = animation_time_range(anim) if anim is not None else None
-    if anim is not None and span is not None:
-        # As capture fits them (sdk/timecodes.py): an end within the tolerance is the same
-        # frame, a clip reaching past the range is clamped, one wholly outside is refused.
-        outside, clamped = [], []
-        for n, (a, b) in zip(ring.clip_names, ring.clip_ranges, strict=True):
-            if not (math.isfinite(a) and math.isfinite(b)) or a > b:
-                continue  # ClipRangeBackwards, or not a range at all: said above
-            inside = timecodes.clamp_range(a, b, *span)
-            if inside is None:
-                outside.append(f"{n} ({a:g}-{b:g})")
-            elif not (timecodes.same_time(inside[0], a) and timecodes.same_time(inside[1], b)):
-                clamped.append(f"{n} ({a:g}-{b:g} -> {inside[0]:g}-{inside[1]:g})")
-        if outside:
-            yield error(
-                "ClipOutsideAnimation",
-                f"Capture ring on {path}: clips {', '.join(outside)} fall outside the animation "
-                f"{anim.GetPath()} ({span[0]:g}-{span[1]:g}). Fix: clip to the animated range.",
-            )
-        if clamped:
-            yield warning(
-                "ClipClamped",
-                f"Capture ring on {path}: clips {', '.join(clamped)} reach past the animation "
-                f"{anim.GetPath()} ({span[0]:g}-{span[1]:g}); capture clamps them. Fix: author "
-                "clipRanges inside the animated range.",
-                purposes=(),  # inspect's: capture warns itself about the clips it captures
-            )
+    if anim is None or span is None:
+        return
+    outside, clamped = [], []
+    for n, (a, b) in zip(ring.clip_names, ring.clip_ranges, strict=True):
+        if not (math.isfinite(a) and math.isfinite(b)) or a > b:
+            continue  # ClipRangeBackwards, or not a range at all: said above
+        inside = timecodes.clamp_range(a, b, *span)
+        if inside is None:
+            outside.append(f"{n} ({a:g}-{b:g})")
+        elif not (timecodes.same_time(inside[0], a) and timecodes.same_time(inside[1], b)):
+            clamped.append(f"{n} ({a:g}-{b:g} -> {inside[0]:g}-{inside[1]:g})")
+    if outside:
+        yield error(
+            "ClipOutsideAnimation",
+            f"Capture ring on {path}: clips {', '.join(outside)} fall outside the animation "
+            f"{anim.GetPath()} ({span[0]:g}-{span[1]:g}). Fix: clip to the animated range.",
+        )
+    if clamped:
+        yield warning(
+            "ClipClamped",
+            f"Capture ring on {path}: clips {', '.join(clamped)} reach past the animation "
+            f"{anim.GetPath()} ({span[0]:g}-{span[1]:g}); capture clamps them. Fix: author "
+            "clipRanges inside the animated range.",
+            purposes=(),  # inspect's: capture warns itself about the clips it captures
+        )
+
+
+def _ring_look_at_joint(prim: Usd.Prim, ring: schema.CaptureRing) -> Iterator[Issue]:
+    """lookAtJoint names a joint of the character's skeleton."""
     skeleton = character_skeleton(prim) if schema.is_neural_character(prim) else None
     if skeleton is not None and ring.look_at_joint:
         missing = _missing_joints([ring.look_at_joint], schema.skeleton_joints(skeleton))
         if missing:
             yield error(
                 "LookAtJointMissing",
-                f"Capture ring on {path}: lookAtJoint {ring.look_at_joint!r} is not a joint of "
-                f"{skeleton.GetPath()}. Fix: name a joint from its joint list.",
+                f"Capture ring on {prim.GetPath()}: lookAtJoint {ring.look_at_joint!r} is not a "
+                f"joint of {skeleton.GetPath()}. Fix: name a joint from its joint list.",
             )
 
 
@@ -288,75 +300,95 @@ def check_live_binding(prim: Usd.Prim) -> Iterator[Issue]:
     yield from _owner_is_character(prim, "RigspaceLiveBindingAPI")
     skeleton = character_skeleton(prim) if schema.is_neural_character(prim) else None
     for b in bindings:
-        where = f"Live binding {b.name!r} on {prim.GetPath()}"
-        ns = f"rigspace:live:{b.name}:"
-        problem = url_problem(b.url)
-        if problem:
+        yield from _check_binding(prim, b, skeleton)
+
+
+def _check_binding(
+    prim: Usd.Prim, b: schema.LiveBinding, skeleton: Usd.Prim | None
+) -> Iterator[Issue]:
+    """One live binding: its URL parses, its bone map fits the skeleton, its rest pose the
+    bones, its tokens are current and known, and its values are in range."""
+    where = f"Live binding {b.name!r} on {prim.GetPath()}"
+    ns = f"rigspace:live:{b.name}:"
+    problem = url_problem(b.url)
+    if problem:
+        yield error(
+            "BadUrl",
+            f"{where}: {ns}url {b.url!r} is not a source URL: {problem}. Fix: author "
+            "scheme://host:port/path?options, such as vmc://127.0.0.1:39539.",
+        )
+    if b.source_bones and len(b.source_bones) != len(b.target_joints):
+        yield error(
+            "BoneMapDisagrees",
+            f"{where}: {len(b.source_bones)} sourceBones but {len(b.target_joints)} "
+            "targetJoints. Fix: author one target joint per source bone.",
+        )
+    if skeleton is not None:
+        missing = _missing_joints(b.target_joints, schema.skeleton_joints(skeleton))
+        if missing:
             yield error(
-                "BadUrl",
-                f"{where}: {ns}url {b.url!r} is not a source URL: {problem}. Fix: author "
-                "scheme://host:port/path?options, such as vmc://127.0.0.1:39539.",
+                "TargetJointsMissing",
+                f"{where}: targetJoints names joints skeleton {skeleton.GetPath()} lacks: "
+                f"{', '.join(missing)}. Fix: use names from its joint list.",
             )
-        if b.source_bones and len(b.source_bones) != len(b.target_joints):
+    yield from _rest_pose_issues(b, where)
+    if b.buffering_authored:
+        yield warning(
+            "DeprecatedToken",
+            f"{where}: {ns}buffering = {b.buffering_authored!r} is a token of an earlier "
+            f'schema, read as {b.buffering!r}. Fix: author buffering = "delayed" (the '
+            "delay is bufferSeconds; 0: one sample interval).",
+        )
+    yield from _preset_and_gamepad(prim, b, where, ns, skeleton)
+    yield from _binding_values(b, where, ns)
+
+
+def _rest_pose_issues(b: schema.LiveBinding, where: str) -> Iterator[Issue]:
+    """restPose, when authored, holds one unit quaternion per bone."""
+    if not b.rest_pose:
+        return
+    bones = len(b.source_bones) or len(b.target_joints)
+    if len(b.rest_pose) != bones:
+        yield error(
+            "RestPoseDisagrees",
+            f"{where}: {len(b.rest_pose)} restPose rotations for {bones} bones. Fix: "
+            "author one rotation per source bone, or none.",
+        )
+    norms = [math.sqrt(sum(c * c for c in q)) for q in b.rest_pose]
+    if any(not abs(n - 1.0) <= UNIT_QUAT_TOLERANCE for n in norms):
+        yield error(
+            "RestPoseNotUnit",
+            f"{where}: restPose holds non-unit quaternions (norms "
+            f"{min(norms):.4g} to {max(norms):.4g}). Fix: normalise them.",
+        )
+
+
+def _binding_values(b: schema.LiveBinding, where: str, ns: str) -> Iterator[Issue]:
+    """smoothingStrength, bufferSeconds, timeoutSeconds, lostSeconds and
+    sourceMetersPerUnit are in range."""
+    for ok, prop, value, allowed in (
+        (0 <= b.smoothing_strength < 1, "smoothingStrength", b.smoothing_strength, "[0, 1)"),
+        (
+            0 <= b.buffer_seconds <= MAX_BUFFER_SECONDS,
+            "bufferSeconds",
+            b.buffer_seconds,
+            f"[0, {MAX_BUFFER_SECONDS:g}]",
+        ),
+        (b.timeout_seconds > 0, "timeoutSeconds", b.timeout_seconds, "> 0"),
+        (
+            b.lost_seconds == 0 or b.lost_seconds > b.timeout_seconds,
+            "lostSeconds",
+            b.lost_seconds,
+            f"0 or > timeoutSeconds ({b.timeout_seconds:g})",
+        ),
+        (b.source_meters_per_unit > 0, "sourceMetersPerUnit", b.source_meters_per_unit, "> 0"),
+    ):
+        if not ok:
             yield error(
-                "BoneMapDisagrees",
-                f"{where}: {len(b.source_bones)} sourceBones but {len(b.target_joints)} "
-                "targetJoints. Fix: author one target joint per source bone.",
+                "ValueOutOfRange",
+                f"{where}: {ns}{prop} is {value}; allowed: {allowed}. Fix: author a value "
+                "that is allowed.",
             )
-        if skeleton is not None:
-            missing = _missing_joints(b.target_joints, schema.skeleton_joints(skeleton))
-            if missing:
-                yield error(
-                    "TargetJointsMissing",
-                    f"{where}: targetJoints names joints skeleton {skeleton.GetPath()} lacks: "
-                    f"{', '.join(missing)}. Fix: use names from its joint list.",
-                )
-        if b.rest_pose:
-            bones = len(b.source_bones) or len(b.target_joints)
-            if len(b.rest_pose) != bones:
-                yield error(
-                    "RestPoseDisagrees",
-                    f"{where}: {len(b.rest_pose)} restPose rotations for {bones} bones. Fix: "
-                    "author one rotation per source bone, or none.",
-                )
-            norms = [math.sqrt(sum(c * c for c in q)) for q in b.rest_pose]
-            if any(not abs(n - 1.0) <= UNIT_QUAT_TOLERANCE for n in norms):
-                yield error(
-                    "RestPoseNotUnit",
-                    f"{where}: restPose holds non-unit quaternions (norms "
-                    f"{min(norms):.4g} to {max(norms):.4g}). Fix: normalise them.",
-                )
-        if b.buffering_authored:
-            yield warning(
-                "DeprecatedToken",
-                f"{where}: {ns}buffering = {b.buffering_authored!r} is a token of an earlier "
-                f'schema, read as {b.buffering!r}. Fix: author buffering = "delayed" (the '
-                "delay is bufferSeconds; 0: one sample interval).",
-            )
-        yield from _preset_and_gamepad(prim, b, where, ns, skeleton)
-        for ok, prop, value, allowed in (
-            (0 <= b.smoothing_strength < 1, "smoothingStrength", b.smoothing_strength, "[0, 1)"),
-            (
-                0 <= b.buffer_seconds <= MAX_BUFFER_SECONDS,
-                "bufferSeconds",
-                b.buffer_seconds,
-                f"[0, {MAX_BUFFER_SECONDS:g}]",
-            ),
-            (b.timeout_seconds > 0, "timeoutSeconds", b.timeout_seconds, "> 0"),
-            (
-                b.lost_seconds == 0 or b.lost_seconds > b.timeout_seconds,
-                "lostSeconds",
-                b.lost_seconds,
-                f"0 or > timeoutSeconds ({b.timeout_seconds:g})",
-            ),
-            (b.source_meters_per_unit > 0, "sourceMetersPerUnit", b.source_meters_per_unit, "> 0"),
-        ):
-            if not ok:
-                yield error(
-                    "ValueOutOfRange",
-                    f"{where}: {ns}{prop} is {value}; allowed: {allowed}. Fix: author a value "
-                    "that is allowed.",
-                )
 
 
 def _preset_and_gamepad(
@@ -392,49 +424,65 @@ def _preset_and_gamepad(
         for item in items:
             code = item.split(":", 1)[0]
             if not pattern.match(item) or code not in CONTROL_CODES:
-                yield error(
-                    "BadGamepadMap",
-                    f"{where}: {ns}{prop} entry {item!r} is not {form} with a known evdev "
-                    "control. Fix: write it like "
-                    + {
-                        "gamepadOffsets": "'ABS_RX:head:Y:-60'",
-                        "gamepadClips": "'ABS_RZ:wave'",
-                    }.get(prop, "'ABS_Z:jawOpen'")
-                    + " (controls: ABS_X, ABS_Y, ABS_Z, ABS_RX, ABS_RY, ABS_RZ, ABS_HAT0X, "
-                    "ABS_HAT0Y, ABS_GAS, ABS_BRAKE, BTN_SOUTH, BTN_EAST, ...).",
-                )
+                yield _bad_gamepad_map(where, ns, prop, item, form)
                 continue
-            name = item.split(":")[1]
-            missing = joints is not None and _missing_joints((name,), joints)
-            if prop == "gamepadOffsets" and skeleton is not None and missing:
-                yield error(
-                    "TargetJointsMissing",
-                    f"{where}: {ns}gamepadOffsets entry {item!r} names joint {name!r}, which "
-                    f"skeleton {skeleton.GetPath()} lacks. Fix: use a name from its joint list.",
-                )
-            if prop == "gamepadShapes" and schema.is_neural_character(prim):
-                shapes = character_blend_shapes(prim)
-                if name not in shapes:
-                    yield error(
-                        "BlendShapeUnknown",
-                        f"{where}: {ns}gamepadShapes entry {item!r} names blend shape "
-                        f"{name!r}, which the character's meshes lack "
-                        f"({', '.join(shapes) or 'they have none'}). Fix: name one of them.",
-                    )
-            if prop == "gamepadClips":
-                clips = (
-                    schema.read_capture_ring(prim).clip_names
-                    if schema.has_capture_ring(prim)
-                    else ()
-                )
-                if name not in clips:
-                    yield error(
-                        "ClipMissing",
-                        f"{where}: {ns}gamepadClips entry {item!r} names clip {name!r}, which "
-                        f"{prim.GetPath()} does not name in rigspace:captureRing:clipNames "
-                        f"({', '.join(clips) or 'none'}). Fix: name one of them, or add the clip "
-                        "(clipNames and clipRanges).",
-                    )
+            yield from _gamepad_target_issues(prim, where, ns, prop, item, skeleton, joints)
+
+
+def _bad_gamepad_map(where: str, ns: str, prop: str, item: str, form: str) -> Issue:
+    """The error for a gamepad entry that does not parse or names no known evdev control."""
+    return error(
+        "BadGamepadMap",
+        f"{where}: {ns}{prop} entry {item!r} is not {form} with a known evdev "
+        "control. Fix: write it like "
+        + {
+            "gamepadOffsets": "'ABS_RX:head:Y:-60'",
+            "gamepadClips": "'ABS_RZ:wave'",
+        }.get(prop, "'ABS_Z:jawOpen'")
+        + " (controls: ABS_X, ABS_Y, ABS_Z, ABS_RX, ABS_RY, ABS_RZ, ABS_HAT0X, "
+        "ABS_HAT0Y, ABS_GAS, ABS_BRAKE, BTN_SOUTH, BTN_EAST, ...).",
+    )
+
+
+def _gamepad_target_issues(
+    prim: Usd.Prim,
+    where: str,
+    ns: str,
+    prop: str,
+    item: str,
+    skeleton: Usd.Prim | None,
+    joints: list[str] | None,
+) -> Iterator[Issue]:
+    """A parsed gamepad entry names what it drives: a joint of the skeleton (gamepadOffsets),
+    a blend shape of the character's meshes (gamepadShapes), a clip of its capture ring
+    (gamepadClips)."""
+    name = item.split(":")[1]
+    missing = joints is not None and _missing_joints((name,), joints)
+    if prop == "gamepadOffsets" and skeleton is not None and missing:
+        yield error(
+            "TargetJointsMissing",
+            f"{where}: {ns}gamepadOffsets entry {item!r} names joint {name!r}, which "
+            f"skeleton {skeleton.GetPath()} lacks. Fix: use a name from its joint list.",
+        )
+    if prop == "gamepadShapes" and schema.is_neural_character(prim):
+        shapes = character_blend_shapes(prim)
+        if name not in shapes:
+            yield error(
+                "BlendShapeUnknown",
+                f"{where}: {ns}gamepadShapes entry {item!r} names blend shape "
+                f"{name!r}, which the character's meshes lack "
+                f"({', '.join(shapes) or 'they have none'}). Fix: name one of them.",
+            )
+    if prop == "gamepadClips":
+        clips = schema.read_capture_ring(prim).clip_names if schema.has_capture_ring(prim) else ()
+        if name not in clips:
+            yield error(
+                "ClipMissing",
+                f"{where}: {ns}gamepadClips entry {item!r} names clip {name!r}, which "
+                f"{prim.GetPath()} does not name in rigspace:captureRing:clipNames "
+                f"({', '.join(clips) or 'none'}). Fix: name one of them, or add the clip "
+                "(clipNames and clipRanges).",
+            )
 
 
 CAPTURE_RING = ValidatorSpec(

@@ -32,6 +32,7 @@ import functools
 import hashlib
 import time
 import weakref
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -269,13 +270,7 @@ def sample_textures(
     pixels to sample (> 0); `probabilities` (K+1, R, R) and `coordinates` (2K, R, R) are the
     texture head's outputs for one character. `kernel` False runs the numpy reference."""
     x0, y0, w, h = region
-    if probabilities.shape[0] != textures.charts + 1 or coordinates.shape[0] != 2 * textures.charts:
-        raise TextureMismatch(
-            f"The texture head gives {probabilities.shape[0]} chart probabilities and "
-            f"{coordinates.shape[0]} coordinates; its charts.json has {textures.charts} charts "
-            f"(needs {textures.charts + 1} and {2 * textures.charts}).",
-            "re-export the bundle with `rigspace train` (its graphs and charts.json disagree).",
-        )
+    _check_head_outputs(textures, probabilities, coordinates)
     probabilities = np.ascontiguousarray(probabilities, np.float32)
     # The most likely chart per network pixel (0: none; the first of equal ones): the kernel
     # finds it where it first reads it (-1: not yet), a few thousand of the R * R pixels.
@@ -310,20 +305,42 @@ def sample_textures(
             result.used[i0:i1], result.st[i0:i1], result.chart[i0:i1],
         )  # fmt: skip
 
+    _sample_rows(rows, h, coverage, kernel)
+    return result
+
+
+def _check_head_outputs(
+    textures: ChartTextures, probabilities: np.ndarray, coordinates: np.ndarray
+) -> None:
+    """The texture head gives one probability per chart and none, and two coordinates per
+    chart (else TextureMismatch: the bundle's graphs and charts.json disagree)."""
+    if probabilities.shape[0] != textures.charts + 1 or coordinates.shape[0] != 2 * textures.charts:
+        raise TextureMismatch(
+            f"The texture head gives {probabilities.shape[0]} chart probabilities and "
+            f"{coordinates.shape[0]} coordinates; its charts.json has {textures.charts} charts "
+            f"(needs {textures.charts + 1} and {2 * textures.charts}).",
+            "re-export the bundle with `rigspace train` (its graphs and charts.json disagree).",
+        )
+
+
+def _sample_rows(
+    rows: Callable[[int, int], tuple], h: int, coverage: np.ndarray, kernel: bool
+) -> None:
+    """Run the sampler over the region's `h` rows, given its arguments for rows [i0, i1): the
+    numpy reference, else the kernel, on two threads when enough pixels are covered."""
     if not kernel:
         sample_region_reference(*rows(0, h))
-        return result
+        return
     covered = np.cumsum(np.count_nonzero(coverage > 0, axis=1))
     if covered[-1] < SPLIT_PIXELS:
         _kernel()(*rows(0, h))
-        return result
+        return
     # Two threads, each on the rows holding half the covered pixels (the kernel releases the
     # GIL; the most likely charts both may find are the same values).
     middle = int(np.searchsorted(covered, covered[-1] // 2)) + 1
     other = _helper().submit(_kernel(), *rows(middle, h))
     _kernel()(*rows(0, middle))
     other.result()
-    return result
 
 
 # --- the numpy reference ------------------------------------------------------------------

@@ -243,47 +243,55 @@ def validate(stage: Usd.Stage, include_usd: bool = True) -> list[Finding]:
     try:
         errors = UsdValidation.ValidationContext(validators).Validate(stage)
     except Tf.ErrorException as exc:  # a USD validator that trips over an unreadable layer
-        own = [v for v in validators if str(v.GetMetadata().name).startswith(PREFIX)]
-        _failures.clear()
-        _blocks.clear()
-        errors = UsdValidation.ValidationContext(own).Validate(stage)
-        first = next((line.strip() for line in str(exc).splitlines() if line.strip()), "")
-        first = re.sub(r"^Error in '.*?' at line \d+ in file \S+ : ", "", first).strip(" '")
-        findings.append(
-            Finding(
-                WARNING,
-                "usd",
-                "ValidatorsFailed",
-                "",
-                f"USD's own validators stopped on this stage ({first[:300]}); rigspace's rules "
-                "ran without them.",
-            )
-        )
+        errors = _validate_without_usd(validators, stage)
+        findings.append(_validators_failed(exc))
     if _failures:
         raise _failures[0]
-    for e in errors:
-        if e.HasNoError():
-            continue
-        prim = _site_path(e)
-        code, message = str(e.GetName()), e.GetMessage()
-        findings.append(
-            Finding(
-                severity=ERROR
-                if e.GetType() == UsdValidation.ValidationErrorType.Error
-                else WARNING,
-                validator=str(e.GetValidator().GetMetadata().name) if e.GetValidator() else "",
-                code=code,
-                prim=prim,
-                message=message,
-                blocks=_blocks.get((code, prim or "/", message), ()),
-            )
-        )
+    findings += [_finding(e) for e in errors if not e.HasNoError()]
     findings += [
         Finding(WARNING, PREFIX + "plugins", "PluginFailed", "", f"validator plugin {n!r}: {why}")
         for n, why in failed.items()
     ]
     order = {ERROR: 0, WARNING: 1}
     return sorted(findings, key=lambda f: (order[f.severity], f.prim, f.validator, f.code))
+
+
+def _validate_without_usd(
+    validators: list[UsdValidation.Validator], stage: Usd.Stage
+) -> list[UsdValidation.ValidationError]:
+    """Run rigspace's own validators alone (after USD's stopped on the stage), afresh."""
+    own = [v for v in validators if str(v.GetMetadata().name).startswith(PREFIX)]
+    _failures.clear()
+    _blocks.clear()
+    return UsdValidation.ValidationContext(own).Validate(stage)
+
+
+def _validators_failed(exc: Tf.ErrorException) -> Finding:
+    """The warning that USD's own validators stopped, with the first line of their error."""
+    first = next((line.strip() for line in str(exc).splitlines() if line.strip()), "")
+    first = re.sub(r"^Error in '.*?' at line \d+ in file \S+ : ", "", first).strip(" '")
+    return Finding(
+        WARNING,
+        "usd",
+        "ValidatorsFailed",
+        "",
+        f"USD's own validators stopped on this stage ({first[:300]}); rigspace's rules "
+        "ran without them.",
+    )
+
+
+def _finding(e: UsdValidation.ValidationError) -> Finding:
+    """A USD validation error as a Finding, with the blocks its rule recorded for it."""
+    prim = _site_path(e)
+    code, message = str(e.GetName()), e.GetMessage()
+    return Finding(
+        severity=ERROR if e.GetType() == UsdValidation.ValidationErrorType.Error else WARNING,
+        validator=str(e.GetValidator().GetMetadata().name) if e.GetValidator() else "",
+        code=code,
+        prim=prim,
+        message=message,
+        blocks=_blocks.get((code, prim or "/", message), ()),
+    )
 
 
 # ---------------------------------------------------------------------------------------

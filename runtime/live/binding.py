@@ -312,9 +312,7 @@ def open_binding(
     clip_ranges = _clip_ranges(binding, source, clips or {})
     bone_map, meters_per_unit = _map_bones(binding, source, joints, chosen, native)
     meters_per_unit = _file_units(binding, source, native, meters_per_unit)
-    basis = np.eye(3) if native else NATIVE_BASIS.get(scheme)
-    if basis is None:
-        basis = source_basis(binding.source_up_axis, binding.source_handedness)
+    basis = _binding_basis(binding, scheme, native)
     hierarchy = source_hierarchy(source, chosen or PRESETS["unity"])
     retargeter = Retargeter(
         source.bones,
@@ -328,14 +326,8 @@ def open_binding(
     )
     if native:
         _native_rest(retargeter, source, joints, rest, stage_meters_per_unit, meters_per_unit)
-    elif not binding.rest_pose and (positions := _rest_positions(source, chosen)) is not None:
-        # The source's rest (this CMU conversion: arms hanging; VMC: a T-pose) is not the
-        # character's (an A-pose): turn the character's rest onto the source's.
-        # Through the canonical humanoid when the preset's map is the one in use (issue 21).
-        through = chosen if chosen is not None and bone_map is chosen.bone_map else None
-        retargeter.align_rest(positions, through)
-    elif binding.rest_pose:
-        _authored_rest(retargeter, source, bone_map, binding.rest_pose)
+    else:
+        _source_rest(retargeter, binding, source, chosen, bone_map)
     return LiveBindingRuntime(
         binding.name,
         source,
@@ -400,6 +392,34 @@ def _file_units(binding: Any, source: Source, native: bool, meters_per_unit: flo
         fix = "" if sure else f"; if wrong, author rigspace:live:{binding.name}:sourceMetersPerUnit"
         print(f"rigspace live: {binding.name}: {note}{fix}", file=sys.stderr)
     return meters_per_unit
+
+
+def _binding_basis(binding: Any, scheme: str, native: bool) -> np.ndarray:
+    """The source's basis: identity for a recorded take of this skeleton, the scheme's native
+    one (VMC), else the binding's sourceUpAxis and sourceHandedness."""
+    basis = np.eye(3) if native else NATIVE_BASIS.get(scheme)
+    if basis is None:
+        basis = source_basis(binding.source_up_axis, binding.source_handedness)
+    return basis
+
+
+def _source_rest(
+    retargeter: Retargeter,
+    binding: Any,
+    source: Source,
+    chosen: Preset | None,
+    bone_map: dict[str, str],
+) -> None:
+    """Calibrate a live source's retargeter: the character's rest aligned onto the source's
+    when restPose is not authored and the source's rest is known, else to restPose."""
+    if not binding.rest_pose and (positions := _rest_positions(source, chosen)) is not None:
+        # The source's rest (this CMU conversion: arms hanging; VMC: a T-pose) is not the
+        # character's (an A-pose): turn the character's rest onto the source's.
+        # Through the canonical humanoid when the preset's map is the one in use (issue 21).
+        through = chosen if chosen is not None and bone_map is chosen.bone_map else None
+        retargeter.align_rest(positions, through)
+    elif binding.rest_pose:
+        _authored_rest(retargeter, source, bone_map, binding.rest_pose)
 
 
 def _native_rest(

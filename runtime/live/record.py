@@ -5,11 +5,15 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rigspace.sdk.errors import RigspaceError
 from rigspace.usd_schemas import CONTROL_NAMESPACE
+
+if TYPE_CHECKING:  # annotations only: pxr is imported where a take is written or read
+    from pxr import Usd
 
 
 class TakeError(RigspaceError):
@@ -151,21 +155,8 @@ def read_take(path: str | Path) -> Take:
     never a traceback or a NaN pose in the replay."""
     from pxr import Sdf, UsdGeom, UsdSkel
 
-    from rigspace.sdk.stage import SceneError, open_stage
-
     path = Path(path)
-    if not path.is_file():
-        raise TakeError(f"Take {path} does not exist.", "check the path.")
-    try:
-        stage = open_stage(path)
-    except SceneError as exc:  # its sentence names the file as a scene: here it is a take
-        raise TakeError(exc.what.replace("Scene ", "Take ", 1), RECORD_AGAIN) from None
-    prim = stage.GetDefaultPrim()
-    if not prim or not prim.IsA(UsdSkel.Animation):
-        raise TakeError(
-            f"{path} is not a recorded take: its default prim must be a SkelAnimation.",
-            "replay a take written by TakeRecorder (rigspace live --record).",
-        )
+    stage, prim = _open_take(path)
     anim = UsdSkel.Animation(prim)
     names = Sdf.ValueTypeNames
     joints_attr, rotations_attr, translations_attr = (
@@ -178,32 +169,10 @@ def read_take(path: str | Path) -> Take:
     times = rotations_attr.GetTimeSamples()
     if not joints or not times:
         raise TakeError(f"Take {path} has no joints or no rotation time samples.", RECORD_AGAIN)
-    ok, reason = UsdSkel.Topology(joints).Validate()
-    if not ok or len(set(joints)) != len(joints):
-        raise TakeError(
-            f"Take {path}: its joints are not a skeleton hierarchy "
-            f"({reason or 'a joint is listed twice'}).",
-            RECORD_AGAIN,
-        )
-    index = {j: i for i, j in enumerate(joints)}
-    parents = tuple(index.get(j.rsplit("/", 1)[0], -1) if "/" in j else -1 for j in joints)
-    root = parents.index(-1)
-    moves = translations_attr.GetTimeSamples()
-    rotations = np.empty((len(times), len(joints), 4))
-    roots = np.zeros((len(times), 3))
-    for k, t in enumerate(times):
-        q = _sample(path, rotations_attr, t, len(joints), 4)
-        norms = np.linalg.norm(q, axis=1)
-        if not np.all(norms > 1e-6):
-            bad = joints[int(np.argmin(norms))]
-            raise TakeError(
-                f"Take {path}: 'rotations' at time code {t:g} has a zero quaternion (joint {bad}).",
-                RECORD_AGAIN,
-            )
-        rotations[k, :, 0], rotations[k, :, 1:] = q[:, 3], q[:, :3]  # Gf: (i, j, k, real)
-        if moves or translations_attr.HasAuthoredValue():
-            roots[k] = _sample(path, translations_attr, t, len(joints), 3)[root]
-    rotations /= np.linalg.norm(rotations, axis=2, keepdims=True)
+    parents = _joint_parents(path, joints)
+    rotations, roots = _pose_samples(
+        path, rotations_attr, translations_attr, times, joints, parents.index(-1)
+    )
     shapes, weights = _blend_channels(path, anim, times)
     controls, values = _control_channels(path, anim.GetPrim(), times)
     if controls:
@@ -221,6 +190,68 @@ def read_take(path: str | Path) -> Take:
         shapes,
         weights,
     )
+
+
+def _open_take(path: Path) -> tuple[Usd.Stage, Usd.Prim]:
+    """The take's stage and its default prim, a SkelAnimation (else a TakeError)."""
+    from pxr import UsdSkel
+
+    from rigspace.sdk.stage import SceneError, open_stage
+
+    if not path.is_file():
+        raise TakeError(f"Take {path} does not exist.", "check the path.")
+    try:
+        stage = open_stage(path)
+    except SceneError as exc:  # its sentence names the file as a scene: here it is a take
+        raise TakeError(exc.what.replace("Scene ", "Take ", 1), RECORD_AGAIN) from None
+    prim = stage.GetDefaultPrim()
+    if not prim or not prim.IsA(UsdSkel.Animation):
+        raise TakeError(
+            f"{path} is not a recorded take: its default prim must be a SkelAnimation.",
+            "replay a take written by TakeRecorder (rigspace live --record).",
+        )
+    return stage, prim
+
+
+def _joint_parents(path: Path, joints: tuple[str, ...]) -> tuple[int, ...]:
+    """Each joint's parent index (-1: a root), once the joints are a UsdSkel hierarchy (else
+    a TakeError)."""
+    from pxr import UsdSkel
+
+    ok, reason = UsdSkel.Topology(joints).Validate()
+    if not ok or len(set(joints)) != len(joints):
+        raise TakeError(
+            f"Take {path}: its joints are not a skeleton hierarchy "
+            f"({reason or 'a joint is listed twice'}).",
+            RECORD_AGAIN,
+        )
+    index = {j: i for i, j in enumerate(joints)}
+    return tuple(index.get(j.rsplit("/", 1)[0], -1) if "/" in j else -1 for j in joints)
+
+
+def _pose_samples(
+    path: Path, rotations_attr, translations_attr, times, joints: tuple[str, ...], root: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(F, J, 4) unit quaternions (w, x, y, z) and (F, 3) root translations at each rotation
+    sample (zeros where no translation is authored), checked (a zero quaternion, a short or
+    non-finite sample: a TakeError)."""
+    moves = translations_attr.GetTimeSamples()
+    rotations = np.empty((len(times), len(joints), 4))
+    roots = np.zeros((len(times), 3))
+    for k, t in enumerate(times):
+        q = _sample(path, rotations_attr, t, len(joints), 4)
+        norms = np.linalg.norm(q, axis=1)
+        if not np.all(norms > 1e-6):
+            bad = joints[int(np.argmin(norms))]
+            raise TakeError(
+                f"Take {path}: 'rotations' at time code {t:g} has a zero quaternion (joint {bad}).",
+                RECORD_AGAIN,
+            )
+        rotations[k, :, 0], rotations[k, :, 1:] = q[:, 3], q[:, :3]  # Gf: (i, j, k, real)
+        if moves or translations_attr.HasAuthoredValue():
+            roots[k] = _sample(path, translations_attr, t, len(joints), 3)[root]
+    rotations /= np.linalg.norm(rotations, axis=2, keepdims=True)
+    return rotations, roots
 
 
 def _blend_channels(path: Path, anim, times) -> tuple[tuple[str, ...], np.ndarray | None]:

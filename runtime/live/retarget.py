@@ -249,6 +249,35 @@ def _parent_indices(names: Sequence[str], parents: Mapping[str, str]) -> np.ndar
     return np.array([index.get(parents.get(n, ""), -1) for n in names], dtype=np.int64)
 
 
+def _bone_map_indices(
+    source_bones: tuple[str, ...], target_joints: tuple[str, ...], bone_map: Mapping[str, str]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The bone map as index pairs: the source bones it maps that the source sends, and their
+    target joints (a full path or a unique last element); a RetargetError when a target is not
+    a joint or no bone is mapped."""
+    leaf = {j.rsplit("/", 1)[-1]: i for i, j in enumerate(target_joints)}
+    full = {j: i for i, j in enumerate(target_joints)}
+    src_index = {b: i for i, b in enumerate(source_bones)}
+    pairs = []
+    for source, target in bone_map.items():
+        if source not in src_index:
+            continue  # the preset names bones this source does not send
+        j = full.get(target, leaf.get(target))
+        if j is None:
+            raise RetargetError(
+                f"Bone map target {target!r} (for source bone {source!r}) is not a joint of "
+                "the skeleton.",
+                f"use one of {', '.join(sorted(leaf))}.",
+            )
+        pairs.append((src_index[source], j))
+    if not pairs:
+        raise RetargetError(
+            "The bone map maps none of the source's bones.",
+            "choose the preset of the source's skeleton, or author sourceBones/targetJoints.",
+        )
+    return np.array([s for s, _ in pairs]), np.array([t for _, t in pairs])
+
+
 class Retargeter:
     """Maps one source's poses onto a skeleton's local transforms (see the module docstring)."""
 
@@ -278,32 +307,14 @@ class Retargeter:
         self.source_levels = hierarchy_levels(self.source_parents)
         self.space = space
         self.target_joints = tuple(target_joints)
-        leaf = {j.rsplit("/", 1)[-1]: i for i, j in enumerate(self.target_joints)}
         full = {j: i for i, j in enumerate(self.target_joints)}
         self.target_parents = np.array(
             [full.get(j.rsplit("/", 1)[0], -1) if "/" in j else -1 for j in self.target_joints]
         )
         self.target_levels = hierarchy_levels(self.target_parents)
-        src_index = {b: i for i, b in enumerate(self.source_bones)}
-        pairs = []
-        for source, target in bone_map.items():
-            if source not in src_index:
-                continue  # the preset names bones this source does not send
-            j = full.get(target, leaf.get(target))
-            if j is None:
-                raise RetargetError(
-                    f"Bone map target {target!r} (for source bone {source!r}) is not a joint of "
-                    "the skeleton.",
-                    f"use one of {', '.join(sorted(leaf))}.",
-                )
-            pairs.append((src_index[source], j))
-        if not pairs:
-            raise RetargetError(
-                "The bone map maps none of the source's bones.",
-                "choose the preset of the source's skeleton, or author sourceBones/targetJoints.",
-            )
-        self.map_source = np.array([s for s, _ in pairs])
-        self.map_target = np.array([t for _, t in pairs])
+        self.map_source, self.map_target = _bone_map_indices(
+            self.source_bones, self.target_joints, bone_map
+        )
         basis = np.eye(3) if basis is None else np.asarray(basis, dtype=np.float64)
         # A R A^T = (-A) R (-A)^T: a mirroring basis conjugates like the rotation -A.
         self.basis = basis

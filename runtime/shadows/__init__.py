@@ -680,12 +680,7 @@ def capsule_visibility(
         i, k = _candidate_pairs(u, v, a2, b2, radius, margin, stretch, parts)
     if i.size == 0:
         return out
-    if np.all(i[1:] >= i[:-1]):  # pairs come receiver by receiver: no sort needed
-        first = np.empty(i.size, bool)
-        first[0], first[1:] = True, i[1:] != i[:-1]
-        receivers, i = i[first], np.cumsum(first) - 1
-    else:
-        receivers, i = np.unique(i, return_inverse=True)
+    receivers, i = _distinct_receivers(i)
     p = p[:, receivers]
     to_light, light_angle = _towards_light(light, p, soft)
     a = capsules.a.astype(np.float32).T  # planar (3, K)
@@ -707,6 +702,17 @@ def capsule_visibility(
     log_visibility = np.log(np.maximum(1.0 - occlusion, MIN_VISIBILITY))
     out[receivers] = np.exp(np.bincount(i, weights=log_visibility, minlength=receivers.size))
     return out
+
+
+def _distinct_receivers(i: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct receivers of the pairs' receivers `i` (non-empty), sorted, and each pair's
+    index among them (np.unique's inverse)."""
+    if np.all(i[1:] >= i[:-1]):  # pairs come receiver by receiver: no sort needed
+        first = np.empty(i.size, bool)
+        first[0], first[1:] = True, i[1:] != i[:-1]
+        return i[first], np.cumsum(first) - 1
+    receivers, inverse = np.unique(i, return_inverse=True)
+    return receivers, inverse
 
 
 Region = tuple[int, int, int, int]

@@ -343,37 +343,10 @@ async def _socket(viewer: Viewer, ws: WebSocket) -> None:
     viewer.sockets.add(ws)
     latest: dict[str, Any] = {}
     wake = asyncio.Event()
-
-    async def render() -> None:
-        while True:
-            await wake.wait()
-            wake.clear()
-            request = latest.pop("request", None)
-            if request is None:
-                continue
-            if request["camera"] and request["camera"] != viewer.frames.camera:
-                await viewer.run(viewer.frames.open, request["camera"])
-            steps = {"auto": ("preview", "full"), "preview": ("preview",), "full": ("full",)}
-            for quality in steps[request["quality"]]:
-                if quality == "full" and "request" in latest:
-                    break  # a newer request waits: refining this one would only delay it
-                header, data = await viewer.run(
-                    viewer.frames.frame, request["time"], request["map"], request["view"],
-                    quality, request["weights"],
-                )  # fmt: skip
-                header["id"] = request["id"]
-                await ws.send_bytes(_packet(header, data))
-                if header.get("quality") == "full" or "error" in header:
-                    break
-
-    async def live() -> None:
-        while True:
-            await asyncio.sleep(LIVE_SECONDS)
-            if viewer.frames.live:
-                rows = await asyncio.to_thread(viewer.frames.live_status)
-                await ws.send_text(json.dumps({"type": "live", "bindings": rows}))
-
-    tasks = [asyncio.create_task(render()), asyncio.create_task(live())]
+    tasks = [
+        asyncio.create_task(_render_requests(viewer, ws, latest, wake)),
+        asyncio.create_task(_send_live_status(viewer, ws)),
+    ]
     try:
         while True:
             message = await ws.receive()
@@ -402,6 +375,42 @@ async def _socket(viewer: Viewer, ws: WebSocket) -> None:
             # A page that left mid-send is normal; anything else is a bug and is shown.
             if isinstance(result, Exception) and not _closed(result):
                 traceback.print_exception(result)
+
+
+async def _render_requests(
+    viewer: Viewer, ws: WebSocket, latest: dict[str, Any], wake: asyncio.Event
+) -> None:
+    """Each time `wake` is set, render the latest request (`latest["request"]`) and send its
+    frames: a preview then the full frame for "auto", unless a newer request is waiting."""
+    while True:
+        await wake.wait()
+        wake.clear()
+        request = latest.pop("request", None)
+        if request is None:
+            continue
+        if request["camera"] and request["camera"] != viewer.frames.camera:
+            await viewer.run(viewer.frames.open, request["camera"])
+        steps = {"auto": ("preview", "full"), "preview": ("preview",), "full": ("full",)}
+        for quality in steps[request["quality"]]:
+            if quality == "full" and "request" in latest:
+                break  # a newer request waits: refining this one would only delay it
+            header, data = await viewer.run(
+                viewer.frames.frame, request["time"], request["map"], request["view"],
+                quality, request["weights"],
+            )  # fmt: skip
+            header["id"] = request["id"]
+            await ws.send_bytes(_packet(header, data))
+            if header.get("quality") == "full" or "error" in header:
+                break
+
+
+async def _send_live_status(viewer: Viewer, ws: WebSocket) -> None:
+    """Every LIVE_SECONDS while the stage is live, send the live bindings' status."""
+    while True:
+        await asyncio.sleep(LIVE_SECONDS)
+        if viewer.frames.live:
+            rows = await asyncio.to_thread(viewer.frames.live_status)
+            await ws.send_text(json.dumps({"type": "live", "bindings": rows}))
 
 
 def _closed(exc: Exception) -> bool:

@@ -241,10 +241,7 @@ class FrameService:
             return {"error": self.error or "no engine"}, b""
         weights = weights or {}
         try:
-            for each in (engines.full, engines.preview, engines.reference):
-                if each is not None:
-                    for path in {*each.weight_overrides, *weights}:
-                        each.set_weights(path, weights.get(path, {}))
+            _set_weights(engines, weights)
         except ValueError as exc:
             return {"error": f"blend shape weights: {exc}"}, b""
         shaped = tuple(sorted((p, tuple(sorted(w.items()))) for p, w in weights.items()))
@@ -254,21 +251,15 @@ class FrameService:
         quality = "preview" if preview else "full"
         live = engines.full.live.active
         key = (self.version, self.camera, time, map_name, view, shaped, quality)
-        better = (*key[:-1], "full")
-        if not live and better in self._cache:  # the refined frame is known: no preview
-            key = better
-        if not live and key in self._cache:
-            self._cache.move_to_end(key)
-            header, data = self._cache[key]
+        if not live and (cached := self._cached(key)) is not None:
+            header, data = cached
             return {**header, "cached": True, "server_ms": _ms(start)}, data
         engine = engines.preview if preview and engines.preview else engines.full
         frame = engine.render(time)
         if view == "neural":
-            if self._last is not None and self._last[0] is frame.beauty and live:
-                # The engine reused its composite (same pose, still camera): so do we.
-                if self._last[1:3] == (map_name, view):
-                    header = {**self._last[3], "report": frame.report.to_json(), "reused": True}
-                    return {**header, "server_ms": _ms(start)}, self._last[4]
+            if live and (reused := self._reused(frame, map_name, view)) is not None:
+                header, data = reused
+                return {**header, "server_ms": _ms(start)}, data
             rgb = map_image(frame, map_name)
         else:
             assert engines.reference is not None
@@ -290,10 +281,45 @@ class FrameService:
         if live:
             self._last = (frame.beauty, map_name, view, header, data)
         else:
-            self._cache[key] = (header, data)
-            while len(self._cache) > CACHE_FRAMES:
-                self._cache.popitem(last=False)
+            self._keep(key, header, data)
         return {**header, "server_ms": _ms(start)}, data
+
+    def _reused(
+        self, frame: Frame, map_name: str, view: str
+    ) -> tuple[dict[str, Any], bytes] | None:
+        """The last live frame's header and JPEG again when the engine reused its composite
+        (same pose, still camera) and the map and view are the same; else None."""
+        last = self._last
+        if last is None or last[0] is not frame.beauty or last[1:3] != (map_name, view):
+            return None
+        # The engine reused its composite (same pose, still camera): so do we.
+        return {**last[3], "report": frame.report.to_json(), "reused": True}, last[4]
+
+    def _cached(self, key: tuple) -> tuple[dict[str, Any], bytes] | None:
+        """The still frame cached for `key` (its refined one when known: no preview), now the
+        most recently used; None when there is none."""
+        better = (*key[:-1], "full")
+        if better in self._cache:  # the refined frame is known: no preview
+            key = better
+        if key not in self._cache:
+            return None
+        self._cache.move_to_end(key)
+        return self._cache[key]
+
+    def _keep(self, key: tuple, header: dict[str, Any], data: bytes) -> None:
+        """Cache a still frame, forgetting the least recently used beyond CACHE_FRAMES."""
+        self._cache[key] = (header, data)
+        while len(self._cache) > CACHE_FRAMES:
+            self._cache.popitem(last=False)
+
+
+def _set_weights(engines: Engines, weights: dict[str, dict[str, float]]) -> None:
+    """Every engine draws the inspector's blend shape weights; a character no longer in
+    `weights` gets its own back (ValueError: a path or weight an engine cannot take)."""
+    for each in (engines.full, engines.preview, engines.reference):
+        if each is not None:
+            for path in {*each.weight_overrides, *weights}:
+                each.set_weights(path, weights.get(path, {}))
 
 
 def _reference_view(frame: Frame, truth: Frame, map_name: str, view: str) -> np.ndarray:

@@ -288,16 +288,8 @@ def maps_from_samples(
     s = samples_per_axis
     if chart is not None:
         chart = np.where(hit, chart, 0).astype(np.int32)
-    if s == 1:  # one sample per pixel: nothing to reduce (np.where makes the arrays owned)
-        depth = np.where(hit, depth, np.float32(np.inf)).astype(np.float32, copy=False)
-        normal = np.where(hit[..., None], normal, np.float32(0)).astype(np.float32, copy=False)
-        maps = Maps(np.array(albedo, np.float32), normal, depth, hit.astype(np.float32))
-        if uv is not None and chart is not None:
-            maps.chart = chart
-            maps.uv = np.where(chart[..., None] > 0, uv, np.float32(0)).astype(
-                np.float32, copy=False
-            )
-        return maps
+    if s == 1:
+        return _maps_at_one_sample(hit, albedo, normal, depth, uv, chart)
     h, w = hit.shape[0] // s, hit.shape[1] // s
     count = np.float32(s * s)
     mask = np.zeros((h, w), np.float32)
@@ -319,18 +311,43 @@ def maps_from_samples(
     maps = Maps(out_albedo, out_normal.astype(np.float32), out_depth, mask)
     if uv is not None and chart is not None:
         maps.chart = np.where(np.isfinite(out_depth), chart[rows, cols], 0).astype(np.int32)
-        # uv: the mean over the samples on the nearest sample's chart (a chart's uvs are
-        # continuous there, so nothing is blended across a seam or with another surface's).
-        total = np.zeros((h, w, 2), np.float64)
-        on_chart = np.zeros((h, w), np.float64)
-        for sample_chart, sample_uv in zip(
-            _pixel_samples(chart, s), _pixel_samples(uv, s), strict=True
-        ):
-            same = (sample_chart == maps.chart) & (maps.chart > 0)
-            total += np.where(same[..., None], sample_uv, 0.0)
-            on_chart += same
-        maps.uv = (total / np.maximum(on_chart, 1)[..., None]).astype(np.float32)
+        maps.uv = _uv_on_chart(uv, chart, maps.chart, s)
     return maps
+
+
+def _maps_at_one_sample(
+    hit: np.ndarray,
+    albedo: np.ndarray,
+    normal: np.ndarray,
+    depth: np.ndarray,
+    uv: np.ndarray | None,
+    chart: np.ndarray | None,
+) -> Maps:
+    """maps_from_samples at one sample per pixel: nothing to reduce (np.where makes the
+    arrays owned); `chart` already zero where there is no hit."""
+    depth = np.where(hit, depth, np.float32(np.inf)).astype(np.float32, copy=False)
+    normal = np.where(hit[..., None], normal, np.float32(0)).astype(np.float32, copy=False)
+    maps = Maps(np.array(albedo, np.float32), normal, depth, hit.astype(np.float32))
+    if uv is not None and chart is not None:
+        maps.chart = chart
+        maps.uv = np.where(chart[..., None] > 0, uv, np.float32(0)).astype(np.float32, copy=False)
+    return maps
+
+
+def _uv_on_chart(uv: np.ndarray, chart: np.ndarray, pixel_chart: np.ndarray, s: int) -> np.ndarray:
+    """Each pixel's uv: the mean over its samples on the nearest sample's chart `pixel_chart`
+    (a chart's uvs are continuous there, so nothing is blended across a seam or with another
+    surface's); 0 where the pixel has no chart."""
+    h, w = pixel_chart.shape
+    total = np.zeros((h, w, 2), np.float64)
+    on_chart = np.zeros((h, w), np.float64)
+    for sample_chart, sample_uv in zip(
+        _pixel_samples(chart, s), _pixel_samples(uv, s), strict=True
+    ):
+        same = (sample_chart == pixel_chart) & (pixel_chart > 0)
+        total += np.where(same[..., None], sample_uv, 0.0)
+        on_chart += same
+    return (total / np.maximum(on_chart, 1)[..., None]).astype(np.float32)
 
 
 @dataclass(frozen=True)

@@ -504,7 +504,6 @@ class GLRenderer:
         prepared = [(m, a) for m, a in prepared if len(a.triangles)]
         if not prepared:
             return empty_maps(camera.height, camera.width)
-        w2c = camera.world_to_camera
         charted = any(a.chart is not None for _, a in prepared)
         with self._ctx:
             fbo = self._framebuffer(width, height, charted)
@@ -512,32 +511,8 @@ class GLRenderer:
             fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
             self._ctx.enable(self._gl.DEPTH_TEST)
             self._ctx.disable(self._gl.CULL_FACE | self._gl.BLEND)
-            self._program["world_to_camera"].write(_mat(w2c))
-            self._program["projection"].write(_mat(camera.gl_projection))
-            normal_to_camera = np.linalg.inv(w2c[:3, :3]).T
-            self._program["normal_to_camera"].write(_mat(normal_to_camera))
-            used: set[tuple] = set()
-            for mesh, arrays in prepared:
-                key = _static_key(mesh)
-                while key in used:  # the same topology drawn twice in one call needs two slots
-                    key = (*key, "again")
-                used.add(key)
-                slot = self._slot(key, mesh, arrays)
-                points, normals = arrays.points, arrays.normals
-                if slot.remap is not None:
-                    points, normals = points[slot.remap], normals[slot.remap]
-                slot.buffers["in_position"].write(points)
-                slot.buffers["in_normal"].write(normals)
-                self._program["use_texture"].value = slot.texture is not None
-                if slot.texture is not None:
-                    slot.texture.use(0)
-                    self._program["uv_scale"].value = arrays.uv_scale
-                    self._program["uv_offset"].value = arrays.uv_offset
-                    self._program["wrap"].value = arrays.wrap
-                slot.vao.render(self._gl.TRIANGLES)
-            # Slots not drawn this call are released so changing scenes do not grow GPU memory.
-            for key in [k for k in self._slots if k not in used]:
-                self._slots.pop(key).release()
+            self._use_camera(camera)
+            self._draw(prepared)
             self._ctx.finish()  # GL is asynchronous: wait here so the timings split honestly
             drawn = time.perf_counter()
             if self.resolve == "gpu":
@@ -552,24 +527,43 @@ class GLRenderer:
             fbo.read_into(fine[1], components=4, attachment=1, dtype="f4")
             if charted:
                 fbo.read_into(fine[2], components=4, attachment=2, dtype="f4")
-        if s == 1:
-            maps = _unpack_one_sample(fine, charted)
-            self.last_timings = {"draw": drawn - started, "readback": time.perf_counter() - drawn}
-            return maps
-        # GL's rows run bottom-up: flip (a view) so row 0 is the top.
-        albedo, geometry = fine[0, ::-1], fine[1, ::-1]
-        surface = fine[2, ::-1] if charted else None
-        maps = maps_from_samples(
-            s,
-            albedo[..., 3] > 0,
-            albedo[..., :3],
-            geometry[..., :3],
-            geometry[..., 3],
-            None if surface is None else surface[..., :2],
-            None if surface is None else np.rint(surface[..., 2]).astype(np.int32),
-        )
+        maps = _maps_from_fine(fine, s, charted)
         self.last_timings = {"draw": drawn - started, "readback": time.perf_counter() - drawn}
         return maps
+
+    def _use_camera(self, camera: Camera) -> None:
+        """The program's camera uniforms: world to camera, projection, and normals' transform."""
+        w2c = camera.world_to_camera
+        self._program["world_to_camera"].write(_mat(w2c))
+        self._program["projection"].write(_mat(camera.gl_projection))
+        normal_to_camera = np.linalg.inv(w2c[:3, :3]).T
+        self._program["normal_to_camera"].write(_mat(normal_to_camera))
+
+    def _draw(self, prepared: list[tuple[DrawMesh, MeshArrays]]) -> None:
+        """Draw each mesh into the bound framebuffer (inside the context), each from its slot,
+        then release the slots this call did not draw."""
+        used: set[tuple] = set()
+        for mesh, arrays in prepared:
+            key = _static_key(mesh)
+            while key in used:  # the same topology drawn twice in one call needs two slots
+                key = (*key, "again")
+            used.add(key)
+            slot = self._slot(key, mesh, arrays)
+            points, normals = arrays.points, arrays.normals
+            if slot.remap is not None:
+                points, normals = points[slot.remap], normals[slot.remap]
+            slot.buffers["in_position"].write(points)
+            slot.buffers["in_normal"].write(normals)
+            self._program["use_texture"].value = slot.texture is not None
+            if slot.texture is not None:
+                slot.texture.use(0)
+                self._program["uv_scale"].value = arrays.uv_scale
+                self._program["uv_offset"].value = arrays.uv_offset
+                self._program["wrap"].value = arrays.wrap
+            slot.vao.render(self._gl.TRIANGLES)
+        # Slots not drawn this call are released so changing scenes do not grow GPU memory.
+        for key in [k for k in self._slots if k not in used]:
+            self._slots.pop(key).release()
 
     def _resolve(self, camera: Camera, charted: bool) -> Maps:
         """The drawn supersamples reduced to pixels by the resolve pass and read back (inside
@@ -707,6 +701,24 @@ SPEC = RendererSpec(
     unavailable=unavailable,
     cost_grows_with_triangles=software,
 )
+
+
+def _maps_from_fine(fine: np.ndarray, s: int, charted: bool) -> Maps:
+    """The supersamples read back (numpy resolve), `s` by `s` a pixel, reduced to pixels."""
+    if s == 1:
+        return _unpack_one_sample(fine, charted)
+    # GL's rows run bottom-up: flip (a view) so row 0 is the top.
+    albedo, geometry = fine[0, ::-1], fine[1, ::-1]
+    surface = fine[2, ::-1] if charted else None
+    return maps_from_samples(
+        s,
+        albedo[..., 3] > 0,
+        albedo[..., :3],
+        geometry[..., :3],
+        geometry[..., 3],
+        None if surface is None else surface[..., :2],
+        None if surface is None else np.rint(surface[..., 2]).astype(np.int32),
+    )
 
 
 def _unpack_one_sample(fine: np.ndarray, charted: bool) -> Maps:

@@ -188,76 +188,76 @@ class VmcDecoder:
         c = self.counters
         c.messages += 1
         if address == BONE_POS or address == ROOT_POS:
-            if (
-                len(params) < 8
-                or type(params[0]) is not str
-                or any(type(v) not in _NUMBER for v in params[1:8])
-            ):
-                c.malformed += 1
-                return
-            if not all(math.isfinite(v) for v in params[1:8]):
-                c.malformed += 1  # counted here: a later value in the frame would hide it
-                return
-            if address == ROOT_POS:
-                index = 0
-            else:
-                index = self._index.get(params[0], -1)
-                if index <= 0:  # unknown, or a bone calling itself Root
-                    c.unknown_bones += 1
-                    return
-            state.pending[index] = params[1:8]
+            self._bone_value(state, address, params)
         elif address == BLEND_VAL:
-            if (
-                len(params) < 2
-                or type(params[0]) is not str
-                or type(params[1]) not in _NUMBER
-                or not abs(params[1]) <= MAX_BLEND_WEIGHT  # NaN, Inf or absurd
-                or (
-                    params[0] not in self._blend_names and len(self._blend_names) >= MAX_BLEND_NAMES
-                )
-            ):
-                c.malformed += 1
-                return
-            self._blend_names.add(params[0])
-            state.blend_pending[params[0]] = float(params[1])
+            if self._accept_named_value(params, MAX_BLEND_WEIGHT):
+                state.blend_pending[params[0]] = float(params[1])
         elif address == BLEND_APPLY:
             state.blend_applied.update(state.blend_pending)
             state.blend_pending.clear()
         elif address == CONTROL:
-            if (
-                len(params) < 2
-                or type(params[0]) is not str
-                or type(params[1]) not in _NUMBER
-                or not abs(params[1]) <= MAX_CONTROL_VALUE  # NaN, Inf or absurd
-                or (
-                    params[0] not in self._blend_names and len(self._blend_names) >= MAX_BLEND_NAMES
-                )
-            ):
-                c.malformed += 1
-                return
-            self._blend_names.add(params[0])
-            state.blend_applied[params[0]] = float(params[1])  # applied at once: no Apply
-            if not state.pending and not state.sender_time:
-                # Between frames (or from a sender that sends controls alone): a frame of its
-                # own now; inside a VMC frame, OK or T carries it.
-                frame = self._close(state, received)
-                if frame is not None:
-                    frames.append(frame)
+            if self._accept_named_value(params, MAX_CONTROL_VALUE):
+                state.blend_applied[params[0]] = float(params[1])  # applied at once: no Apply
+                if not state.pending and not state.sender_time:
+                    # Between frames (or from a sender that sends controls alone): a frame of
+                    # its own now; inside a VMC frame, OK or T carries it.
+                    self._close_into(frames, state, received)
         elif address == OK:
             if not state.sender_time:
-                frame = self._close(state, received)
-                if frame is not None:
-                    frames.append(frame)
+                self._close_into(frames, state, received)
         elif address == TIME:
             if not params or type(params[0]) not in _NUMBER or not math.isfinite(params[0]):
                 c.malformed += 1
                 return
             state.sender_time = True
-            frame = self._close(state, float(params[0]))
-            if frame is not None:
-                frames.append(frame)
+            self._close_into(frames, state, float(params[0]))
         else:
             c.ignored += 1
+
+    def _bone_value(self, state: _Sender, address: str, params: list) -> None:
+        """A Root/Pos or Bone/Pos message (name, position, quaternion) collected for the
+        sender's frame, or counted as malformed or an unknown bone."""
+        c = self.counters
+        if (
+            len(params) < 8
+            or type(params[0]) is not str
+            or any(type(v) not in _NUMBER for v in params[1:8])
+        ):
+            c.malformed += 1
+            return
+        if not all(math.isfinite(v) for v in params[1:8]):
+            c.malformed += 1  # counted here: a later value in the frame would hide it
+            return
+        if address == ROOT_POS:
+            index = 0
+        else:
+            index = self._index.get(params[0], -1)
+            if index <= 0:  # unknown, or a bone calling itself Root
+                c.unknown_bones += 1
+                return
+        state.pending[index] = params[1:8]
+
+    def _accept_named_value(self, params: list, bound: float) -> bool:
+        """Whether a blend shape or control message is (name, number) with the number within
+        `bound` (not NaN, Inf or absurd) and a name already heard or room for one more
+        (MAX_BLEND_NAMES): the name is then kept; else the message is counted as malformed."""
+        if (
+            len(params) < 2
+            or type(params[0]) is not str
+            or type(params[1]) not in _NUMBER
+            or not abs(params[1]) <= bound  # NaN, Inf or absurd
+            or (params[0] not in self._blend_names and len(self._blend_names) >= MAX_BLEND_NAMES)
+        ):
+            self.counters.malformed += 1
+            return False
+        self._blend_names.add(params[0])
+        return True
+
+    def _close_into(self, frames: list[SourceFrame], state: _Sender, timestamp: float) -> None:
+        """Close the sender's frame (`_close`) and append it to `frames` if there is one."""
+        frame = self._close(state, timestamp)
+        if frame is not None:
+            frames.append(frame)
 
     def _close(self, state: _Sender, timestamp: float) -> SourceFrame | None:
         """The sender's frame of the bone values collected so far, or None if none is valid."""
