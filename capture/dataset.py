@@ -717,7 +717,7 @@ def _params_json(settings: CaptureSettings, table: dict[str, np.ndarray]) -> dic
         "shows nothing",
         **(
             {"blend": "per blend shape (blend_shapes order) the frame's weight"}
-            if settings.blend_shapes
+            if settings.dataset_shapes
             else {}
         ),
         **(
@@ -745,8 +745,8 @@ def finalize(folder: Path, settings: CaptureSettings, items: list[WorkItem]) -> 
         scene_fingerprint=settings.scene_fingerprint,
         character=settings.character,
         skeleton=settings.skeleton,
-        joints=tuple(settings.joints),
-        blend_shapes=tuple(settings.blend_shapes),
+        joints=tuple(settings.dataset_joints),
+        blend_shapes=tuple(settings.dataset_shapes),
         controls=tuple(settings.controls),
         look_at_joint=settings.look_at_joint,
         rotation_encoding="rot6d",

@@ -158,6 +158,9 @@ class ItemWorker:
         self.lens = settings.lens
         self.region = None
         """A region's capture (capture/regions.py): its triangles, cut once."""
+        self.inputs = dataset_inputs(settings, self.rig)
+        """(joint indices, scalar indices) of the skeleton's joints and the frame's weights
+        and controls that the dataset records (CaptureSettings.input_joints)."""
         if settings.region:
             from rigspace.capture.regions import RegionMeshes
 
@@ -239,7 +242,7 @@ class ItemWorker:
         timings["write"] += time.perf_counter() - start
         rows["path"].append(relative)
         rows["sha256"].append(ds.sha256_file(path))
-        rows["rig"].append(rig_parameters(world, camera.camera_to_world))
+        rows["rig"].append(rig_parameters(world[self.inputs[0]], camera.camera_to_world))
         rows["joint_camera"].append(camera.to_camera(joint_position[None])[0])
         rows["camera_to_world"].append(camera.camera_to_world)
         rows["intrinsics"].append([camera.fx, camera.fy, camera.cx, camera.cy])
@@ -250,7 +253,7 @@ class ItemWorker:
         rows["azimuth"].append(view.azimuth)
         rows["split"].append(ds.SPLITS.index(ds.split_of(item.clip, view)))
         rows["coverage"].append(ds.mask_coverage(maps.mask))
-        rows["blend"].append(frame.weights)
+        rows["blend"].append(frame.weights[self.inputs[1]])
 
     def _columns(self, rows: dict[str, list[Any]]) -> dict[str, np.ndarray]:
         """An item's record columns from its samples' rows."""
@@ -271,7 +274,7 @@ class ItemWorker:
         }
         # A rig without blend shapes or controls writes the columns it always did.
         scalars = np.array(rows["blend"], dtype=np.float32).reshape(len(rows["path"]), -1)
-        shapes = len(self.rig.blend_shapes)
+        shapes = len(self.settings.dataset_shapes)
         if shapes:
             columns["blend"] = scalars[:, :shapes]
         if self.rig.controls:
@@ -280,6 +283,16 @@ class ItemWorker:
 
     def close(self) -> None:
         self.renderer.close()
+
+
+def dataset_inputs(settings: CaptureSettings, rig: CharacterRig) -> tuple[np.ndarray, np.ndarray]:
+    """(joint indices into the skeleton, indices into the frame's weights and controls) of
+    what the dataset records: every joint, shape and control, or a region's own joints and
+    shapes (CaptureSettings.input_joints) and every control."""
+    joints = np.array([rig.joints.index(j) for j in settings.dataset_joints], np.int64)
+    shapes = [rig.blend_shapes.index(s) for s in settings.dataset_shapes]
+    controls = range(len(rig.blend_shapes), len(rig.blend_shapes) + len(rig.controls))
+    return joints, np.array([*shapes, *controls], np.int64)
 
 
 _worker: ItemWorker | None = None

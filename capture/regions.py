@@ -18,7 +18,10 @@ body with `--regions`), made by the same pipeline with these settings (region_se
   a hand in front of the face hides the face there, as it does on screen;
 - the region's blend shapes (authored, or every shape that moves a point of its surface) are
   drawn in every frame uniformly within its range, whatever the animation does, so the
-  region's network sees each shape's weight apart from the pose (said when capture starts).
+  region's network sees each shape's weight apart from the pose (said when capture starts);
+- the dataset records the region's own inputs (input_joints): its joint's chain from the root
+  and its own joints, its own blend shapes (a hand's none) and the character's controls; its
+  network reads those alone, whatever the rest of the body does.
 """
 
 from __future__ import annotations
@@ -88,6 +91,20 @@ def region_joints(rig: CharacterRig, region: schema.Region) -> tuple[int, ...]:
     root = rig.joints[joint]
     below = [k for k, path in enumerate(rig.joints) if path.startswith(root + "/")]
     return (joint, *below)
+
+
+def input_joints(rig: CharacterRig, joint: int, joints: tuple[int, ...]) -> tuple[str, ...]:
+    """The joints a region's network reads, in skeleton order: its joint's chain from the
+    root (what places and turns it) and its own joints with theirs (what moves its surface),
+    not the rest of the body. A face reads the spine, neck and head, not the arms: with every joint,
+    an arm pose the clips never showed makes the face's input new (samples/film_character
+    README, "The face's yaw")."""
+    paths = [rig.joints[k] for k in (joint, *joints)]
+    return tuple(
+        name
+        for name in rig.joints  # a joint read is read with its ancestors: a closed tree
+        if any(path == name or path.startswith(name + "/") for path in paths)
+    )
 
 
 def region_points(rig: CharacterRig, joints: tuple[int, ...]) -> list[np.ndarray]:
@@ -226,6 +243,8 @@ def region_settings(
         blend_draws=tuple(("*", s, float(low), float(high)) for s in shapes),
         region=region.name,
         region_joints=tuple(rig.joints[j] for j in joints),
+        input_joints=input_joints(rig, joint, joints),
+        input_shapes=tuple(s for s in rig.blend_shapes if s in shapes),
     )
 
 

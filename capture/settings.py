@@ -158,6 +158,23 @@ class CaptureSettings:
     """The RigspaceRegionAPI instance this dataset captures ("": the whole character)."""
     region_joints: tuple[str, ...] = ()
     """A region's joints: its surface is the points whose largest skinning weight is on one."""
+    input_joints: tuple[str, ...] = ()
+    """The joints the dataset records as the network's input, in skeleton order (): every
+    joint. A region's: its joint's chain from the root and its own joints, so that its network
+    reads what moves its surface and not the rest of the body (capture/regions.py)."""
+    input_shapes: tuple[str, ...] = ()
+    """With `input_joints`, the blend shapes the dataset records (a region's own; () none);
+    without, every shape of `blend_shapes`."""
+
+    @property
+    def dataset_joints(self) -> tuple[str, ...]:
+        """The joints of the dataset's `rig` column (and its manifest's `joints`)."""
+        return self.input_joints or self.joints
+
+    @property
+    def dataset_shapes(self) -> tuple[str, ...]:
+        """The blend shapes of the dataset's `blend` column (and its manifest's)."""
+        return self.input_shapes if self.input_joints else self.blend_shapes
 
     @property
     def lens(self) -> Lens:
@@ -185,7 +202,10 @@ class CaptureSettings:
         if self.every == 1:  # as captures before the option recorded it (resume compares)
             del data["every"]
         # likewise, for a rig without blend shapes, and for the whole character
-        for key in ("blend_shapes", "controls", "blend_draws", "region", "region_joints"):
+        for key in (
+            "blend_shapes", "controls", "blend_draws", "region", "region_joints",
+            "input_joints", "input_shapes",
+        ):  # fmt: skip
             if not data[key]:
                 del data[key]
         return data
@@ -207,7 +227,8 @@ class CaptureSettings:
             for c in values.get("controls", ())
         )
         values["blend_draws"] = tuple(tuple(d) for d in values.get("blend_draws", ()))
-        values["region_joints"] = tuple(values.get("region_joints", ()))
+        for key in ("region_joints", "input_joints", "input_shapes"):
+            values[key] = tuple(values.get(key, ()))
         return cls(**values)
 
     def frame_weights(self, rig: CharacterRig, clip: str, time: float) -> np.ndarray:

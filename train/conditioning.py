@@ -48,15 +48,18 @@ def dataset_skeleton(folder: str | Path, manifest: DatasetManifest) -> Skeleton2
         )
     stage = open_stage(scene)  # held while the rig is used: prims expire with their stage
     rig = CharacterRig(stage.GetPrimAtPath(manifest.character))
-    joints = list(manifest.joints)
-    if list(rig.joints) != joints:
+    joints = list(manifest.joints)  # every joint, or a region's own (a closed tree)
+    if not set(joints) <= set(rig.joints):
         raise DatasetError(
             f"The skeleton of {manifest.character} in {scene} no longer has the dataset's "
             f"joints (dataset {folder}).",
             "re-capture the dataset, or train with --conditioning none.",
         )
+    index = [rig.joints.index(j) for j in joints]
     parents = joint_parents(joints)
-    offsets = [bone_offsets(rig.world_transforms(clip.first), parents) for clip in manifest.clips]
+    offsets = [
+        bone_offsets(rig.world_transforms(clip.first)[index], parents) for clip in manifest.clips
+    ]
     ring = manifest.ring
     spread = float(np.max(np.ptp(np.stack(offsets), axis=0)))
     if spread > BONE_LENGTH_TOLERANCE * ring.radius:

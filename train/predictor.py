@@ -51,6 +51,7 @@ class BundlePredictor:
             model, "int8" if int8 else "fp32", predictor=predictor, device=device
         )
         self.table = table
+        check_inputs(model, self.model, table)
         self.name = "model (int8)" if int8 else "model"
         self.footprint_bytes = self.model.footprint_bytes()
         if table.resolution not in self.model.levels:
@@ -91,6 +92,31 @@ class BundlePredictor:
             replace(m, **dict(zip(("chart", "uv"), head_st(out, k, self.textures), strict=True)))
             for k, m in enumerate(maps)
         ]
+
+
+def check_inputs(folder: Path, model: BundleModel, table: DatasetTable) -> None:
+    """A BundleError when the dataset records other inputs than the model reads: another
+    character's, or a region's own joints and shapes (capture/regions.py) under a body."""
+    from rigspace.sdk.bundle import BundleError
+
+    manifest = table.manifest
+    recorded = (tuple(manifest.joints), tuple(manifest.blend_shapes))
+    read = (tuple(model.joints), tuple(model.manifest.blend_shapes))
+    if recorded == read:
+        return
+    region = manifest.settings.get("region")
+    fix = (
+        f"it is region {region}'s dataset: evaluate the body's dataset, which measures each "
+        f"region on DATASET/regions/NAME, or the region's bundle (MODEL/regions/{region}) here"
+        if region
+        else "evaluate the model on a capture of the character it was trained on"
+    )
+    raise BundleError(
+        f"The model {folder} reads {len(read[0])} joints and {len(read[1])} blend shapes; the "
+        f"dataset {table.folder} records {len(recorded[0])} joints and {len(recorded[1])} "
+        f"blend shapes{' (other ones)' if len(read[0]) == len(recorded[0]) else ''}.",
+        f"{fix}.",
+    )
 
 
 def head_st(

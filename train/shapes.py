@@ -137,7 +137,7 @@ def shape_response(
     indices = table.indices(split)
     indices = indices[np.linspace(0, len(indices) - 1, min(limit, len(indices))).astype(int)]
     truth = MeshTruth(dataset)
-    rig_columns = table.column("rig").shape[1]
+    rig_columns = int(np.prod(table.column("rig").shape[1:]))  # joints x 6
     joint_depth = -table.column("joint_camera")[:, 2]
     clips, times = table.column("clip"), table.column("time")
     poses = table.column("camera_to_world")

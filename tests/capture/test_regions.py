@@ -185,16 +185,17 @@ def test_a_region_dataset_shows_its_surface_alone(face_scene, captured_face):
 def test_a_region_s_shapes_are_drawn_apart_from_the_animation(captured_face):
     manifest = json.loads((captured_face / "manifest.json").read_text())
     names = manifest["blend_shapes"]
+    # The region records its own shapes alone: the animation's jawOpen, smile and frown move
+    # the neck's points, not the head's, and its network does not read them.
+    assert names == ["blink", "brow"]
     with np.load(captured_face / "params.npz") as table:
         blend, times = table["blend"], table["time"]
     frames = np.unique(times)
     drawn = {name: [] for name in ("blink", "brow")}
     for t in frames:
         row = blend[times == t][0]
-        animated = dict(zip(ANIMATED, weights_at(float(t)), strict=True))
         for name in drawn:
             drawn[name].append(row[names.index(name)])
-        assert row[names.index("jawOpen")] == pytest.approx(animated["jawOpen"], abs=1e-6)
     for name, values in drawn.items():
         values = np.array(values)
         assert values.min() >= 0 and values.max() <= 1 and len(np.unique(values)) == len(frames)
