@@ -16,21 +16,7 @@ from rigspace.sdk.errors import RigspaceError
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     """`python -m rigspace.apps.live_send URL --bvh FILE`: stream a BVH clip to a VMC
     receiver (vmc://HOST:PORT) or serve it to BVH-TCP clients (bvh+tcp://HOST:PORT)."""
-    parser = argparse.ArgumentParser(
-        prog=prog or "python -m rigspace.apps.live_send", description=main.__doc__
-    )
-    parser.add_argument("url", help="vmc://HOST:PORT or bvh+tcp://HOST:PORT")
-    parser.add_argument(
-        "--bvh", required=True, help="the clip (for example samples/motion/cmu_131_01.bvh)"
-    )
-    parser.add_argument("--speed", type=float, default=1.0, help="playback speed (1 = real time)")
-    parser.add_argument("--loop", action="store_true", help="start the clip again at its end")
-    parser.add_argument(
-        "--seconds",
-        type=float,
-        default=None,
-        help="stop after this long (VMC: after the frames of this long, at --speed, in real time)",
-    )
+    parser = _parser(prog)
     args = parser.parse_args(argv)
     try:
         if not args.speed > 0:
@@ -48,30 +34,11 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         timer = threading.Timer(args.seconds or 0.0, stop.set)
         timer.daemon = True
         if scheme == "vmc":
-            rotations, roots = skeleton.pose(motion)
-            clip = humanoid_clip(skeleton, rotations, roots, frame_time)
-            # --seconds: the frames of that long, whatever the preparation took or a busy
-            # machine holds the sender back (it catches up): a count, not a clock.
-            frames = None
-            if args.seconds is not None:
-                frames = round(args.seconds * args.speed / clip.frame_time)
-            sent = send_vmc(args.url, clip, args.speed, args.loop, stop, frames)
-            print(f"sent {sent} frames to {args.url}")
+            _send_vmc(args, skeleton, motion, frame_time, stop)
         else:
             if args.seconds is not None:  # how long the server serves
                 timer.start()
-            parts = urlsplit(args.url)
-            try:
-                sent = serve_bvh(
-                    parts.hostname or "127.0.0.1", parts.port or 7001, motion, frame_time,
-                    args.speed, stop, args.loop,
-                )  # fmt: skip
-            except OSError as exc:
-                raise RigspaceError(
-                    f"Cannot serve on {args.url} ({exc.strerror or exc}).",
-                    "choose a free port in the URL.",
-                ) from None
-            print(f"served {sent} lines on {args.url}")
+            _serve_bvh(args, motion, frame_time, stop)
         timer.cancel()
     except RigspaceError as exc:
         print(f"{parser.prog}: error: {exc}", file=sys.stderr)
@@ -79,6 +46,56 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     return 0
+
+
+def _parser(prog: str | None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=prog or "python -m rigspace.apps.live_send", description=main.__doc__
+    )
+    parser.add_argument("url", help="vmc://HOST:PORT or bvh+tcp://HOST:PORT")
+    parser.add_argument(
+        "--bvh", required=True, help="the clip (for example samples/motion/cmu_131_01.bvh)"
+    )
+    parser.add_argument("--speed", type=float, default=1.0, help="playback speed (1 = real time)")
+    parser.add_argument("--loop", action="store_true", help="start the clip again at its end")
+    parser.add_argument(
+        "--seconds",
+        type=float,
+        default=None,
+        help="stop after this long (VMC: after the frames of this long, at --speed, in real time)",
+    )
+    return parser
+
+
+def _send_vmc(
+    args: argparse.Namespace, skeleton, motion, frame_time: float, stop: threading.Event
+) -> None:
+    """vmc://: send the clip's humanoid poses to the receiver, and say how many frames went."""
+    rotations, roots = skeleton.pose(motion)
+    clip = humanoid_clip(skeleton, rotations, roots, frame_time)
+    # --seconds: the frames of that long, whatever the preparation took or a busy
+    # machine holds the sender back (it catches up): a count, not a clock.
+    frames = None
+    if args.seconds is not None:
+        frames = round(args.seconds * args.speed / clip.frame_time)
+    sent = send_vmc(args.url, clip, args.speed, args.loop, stop, frames)
+    print(f"sent {sent} frames to {args.url}")
+
+
+def _serve_bvh(args: argparse.Namespace, motion, frame_time: float, stop: threading.Event) -> None:
+    """bvh+tcp://: serve the clip's motion lines to the clients until STOP, and say how many."""
+    parts = urlsplit(args.url)
+    try:
+        sent = serve_bvh(
+            parts.hostname or "127.0.0.1", parts.port or 7001, motion, frame_time,
+            args.speed, stop, args.loop,
+        )  # fmt: skip
+    except OSError as exc:
+        raise RigspaceError(
+            f"Cannot serve on {args.url} ({exc.strerror or exc}).",
+            "choose a free port in the URL.",
+        ) from None
+    print(f"served {sent} lines on {args.url}")
 
 
 if __name__ == "__main__":
