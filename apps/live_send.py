@@ -4,10 +4,10 @@ as a live source would, through rigspace.runtime.live.send."""
 from __future__ import annotations
 
 import argparse
-import sys
 import threading
 from urllib.parse import urlsplit
 
+from rigspace.apps.tools import run_tool
 from rigspace.runtime.live.decoders.bvh import read_bvh
 from rigspace.runtime.live.send import humanoid_clip, send_vmc, serve_bvh
 from rigspace.sdk.errors import RigspaceError
@@ -18,34 +18,30 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     receiver (vmc://HOST:PORT) or serve it to BVH-TCP clients (bvh+tcp://HOST:PORT)."""
     parser = _parser(prog)
     args = parser.parse_args(argv)
-    try:
-        if not args.speed > 0:
-            raise RigspaceError(
-                f"--speed {args.speed} is not a positive number.", "give --speed > 0."
-            )
-        skeleton, motion, frame_time = read_bvh(args.bvh)
-        scheme = args.url.split("://", 1)[0].lower() if "://" in args.url else ""
-        if scheme not in ("vmc", "bvh+tcp"):
-            raise RigspaceError(
-                f"{args.url!r} is not a URL this sender speaks.",
-                "send to vmc://HOST:PORT or serve on bvh+tcp://HOST:PORT.",
-            )
-        stop = threading.Event()
-        timer = threading.Timer(args.seconds or 0.0, stop.set)
-        timer.daemon = True
-        if scheme == "vmc":
-            _send_vmc(args, skeleton, motion, frame_time, stop)
-        else:
-            if args.seconds is not None:  # how long the server serves
-                timer.start()
-            _serve_bvh(args, motion, frame_time, stop)
-        timer.cancel()
-    except RigspaceError as exc:
-        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
-    return 0
+    return run_tool(parser.prog, lambda: _send(args))
+
+
+def _send(args: argparse.Namespace) -> None:
+    """Check the flags, read the clip, and send or serve it as the URL's scheme says."""
+    if not args.speed > 0:
+        raise RigspaceError(f"--speed {args.speed} is not a positive number.", "give --speed > 0.")
+    skeleton, motion, frame_time = read_bvh(args.bvh)
+    scheme = args.url.split("://", 1)[0].lower() if "://" in args.url else ""
+    if scheme not in ("vmc", "bvh+tcp"):
+        raise RigspaceError(
+            f"{args.url!r} is not a URL this sender speaks.",
+            "send to vmc://HOST:PORT or serve on bvh+tcp://HOST:PORT.",
+        )
+    stop = threading.Event()
+    timer = threading.Timer(args.seconds or 0.0, stop.set)
+    timer.daemon = True
+    if scheme == "vmc":
+        _send_vmc(args, skeleton, motion, frame_time, stop)
+    else:
+        if args.seconds is not None:  # how long the server serves
+            timer.start()
+        _serve_bvh(args, motion, frame_time, stop)
+    timer.cancel()
 
 
 def _parser(prog: str | None) -> argparse.ArgumentParser:
