@@ -13,5 +13,6 @@ Tools (`python -m rigspace.apps.NAME`): `capsules`, `render_timing`, `capture_ra
 `framing`, `ablation`, `curve`, `graph_rewrite`, `quantize`, `shadow_timing`, `live_send`,
 `live_probe`, `live_fuzz`, `input_bench`, `scrub_bench`, `stability`, `memory`, `gpu_check`,
 `regions_report` (docs/regions.md), `rerig_report` (docs/point_caches.md),
-`recipe` (also `python3 apps/recipe.py`, on a machine without rigspace installed).
+`recipe` (also `python3 apps/recipe.py`, on a machine without rigspace installed). What the
+tools share (how a run ends, a user's error said in one line) is in `tools`.
 """

@@ -307,6 +307,27 @@ def display_metrics(
     return out
 
 
+def _bundle_metrics(bundle: Path, table: DownsampledTable, limit: int) -> dict[str, Any]:
+    """Each split's metrics (means; the uv texel errors' medians) and samples, of the bundle
+    as it renders (with its textures where it has charts)."""
+    predictor = BundlePredictor(bundle, table)
+    if predictor.model.charts:  # where the head lands on the textures, in texels
+        from rigspace.train.display import scene_textures
+
+        textures, _ = scene_textures(predictor.model, table.manifest)
+        if textures is not None:
+            predictor.attach_textures(textures)
+    metrics = {}
+    for split in SPLITS:
+        report = evaluate(predictor, table, split, limit=limit)
+        metrics[split] = {
+            k: v["median" if k.startswith("uv_texels") else "mean"]
+            for k, v in report["metrics"].items()
+        }
+        metrics[split]["samples"] = report["samples"]
+    return metrics
+
+
 def run_variant(
     dataset: Path,
     out: Path,
@@ -340,21 +361,7 @@ def run_variant(
     export_bundle(folder / "run", bundle, int8=False)
     model, _, _ = build_model(folder / "run")
     table = DownsampledTable(dataset, resolution)
-    predictor = BundlePredictor(bundle, table)
-    if predictor.model.charts:  # where the head lands on the textures, in texels
-        from rigspace.train.display import scene_textures
-
-        textures, _ = scene_textures(predictor.model, table.manifest)
-        if textures is not None:
-            predictor.attach_textures(textures)
-    metrics = {}
-    for split in SPLITS:
-        report = evaluate(predictor, table, split, limit=limit)
-        metrics[split] = {
-            k: v["median" if k.startswith("uv_texels") else "mean"]
-            for k, v in report["metrics"].items()
-        }
-        metrics[split]["samples"] = report["samples"]
+    metrics = _bundle_metrics(bundle, table, limit)
     rig = table.rig_inputs(table.indices("heldout-views")[:1])
     record = {
         "variant": name,

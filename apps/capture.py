@@ -4,9 +4,14 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import TYPE_CHECKING, Any
 
 from rigspace.sdk.cli import CommandSpec, time_range
 from rigspace.sdk.errors import RigspaceError
+
+if TYPE_CHECKING:
+    from rigspace.capture.pipeline import CaptureResult
+    from rigspace.capture.settings import CaptureOverrides
 
 DESCRIPTION = """\
 Render a neural character's training dataset: for every frame of its clips and every
@@ -27,6 +32,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the RigspaceNeuralCharacter prim path (default: the scene's only one)",
     )
     parser.add_argument("--out", required=True, help="dataset folder (new, or to resume)")
+    _add_ring_arguments(parser)
+    _add_render_arguments(parser)
+    _add_region_arguments(parser)
+    _add_run_arguments(parser)
+
+
+def _add_ring_arguments(parser: argparse.ArgumentParser) -> None:
+    """The capture ring's cameras and what they capture: --views ... --frames | --clips."""
     parser.add_argument("--views", type=int, help="training views per ring")
     parser.add_argument("--elevations", type=float, nargs="+", help="ring elevations, degrees")
     parser.add_argument("--resolution", type=int, help="image size, a power of two")
@@ -38,6 +51,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--frames", type=time_range, metavar="A:B", help="capture time codes A to B as one clip"
     )
     choose.add_argument("--clips", nargs="+", help="capture only these clips of the ring")
+
+
+def _add_render_arguments(parser: argparse.ArgumentParser) -> None:
+    """How the frames are rendered and cut into work items: --renderer ... --shard."""
     # The defaults of these are CaptureOverrides' and said in the help; None here tells a flag
     # given from one left out, which --resume takes from the capture's capture.json.
     parser.add_argument(
@@ -63,6 +80,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--shard", default="0/1", metavar="i/n", help="capture only work items i, i+n, ..."
     )
+
+
+def _add_region_arguments(parser: argparse.ArgumentParser) -> None:
+    """The character's regions: --region NAME | --regions."""
     regions = parser.add_mutually_exclusive_group()
     regions.add_argument(
         "--region",
@@ -76,6 +97,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="after the whole character, capture each of its regions into OUT/regions/NAME",
     )
+
+
+def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    """Where and how the capture runs: --resume, --workers, --ray."""
     parser.add_argument(
         "--resume",
         action="store_true",
@@ -94,14 +119,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def run(args: argparse.Namespace) -> int:
-    # Imported here so `rigspace --help` stays fast and loads no renderer.
+def _character_and_flags(args: argparse.Namespace) -> tuple[str | None, dict[str, Any]]:
+    """The character and the CaptureOverrides fields the command line gives; with --resume,
+    what the capture was started with for every flag left out."""
     from rigspace.capture.dataset import saved_flags
-    from rigspace.capture.pipeline import capture, parse_shard
-    from rigspace.capture.settings import CaptureError, CaptureOverrides
-    from rigspace.sdk import schema
-    from rigspace.sdk.stage import open_stage
-    from rigspace.sdk.validation import require_readable
 
     flags = {
         "views": args.views,
@@ -123,26 +144,37 @@ def run(args: argparse.Namespace) -> int:
             saved = {k: v for k, v in saved.items() if k not in ("frames", "clips")}
         character = character or saved["character"]
         given = {**{k: v for k, v in saved.items() if k in flags}, **given}
-    if character is None:
-        stage = open_stage(args.scene)
-        require_readable(stage, "capture", exception=CaptureError)  # a character may be in it
-        found = [str(p.GetPath()) for p in schema.neural_characters(stage)]
-        if len(found) != 1:
-            raise RigspaceError(
-                f"{args.scene} has {len(found)} neural characters ({', '.join(found) or 'none'}).",
-                "pass --character with the prim path.",
-            )
-        character = found[0]
-    overrides = CaptureOverrides(**given)  # a flag left out: its default
-    if args.ray is not None and (args.region or args.regions):
-        raise CaptureError(
-            "--ray captures the whole character only.",
-            "capture its regions on this machine (--region NAME), or leave out --ray.",
+    return character, given
+
+
+def _only_character(scene: str) -> str:
+    """The prim path of the scene's one neural character (an error naming them otherwise)."""
+    from rigspace.capture.settings import CaptureError
+    from rigspace.sdk import schema
+    from rigspace.sdk.stage import open_stage
+    from rigspace.sdk.validation import require_readable
+
+    stage = open_stage(scene)
+    require_readable(stage, "capture", exception=CaptureError)  # a character may be in it
+    found = [str(p.GetPath()) for p in schema.neural_characters(stage)]
+    if len(found) != 1:
+        raise RigspaceError(
+            f"{scene} has {len(found)} neural characters ({', '.join(found) or 'none'}).",
+            "pass --character with the prim path.",
         )
+    return found[0]
+
+
+def _capture_character(
+    args: argparse.Namespace, character: str, overrides: CaptureOverrides
+) -> CaptureResult:
+    """The whole character's dataset (or --region's) into --out, on Ray with --ray."""
+    from rigspace.capture.pipeline import capture, parse_shard
+
     if args.ray is not None:
         from rigspace.capture.ray_capture import capture_on_ray
 
-        result = capture_on_ray(
+        return capture_on_ray(
             args.scene,
             character,
             args.out,
@@ -152,31 +184,54 @@ def run(args: argparse.Namespace) -> int:
             resume=args.resume,
             workers=args.workers,
         )
-    else:
-        result = capture(
-            args.scene,
-            character,
-            args.out,
-            overrides,
-            shard=parse_shard(args.shard),
-            resume=args.resume,
-            workers=args.workers,
-            region=args.region,
-        )
-    print(result.summary(), file=sys.stdout)
-    if args.regions:
-        from pathlib import Path
+    return capture(
+        args.scene,
+        character,
+        args.out,
+        overrides,
+        shard=parse_shard(args.shard),
+        resume=args.resume,
+        workers=args.workers,
+        region=args.region,
+    )
 
-        stage = open_stage(args.scene)  # kept in a variable: its prims expire with it
-        for region in schema.region_names(stage.GetPrimAtPath(character)):
-            out = Path(args.out) / "regions" / region
-            resume = args.resume and (out / "capture.json").is_file()
-            print(f"region {region} -> {out}", file=sys.stdout)
-            part = capture(
-                args.scene, character, out, overrides, shard=parse_shard(args.shard),
-                resume=resume, workers=args.workers, region=region,
-            )  # fmt: skip
-            print(part.summary(), file=sys.stdout)
+
+def _capture_regions(args: argparse.Namespace, character: str, overrides: CaptureOverrides) -> None:
+    """--regions: each of the character's regions into OUT/regions/NAME, printing each summary."""
+    from pathlib import Path
+
+    from rigspace.capture.pipeline import capture, parse_shard
+    from rigspace.sdk import schema
+    from rigspace.sdk.stage import open_stage
+
+    stage = open_stage(args.scene)  # kept in a variable: its prims expire with it
+    for region in schema.region_names(stage.GetPrimAtPath(character)):
+        out = Path(args.out) / "regions" / region
+        resume = args.resume and (out / "capture.json").is_file()
+        print(f"region {region} -> {out}", file=sys.stdout)
+        part = capture(
+            args.scene, character, out, overrides, shard=parse_shard(args.shard),
+            resume=resume, workers=args.workers, region=region,
+        )  # fmt: skip
+        print(part.summary(), file=sys.stdout)
+
+
+def run(args: argparse.Namespace) -> int:
+    # Imported here so `rigspace --help` stays fast and loads no renderer.
+    from rigspace.capture.settings import CaptureError, CaptureOverrides
+
+    character, given = _character_and_flags(args)
+    if character is None:
+        character = _only_character(args.scene)
+    overrides = CaptureOverrides(**given)  # a flag left out: its default
+    if args.ray is not None and (args.region or args.regions):
+        raise CaptureError(
+            "--ray captures the whole character only.",
+            "capture its regions on this machine (--region NAME), or leave out --ray.",
+        )
+    print(_capture_character(args, character, overrides).summary(), file=sys.stdout)
+    if args.regions:
+        _capture_regions(args, character, overrides)
     return 0
 
 

@@ -302,23 +302,11 @@ def markdown(result: dict[str, Any]) -> str:
     lines = [f"GPU check on {result['machine'].get('gpu', 'no GPU')} ({result['machine']})", ""]
     parts = result["parts"]
     if "step" in parts:
-        lines += ["| training step, 128x128 | batch | images/s | ms/step |", "|---|---|---|---|"]
-        lines += _rows(
-            parts["step"],
-            lambda r: (
-                f"| {'bf16' if r['bf16'] else 'fp32'} | {r['batch']} | {r['images_per_s']:.0f} | {r['ms_per_step']:.2f} |"
-            ),
-        )
-        lines.append("")
+        header = "| training step, 128x128 | batch | images/s | ms/step |"
+        lines += [*_table(header, parts["step"], _step_row), ""]
     if "predictors" in parts:
-        lines += ["| predictor | bundle | characters | ms per character |", "|---|---|---|---|"]
-        lines += _rows(
-            parts["predictors"],
-            lambda r: (
-                f"| {r['predictor']} ({r['runs_on']}) | {r['bundle']} | {r['batch']} | {r['ms_per_character']:.3f} |"
-            ),
-        )
-        lines.append("")
+        header = "| predictor | bundle | characters | ms per character |"
+        lines += [*_table(header, parts["predictors"], _predictor_row), ""]
     if "train" in parts:
         t = parts["train"]
         lines.append(
@@ -333,16 +321,34 @@ def markdown(result: dict[str, Any]) -> str:
         )
         lines.append("")
     if "frames" in parts:
-        lines += ["| 1920x1080 frame | characters | total ms | per stage |", "|---|---|---|---|"]
-        lines += _rows(
-            parts["frames"],
-            lambda r: (
-                f"| {', '.join(r['runs_on'])} | {r['characters']} | {r['ms']['total']:.1f} | "
-                + ", ".join(f"{k} {v:.1f}" for k, v in r["ms"].items() if k != "total")
-                + " |"
-            ),
-        )
+        header = "| 1920x1080 frame | characters | total ms | per stage |"
+        lines += _table(header, parts["frames"], _frame_row)
     return "\n".join(lines)
+
+
+def _step_row(r: dict[str, Any]) -> str:
+    precision = "bf16" if r["bf16"] else "fp32"
+    return f"| {precision} | {r['batch']} | {r['images_per_s']:.0f} | {r['ms_per_step']:.2f} |"
+
+
+def _predictor_row(r: dict[str, Any]) -> str:
+    return (
+        f"| {r['predictor']} ({r['runs_on']}) | {r['bundle']} | {r['batch']} | "
+        f"{r['ms_per_character']:.3f} |"
+    )
+
+
+def _frame_row(r: dict[str, Any]) -> str:
+    return (
+        f"| {', '.join(r['runs_on'])} | {r['characters']} | {r['ms']['total']:.1f} | "
+        + ", ".join(f"{k} {v:.1f}" for k, v in r["ms"].items() if k != "total")
+        + " |"
+    )
+
+
+def _table(header: str, rows: Any, line: Callable[[dict[str, Any]], str]) -> list[str]:
+    """A Markdown table of four columns: `header`, its rule, then a line per row (_rows)."""
+    return [header, "|---|---|---|---|", *_rows(rows, line)]
 
 
 def _rows(rows: Any, line: Callable[[dict[str, Any]], str]) -> list[str]:

@@ -179,10 +179,9 @@ def live(args: argparse.Namespace) -> int:
     import cv2
     import numpy as np
 
-    from rigspace.apps.render import make_folder, remove_empty
+    from rigspace.apps.render import make_folder
     from rigspace.runtime.engine import Engine, EngineSettings
     from rigspace.runtime.live.engine import Ticks
-    from rigspace.runtime.output import VideoWriter
     from rigspace.sdk.color import linear_to_srgb
 
     out = Path(args.out)
@@ -205,22 +204,9 @@ def live(args: argparse.Namespace) -> int:
         ticks = max(1, int(args.seconds * fps))
         created = make_folder(out)
         if args.video:
-            try:
-                video = VideoWriter(args.video, width, height, fps)
-            except (OSError, ValueError) as exc:
-                remove_empty(created)
-                raise RigspaceError(
-                    f"--video {args.video} cannot be written ({exc}).",
-                    "choose a writable .mp4 path in an existing folder.",
-                ) from exc
+            video = _open_video(args.video, width, height, fps, created)
         _warm_up(engine, start_code)
-        print(
-            f"rigspace live: ready: {ticks} ticks at {fps:g} fps from time code {start_code:g}"
-            + (f", recording {args.record}" if args.record else "")
-            + " (Ctrl-C stops)",
-            file=sys.stderr,
-            flush=True,
-        )  # the engine is loaded and its sources listen: a script driving senders waits for it
+        _print_ready(args, ticks, fps, start_code)
         t0 = time.monotonic()
         # Frames and the take share each tick's live pose, evaluated at the tick's due time.
         engine.live.ticks = Ticks(t0, fps, start_code, recording=bool(args.record))
@@ -248,6 +234,33 @@ def live(args: argparse.Namespace) -> int:
     write_atomic(out / "report.json", json.dumps({**summary, "frames": frames}, indent=2) + "\n")
     _print_summary(summary, out, args.video, stopped)
     return 0
+
+
+def _open_video(path: str, width: int, height: int, fps: float, created: Path | None):
+    """--video's writer; when it cannot be written, the folders just made are removed again
+    and the error names the path."""
+    from rigspace.apps.render import remove_empty
+    from rigspace.runtime.output import VideoWriter
+
+    try:
+        return VideoWriter(path, width, height, fps)
+    except (OSError, ValueError) as exc:
+        remove_empty(created)
+        raise RigspaceError(
+            f"--video {path} cannot be written ({exc}).",
+            "choose a writable .mp4 path in an existing folder.",
+        ) from exc
+
+
+def _print_ready(args: argparse.Namespace, ticks: int, fps: float, start_code: float) -> None:
+    """The engine is loaded and its sources listen: a script driving senders waits for this line."""
+    print(
+        f"rigspace live: ready: {ticks} ticks at {fps:g} fps from time code {start_code:g}"
+        + (f", recording {args.record}" if args.record else "")
+        + " (Ctrl-C stops)",
+        file=sys.stderr,
+        flush=True,
+    )
 
 
 def _check_bindings(args: argparse.Namespace, engine) -> None:
@@ -440,30 +453,54 @@ def _print_summary(summary: dict[str, Any], out: Path, video: str | None, stoppe
         )
 
 
-def calibrate(args: argparse.Namespace) -> int:
-    """Wait for the source, take its pose as the rest pose, author it into the scene."""
-    import dataclasses
-
-    from pxr import Sdf, Usd, UsdGeom, Vt
-
-    from rigspace.runtime.live.binding import open_binding
+def _find_binding(stage, scene: str, name: str):
+    """(character prim, LiveBinding) of the first neural character with the live binding NAME."""
     from rigspace.sdk import schema
-    from rigspace.sdk.posing import CharacterRig
-    from rigspace.sdk.stage import open_stage
 
-    stage: Usd.Stage = open_stage(args.scene)
     found = [
         (prim, b)
         for prim in schema.neural_characters(stage)
         for b in schema.read_live_bindings(prim)
-        if b.name == args.binding
+        if b.name == name
     ]
     if not found:
         raise RigspaceError(
-            f"{args.scene} has no live binding named {args.binding!r}.",
+            f"{scene} has no live binding named {name!r}.",
             "pass --binding with a RigspaceLiveBindingAPI instance name (rigspace inspect lists them).",
         )
-    prim, binding = found[0]
+    return found[0]
+
+
+def _author_rest_pose(prim, binding: str, bones, targets, rest) -> None:
+    """The binding's sourceBones, targetJoints and restPose (w, x, y, z quaternions) on PRIM."""
+    from pxr import Gf, Sdf, Vt
+
+    ns = f"rigspace:live:{binding}"
+
+    def put(name: str, kind, value) -> None:
+        attr = prim.GetAttribute(f"{ns}:{name}") or prim.CreateAttribute(
+            f"{ns}:{name}", kind, custom=False, variability=Sdf.VariabilityUniform
+        )
+        attr.Set(value)
+
+    put("sourceBones", Sdf.ValueTypeNames.TokenArray, Vt.TokenArray(bones))
+    put("targetJoints", Sdf.ValueTypeNames.TokenArray, Vt.TokenArray(targets))
+    quats = [Gf.Quatf(float(q[0]), Gf.Vec3f(*map(float, q[1:]))) for q in rest]
+    put("restPose", Sdf.ValueTypeNames.QuatfArray, Vt.QuatfArray(quats))
+
+
+def calibrate(args: argparse.Namespace) -> int:
+    """Wait for the source, take its pose as the rest pose, author it into the scene."""
+    import dataclasses
+
+    from pxr import Usd, UsdGeom
+
+    from rigspace.runtime.live.binding import open_binding
+    from rigspace.sdk.posing import CharacterRig
+    from rigspace.sdk.stage import open_stage
+
+    stage: Usd.Stage = open_stage(args.scene)
+    prim, binding = _find_binding(stage, args.scene, args.binding)
     if args.source:
         binding = dataclasses.replace(binding, url=args.source)
     rig = CharacterRig(prim)
@@ -488,20 +525,7 @@ def calibrate(args: argparse.Namespace) -> int:
     r = runtime.retargeter
     targets = [r.target_joints[t].rsplit("/", 1)[-1] for t in r.map_target]
     missing = [b for b, ok in zip(r.source_bones, pose.valid, strict=True) if not ok and b in bones]
-    ns = f"rigspace:live:{binding.name}"
-
-    def put(name: str, kind, value) -> None:
-        attr = prim.GetAttribute(f"{ns}:{name}") or prim.CreateAttribute(
-            f"{ns}:{name}", kind, custom=False, variability=Sdf.VariabilityUniform
-        )
-        attr.Set(value)
-
-    put("sourceBones", Sdf.ValueTypeNames.TokenArray, Vt.TokenArray(bones))
-    put("targetJoints", Sdf.ValueTypeNames.TokenArray, Vt.TokenArray(targets))
-    from pxr import Gf
-
-    quats = [Gf.Quatf(float(q[0]), Gf.Vec3f(*map(float, q[1:]))) for q in rest]
-    put("restPose", Sdf.ValueTypeNames.QuatfArray, Vt.QuatfArray(quats))
+    _author_rest_pose(prim, binding.name, bones, targets, rest)
     stage.GetRootLayer().Save()
     print(
         f"calibrated {binding.name!r} on {prim.GetPath()}: restPose of {len(bones)} bones saved "

@@ -9,9 +9,9 @@ import time
 
 import numpy as np
 
+from rigspace.apps.tools import run_tool
 from rigspace.runtime.live.buffer import LiveBuffer
 from rigspace.runtime.live.sources import open_source
-from rigspace.sdk.errors import RigspaceError
 
 POLL = 0.02
 """Seconds between looks at the frame count while waiting for --frames."""
@@ -76,14 +76,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         "--frames", type=int, metavar="N", help="stop once N frames have arrived (within --seconds)"
     )
     args = parser.parse_args(argv)
-    try:
-        probe(args.url, args.seconds, frames=args.frames)
-    except RigspaceError as exc:
-        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
-    return 0
+    return run_tool(parser.prog, lambda: probe(args.url, args.seconds, frames=args.frames))
 
 
 if __name__ == "__main__":

@@ -13,7 +13,7 @@ import subprocess
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rigspace.sdk.cli import CommandSpec
 from rigspace.sdk.errors import RigspaceError
@@ -23,6 +23,7 @@ if TYPE_CHECKING:
     from rigspace.sdk.model import BundleModel
     from rigspace.train.config import TrainConfig
     from rigspace.train.distributed import Context
+    from rigspace.train.loop import TrainResult
 
 TRAINING = "training"
 """Subfolder of a model bundle holding the run: run.json, checkpoint.pt, log, previews."""
@@ -61,6 +62,15 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         default="small",
         help="tiny (seconds), small (the sample model; the default), paper (GPU)",
     )
+    _add_budget_arguments(parser)
+    _add_bundle_arguments(parser)
+    _add_resource_arguments(parser)
+    _add_config_flags(parser)
+
+
+def _add_budget_arguments(parser: argparse.ArgumentParser) -> None:
+    """How long the run trains, and whether it goes on from one in --out: --steps | --minutes,
+    --resume, --upgrade."""
     budget = parser.add_mutually_exclusive_group()
     budget.add_argument("--steps", type=int, help="stop after this many steps (checkpointed)")
     budget.add_argument("--minutes", type=float, help="stop after this many minutes (checkpointed)")
@@ -72,6 +82,10 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         "branch's alpha, or trains it further; only it trains, --steps of them, default 1500), "
         "then re-export",
     )
+
+
+def _add_bundle_arguments(parser: argparse.ArgumentParser) -> None:
+    """What the model bundle in --out gets: --no-int8, --no-regions | --regions-only, --force."""
     parser.add_argument("--no-int8", action="store_true", help="export fp32 graphs only")
     which = parser.add_mutually_exclusive_group()
     which.add_argument(
@@ -94,6 +108,11 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         help="replace a model bundle (and its training run) already in --out; other files "
         "there are kept",
     )
+
+
+def _add_resource_arguments(parser: argparse.ArgumentParser) -> None:
+    """What the run uses of the machine: --no-cache, --resident (the items' memory), --device,
+    --nproc."""
     parser.add_argument(
         "--no-cache",
         action="store_true",
@@ -120,19 +139,37 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         help="train on N processes of this machine under torchrun (DDP; --batch stays the "
         "global batch); for several nodes run torchrun yourself (docs/scale.md)",
     )
-    _add_config_flags(parser)
+
+
+def _train_config(args: argparse.Namespace) -> TrainConfig:
+    """--preset with the training options given on the command line over it."""
+    from rigspace.train.config import TrainConfig, preset
+
+    names = [f.name for f in dataclasses.fields(TrainConfig) if f.name != "preset"]
+    try:
+        return preset(args.preset, **{n: getattr(args, n) for n in names})
+    except KeyError as exc:
+        raise RigspaceError(str(exc.args[0]), "pass --preset tiny, small or paper.") from None
+
+
+def _print_result(result: TrainResult, out: Path) -> None:
+    """The run's summary line; for an interrupted run, where its checkpoint is."""
+    print(
+        f"trained {result.step} steps in {result.seconds:.0f} s ({result.images_per_second:.1f} images/s), "
+        f"stopped: {result.stopped}, last loss {result.last_loss:.4f}"
+    )
+    if result.stopped == "interrupted":
+        print(
+            f"checkpoint saved in {out / TRAINING}; continue with the same command and --resume "
+            "(no bundle exported from an interrupted run)"
+        )
 
 
 def run_train(args: argparse.Namespace) -> int:
     from rigspace.capture.dataset import read_manifest
     from rigspace.train import distributed
-    from rigspace.train.config import TrainConfig, preset
 
-    names = [f.name for f in dataclasses.fields(TrainConfig) if f.name != "preset"]
-    try:
-        config = preset(args.preset, **{n: getattr(args, n) for n in names})
-    except KeyError as exc:
-        raise RigspaceError(str(exc.args[0]), "pass --preset tiny, small or paper.") from None
+    config = _train_config(args)
     out = Path(args.out)
     if args.force and (args.resume or args.upgrade):
         raise RigspaceError(
@@ -174,15 +211,8 @@ def run_train(args: argparse.Namespace) -> int:
             return 130
         ctx.barrier()
         return _train_regions(args, out, config, regions, shares[1:], ctx) if regions else 0
-    print(
-        f"trained {result.step} steps in {result.seconds:.0f} s ({result.images_per_second:.1f} images/s), "
-        f"stopped: {result.stopped}, last loss {result.last_loss:.4f}"
-    )
+    _print_result(result, out)
     if result.stopped == "interrupted":
-        print(
-            f"checkpoint saved in {out / TRAINING}; continue with the same command and --resume "
-            "(no bundle exported from an interrupted run)"
-        )
         return 130
     code = _export(args, out)
     ctx.barrier()
@@ -510,6 +540,20 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _record_display(args: argparse.Namespace, results: dict[int, dict[str, Any]]) -> None:
+    """--record: the display results, by split and size, in the bundle manifest's metrics."""
+    from rigspace.sdk.bundle import read_manifest_document, write_manifest_document
+    from rigspace.train.evaluate import to_json
+
+    manifest = read_manifest_document(args.model)
+    display = manifest.setdefault("metrics", {}).setdefault("display", {})
+    for size, result in results.items():
+        display.setdefault(args.split, {})[str(size)] = json.loads(
+            to_json({"samples": result["samples"], "rows": result["rows"]})
+        )
+    write_manifest_document(args.model, manifest)
+
+
 def run_display(args: argparse.Namespace) -> int:
     """`rigspace eval --display` (train/display.py)."""
     from rigspace.sdk.model import BundleModel
@@ -559,15 +603,7 @@ def run_display(args: argparse.Namespace) -> int:
             print(f"at {size}x{size} ({size // level}x the model's {level}x{level}):")
             print(format_table(result))
     if args.record:
-        from rigspace.sdk.bundle import read_manifest_document, write_manifest_document
-
-        manifest = read_manifest_document(args.model)
-        display = manifest.setdefault("metrics", {}).setdefault("display", {})
-        for size, result in results.items():
-            display.setdefault(args.split, {})[str(size)] = json.loads(
-                to_json({"samples": result["samples"], "rows": result["rows"]})
-            )
-        write_manifest_document(args.model, manifest)
+        _record_display(args, results)
     if args.json:
         sys.stdout.write(to_json({str(k): v for k, v in results.items()}))
     return 0

@@ -24,6 +24,12 @@ def _ms(timing: dict[str, float] | None) -> str:
 Section = Callable[[Any], list[str]]
 
 
+def _section(heading: str, text: str, *body: str) -> list[str]:
+    """A part's section: its heading, a paragraph that says what was measured, its body (a
+    table's lines)."""
+    return [heading, "", text, "", *body]
+
+
 def markdown(result: dict[str, Any], sections: list[tuple[str, Section]]) -> str:
     """The bench's README: the machine, then each measured part's section (`sections`: part
     name and its Markdown, in the order the parts run: bench.cli.BENCH_PARTS)."""
@@ -55,16 +61,14 @@ def markdown(result: dict[str, Any], sections: list[tuple[str, Section]]) -> str
 
 
 def _pareto(r: dict[str, Any]) -> list[str]:
-    lines = [
+    lines = _section(
         "## Run time against error",
-        "",
         f"Truth: {r['truth']}; samples per split: {r['samples']}. Error of held-out views "
         "(held-out clip in brackets); time of one evaluation (batch 1) and of one full "
         f"runtime frame at {r['frame_size']}x{r['frame_size']}. ![pareto](pareto.png)",
-        "",
         "| variant | albedo PSNR dB | SSIM | mask IoU | alpha IoU | depth % height | normal deg | ms per evaluation | ms per frame |",
         "|---|---|---|---|---|---|---|---|---|",
-    ]
+    )
     for row in r["rows"]:
         if "skipped" in row:
             lines.append(f"| {row['variant']} | skipped: {row['skipped']} ||||||||")
@@ -90,51 +94,44 @@ def _pareto(r: dict[str, Any]) -> list[str]:
 def _accuracy(r: dict[str, Any]) -> list[str]:
     from rigspace.bench.accuracy import format_table
 
-    return [
+    return _section(
         "## The runtime against the model",
-        "",
         f"{len(r['samples'])} held-out samples; each map over the billboard's region, the "
         "model's own error (network at the ring camera) / the runtime's (Engine against "
         "Engine(reference=True)).",
-        "",
         format_table(r),
-    ]
+    )
 
 
 def _frames(rows: list[dict[str, Any]]) -> list[str]:
     from rigspace.bench.frame_stages import table
 
-    return [
+    return _section(
         "## Frame time by stage",
-        "",
         "Previs scene (moving camera and props), prims drawn with 1 sample per pixel; ms.",
-        "",
         table(rows),
-    ]
+    )
 
 
 def _texture(rows: list[dict[str, Any]]) -> list[str]:
     from rigspace.bench.texture import table
 
-    return [
+    return _section(
         "## The character at the size it is seen (textures against the albedo branch)",
-        "",
         "The previs shot against its skinned mesh (`--reference`): per frame the character "
         "region's albedo and beauty PSNR, its beauty FLIP (0 is identical; in brackets the "
         "ceiling, the mesh's region squeezed to the network's level and back) and its own "
         "coverage's IoU (medians over the frames), and milliseconds per frame (the texture "
         "sampler's own: `sampler ms`).",
-        "",
         *table(rows),
-    ]
+    )
 
 
 def _premise(r: dict[str, Any]) -> list[str]:
     from rigspace.bench.premise import crossover_sentence
 
-    lines = [
+    lines = _section(
         "## The premise: the mesh path against the network, by triangles",
-        "",
         "The sample character subdivided (1 -> 4 triangles a step), in the previs shot at "
         "640x360, one frame of each path in turn; medians over 4 frames, ms. The mesh path: the "
         "skinned mesh drawn by the renderer as the character's layer (`--reference`), skinned as "
@@ -146,12 +143,11 @@ def _premise(r: dict[str, Any]) -> list[str]:
         "timing of the bundle's graphs, its textures the sampler's. On a GPU the mesh path would "
         "skin in a vertex shader; that path is not built here (future work). "
         f"{crossover_sentence(r['rows'])} ![premise](premise.png)",
-        "",
         "| triangles | mesh path ms | of which posing + skinning + raster | of which skinning "
         "| network path ms | of which network (graphs) | of which textures | mesh MiB "
         "| network MiB |",
         "|---|---|---|---|---|---|---|---|---|",
-    ]
+    )
     for row in r["rows"]:
         lines.append(
             f"| {row['triangles']:,} | {_f(row['mesh_ms'])} | "
@@ -164,15 +160,13 @@ def _premise(r: dict[str, Any]) -> list[str]:
 
 
 def _skips(r: dict[str, Any]) -> list[str]:
-    lines = [
+    lines = _section(
         "## What each skip costs",
-        "",
         "Fraction of a full frame (still camera, character evaluated and lit) in the same "
         "run, 256x256. ![skips](skips.png)",
-        "",
         "| case | " + " | ".join(f"{p} ms (fraction)" for p in r) + " | decision |",
         "|---|" + "---|" * len(r) + "---|",
-    ]
+    )
     first = next(iter(r.values()))
     for name in first["rows"]:
         cells = [
@@ -187,9 +181,8 @@ def _skips(r: dict[str, Any]) -> list[str]:
 
 def _efficiency(r: dict[str, Any]) -> list[str]:
     peak = r["peak"]
-    lines = [
+    lines = _section(
         "## Close to the limit",
-        "",
         f"Peak float32 matrix product ({peak['size']}^2): onnxruntime "
         f"{_f(peak['onnxruntime']['median_gflops'])} GFLOP/s, numpy "
         f"{_f(peak['numpy']['median_gflops'])} GFLOP/s. The network's FLOPs (trunk and both "
@@ -197,10 +190,9 @@ def _efficiency(r: dict[str, Any]) -> list[str]:
         "as a fraction of the float32 peak measured with the same threads in the same run. "
         "int8 rows count the same FLOPs: their fraction above 1 says int8 arithmetic has a "
         "higher peak than float32 (not measured here), not that the limit was passed.",
-        "",
         "| threads | level | precision | MFLOP | ms | GFLOP/s | fraction of peak |",
         "|---|---|---|---|---|---|---|",
-    ]
+    )
     for row in r["rows"]:
         lines.append(
             f"| {row.get('threads') or 'all'} | {row['level']} | {row['precision']} | "
@@ -261,14 +253,12 @@ def _training(r: dict[str, Any]) -> list[str]:
 
 
 def _memory(rows: list[dict[str, Any]]) -> list[str]:
-    lines = [
+    lines = _section(
         "## Memory",
-        "",
         "Peak resident memory of a fresh process (MiB): after imports, after the Engine, after the frames.",
-        "",
         "| characters | imports | engine | frames | ms per frame |",
         "|---|---|---|---|---|",
-    ]
+    )
     for row in rows:
         mib = row["peak_rss_mib"]
         lines.append(
@@ -280,9 +270,8 @@ def _memory(rows: list[dict[str, Any]]) -> list[str]:
 
 def _stability(r: dict[str, Any]) -> list[str]:
     s = r["stress"]
-    lines = [
+    lines = _section(
         "## Numerical stability",
-        "",
         f"{s['rigs']:,} adversarial rigs through the {s['precision']} network at level "
         f"{s['level']} ({', '.join(f'{k} {v}' for k, v in s['rigs_by_kind'].items())}; "
         "haar: uniform rotations, half_turn: 180-degree turns, near_gimbal: Euler middle "
@@ -291,12 +280,11 @@ def _stability(r: dict[str, Any]) -> list[str]:
         f"range or not finite: {sum(s['violations'].values()) if s['violations'] else 0} "
         f"({_compact(s['violations'])}); q against -q on {s['negated_pairs']} pairs: largest "
         f"output difference {max(s['negation_max_abs'].values()):.3g}.",
-        "",
         "fp32 against int8 on the same rigs:",
         "",
         "| rigs, level | albedo PSNR dB | mask IoU | alpha IoU | depth mean abs | normal mean / p95 deg |",
         "|---|---|---|---|---|---|",
-    ]
+    )
     for name, d in r["drift"].items():
         lines.append(
             f"| {name} | {_f(d.get('albedo', {}).get('psnr_db'), 2)} | "

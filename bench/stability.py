@@ -193,6 +193,48 @@ def violations(out: dict[str, np.ndarray], tol: Tolerance = TOLERANCE) -> dict[s
 # --- stress and drift --------------------------------------------------------------------------
 
 
+def _rigs_with_twins(
+    rng: np.random.Generator, size: int, twins: int, joints: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """`size` adversarial rigs and their kinds: the last `twins` are the first ones' -q twins,
+    seen by the same camera frames."""
+    q, kinds = adversarial(rng, size - twins, joints)
+    q = np.concatenate([q, -q[:twins]])
+    kinds = np.concatenate([kinds, kinds[:twins]])
+    cameras = camera_frames(rng, size - twins)
+    return rigs(q, np.concatenate([cameras, cameras[:twins]])), kinds
+
+
+def _count_problems(
+    found: dict[str, np.ndarray],
+    kinds: np.ndarray,
+    problems: Counter[str],
+    ran: Counter[str],
+    bad_by_kind: Counter[str],
+) -> None:
+    """Count the rigs that show each problem, and by kind the rigs run and those with any."""
+    any_bad = np.zeros(len(kinds), dtype=bool)
+    for problem, rows in found.items():
+        problems[problem] += int(rows.sum())
+        any_bad |= rows
+    ran.update(KINDS[k] for k in kinds)
+    bad_by_kind.update(KINDS[k] for k in kinds[any_bad])
+
+
+def _twin_gap(values: np.ndarray, twins: int) -> float:
+    """The largest |value(q) - value(-q)| over the batch's first `twins` rigs and their twins."""
+    return float(np.abs(values[:twins] - values[len(values) - twins :]).max())
+
+
+def _widen_ranges(ranges: dict[str, list[float]], out: dict[str, np.ndarray]) -> None:
+    """Each map's [lowest, highest] finite value so far, widened by `out`'s."""
+    for name, value in out.items():
+        finite = value[np.isfinite(value)]
+        if finite.size:
+            lo, hi = ranges.get(name, [math.inf, -math.inf])
+            ranges[name] = [min(lo, float(finite.min())), max(hi, float(finite.max()))]
+
+
 def stress(
     model: BundleModel,
     n: int = 2000,
@@ -220,34 +262,19 @@ def stress(
         size = min(batch, n - start)
         twins = size // NEGATED_FRACTION
         t = time.perf_counter()
-        q, kinds = adversarial(rng, size - twins, joints)
-        q = np.concatenate([q, -q[:twins]])
-        kinds = np.concatenate([kinds, kinds[:twins]])
-        cameras = camera_frames(rng, size - twins)
-        rig = rigs(q, np.concatenate([cameras, cameras[:twins]]))
+        rig, kinds = _rigs_with_twins(rng, size, twins, joints)
         seconds["rigs"] += time.perf_counter() - t
         t = time.perf_counter()
         out = model.predict(rig, level)
         seconds["network"] += time.perf_counter() - t
         t = time.perf_counter()
-        found = violations(out, tol)
-        any_bad = np.zeros(size, dtype=bool)
-        for problem, rows in found.items():
-            problems[problem] += int(rows.sum())
-            any_bad |= rows
-        ran.update(KINDS[k] for k in kinds)
-        bad_by_kind.update(KINDS[k] for k in kinds[any_bad])
+        _count_problems(violations(out, tol), kinds, problems, ran, bad_by_kind)
         if twins:
             pairs += twins
-            rig_gap = max(rig_gap, float(np.abs(rig[:twins] - rig[size - twins :]).max()))
+            rig_gap = max(rig_gap, _twin_gap(rig, twins))
             for name, value in out.items():
-                gap = float(np.abs(value[:twins] - value[size - twins :]).max())
-                negation[name] = max(negation.get(name, 0.0), gap)
-        for name, value in out.items():
-            finite = value[np.isfinite(value)]
-            if finite.size:
-                lo, hi = ranges.get(name, [math.inf, -math.inf])
-                ranges[name] = [min(lo, float(finite.min())), max(hi, float(finite.max()))]
+                negation[name] = max(negation.get(name, 0.0), _twin_gap(value, twins))
+        _widen_ranges(ranges, out)
         seconds["checks"] += time.perf_counter() - t
     total = sum(seconds.values())
     return {

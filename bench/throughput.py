@@ -20,13 +20,20 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rigspace.capture import rates as capture_rates
 from rigspace.capture.dataset import read_manifest
 from rigspace.capture.pipeline import capture
 from rigspace.capture.settings import CaptureOverrides
 from rigspace.sdk.render import renderer_plugins
+
+if TYPE_CHECKING:
+    import torch
+
+    from rigspace.train.config import TrainConfig
+    from rigspace.train.data import SampleSet
+    from rigspace.train.network import Rig2Image
 
 SCENE = capture_rates.DEFAULT_SCENE
 CHARACTER = capture_rates.DEFAULT_CHARACTER
@@ -84,22 +91,10 @@ def capture_dataset(out: Path, resolution: int, frames=DATASET_FRAMES, views=DAT
     return out
 
 
-def _step_rate(
-    name: str, folder: Path, steps: int, warmup: int, device: str | None = None
-) -> dict[str, Any]:
-    """Time `warmup + steps` training steps of preset `name` on the dataset in `folder`, on
-    `device` (a --device value; None: the CPU)."""
-    import torch  # here, not at the top: capture rows need no torch
-
-    from rigspace.train.config import preset
-    from rigspace.train.data import Prefetcher, SampleSet
-    from rigspace.train.distributed import resolve_device
-    from rigspace.train.network import Rig2Image, Shape
-    from rigspace.train.step import forward_loss, make_optimizer, optimise, to_torch
-
-    config = preset(name)
-    have = read_manifest(folder).resolution
-    row: dict[str, Any] = {
+def _preset_row(name: str, config: TrainConfig, folder: Path, have: int) -> dict[str, Any]:
+    """The row's start: preset `name`'s size and precision, and the dataset (at `have`
+    pixels a side) it trains on."""
+    return {
         "preset": name,
         "resolution": config.resolution,
         "batch": config.batch,
@@ -111,6 +106,60 @@ def _step_rate(
         "dataset": str(folder),
         "dataset_resolution": have,
     }
+
+
+def _timed_steps(
+    model: Rig2Image,
+    samples: SampleSet,
+    config: TrainConfig,
+    where: torch.device,
+    total: int,
+    warmup: int,
+) -> tuple[list[float], list[float]]:
+    """Train `total` steps: every step's loss, and the seconds of each after the first
+    `warmup`."""
+    import torch
+
+    from rigspace.train.data import Prefetcher
+    from rigspace.train.step import forward_loss, make_optimizer, optimise, to_torch
+
+    optimizer = make_optimizer(model, config)
+    prefetch = Prefetcher(samples, config.batch, config.seed)
+    losses: list[float] = []
+    seconds: list[float] = []
+    try:
+        for step in range(total):
+            start = time.perf_counter()
+            # One step of train.loop.train at the final level, fade-in done (alpha 1).
+            batch = to_torch(prefetch.get(step), config.channels_last)
+            batch = {k: v.to(where, non_blocking=True) for k, v in batch.items()}
+            loss, _terms = forward_loss(model, batch, config.resolution, 1.0, config)
+            optimise(model, optimizer, loss, config)
+            losses.append(float(loss.detach()))
+            if where.type == "cuda":
+                torch.cuda.synchronize(where)
+            if step >= warmup:
+                seconds.append(time.perf_counter() - start)
+    finally:
+        prefetch.close()
+    return losses, seconds
+
+
+def _step_rate(
+    name: str, folder: Path, steps: int, warmup: int, device: str | None = None
+) -> dict[str, Any]:
+    """Time `warmup + steps` training steps of preset `name` on the dataset in `folder`, on
+    `device` (a --device value; None: the CPU)."""
+    import torch  # here, not at the top: capture rows need no torch
+
+    from rigspace.train.config import preset
+    from rigspace.train.data import SampleSet
+    from rigspace.train.distributed import resolve_device
+    from rigspace.train.network import Rig2Image, Shape
+
+    config = preset(name)
+    have = read_manifest(folder).resolution
+    row = _preset_row(name, config, folder, have)
     if config.resolution > have:
         row["skipped"] = (
             f"preset {name} trains at {config.resolution}x{config.resolution}; the dataset "
@@ -129,25 +178,7 @@ def _step_rate(
     model = Rig2Image(Shape(len(samples.joints)), config).to(where)
     if config.channels_last:
         model = model.to(memory_format=torch.channels_last)
-    optimizer = make_optimizer(model, config)
-    prefetch = Prefetcher(samples, config.batch, config.seed)
-    losses: list[float] = []
-    seconds: list[float] = []
-    try:
-        for step in range(warmup + steps):
-            start = time.perf_counter()
-            # One step of train.loop.train at the final level, fade-in done (alpha 1).
-            batch = to_torch(prefetch.get(step), config.channels_last)
-            batch = {k: v.to(where, non_blocking=True) for k, v in batch.items()}
-            loss, _terms = forward_loss(model, batch, config.resolution, 1.0, config)
-            optimise(model, optimizer, loss, config)
-            losses.append(float(loss.detach()))
-            if where.type == "cuda":
-                torch.cuda.synchronize(where)
-            if step >= warmup:
-                seconds.append(time.perf_counter() - start)
-    finally:
-        prefetch.close()
+    losses, seconds = _timed_steps(model, samples, config, where, warmup + steps, warmup)
     bad = [k for k, v in enumerate(losses) if not math.isfinite(v)]
     return {
         **row,

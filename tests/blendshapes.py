@@ -22,11 +22,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
+from pxr import Gf, Sdf, Usd, UsdSkel, Vt
 
 import rigspace.sdk  # noqa: F401  (schemas registered before the stage is made)
 from tests.materials import CHARACTER as CHARACTER  # the character prim (re-exported)
-from tests.materials import add_character, new_asset_stage
+from tests.materials import add_character, new_asset_stage, quad_mesh, use_model
 
 SEGMENTS, RINGS, HEIGHT, RADIUS = 16, 8, 2.0, 0.5
 JOINTS = ["neck", "neck/head"]
@@ -96,6 +96,20 @@ def two_joint_asset(
     return stage, skeleton, animation
 
 
+def _add_brow(stage: Usd.Stage, skeleton: UsdSkel.Skeleton) -> None:
+    """The second mesh, `Brow` (one quad above the eyes), skinned, with its own blend shape
+    list: `brow`, which raises it."""
+    brow_points = np.array(
+        [(x, 1.8, 0.55) for x in (-0.3, 0.3)] + [(x, 1.9, 0.55) for x in (-0.3, 0.3)], np.float32
+    )
+    brow = quad_mesh(stage, "/World/Asset/Brow", brow_points, np.array([[0, 1, 3, 2]]))
+    _skin(stage, brow, skeleton, brow_points, 1.0)
+    _shape(stage, "/World/Asset/Brow/brow", np.tile([0.0, 0.15, 0.0], (4, 1)))
+    binding = UsdSkel.BindingAPI(brow.GetPrim())
+    binding.CreateBlendShapesAttr(["brow"])
+    binding.CreateBlendShapeTargetsRel().SetTargets([Sdf.Path("/World/Asset/Brow/brow")])
+
+
 def write_blendshape_character(folder: Path) -> Path:
     """The scene (see the module doc) in `folder`; returns its path."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -113,11 +127,7 @@ def write_blendshape_character(folder: Path) -> Path:
     )
 
     points, faces = cylinder()
-    mesh = UsdGeom.Mesh.Define(stage, "/World/Asset/Head")
-    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(points))
-    mesh.CreateFaceVertexCountsAttr([4] * len(faces))
-    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(faces.reshape(-1).tolist()))
-    mesh.CreateSubdivisionSchemeAttr("none")
+    mesh = quad_mesh(stage, "/World/Asset/Head", points, faces)
     mesh.CreateDisplayColorAttr([Gf.Vec3f(0.8, 0.6, 0.5)])
     _skin(stage, mesh, skeleton, points, 1.0)
     radial = points * np.array([1, 0, 1], np.float32) / RADIUS
@@ -137,20 +147,7 @@ def write_blendshape_character(folder: Path) -> Path:
     on_head = ["smile", "blink", "jawOpen", "frown"]
     binding.CreateBlendShapesAttr(on_head)
     binding.CreateBlendShapeTargetsRel().SetTargets([Sdf.Path(f"{base}/{n}") for n in on_head])
-
-    brow_points = np.array(
-        [(x, 1.8, 0.55) for x in (-0.3, 0.3)] + [(x, 1.9, 0.55) for x in (-0.3, 0.3)], np.float32
-    )
-    brow = UsdGeom.Mesh.Define(stage, "/World/Asset/Brow")
-    brow.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(brow_points))
-    brow.CreateFaceVertexCountsAttr([4])
-    brow.CreateFaceVertexIndicesAttr([0, 1, 3, 2])
-    brow.CreateSubdivisionSchemeAttr("none")
-    _skin(stage, brow, skeleton, brow_points, 1.0)
-    _shape(stage, "/World/Asset/Brow/brow", np.tile([0.0, 0.15, 0.0], (4, 1)))
-    binding = UsdSkel.BindingAPI(brow.GetPrim())
-    binding.CreateBlendShapesAttr(["brow"])
-    binding.CreateBlendShapeTargetsRel().SetTargets([Sdf.Path("/World/Asset/Brow/brow")])
+    _add_brow(stage, skeleton)
 
     ranges = {
         "blendShapeNames": (Sdf.ValueTypeNames.TokenArray, ["frown", "smile"]),
@@ -159,6 +156,35 @@ def write_blendshape_character(folder: Path) -> Path:
     add_character(stage, skeleton, "neck/head", "talk", ranges, camera_distance=5.0)
     stage.GetRootLayer().Save()
     return path
+
+
+def add_face_binding(prim: Usd.Prim, port: int, timeout: float) -> None:
+    """A VMC live binding `face` on the character prim, from 127.0.0.1:`port`: its neck and
+    head by name (a face stream), lost after `timeout` seconds without data."""
+    prim.ApplyAPI("RigspaceLiveBindingAPI", "face")
+    for name, kind, value in (
+        ("url", Sdf.ValueTypeNames.String, f"vmc://127.0.0.1:{port}"),
+        ("sourceBones", Sdf.ValueTypeNames.TokenArray, ["Neck", "Head"]),
+        ("targetJoints", Sdf.ValueTypeNames.TokenArray, ["neck", "head"]),
+        ("timeoutSeconds", Sdf.ValueTypeNames.Float, timeout),
+    ):
+        prim.CreateAttribute(f"rigspace:live:face:{name}", kind).Set(value)
+
+
+def send_face(port: int, weights: dict[str, float], t: float) -> None:
+    """A VMC face frame as a sender written from the protocol sends it, with python-osc alone:
+    the neck and head bones (Unity's frame: x, y, z then quaternion x, y, z, w), each blend
+    shape's /VMC/Ext/Blend/Val, one /VMC/Ext/Blend/Apply, then /VMC/Ext/OK and /VMC/Ext/T."""
+    from pythonosc.udp_client import SimpleUDPClient
+
+    client = SimpleUDPClient("127.0.0.1", port)
+    for bone in ("Neck", "Head"):
+        client.send_message("/VMC/Ext/Bone/Pos", [bone, 0.0, 0.1, 0.0, 0.0, 0.0, 0.0, 1.0])
+    for name, value in weights.items():
+        client.send_message("/VMC/Ext/Blend/Val", [name, float(value)])
+    client.send_message("/VMC/Ext/Blend/Apply", [])
+    client.send_message("/VMC/Ext/OK", [1])
+    client.send_message("/VMC/Ext/T", [float(t)])
 
 
 _trained: dict[str, Path] = {}
@@ -181,9 +207,7 @@ def trained_face(tmp_path_factory) -> tuple[Path, Path]:
         result = loop.train(root / "ds", root / "run", preset("tiny"), progress=False)
         assert result.stopped == "done"
         export_bundle(root / "run", root / "bundle", int8=False)
-        stage = Usd.Stage.Open(str(face))
-        stage.GetPrimAtPath(CHARACTER).GetAttribute("rigspace:model").Set(str(root / "bundle"))
-        stage.GetRootLayer().Save()
+        use_model(face, root / "bundle")
         _trained["face"] = face
     face = _trained["face"]
     return face, face.parent.parent / "bundle"

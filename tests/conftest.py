@@ -9,6 +9,7 @@ import socket
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis.configuration import set_hypothesis_home_dir
 
@@ -116,6 +117,18 @@ def Xform "World"
     path = folder / "scene.usda"
     path.write_text(text)
     return path
+
+
+def axis_rotations(axis: str, degrees) -> np.ndarray:
+    """(n, 3, 3) rotation matrices about the coordinate axis X, Y or Z (either case)."""
+    a = np.radians(np.asarray(degrees, dtype=np.float64))
+    c, s, one, zero = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
+    rows = {
+        "X": [[one, zero, zero], [zero, c, -s], [zero, s, c]],
+        "Y": [[c, zero, s], [zero, one, zero], [-s, zero, c]],
+        "Z": [[c, -s, zero], [s, c, zero], [zero, zero, one]],
+    }[axis.upper()]
+    return np.moveaxis(np.array(rows), (0, 1), (-2, -1))
 
 
 def write_bundle_manifest(folder: Path, joints: list[str], **overrides) -> Path:

@@ -132,15 +132,19 @@ def add_character(
     return character
 
 
-def write_material_character(folder: Path, textured: bool = True) -> Path:
-    """The scene (see the module doc) in `folder`; returns its path. `textured` False gives
-    every part a constant colour instead (a character with no texture at all)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    _texture(folder / "trousers.1001.png", (40, 60, 160), 4)
-    _texture(folder / "trousers.1002.png", (160, 40, 40), 2)
-    _texture(folder / "shirt.png", (30, 140, 60), 3)
-    path = folder / "characters.usda"
-    stage, skeleton = new_asset_stage(path)
+def quad_mesh(stage: Usd.Stage, path: str, points: np.ndarray, faces: np.ndarray) -> UsdGeom.Mesh:
+    """A Mesh at `path` of `points` and (F, 4) quads `faces`, not subdivided."""
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(points))
+    mesh.CreateFaceVertexCountsAttr([4] * len(faces))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(faces.reshape(-1).tolist()))
+    mesh.CreateSubdivisionSchemeAttr("none")
+    return mesh
+
+
+def _bending_chain(stage: Usd.Stage, skeleton: UsdSkel.Skeleton) -> None:
+    """The 3-joint chain (joints 0.7 apart up y) and its animation: the root twists, the
+    other two bend, over time codes 0-12."""
     skeleton.CreateJointsAttr(JOINTS)
     bind = [Gf.Matrix4d(1).SetTranslate(Gf.Vec3d(0, y, 0)) for y in (0.0, 0.7, 1.4)]
     rest = [Gf.Matrix4d(1).SetTranslate(Gf.Vec3d(0, y, 0)) for y in (0.0, 0.7, 0.7)]
@@ -159,12 +163,13 @@ def write_material_character(folder: Path, textured: bool = True) -> Path:
     UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets(
         [animation.GetPath()]
     )
+
+
+def _skinned_body(stage: Usd.Stage, skeleton: UsdSkel.Skeleton) -> tuple[UsdGeom.Mesh, np.ndarray]:
+    """The cylinder body with its faceVarying st, skinned to the chain; the mesh and each
+    face's ring."""
     points, faces, st, ring_of = _cylinder()
-    mesh = UsdGeom.Mesh.Define(stage, "/World/Asset/Body")
-    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(points))
-    mesh.CreateFaceVertexCountsAttr([4] * len(faces))
-    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(faces.reshape(-1).tolist()))
-    mesh.CreateSubdivisionSchemeAttr("none")
+    mesh = quad_mesh(stage, "/World/Asset/Body", points, faces)
     primvar = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
         "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying
     )
@@ -180,6 +185,13 @@ def write_material_character(folder: Path, textured: bool = True) -> Path:
         Vt.FloatArray(weights.astype(np.float32).reshape(-1).tolist())
     )
     binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1))
+    return mesh, ring_of
+
+
+def _bind_materials(
+    stage: Usd.Stage, mesh: UsdGeom.Mesh, ring_of: np.ndarray, textured: bool
+) -> None:
+    """Boots, trousers and shirt: a material each, bound to its rings' faces by a GeomSubset."""
     looks = {
         "Boots": _material(stage, "Leather", None),
         "Trousers": _material(
@@ -197,6 +209,27 @@ def write_material_character(folder: Path, textured: bool = True) -> Path:
             Vt.IntArray(np.flatnonzero((ring_of >= first) & (ring_of < last)).tolist()),
         )
         UsdShade.MaterialBindingAPI.Apply(subset.GetPrim()).Bind(looks[name])
+
+
+def use_model(scene: Path, bundle: Path) -> None:
+    """Point the scene's character (CHARACTER) at the model `bundle`, saved in its layer."""
+    stage = Usd.Stage.Open(str(scene))
+    stage.GetPrimAtPath(CHARACTER).GetAttribute("rigspace:model").Set(str(bundle))
+    stage.GetRootLayer().Save()
+
+
+def write_material_character(folder: Path, textured: bool = True) -> Path:
+    """The scene (see the module doc) in `folder`; returns its path. `textured` False gives
+    every part a constant colour instead (a character with no texture at all)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    _texture(folder / "trousers.1001.png", (40, 60, 160), 4)
+    _texture(folder / "trousers.1002.png", (160, 40, 40), 2)
+    _texture(folder / "shirt.png", (30, 140, 60), 3)
+    path = folder / "characters.usda"
+    stage, skeleton = new_asset_stage(path)
+    _bending_chain(stage, skeleton)
+    mesh, ring_of = _skinned_body(stage, skeleton)
+    _bind_materials(stage, mesh, ring_of, textured)
     add_character(stage, skeleton, "root/mid", "bend", camera_distance=4.0)
     stage.GetRootLayer().Save()
     return path

@@ -26,7 +26,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 import rigspace.sdk  # noqa: F401  (schemas registered before the stage is made)
 from tests.blendshapes import cylinder, two_joint_asset
 from tests.materials import CHARACTER as CHARACTER  # the character prim (re-exported)
-from tests.materials import add_character
+from tests.materials import add_character, use_model
 
 SEGMENTS, RINGS, HEIGHT, RADIUS = 12, 8, 2.0, 0.35
 JOINTS = ["root", "root/elbow"]
@@ -129,9 +129,7 @@ def trained_arm(tmp_path_factory) -> tuple[Path, Path]:
         train = ["train", str(root / "ds"), "--out", str(root / "bundle"), "--preset", "tiny",
                  "--steps", "3", "--no-int8", "--resolution", "16"]  # fmt: skip
         assert main(train) == 0
-        stage = Usd.Stage.Open(str(arm))
-        stage.GetPrimAtPath(CHARACTER).GetAttribute("rigspace:model").Set(str(root / "bundle"))
-        stage.GetRootLayer().Save()
+        use_model(arm, root / "bundle")
         _trained["arm"] = arm
     arm = _trained["arm"]
     return arm, arm.parent.parent / "bundle"

@@ -239,6 +239,55 @@ print(json.dumps({
 """
 
 
+def _build_wheel(files: list[Path], tmp_path: Path) -> Path:
+    """`pip wheel` of a copy of `files` (with pyproject.toml and README.md) in TMP/src,
+    written to TMP/dist."""
+    source = tmp_path / "src"  # setuptools writes build/ and *.egg-info beside the sources
+    for path in [*files, REPO / "pyproject.toml", REPO / "README.md"]:
+        copy = source / path.relative_to(REPO)
+        copy.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(path, copy)
+    _run([sys.executable, "-m", "pip", "wheel", str(source), "--no-deps", "--no-build-isolation",
+          "--no-index", "-q", "-w", str(tmp_path / "dist")])  # fmt: skip
+    (wheel,) = (tmp_path / "dist").glob("rigspace-*.whl")
+    return wheel
+
+
+def _install_in_venv(wheel: Path, venv: Path) -> Path:
+    """The wheel alone (no dependencies) installed into a fresh virtualenv; its python."""
+    _run([sys.executable, "-m", "venv", "--without-pip", str(venv)])
+    python = venv / "bin" / "python"
+    _run([sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps",
+          "--no-index", "-q", str(wheel)])  # fmt: skip
+    return python
+
+
+def _copy_compiled_kernels(packages: Path) -> None:
+    """numba caches compiled kernels by the source's content: the checkout's (.ci/setup
+    compiles them) serve the identical installed modules, where compiling again takes a
+    minute or two."""
+    for package, root in ROOTS.items():
+        for cached in root.rglob("__pycache__/*.nb[ic]"):
+            target = packages.joinpath(*package.split("."), cached.relative_to(root))
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(cached, target)
+
+
+def _import_every_module(python: Path, packages: Path, names: set[str], cwd: Path) -> dict:
+    """IMPORT_ALL's findings for every module of the wheel (`names`: its files) in the
+    virtualenv of `python`, with every extra's packages reachable (torch for train, ...): a
+    .pth line puts this .venv's site-packages on the path, but its .pth files (the editable
+    install's finder) are not run, and the wheel's own rigspace comes first."""
+    (packages / "dependencies.pth").write_text("\n".join(site.getsitepackages()) + "\n")
+    modules = sorted(
+        n.removesuffix(".py").removesuffix("/__init__").replace("/", ".")
+        for n in names
+        if n.startswith("rigspace/") and n.endswith(".py") and not n.endswith("__main__.py")
+    )
+    imported = _run([python, "-I", "-c", IMPORT_ALL, json.dumps(modules)], cwd=cwd, env=_venv_env())
+    return json.loads(imported.stdout)
+
+
 @pytest.mark.slow
 def test_the_wheel_installs_imports_every_module_and_renders(tmp_path):
     """`pip wheel .` from a copy of the tracked files, installed into a fresh virtualenv with
@@ -247,47 +296,19 @@ def test_the_wheel_installs_imports_every_module_and_renders(tmp_path):
     reachable through a .pth line), the entry points resolve to the wheel alone, and with
     only rigspace's own requirements beside it `rigspace render` draws a frame of the previs
     scene from a copy of samples/."""
-    source = tmp_path / "src"  # setuptools writes build/ and *.egg-info beside the sources
     files = tracked_files()
-    for path in [*files, REPO / "pyproject.toml", REPO / "README.md"]:
-        copy = source / path.relative_to(REPO)
-        copy.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy2(path, copy)
-    _run([sys.executable, "-m", "pip", "wheel", str(source), "--no-deps", "--no-build-isolation",
-          "--no-index", "-q", "-w", str(tmp_path / "dist")])  # fmt: skip
-    (wheel,) = (tmp_path / "dist").glob("rigspace-*.whl")
+    wheel = _build_wheel(files, tmp_path)
     names = set(zipfile.ZipFile(wheel).namelist())
     missing = sorted(wheel_path(p) for p in files if wheel_path(p) not in names)
     assert not missing, f"the wheel lacks {missing}"
 
     venv = tmp_path / "venv"
-    _run([sys.executable, "-m", "venv", "--without-pip", str(venv)])
-    python = venv / "bin" / "python"
-    _run([sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps",
-          "--no-index", "-q", str(wheel)])  # fmt: skip
+    python = _install_in_venv(wheel, venv)
     packages = venv.joinpath(*SITE)
     installed = packages / "rigspace"
-    # numba caches compiled kernels by the source's content: the checkout's (.ci/setup compiles
-    # them) serve the identical installed modules, where compiling again takes a minute or two.
-    for package, root in ROOTS.items():
-        for cached in root.rglob("__pycache__/*.nb[ic]"):
-            target = packages.joinpath(*package.split("."), cached.relative_to(root))
-            target.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(cached, target)
+    _copy_compiled_kernels(packages)
 
-    # Every module, with every extra's packages reachable (torch for train, ...): a .pth line
-    # puts this .venv's site-packages on the path, but its .pth files (the editable install's
-    # finder) are not run, and the wheel's own rigspace comes first.
-    (packages / "dependencies.pth").write_text("\n".join(site.getsitepackages()) + "\n")
-    modules = sorted(
-        n.removesuffix(".py").removesuffix("/__init__").replace("/", ".")
-        for n in names
-        if n.startswith("rigspace/") and n.endswith(".py") and not n.endswith("__main__.py")
-    )
-    imported = _run(
-        [python, "-I", "-c", IMPORT_ALL, json.dumps(modules)], cwd=tmp_path, env=_venv_env()
-    )
-    found = json.loads(imported.stdout)
+    found = _import_every_module(python, packages, names, tmp_path)
     assert not found["editable"], found["editable"]
     assert str(REPO) not in found["sys_path"]
     for name, file in found["files"].items():

@@ -291,30 +291,16 @@ def _predict(predictor: Predictor, rows: np.ndarray, table: DatasetTable) -> lis
     return maps
 
 
-def evaluate(
+def _measure(
     predictor: Predictor,
     table: DatasetTable,
-    split: str,
-    limit: int | None = None,
-    worst: int = 4,
-    out_dir: str | Path | None = None,
-    indices: np.ndarray | None = None,
-    regions: Sequence[Region] = (),
-) -> dict[str, Any]:
-    """Metrics of `predictor` on a split: per sample, aggregated, and the worst samples.
-
-    Each of `regions` (train/regions.py: the whole character, its face) adds the albedo PSNR
-    over that region's pixels in the ground truth, `albedo_psnr@NAME`, and its pixel count.
-
-    Samples: the split's rows, or `limit` of them evenly spaced (evenly_spaced), or exactly
-    `indices` when given. Every metric (metrics.METRICS) gets its mean and median over the
-    samples where it is defined. With `out_dir`, the `worst` samples by albedo PSNR get an
-    error-map PNG each (error_map_image) and the report is saved as report JSON (to_json).
-    Values may be +inf (PSNR of an exact match) or nan (no pixel to measure); json.dumps
-    writes them as Infinity/NaN, to_json as null.
-    """
-    rows = table.indices(split) if indices is None else np.asarray(indices, dtype=np.int64)
-    rows = evenly_spaced(rows, limit) if indices is None else rows
+    rows: np.ndarray,
+    worst: int,
+    regions: Sequence[Region],
+) -> tuple[list[dict[str, Any]], dict[int, tuple[dict[str, Any], Maps, Maps]], float, int]:
+    """Predict `rows` in batches and measure each sample against the truth: the records (one
+    per sample), the `worst` samples' record, prediction and truth by index, the seconds the
+    predictions took, and how many predicted an empty mask."""
     height = table.character_height
     flip_rows = set(evenly_spaced(rows, FLIP_SAMPLES).tolist())
     texels_per_st = getattr(predictor, "texels_per_st", None)
@@ -341,6 +327,35 @@ def evaluate(
         # Keep only the worst so far, so memory stays at `worst` samples' maps.
         worst_now = _worst_first([k[0] for k in kept.values()])[:worst]
         kept = {r["index"]: kept[r["index"]] for r in worst_now}
+    return per_sample, kept, seconds, empty
+
+
+def evaluate(
+    predictor: Predictor,
+    table: DatasetTable,
+    split: str,
+    limit: int | None = None,
+    worst: int = 4,
+    out_dir: str | Path | None = None,
+    indices: np.ndarray | None = None,
+    regions: Sequence[Region] = (),
+) -> dict[str, Any]:
+    """Metrics of `predictor` on a split: per sample, aggregated, and the worst samples.
+
+    Each of `regions` (train/regions.py: the whole character, its face) adds the albedo PSNR
+    over that region's pixels in the ground truth, `albedo_psnr@NAME`, and its pixel count.
+
+    Samples: the split's rows, or `limit` of them evenly spaced (evenly_spaced), or exactly
+    `indices` when given. Every metric (metrics.METRICS) gets its mean and median over the
+    samples where it is defined. With `out_dir`, the `worst` samples by albedo PSNR get an
+    error-map PNG each (error_map_image) and the report is saved as report JSON (to_json).
+    Values may be +inf (PSNR of an exact match) or nan (no pixel to measure); json.dumps
+    writes them as Infinity/NaN, to_json as null.
+    """
+    rows = table.indices(split) if indices is None else np.asarray(indices, dtype=np.int64)
+    rows = evenly_spaced(rows, limit) if indices is None else rows
+    height = table.character_height
+    per_sample, kept, seconds, empty = _measure(predictor, table, rows, worst, regions)
     report: dict[str, Any] = {
         "predictor": predictor.name,
         "dataset": str(table.folder),

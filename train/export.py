@@ -211,26 +211,14 @@ def export_bundle(
         manifest["format_version"] = TEXTURE_BRANCH_VERSION
     rows, split = check_rows(dataset)  # the int8 graphs' and the weights' check
     if int8:
-        manifest["int8_check"] = {
-            "split": split,
-            "samples": len(rows),
-            "tolerances": {k: f"{op} {limit:g}" for k, (op, limit) in TOLERANCES.items()},
-            "graphs": check_int8(out, trunk, levels, rows, skeleton=skeleton),
-        }
+        manifest["int8_check"] = _int8_check(out, trunk, levels, rows, split, skeleton)
     if source.is_file():
         write_atomic(out / CAPSULES, source.read_bytes())
     if capsules.is_file():
         manifest["capsules"] = CAPSULES
         written.append(CAPSULES)
     if model.charts:
-        # The chart table the texture head numbers, from the dataset (capture wrote it).
-        write_atomic(out / CHARTS_FILE, (dataset / CHARTS_FILE).read_bytes())
-        manifest["texture"] = {
-            "charts": model.charts,
-            "file": CHARTS_FILE,
-            "branch": model.texture_branch,
-            "outputs": ["chart", "uv"],
-        }
+        manifest["texture"] = _write_texture(model, dataset, out)
         written.append(CHARTS_FILE)
     written.append(add_weights(out, manifest, model, step, run.config, rows, split, skeleton))
     manifest["files"] = {
@@ -240,6 +228,35 @@ def export_bundle(
     write_manifest_document(out, manifest)  # checked as the readers check it, then written
     remove_stale(out, set(written))
     return manifest
+
+
+def _int8_check(
+    out: Path,
+    trunk: dict[str, str],
+    levels: list[dict[str, Any]],
+    rows: np.ndarray,
+    split: str,
+    skeleton: Skeleton2D | None,
+) -> dict[str, Any]:
+    """The manifest's int8_check: each int8 graph checked against fp32 on `rows` of `split`."""
+    return {
+        "split": split,
+        "samples": len(rows),
+        "tolerances": {k: f"{op} {limit:g}" for k, (op, limit) in TOLERANCES.items()},
+        "graphs": check_int8(out, trunk, levels, rows, skeleton=skeleton),
+    }
+
+
+def _write_texture(model: Rig2Image, dataset: Path, out: Path) -> dict[str, Any]:
+    """Copy the chart table the texture head numbers from the dataset (capture wrote it) into
+    the bundle; the manifest's texture section."""
+    write_atomic(out / CHARTS_FILE, (dataset / CHARTS_FILE).read_bytes())
+    return {
+        "charts": model.charts,
+        "file": CHARTS_FILE,
+        "branch": model.texture_branch,
+        "outputs": ["chart", "uv"],
+    }
 
 
 def _trained_run(run_folder: Path) -> tuple[Rig2Image, RunRecord, int]:
@@ -350,7 +367,6 @@ def bundle_manifest(
 ) -> dict[str, Any]:
     """The manifest's document for these graphs (export_bundle adds the conditioning, the
     int8 check, capsules, texture and files sections)."""
-    config = run.train_config()
     ring = data_manifest.ring
     return {
         "format": FORMAT,
@@ -390,15 +406,22 @@ def bundle_manifest(
             "character": data_manifest.character,
             "samples": dict(data_manifest.counts),
         },
-        "training": {
-            "config": run.config,
-            "steps": step,
-            "planned_steps": config.total_steps(),
-            "trained_levels": [level["resolution"] for level in levels],
-            "planned_levels": list(model.albedo.resolutions),
-            **({"plan": run.plan} if run.plan else {}),
-        },
+        "training": _training_section(model, run, step, levels),
         "metrics": metrics or {},
+    }
+
+
+def _training_section(
+    model: Rig2Image, run: RunRecord, step: int, levels: list[dict[str, Any]]
+) -> dict[str, Any]:
+    """The manifest's training section: the run's config, steps and levels, trained and planned."""
+    return {
+        "config": run.config,
+        "steps": step,
+        "planned_steps": run.train_config().total_steps(),
+        "trained_levels": [level["resolution"] for level in levels],
+        "planned_levels": list(model.albedo.resolutions),
+        **({"plan": run.plan} if run.plan else {}),
     }
 
 

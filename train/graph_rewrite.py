@@ -73,11 +73,51 @@ def _decompose_softmax_nodes(model) -> int:
             helper.make_node("ReduceSum", [f"{tag}/exp", axes], [f"{tag}/sum"], keepdims=1),
             helper.make_node("Div", [f"{tag}/exp", f"{tag}/sum"], [out]),
         ]
-        del graph.node[index]
-        for offset, new in enumerate(nodes):
-            graph.node.insert(index + offset, new)
+        _replace_node(graph, node, nodes)
         replaced += 1
     return replaced
+
+
+def _replace_node(graph, old, new: list) -> None:
+    """`new` (nodes) where the node `old` stands in `graph`, in its place in the order."""
+    index = list(graph.node).index(old)
+    del graph.node[index]
+    for offset, node in enumerate(new):
+        graph.node.insert(index + offset, node)
+
+
+def _constants(graph) -> dict[str, np.ndarray]:
+    """The graph's constant tensors by name: its initializers and its Constant nodes' values."""
+    from onnx import numpy_helper
+
+    constants = {t.name: numpy_helper.to_array(t) for t in graph.initializer}
+    constants |= {  # torch's export gives the sum's axes as a Constant node
+        node.output[0]: numpy_helper.to_array(node.attribute[0].t)
+        for node in graph.node
+        if node.op_type == "Constant" and node.attribute and node.attribute[0].name == "value"
+    }
+    return constants
+
+
+def _shapes(model) -> dict[str, list[int | None]]:
+    """Every inferred tensor's shape (None for a dimension without a fixed size), by name."""
+    from onnx import shape_inference
+
+    return {
+        v.name: [d.dim_value if d.HasField("dim_value") else None for d in
+                 v.type.tensor_type.shape.dim]
+        for v in (*shape_inference.infer_shapes(model).graph.value_info, *model.graph.input)
+    }  # fmt: skip
+
+
+def _remove_unused(graph, names: set[str]) -> None:
+    """The initializers and Constant nodes of `names` that no node reads any more, removed."""
+    used = {name for node in graph.node for name in node.input}
+    for name in names - used:
+        for tensor in [t for t in graph.initializer if t.name == name]:
+            graph.initializer.remove(tensor)
+        for constant in [n for n in graph.node if list(n.output) == [name]]:
+            graph.node.remove(constant)
 
 
 def _over_channels(node, constants: dict[str, np.ndarray]) -> bool:
@@ -96,20 +136,11 @@ def _over_channels(node, constants: dict[str, np.ndarray]) -> bool:
 def _fast_reductions(model) -> int:
     """The written-out softmax's two reductions over the channels replaced: ReduceMax by a
     Split and one Max over its parts, ReduceSum by a 1x1 Conv with weights of one."""
-    from onnx import TensorProto, helper, numpy_helper, shape_inference
+    from onnx import TensorProto, helper, numpy_helper
 
     graph = model.graph
-    constants = {t.name: numpy_helper.to_array(t) for t in graph.initializer}
-    constants |= {  # torch's export gives the sum's axes as a Constant node
-        node.output[0]: numpy_helper.to_array(node.attribute[0].t)
-        for node in graph.node
-        if node.op_type == "Constant" and node.attribute and node.attribute[0].name == "value"
-    }
-    shapes = {
-        v.name: [d.dim_value if d.HasField("dim_value") else None for d in
-                 v.type.tensor_type.shape.dim]
-        for v in (*shape_inference.infer_shapes(model).graph.value_info, *graph.input)
-    }  # fmt: skip
+    constants = _constants(graph)
+    shapes = _shapes(model)
     consumers: dict[str, list] = {}
     for node in graph.node:
         for name in node.input:
@@ -147,17 +178,9 @@ def _fast_reductions(model) -> int:
         fast_sum = helper.make_node(
             "Conv", [exp.output[0], ones], list(reduce_sum.output), name=f"{tag}/sum"
         )
-        for old, new in ((reduce_sum, [fast_sum]), (reduce_max, fast_max)):
-            index = list(graph.node).index(old)
-            del graph.node[index]
-            for offset, node in enumerate(new):
-                graph.node.insert(index + offset, node)
-        used = {name for node in graph.node for name in node.input}
-        for name in {*reduce_max.input[1:], *reduce_sum.input[1:]} - used:  # their axes
-            for tensor in [t for t in graph.initializer if t.name == name]:
-                graph.initializer.remove(tensor)
-            for constant in [n for n in graph.node if list(n.output) == [name]]:
-                graph.node.remove(constant)
+        _replace_node(graph, reduce_sum, [fast_sum])
+        _replace_node(graph, reduce_max, fast_max)
+        _remove_unused(graph, {*reduce_max.input[1:], *reduce_sum.input[1:]})  # their axes
         for node, name in ((sub, "shifted"), (exp, "exp")):
             node.name = node.name or f"{tag}/{name}"
         division = consumer(exp.output[0], "Div")

@@ -279,27 +279,6 @@ def check_int8(
     # (the fp32 trunk's, or the int8 trunk's below) and, when conditioned, joints2d.
     fp32_inputs = {**inputs, "features": features}
     results: dict[str, dict[str, Any]] = {}
-
-    def record(
-        name: str,
-        fp32: dict[str, np.ndarray],
-        int8: dict[str, np.ndarray],
-        speed: tuple[str, dict[str, np.ndarray]],
-    ) -> None:
-        metrics = drift(fp32, int8)
-        finite = all(bool(np.all(np.isfinite(v))) for v in int8.values())
-        failed = verdict(metrics, finite)
-        short = verdict(metrics, finite, AIM)
-        result: dict[str, Any] = {"metrics": metrics, "ok": not failed, "failed": failed}
-        result["float_nodes"] = float_convs(folder / name)
-        if timing:
-            result["ms"] = graphs.timing(speed[0], name, speed[1])
-            if result["ms"]["speedup"] < MIN_SPEEDUP:
-                short.append(f"speedup {result['ms']['speedup']:.2f}, needs >= {MIN_SPEEDUP:g}")
-        result["offered"] = not failed and not short
-        result["not_offered"] = short
-        results[name] = result
-
     top = levels[-1]
     if trunk.get("int8"):
         quantised = graphs.run(trunk["int8"], inputs)["features"]
@@ -309,13 +288,42 @@ def check_int8(
         for name in top["graphs"].values():
             fp32_out.update(graphs.run(name, fp32_inputs))
             int8_out.update(graphs.run(name, int8_inputs))
-        record(trunk["int8"], fp32_out, int8_out, (trunk["fp32"], inputs))
+        speed = (trunk["fp32"], inputs)
+        results[trunk["int8"]] = _judge(graphs, trunk["int8"], fp32_out, int8_out, speed, timing)
     for level in levels:
         for branch, name in level["int8"].items():
             fp32_name = level["graphs"][branch]
             reference = graphs.run(fp32_name, fp32_inputs)
-            record(name, reference, graphs.run(name, fp32_inputs), (fp32_name, fp32_inputs))
+            results[name] = _judge(
+                graphs, name, reference, graphs.run(name, fp32_inputs),
+                (fp32_name, fp32_inputs), timing,
+            )  # fmt: skip
     return results
+
+
+def _judge(
+    graphs: _Graphs,
+    name: str,
+    fp32: dict[str, np.ndarray],
+    int8: dict[str, np.ndarray],
+    speed: tuple[str, dict[str, np.ndarray]],
+    timing: bool,
+) -> dict[str, Any]:
+    """check_int8's entry for the int8 graph `name`, whose outputs are `int8` where its fp32
+    graph's are `fp32`; with `timing`, both timed on `speed` (the fp32 graph and its inputs)."""
+    metrics = drift(fp32, int8)
+    finite = all(bool(np.all(np.isfinite(v))) for v in int8.values())
+    failed = verdict(metrics, finite)
+    short = verdict(metrics, finite, AIM)
+    result: dict[str, Any] = {"metrics": metrics, "ok": not failed, "failed": failed}
+    result["float_nodes"] = float_convs(graphs.folder / name)
+    if timing:
+        result["ms"] = graphs.timing(speed[0], name, speed[1])
+        if result["ms"]["speedup"] < MIN_SPEEDUP:
+            short.append(f"speedup {result['ms']['speedup']:.2f}, needs >= {MIN_SPEEDUP:g}")
+    result["offered"] = not failed and not short
+    result["not_offered"] = short
+    return result
 
 
 def offered_levels(

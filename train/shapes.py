@@ -95,6 +95,39 @@ class MeshTruth:
         self.worker.close()
 
 
+def _shapes_both_have(
+    model: Path, read: list[str], recorded: list[str], shapes: list[str] | None
+) -> list[str]:
+    """`shapes` (default: every shape the model reads), each read by the model and recorded
+    by the dataset; a RigspaceError naming what each has otherwise."""
+    shapes = read if shapes is None else shapes
+    if not read:
+        raise RigspaceError(
+            f"The model {model} reads no blend shapes, so no shape moves what it draws.",
+            "train it on a capture of a character with blend shapes (skel:blendShapes).",
+        )
+    unknown = [s for s in shapes if s not in read or s not in recorded]
+    if unknown:
+        raise RigspaceError(
+            f"--shapes {', '.join(unknown)}: the model reads {', '.join(read)} and the dataset "
+            f"records {', '.join(recorded) or 'none'}.",
+            "name shapes both have.",
+        )
+    return shapes
+
+
+def _downsampling(level: int, resolution: int) -> int:
+    """The factor from the dataset's resolution down to the model's top level (a
+    RigspaceError when it is not a whole one)."""
+    factor = resolution // level if resolution % level == 0 else 0
+    if factor < 1:
+        raise RigspaceError(
+            f"The model's top level {level} does not divide the dataset's {resolution}.",
+            "measure on a dataset captured at the model's resolution or a multiple of it.",
+        )
+    return factor
+
+
 def shape_response(
     model: Path,
     dataset: Path,
@@ -112,28 +145,10 @@ def shape_response(
 
     table = DatasetTable(dataset)
     network = BundleModel(model, predictor=predictor, device=device)
-    read = list(network.manifest.blend_shapes)
     recorded = list(table.manifest.blend_shapes)
-    shapes = read if shapes is None else shapes
-    if not read:
-        raise RigspaceError(
-            f"The model {model} reads no blend shapes, so no shape moves what it draws.",
-            "train it on a capture of a character with blend shapes (skel:blendShapes).",
-        )
-    unknown = [s for s in shapes if s not in read or s not in recorded]
-    if unknown:
-        raise RigspaceError(
-            f"--shapes {', '.join(unknown)}: the model reads {', '.join(read)} and the dataset "
-            f"records {', '.join(recorded) or 'none'}.",
-            "name shapes both have.",
-        )
+    shapes = _shapes_both_have(model, list(network.manifest.blend_shapes), recorded, shapes)
     level = max(network.resolutions)
-    factor = table.resolution // level if table.resolution % level == 0 else 0
-    if factor < 1:
-        raise RigspaceError(
-            f"The model's top level {level} does not divide the dataset's {table.resolution}.",
-            "measure on a dataset captured at the model's resolution or a multiple of it.",
-        )
+    factor = _downsampling(level, table.resolution)
     indices = table.indices(split)
     indices = indices[np.linspace(0, len(indices) - 1, min(limit, len(indices))).astype(int)]
     truth = MeshTruth(dataset)

@@ -114,6 +114,44 @@ def build_network(folder, manifest: ModelManifest):
     return model.eval()
 
 
+def _require_weights(graphs: GraphSet) -> None:
+    """PredictorUnavailable unless the bundle's fp32 network weights are there and the export
+    found them to agree with its graphs."""
+    section = graphs.manifest.torch
+    if section is None:
+        raise PredictorUnavailable(
+            f"model bundle {graphs.folder} has no network weights ({WEIGHTS}): it was "
+            "exported before the torch predictor",
+            "re-export it with `rigspace train DATASET --out MODEL --resume`, or use "
+            "--predictor onnxruntime.",
+        )
+    if graphs.precision != "fp32":
+        raise PredictorUnavailable(
+            "the torch predictor runs the fp32 network (int8 graphs are onnxruntime's)",
+            "use --predictor onnxruntime for int8.",
+        )
+    check = section.get("check", {})
+    if check and not check.get("ok", False):
+        raise PredictorUnavailable(
+            f"the export found the weights of {graphs.folder} differ from its graphs "
+            f"(largest difference {check.get('max_abs')})",
+            "re-export the bundle with `rigspace train`, or use --predictor onnxruntime.",
+        )
+
+
+def _require_gpu(device: str) -> None:
+    """PredictorUnavailable when torch sees no GPU for `device` (cuda or cuda:N)."""
+    import torch
+
+    index = int(device.partition(":")[2] or 0)
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    if index >= count:
+        raise PredictorUnavailable(
+            f"torch sees no GPU for {device} ({count} GPUs, torch {torch.__version__})",
+            "install a CUDA build of torch (`pip install -e .[gpu]`), or run on the CPU.",
+        )
+
+
 class TorchRunner:
     """Runs a bundle's graphs with its network in torch, on `device` (None: CUDA if torch sees
     a GPU, else the CPU). `half`: fp16 (default on CUDA); `cuda_graphs`: capture and replay
@@ -130,34 +168,9 @@ class TorchRunner:
 
         from rigspace.train.graphs import INPUTS, BranchAtLevel, Trunk, output_names
 
-        section = graphs.manifest.torch
-        if section is None:
-            raise PredictorUnavailable(
-                f"model bundle {graphs.folder} has no network weights ({WEIGHTS}): it was "
-                "exported before the torch predictor",
-                "re-export it with `rigspace train DATASET --out MODEL --resume`, or use "
-                "--predictor onnxruntime.",
-            )
-        if graphs.precision != "fp32":
-            raise PredictorUnavailable(
-                "the torch predictor runs the fp32 network (int8 graphs are onnxruntime's)",
-                "use --predictor onnxruntime for int8.",
-            )
-        check = section.get("check", {})
-        if check and not check.get("ok", False):
-            raise PredictorUnavailable(
-                f"the export found the weights of {graphs.folder} differ from its graphs "
-                f"(largest difference {check.get('max_abs')})",
-                "re-export the bundle with `rigspace train`, or use --predictor onnxruntime.",
-            )
+        _require_weights(graphs)
         if device and device.startswith("cuda"):
-            index = int(device.partition(":")[2] or 0)
-            count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-            if index >= count:
-                raise PredictorUnavailable(
-                    f"torch sees no GPU for {device} ({count} GPUs, torch {torch.__version__})",
-                    "install a CUDA build of torch (`pip install -e .[gpu]`), or run on the CPU.",
-                )
+            _require_gpu(device)
         self.device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
         cuda = self.device.type == "cuda"
         self.dtype = torch.float16 if (cuda if half is None else half) else torch.float32

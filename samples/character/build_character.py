@@ -627,6 +627,17 @@ def _chain_t(p: np.ndarray, side: int) -> np.ndarray:
     return (p - shoulder) @ _arm_dir(side)
 
 
+def _arm_segments(p: np.ndarray, side: int, tag: str, index: dict[str, int]) -> np.ndarray:
+    """Per point, `index`'s number of the arm segment it lies along (upper arm, forearm or
+    hand, by its distance from the shoulder): a joint's (JOINT_INDEX) or a tile's (PART_INDEX)."""
+    t = _chain_t(p, side)
+    return np.select(
+        [t < ARM_LENGTHS[0], t < sum(ARM_LENGTHS)],
+        [index[f"upperarm_{tag}"], index[f"lowerarm_{tag}"]],
+        index[f"hand_{tag}"],
+    )
+
+
 def joint_labels(p: np.ndarray, group: np.ndarray) -> np.ndarray:
     """The joint each point rigidly follows (the bone it lies on), before smoothing."""
     y = p[:, 1]
@@ -637,13 +648,7 @@ def joint_labels(p: np.ndarray, group: np.ndarray) -> np.ndarray:
     for side, tag, arm, leg in ((1, "l", ARM_L, LEG_L), (-1, "r", ARM_R, LEG_R)):
         shoulder_zone = (side * p[:, 0] > 11.0) & (y > 137.0) & (y < POS["neck_01"][1] + 2)
         label[(group == TRUNK) & shoulder_zone] = JOINT_INDEX[f"clavicle_{tag}"]
-        t = _chain_t(p, side)
-        arm_label = np.select(
-            [t < ARM_LENGTHS[0], t < sum(ARM_LENGTHS)],
-            [JOINT_INDEX[f"upperarm_{tag}"], JOINT_INDEX[f"lowerarm_{tag}"]],
-            JOINT_INDEX[f"hand_{tag}"],
-        )
-        label = np.where(group == arm, arm_label, label)
+        label = np.where(group == arm, _arm_segments(p, side, tag, JOINT_INDEX), label)
         leg_label = np.select(
             [
                 y >= POS[f"calf_{tag}"][1],
@@ -710,13 +715,7 @@ def part_labels(p: np.ndarray, group: np.ndarray) -> np.ndarray:
     label = np.where(hips & (p[:, 0] >= 0), PART_INDEX["thigh_l"], label)
     label = np.where(hips & (p[:, 0] < 0), PART_INDEX["thigh_r"], label)
     for side, tag, arm, leg in ((1, "l", ARM_L, LEG_L), (-1, "r", ARM_R, LEG_R)):
-        t = _chain_t(p, side)
-        arm_part = np.select(
-            [t < ARM_LENGTHS[0], t < sum(ARM_LENGTHS)],
-            [PART_INDEX[f"upperarm_{tag}"], PART_INDEX[f"lowerarm_{tag}"]],
-            PART_INDEX[f"hand_{tag}"],
-        )
-        label = np.where(group == arm, arm_part, label)
+        label = np.where(group == arm, _arm_segments(p, side, tag, PART_INDEX), label)
         leg_part = np.select(
             [y >= POS[f"calf_{tag}"][1], y >= POS[f"foot_{tag}"][1]],
             [PART_INDEX[f"thigh_{tag}"], PART_INDEX[f"calf_{tag}"]],

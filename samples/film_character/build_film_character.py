@@ -213,6 +213,67 @@ def _tube(a: np.ndarray, b: np.ndarray, radius: tuple[float, float], rings: int,
     return points.reshape(-1, 3), uv.reshape(-1, 2)
 
 
+def _finger_chains(fingers: list[tuple[str, int, np.ndarray]]) -> list[list[str]]:
+    """Each finger's joint paths, base to tip (one list per finger and side)."""
+    chains: dict[str, list[str]] = {}
+    for path, _, _ in fingers:
+        chains.setdefault(path.rsplit("/", 1)[-1][:-5] + path[-2:], []).append(path)
+    return list(chains.values())
+
+
+def _finger_tube(
+    chain: list[str],
+    skel_points: dict[str, np.ndarray],
+    index: dict[str, int],
+    segments: int,
+    rings_per: int,
+):
+    """One finger's tube along its phalanges and the tip point that caps it (last): points,
+    uvs, and two influences per point (the phalanx's joint, blended with its parent's at the
+    knuckle)."""
+    hand = chain[0].rsplit("/", 1)[0]
+    stops = [skel_points[p] for p in chain]
+    tip = stops[-1] + (stops[-1] - stops[-2]) * 0.9
+    stops.append(tip)
+    chain_points, chain_uv, chain_idx, chain_wts = [], [], [], []
+    for k in range(len(chain)):
+        a, b = stops[k], stops[k + 1]
+        r0 = FINGER_RADIUS[0] + (FINGER_RADIUS[1] - FINGER_RADIUS[0]) * k / len(chain)
+        r1 = FINGER_RADIUS[0] + (FINGER_RADIUS[1] - FINGER_RADIUS[0]) * (k + 1) / len(chain)
+        p, uv = _tube(a, b, (r0, r1), rings_per, segments)
+        if k:  # the first ring is the previous phalanx's last
+            p, uv = p[segments:], uv[segments:]
+        chain_points.append(p)
+        chain_uv.append(uv * [1.0, 1.0 / len(chain)] + [0.0, k / len(chain)])
+        s = np.repeat(np.linspace(0, 1, rings_per)[1 if k else 0 :], segments)
+        joint = index[chain[k]]
+        parent = index[hand] if k == 0 else index[chain[k - 1]]
+        blend = np.clip(0.5 - s * 2.0, 0, 0.5)  # the knuckle blends with the parent
+        chain_idx.append(np.stack([np.full_like(s, joint), np.full_like(s, parent)], 1))
+        chain_wts.append(np.stack([1 - blend, blend], 1))
+    p = np.concatenate([np.concatenate(chain_points), tip[None]])
+    uv = np.concatenate([np.concatenate(chain_uv), [[0.5, 1.0]]])
+    ci = np.concatenate([np.concatenate(chain_idx), [[index[chain[-1]], index[chain[-1]]]]])
+    cw = np.concatenate([np.concatenate(chain_wts), [[1.0, 0.0]]])
+    return p, uv, ci, cw
+
+
+def _capped_tube_triangles(start: int, cap: int, segments: int) -> list[tuple[int, int, int]]:
+    """Triangles of a tube whose rings of `segments` points begin at point `start`, closed by
+    a fan to its tip, point `start + cap`."""
+    tris = []
+    n_rings = cap // segments
+    for r in range(n_rings - 1):
+        for k in range(segments):
+            a0, a1 = r * segments + k, r * segments + (k + 1) % segments
+            b0, b1 = a0 + segments, a1 + segments
+            tris += [(start + a0, start + b0, start + a1), (start + a1, start + b0, start + b1)]
+    last = (n_rings - 1) * segments
+    for k in range(segments):
+        tris.append((start + last + k, start + cap, start + last + (k + 1) % segments))
+    return tris
+
+
 def hands_mesh(
     skel_points: dict[str, np.ndarray],
     fingers: list[tuple[str, int, np.ndarray]],
@@ -223,46 +284,10 @@ def hands_mesh(
     segments, rings_per = 10, 4
     points, tris, uvs, idx, wts = [], [], [], [], []
     index = {j: i for i, j in enumerate(joints)}
-    chains: dict[str, list[str]] = {}
-    for path, _, _ in fingers:
-        chains.setdefault(path.rsplit("/", 1)[-1][:-5] + path[-2:], []).append(path)
-    for chain in chains.values():
-        hand = chain[0].rsplit("/", 1)[0]
-        stops = [skel_points[p] for p in chain]
-        tip = stops[-1] + (stops[-1] - stops[-2]) * 0.9
-        stops.append(tip)
+    for chain in _finger_chains(fingers):
         start = sum(len(p) for p in points)
-        chain_points, chain_uv, chain_idx, chain_wts = [], [], [], []
-        for k in range(len(chain)):
-            a, b = stops[k], stops[k + 1]
-            r0 = FINGER_RADIUS[0] + (FINGER_RADIUS[1] - FINGER_RADIUS[0]) * k / len(chain)
-            r1 = FINGER_RADIUS[0] + (FINGER_RADIUS[1] - FINGER_RADIUS[0]) * (k + 1) / len(chain)
-            p, uv = _tube(a, b, (r0, r1), rings_per, segments)
-            if k:  # the first ring is the previous phalanx's last
-                p, uv = p[segments:], uv[segments:]
-            chain_points.append(p)
-            chain_uv.append(uv * [1.0, 1.0 / len(chain)] + [0.0, k / len(chain)])
-            s = np.repeat(np.linspace(0, 1, rings_per)[1 if k else 0 :], segments)
-            joint = index[chain[k]]
-            parent = index[hand] if k == 0 else index[chain[k - 1]]
-            blend = np.clip(0.5 - s * 2.0, 0, 0.5)  # the knuckle blends with the parent
-            chain_idx.append(np.stack([np.full_like(s, joint), np.full_like(s, parent)], 1))
-            chain_wts.append(np.stack([1 - blend, blend], 1))
-        p = np.concatenate(chain_points)
-        cap = len(p)
-        p = np.concatenate([p, tip[None]])
-        uv = np.concatenate([np.concatenate(chain_uv), [[0.5, 1.0]]])
-        ci = np.concatenate([np.concatenate(chain_idx), [[index[chain[-1]], index[chain[-1]]]]])
-        cw = np.concatenate([np.concatenate(chain_wts), [[1.0, 0.0]]])
-        n_rings = cap // segments
-        for r in range(n_rings - 1):
-            for k in range(segments):
-                a0, a1 = r * segments + k, r * segments + (k + 1) % segments
-                b0, b1 = a0 + segments, a1 + segments
-                tris += [(start + a0, start + b0, start + a1), (start + a1, start + b0, start + b1)]
-        last = (n_rings - 1) * segments
-        for k in range(segments):
-            tris.append((start + last + k, start + cap, start + last + (k + 1) % segments))
+        p, uv, ci, cw = _finger_tube(chain, skel_points, index, segments, rings_per)
+        tris += _capped_tube_triangles(start, len(p) - 1, segments)
         points.append(p)
         uvs.append(uv)
         idx.append(ci)

@@ -15,7 +15,7 @@ from rigspace.sdk.stage import open_stage  # noqa: E402
 from rigspace.train.config import preset  # noqa: E402
 from rigspace.train.export import export_bundle  # noqa: E402
 from rigspace.train.loop import train  # noqa: E402
-from tests.runtime.conftest import evaluate_layer  # noqa: E402
+from tests.runtime.conftest import evaluate_layer, view_character  # noqa: E402
 from tests.train.conftest import CHARACTER, SCENE  # noqa: E402
 
 
@@ -36,11 +36,7 @@ def hero(tiny_model):
 
 
 def test_layer_sits_on_the_joint_at_its_depth(hero):
-    world = hero.pose(10.0)
-    joint = world[hero.look_at][:3, 3]
-    camera = Camera.look_at(joint + np.array([0.4, 0.3, 3.0]), joint, width=96, height=64,
-                            focal_length=35, horizontal_aperture=20.955)  # fmt: skip
-    billboard = hero.place(world, camera)
+    world, joint, camera, billboard = view_character(hero, 10.0, [0.4, 0.3, 3.0], 96, 64)
     assert billboard.visible
     layer = evaluate_layer(hero, world, billboard, camera, ("albedo", "geometry"))
     assert layer.level == hero.model.level_for(billboard.size_px)
@@ -57,11 +53,7 @@ def test_layer_sits_on_the_joint_at_its_depth(hero):
 
 
 def test_small_on_screen_picks_a_small_level(hero):
-    world = hero.pose(1.0)
-    joint = world[hero.look_at][:3, 3]
-    far = Camera.look_at(joint + np.array([0.0, 0.0, 60.0]), joint, width=128, height=128,
-                         focal_length=35, horizontal_aperture=20.955)  # fmt: skip
-    billboard = hero.place(world, far)
+    world, _, far, billboard = view_character(hero, 1.0, [0.0, 0.0, 60.0], 128, 128)
     assert billboard.size_px < 8  # the smallest level that covers it is 8x8
     assert evaluate_layer(hero, world, billboard, far, ("albedo", "geometry")).level == 8
 

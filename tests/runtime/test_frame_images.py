@@ -9,12 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pxr import Gf, Usd, UsdGeom
+from pxr import Usd
 
 from rigspace.runtime.engine import Engine, EngineSettings
 from rigspace.sdk.render import gl as gl_module
 from rigspace.sdk.stage import overlay_layer
 from tests.conftest import REPO
+from tests.runtime.conftest import define_camera
 
 PREVIS = REPO / "samples" / "scenes" / "previs.usda"
 LIGHTING_TOLERANCE = 1e-5
@@ -32,13 +33,7 @@ def _still_shot(folder: Path) -> Path:
     stage = Usd.Stage.Open(layer)
     for path in ("/World/Set/PassingCrate", "/World/Set/RollingBall", "/World/ShotCam"):
         stage.OverridePrim(path).SetActive(False)
-    camera = UsdGeom.Camera.Define(stage, "/World/StillCam")
-    camera.CreateFocalLengthAttr(18.0)
-    camera.CreateHorizontalApertureAttr(20.955)
-    camera.CreateVerticalApertureAttr(11.787)
-    camera.CreateClippingRangeAttr(Gf.Vec2f(10, 10000))
-    camera.AddTranslateOp().Set(Gf.Vec3d(200, 300, 800))
-    camera.AddRotateXOp().Set(-15.0)
+    define_camera(stage, "/World/StillCam", 18.0, (200, 300, 800), -15.0)
     layer.Save()
     return folder / "still.usda"
 

@@ -17,6 +17,7 @@ from rigspace.sdk.camera import Camera
 from rigspace.sdk.render import choose_renderer
 from rigspace.sdk.render import gl as gl_module
 from tests.conftest import REPO
+from tests.runtime.conftest import previs_engine
 
 PREVIS = REPO / "samples" / "scenes" / "previs.usda"
 GL_TOLERANCE = 1e-5
@@ -130,22 +131,9 @@ def test_a_previs_frame_lit_by_the_shader_matches_numpy():
     _needs_gl()
 
     def frame(where: str) -> tuple[np.ndarray, str]:
-        engine = Engine(
-            PREVIS,
-            EngineSettings(
-                width=320,
-                height=180,
-                precision="int8",
-                prim_samples=1,
-                renderer="gl",
-                gl_lighting=where,
-            ),
-        )
-        try:
+        with previs_engine(renderer="gl", gl_lighting=where) as engine:
             f = engine.render(600.0)
             return np.array(f.beauty), f.report.lighting_on
-        finally:
-            engine.close()
 
     (on_gl, used), (on_numpy, reference) = frame("always"), frame("never")
     assert reference == "numba" and used != "numba"  # the GL_RENDERER string

@@ -8,13 +8,12 @@ import numpy as np
 import pytest
 
 from rigspace.runtime.character import NeuralCharacter
-from rigspace.sdk.camera import Camera
 from rigspace.sdk.model import BundleModel
 from rigspace.sdk.render import RenderSettings, choose_renderer
 from rigspace.sdk.stage import open_stage
 from rigspace.train.metrics import mask_iou, psnr
 from tests.conftest import REPO
-from tests.runtime.conftest import evaluate_layer
+from tests.runtime.conftest import evaluate_layer, view_character
 
 MODEL = REPO / "samples" / "models" / "sample"
 PREVIS = REPO / "samples" / "scenes" / "previs.usda"
@@ -49,12 +48,8 @@ def hero():
 def test_the_model_draws_what_the_mesh_draws(hero):
     """At a ring camera (the billboard fills the image), the network's maps match the mesh's."""
     time = 700.0  # mid-stretch, a training clip; 30 degrees is a training view of the ring
-    world = hero.pose(time)
-    joint = world[hero.look_at][:3, 3]
     offset = np.array([np.sin(np.radians(30.0)), 0.0, np.cos(np.radians(30.0))]) * 450.0
-    camera = Camera.look_at(joint + offset, joint, width=128, height=128,
-                            focal_length=35, horizontal_aperture=20.955, near=10, far=5000)  # fmt: skip
-    billboard = hero.place(world, camera)
+    world, _, camera, billboard = view_character(hero, time, offset, 128, 128, near=10, far=5000)
     layer = evaluate_layer(hero, world, billboard, camera, ("albedo", "geometry"))
     assert layer.level == 128 and (layer.x0, layer.y0) == (0, 0)
     renderer = choose_renderer("auto").create(RenderSettings())

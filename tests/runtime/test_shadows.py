@@ -33,6 +33,7 @@ from rigspace.sdk.capsules import (
 from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.stage import open_stage, overlay_layer
 from tests.conftest import REPO
+from tests.runtime.conftest import define_camera, previs_engine
 
 PREVIS = REPO / "samples" / "scenes" / "previs.usda"
 SAMPLE_MODEL = REPO / "samples" / "models" / "sample"
@@ -75,13 +76,7 @@ def _stage(tmp_path: Path, name: str, build) -> Path:
 
 
 def _camera(stage: Usd.Stage, eye, tilt: float) -> None:
-    cam = UsdGeom.Camera.Define(stage, "/World/Test/Cam")
-    cam.CreateFocalLengthAttr(35.0)
-    cam.CreateHorizontalApertureAttr(20.955)
-    cam.CreateVerticalApertureAttr(11.787)
-    cam.CreateClippingRangeAttr(Gf.Vec2f(10, 10000))
-    cam.AddTranslateOp().Set(Gf.Vec3d(*map(float, eye)))
-    cam.AddRotateXOp().Set(tilt)
+    define_camera(stage, "/World/Test/Cam", 35.0, eye, tilt)
 
 
 def _ground(stage: Usd.Stage) -> None:
@@ -113,6 +108,19 @@ def _render(scene: Path, without_capsules: bool = False):
             for character in engine.characters:
                 character.capsules = None
         return engine, engine.render(0.0)
+    finally:
+        engine.close()
+
+
+def _frames(scene: Path, *times: float, size: tuple[int, int] = SIZE, **settings) -> list:
+    """The frames at `times` of a test stage through its camera /World/Test/Cam, rendered by
+    one engine (with `settings`) in turn."""
+    engine = Engine(
+        scene,
+        EngineSettings(camera="/World/Test/Cam", width=size[0], height=size[1], **settings),
+    )
+    try:
+        return [engine.render(t) for t in times]
     finally:
         engine.close()
 
@@ -208,14 +216,7 @@ def test_a_moving_light_redraws_the_maps_and_the_frame(tmp_path):
         crate.AddTranslateOp().Set(Gf.Vec3d(*(pelvis * (1, 0, 1) + np.array((-120.0, 25.0, 0.0)))))
         _camera(stage, pelvis + np.array((0, 150, 700)), -12.0)
 
-    engine = Engine(
-        _stage(tmp_path, "moving", build),
-        EngineSettings(camera="/World/Test/Cam", width=80, height=45),
-    )
-    try:
-        first, second = engine.render(0.0), engine.render(10.0)
-    finally:
-        engine.close()
+    first, second = _frames(_stage(tmp_path, "moving", build), 0.0, 10.0, size=(80, 45))
     # The crate's map is drawn for the first frame and again for the turned light.
     assert first.report.shadows["maps_drawn"] == 1
     assert second.report.shadows["maps_drawn"] == 1
@@ -238,18 +239,8 @@ def test_a_still_camera_reuses_the_lit_prims_and_shadows_them_as_a_fresh_engine_
         _camera(stage, pelvis + np.array((0, 150, 700)), -12.0)
 
     scene = _stage(tmp_path, "still", build)
-
-    def frames(*times):
-        engine = Engine(
-            scene, EngineSettings(camera="/World/Test/Cam", width=SIZE[0], height=SIZE[1])
-        )
-        try:
-            return [engine.render(t) for t in times]
-        finally:
-            engine.close()
-
-    first, second, third = frames(0.0, 12.0, 24.0)
-    fresh_second, fresh_third = frames(12.0), frames(24.0)
+    first, second, third = _frames(scene, 0.0, 12.0, 24.0)
+    fresh_second, fresh_third = _frames(scene, 12.0), _frames(scene, 24.0)
     assert not first.report.scene_prims["lit_reused"]
     assert second.report.scene_prims["lit_reused"] and third.report.scene_prims["lit_reused"]
     assert not np.array_equal(first.beauty, second.beauty)  # the character walked
@@ -417,14 +408,7 @@ def test_a_bundle_without_capsules_casts_no_shadow_and_says_so_once(tmp_path, ca
         model = stage.GetPrimAtPath("/World/Hero").GetAttribute("rigspace:model")
         model.Set(Sdf.AssetPath(str(bundle)))
 
-    engine = Engine(
-        _stage(tmp_path, "bare", build),
-        EngineSettings(camera="/World/Test/Cam", width=80, height=45),
-    )
-    try:
-        first, second = engine.render(0.0), engine.render(1.0)
-    finally:
-        engine.close()
+    first, second = _frames(_stage(tmp_path, "bare", build), 0.0, 1.0, size=(80, 45))
     err = capsys.readouterr().err
     assert err.count("casts no shadow") == 1 and "capsules.json" in err
     assert first.report.shadows["without_capsules"] == ["/World/Hero"]
@@ -541,20 +525,9 @@ def test_the_previs_frame_blended_matches_every_pixel_evaluated(monkeypatch):
     from rigspace.runtime.shadows import numpy_passes
 
     def frame():
-        engine = Engine(
-            PREVIS,
-            EngineSettings(
-                width=320,
-                height=180,
-                precision="int8",
-                prim_samples=1,
-                shadow_backend=ShadowBackend("numpy"),
-            ),  # the engine's numpy passes
-        )
-        try:
+        # The engine's numpy passes.
+        with previs_engine(shadow_backend=ShadowBackend("numpy")) as engine:
             return np.array(engine.render(600.0).beauty)
-        finally:
-            engine.close()
 
     blended = frame()
     monkeypatch.setattr(numpy_passes, "sparse_visibility", _full_visibility)
@@ -671,21 +644,9 @@ def test_the_previs_frame_through_the_shader_matches_numpy(monkeypatch):
         pytest.skip(f"the gl renderer cannot run here: {gl_module.unavailable()}")
 
     def frame(where: str) -> tuple[np.ndarray, str]:
-        engine = Engine(
-            PREVIS,
-            EngineSettings(
-                width=320,
-                height=180,
-                precision="int8",
-                prim_samples=1,
-                renderer="gl",
-                shadow_backend=ShadowBackend(gl_capsules=where),
-            ),
-        )
-        try:
+        backend = ShadowBackend(gl_capsules=where)
+        with previs_engine(renderer="gl", shadow_backend=backend) as engine:
             return np.array(engine.render(600.0).beauty), engine.shadows.capsule_backend
-        finally:
-            engine.close()
 
     (on_gl, used), (on_numpy, reference) = frame("always"), frame("never")
     assert (used, reference) == ("gl", "numpy")
@@ -748,20 +709,8 @@ def _shadow_terms(monkeypatch, kernel: str, times, size=(320, 180)):
         return out
 
     monkeypatch.setattr(FrameShadows, "prims", recording)
-    engine = Engine(
-        PREVIS,
-        EngineSettings(
-            width=size[0],
-            height=size[1],
-            precision="int8",
-            prim_samples=1,
-            shadow_backend=ShadowBackend(kernel),
-        ),
-    )
-    try:
+    with previs_engine(*size, shadow_backend=ShadowBackend(kernel)) as engine:
         frames = [np.array(engine.render(float(t)).beauty) for t in times]
-    finally:
-        engine.close()
     return frames, terms
 
 
@@ -931,11 +880,9 @@ the ground shadow map's depth bias, numpy and the kernels disagree there (the gr
 onto nothing in the kernels: it has no region)."""
 
 
-def test_the_character_layer_blended_matches_every_pixel_evaluated_by_numpy(tmp_path, monkeypatch):
-    """The character's own shadow factors (the maps', per light) blended coarse to fine by
-    the kernels against numpy evaluating every pixel of the layer: three previs frames, and
-    a roof whose shadow's edge crosses the character."""
-    pelvis = _pelvis()
+def _half_roof_stage(tmp_path: Path, pelvis: np.ndarray) -> Path:
+    """The ground, a sun, and a roof whose shadow's edge crosses the character, seen by a
+    camera in front of it."""
 
     def build(stage):
         _ground(stage)
@@ -945,68 +892,66 @@ def test_the_character_layer_blended_matches_every_pixel_evaluated_by_numpy(tmp_
         cube.AddTranslateOp().Set(Gf.Vec3d(*(pelvis + np.array((150.0, 400.0, 400.0)))))
         _camera(stage, pelvis * (1, 0, 1) + (0, 100, 900), 0.0)
 
-    half_roof = _stage(tmp_path, "half_roof", build)
+    return _stage(tmp_path, "half_roof", build)
 
-    def factors(kernel: str) -> list:
-        backend = ShadowBackend(kernel)
-        found = []
 
-        def recording(self, layer, camera, *args):
-            out = _LAYER_VISIBILITY(self, layer, camera, *args)
-            # Only the layer's pixels in the frame count (a billboard can reach past its
-            # edge: no region, so no shadow, is found there, and nothing of it is drawn).
-            h, w = layer.mask.shape
-            rows = slice(max(-layer.y0, 0), max(min(camera.height - layer.y0, h), 0))
-            cols = slice(max(-layer.x0, 0), max(min(camera.width - layer.x0, w), 0))
-            # Weighted by coverage, as the composite takes them: numpy evaluated every pixel
-            # with any coverage, the kernels only those inside a map's screen regions; they
-            # differ (shadowed or not) only at pixels covered under 1e-3, whose depth lies
-            # off the body.
-            coverage = layer.mask[rows, cols]
-            # Pixels whose depth puts them under the ground (y = 0 here: the feet, when the
-            # network's depth is a little long): numpy finds them shadowed by the ground
-            # itself, the kernels lit (the ground casts onto nothing, it has no region). The
-            # ground hides them in the frame (the beauty matches in
-            # test_the_compiled_shadow_passes_match_numpy_on_previs_frames), so they are left
-            # out; how many there are depends on the model's depth, not on the kernels.
-            r, c = np.mgrid[rows, cols]
-            points, _ = world_points(
-                layer.depth[rows, cols].ravel(), r.ravel(), c.ravel(),
-                np.zeros((r.size, 3), np.float32), camera, (layer.x0, layer.y0),
-            )  # fmt: skip
-            on = coverage > 0
-            under = (points[1].reshape(r.shape) < GROUND_CONTACT) & on
-            found.append(
-                [
-                    None if v is None else (1 - (1 - v[rows, cols]) * coverage, under, on)
-                    for v in out
-                ]
-            )
-            return out
+def _coverage_weighted(layer, camera: Camera, visibility: list) -> list:
+    """Per light, None or (the layer's shadow factor weighted by its coverage, the pixels
+    under the ground, the covered pixels), over the layer's pixels in the frame."""
+    # Only the layer's pixels in the frame count (a billboard can reach past its
+    # edge: no region, so no shadow, is found there, and nothing of it is drawn).
+    h, w = layer.mask.shape
+    rows = slice(max(-layer.y0, 0), max(min(camera.height - layer.y0, h), 0))
+    cols = slice(max(-layer.x0, 0), max(min(camera.width - layer.x0, w), 0))
+    # Weighted by coverage, as the composite takes them: numpy evaluated every pixel
+    # with any coverage, the kernels only those inside a map's screen regions; they
+    # differ (shadowed or not) only at pixels covered under 1e-3, whose depth lies
+    # off the body.
+    coverage = layer.mask[rows, cols]
+    # Pixels whose depth puts them under the ground (y = 0 here: the feet, when the
+    # network's depth is a little long): numpy finds them shadowed by the ground
+    # itself, the kernels lit (the ground casts onto nothing, it has no region). The
+    # ground hides them in the frame (the beauty matches in
+    # test_the_compiled_shadow_passes_match_numpy_on_previs_frames), so they are left
+    # out; how many there are depends on the model's depth, not on the kernels.
+    r, c = np.mgrid[rows, cols]
+    points, _ = world_points(
+        layer.depth[rows, cols].ravel(), r.ravel(), c.ravel(),
+        np.zeros((r.size, 3), np.float32), camera, (layer.x0, layer.y0),
+    )  # fmt: skip
+    on = coverage > 0
+    under = (points[1].reshape(r.shape) < GROUND_CONTACT) & on
+    return [
+        None if v is None else (1 - (1 - v[rows, cols]) * coverage, under, on) for v in visibility
+    ]
 
-        monkeypatch.setattr(FrameShadows, "layer", recording)
-        engine = Engine(
-            PREVIS,
-            EngineSettings(
-                width=320, height=180, precision="int8", prim_samples=1, shadow_backend=backend
-            ),
-        )
-        try:
-            for t in (250.0, 750.0, 850.0):
-                engine.render(t)
-        finally:
-            engine.close()
-        engine = Engine(
-            half_roof,
-            EngineSettings(camera="/World/Test/Cam", width=320, height=180, shadow_backend=backend),
-        )
-        try:
-            engine.render(0.0)
-        finally:
-            engine.close()
-        return found
 
-    blended, exact = factors("numba"), factors("numpy")
+def _layer_factors(kernel: str, half_roof: Path, monkeypatch) -> list:
+    """The character layer's shadow factors (_coverage_weighted) with the `kernel` backend:
+    three previs frames, then the half roof's."""
+    backend = ShadowBackend(kernel)
+    found = []
+
+    def recording(self, layer, camera, *args):
+        out = _LAYER_VISIBILITY(self, layer, camera, *args)
+        found.append(_coverage_weighted(layer, camera, out))
+        return out
+
+    monkeypatch.setattr(FrameShadows, "layer", recording)
+    with previs_engine(shadow_backend=backend) as engine:
+        for t in (250.0, 750.0, 850.0):
+            engine.render(t)
+    _frames(half_roof, 0.0, size=(320, 180), shadow_backend=backend)
+    return found
+
+
+def test_the_character_layer_blended_matches_every_pixel_evaluated_by_numpy(tmp_path, monkeypatch):
+    """The character's own shadow factors (the maps', per light) blended coarse to fine by
+    the kernels against numpy evaluating every pixel of the layer: three previs frames, and
+    a roof whose shadow's edge crosses the character."""
+    half_roof = _half_roof_stage(tmp_path, _pelvis())
+    blended = _layer_factors("numba", half_roof, monkeypatch)
+    exact = _layer_factors("numpy", half_roof, monkeypatch)
     assert len(blended) == len(exact) == 4
     shadowed = hidden = covered = 0
     for mine, theirs in zip(blended, exact, strict=True):

@@ -15,7 +15,13 @@ from pxr import Usd
 from rigspace.capture.settings import CaptureOverrides
 from rigspace.sdk.bundle import BundleError
 from rigspace.sdk.model import BundleModel
-from tests.blendshapes import CHARACTER, trained_face, write_blendshape_character
+from tests.blendshapes import (
+    CHARACTER,
+    add_face_binding,
+    send_face,
+    trained_face,
+    write_blendshape_character,
+)
 
 pytest.importorskip("torch", reason="training needs the train extra (torch)")
 
@@ -122,38 +128,13 @@ def test_a_model_whose_blend_shapes_the_character_lacks_is_named(face, bundle, t
 
 def _live_face(face, bundle, tmp_path, port):
     """The face with its model and a VMC binding (the neck and head by name: a face stream)."""
-    from pxr import Sdf
-
     stage = Usd.Stage.Open(str(face))
     prim = stage.GetPrimAtPath(CHARACTER)
     prim.GetAttribute("rigspace:model").Set(str(bundle))
-    prim.ApplyAPI("RigspaceLiveBindingAPI", "face")
-    for name, kind, value in (
-        ("url", Sdf.ValueTypeNames.String, f"vmc://127.0.0.1:{port}"),
-        ("sourceBones", Sdf.ValueTypeNames.TokenArray, ["Neck", "Head"]),
-        ("targetJoints", Sdf.ValueTypeNames.TokenArray, ["neck", "head"]),
-        ("timeoutSeconds", Sdf.ValueTypeNames.Float, 30.0),
-    ):
-        prim.CreateAttribute(f"rigspace:live:face:{name}", kind).Set(value)
+    add_face_binding(prim, port, 30.0)
     path = tmp_path / "live_face.usda"
     stage.GetRootLayer().Export(str(path))
     return path
-
-
-def _send_face(port: int, weights: dict[str, float], t: float) -> None:
-    """A VMC face frame as a sender written from the protocol sends it, with python-osc alone:
-    the neck and head bones (Unity's frame: x, y, z then quaternion x, y, z, w), each blend
-    shape's /VMC/Ext/Blend/Val, one /VMC/Ext/Blend/Apply, then /VMC/Ext/OK and /VMC/Ext/T."""
-    from pythonosc.udp_client import SimpleUDPClient
-
-    client = SimpleUDPClient("127.0.0.1", port)
-    for bone in ("Neck", "Head"):
-        client.send_message("/VMC/Ext/Bone/Pos", [bone, 0.0, 0.1, 0.0, 0.0, 0.0, 0.0, 1.0])
-    for name, value in weights.items():
-        client.send_message("/VMC/Ext/Blend/Val", [name, float(value)])
-    client.send_message("/VMC/Ext/Blend/Apply", [])
-    client.send_message("/VMC/Ext/OK", [1])
-    client.send_message("/VMC/Ext/T", [float(t)])
 
 
 def test_a_live_vmc_face_stream_moves_the_rendered_face(face, bundle, tmp_path):
@@ -174,7 +155,7 @@ def test_a_live_vmc_face_stream_moves_the_rendered_face(face, bundle, tmp_path):
         frames = {}
         for k, jaw in enumerate((0.0, 1.0)):
             sent = {"jawOpen": jaw, "Blink": 1.0, "Frown_": 0.25, "tongueOut": 1.0}
-            _send_face(port, sent, 0.1 * (k + 1))
+            send_face(port, sent, 0.1 * (k + 1))
             assert wait_for(lambda j=jaw: runtime.buffer.pose().weights.get("jawOpen") == j)
             assert wait_for(lambda: engine.render(6.0) is not None and not runtime.fading)
             frame = engine.render(6.0)

@@ -26,7 +26,7 @@ from rigspace.train.export import export_bundle  # noqa: E402
 from rigspace.train.loop import build_model, train  # noqa: E402
 from rigspace.train.loss import coverage_loss, edge_weights  # noqa: E402
 from rigspace.train.network import Rig2Image, UpBlock  # noqa: E402
-from tests.runtime.conftest import evaluate_layer  # noqa: E402
+from tests.runtime.conftest import evaluate_layer, view_character  # noqa: E402
 from tests.train.conftest import CHARACTER, SCENE  # noqa: E402
 
 TOLERANCE = 1e-5
@@ -182,11 +182,7 @@ def test_runtime_conditioning_equals_training_at_ring_cameras(hero, tiny_dataset
 
 
 def test_runtime_renders_a_conditioned_character(hero):
-    world = hero.pose(2.0)
-    joint = world[hero.look_at][:3, 3]
-    camera = Camera.look_at(joint + np.array([0.5, 0.2, 3.0]), joint, width=64, height=64,
-                            focal_length=35, horizontal_aperture=20.955)  # fmt: skip
-    billboard = hero.place(world, camera)
+    world, joint, camera, billboard = view_character(hero, 2.0, [0.5, 0.2, 3.0], 64, 64)
     layer = evaluate_layer(hero, world, billboard, camera, ("albedo", "geometry"))
     assert layer.albedo is not None and np.isfinite(layer.albedo).all()
     assert np.isfinite(layer.mask).all() and np.isfinite(layer.depth).any()

@@ -25,6 +25,7 @@ from rigspace.train.data import (
     pose_rarity,
 )
 from rigspace.train.stream import ShardSet, prefetcher
+from tests.conftest import axis_rotations
 
 JOINTS = ["root", "root/arm", "root/arm/hand"]
 FPS = 30.0
@@ -36,18 +37,6 @@ INVARIANCE = 1e-6
 """Feature differences between views of one frame: float32 rig rows, rotated back."""
 
 
-def rotation(axis: str, degrees: np.ndarray) -> np.ndarray:
-    """(n, 3, 3) rotations about a coordinate axis."""
-    a = np.radians(np.asarray(degrees, dtype=np.float64))
-    c, s, one, zero = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
-    rows = {
-        "x": [[one, zero, zero], [zero, c, -s], [zero, s, c]],
-        "y": [[c, zero, s], [zero, one, zero], [-s, zero, c]],
-        "z": [[c, -s, zero], [s, c, zero], [zero, zero, one]],
-    }[axis]
-    return np.moveaxis(np.array(rows), (0, 1), (-2, -1))
-
-
 def motion() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(clip, time, world rotations (frames, J, 3, 3)) of two clips on a Y-up stage.
 
@@ -56,11 +45,11 @@ def motion() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     the forward axis with the arm raised. The cartwheel's poses are the rare ones.
     """
     t = np.arange(WALK_FRAMES) / FPS
-    heading = rotation("y", 360.0 * t / t[-1])
-    swing = rotation("x", 30.0 * np.sin(2 * np.pi * 0.9 * t))
+    heading = axis_rotations("y", 360.0 * t / t[-1])
+    swing = axis_rotations("x", 30.0 * np.sin(2 * np.pi * 0.9 * t))
     walk = np.stack([heading, heading @ swing, heading @ swing], axis=1)
-    turn = rotation("z", 360.0 * np.arange(WHEEL_FRAMES) / WHEEL_FRAMES)
-    raised = turn @ rotation("z", np.full(WHEEL_FRAMES, 90.0))
+    turn = axis_rotations("z", 360.0 * np.arange(WHEEL_FRAMES) / WHEEL_FRAMES)
+    raised = turn @ axis_rotations("z", np.full(WHEEL_FRAMES, 90.0))
     wheel = np.stack([turn, raised, raised], axis=1)
     clip = np.repeat([0, 1], [WALK_FRAMES, WHEEL_FRAMES])
     time = np.concatenate([np.arange(WALK_FRAMES), 1000.0 + np.arange(WHEEL_FRAMES)])
@@ -71,7 +60,7 @@ def write_dataset(folder: Path, drop: tuple[str, ...] = ()) -> Path:
     """A dataset folder's manifest and params.npz of motion() seen from VIEWS (no images:
     rarity and batch order need none); `drop` leaves columns out."""
     clip, time, world = motion()
-    cameras = [rotation("y", [a])[0] @ rotation("x", [-e])[0] for a, e in VIEWS]
+    cameras = [axis_rotations("y", [a])[0] @ axis_rotations("x", [-e])[0] for a, e in VIEWS]
     rows: dict[str, list] = {c: [] for c in ("rig", "clip", "time", "camera_to_world", "split")}
     for f in range(len(clip)):
         for v, camera in enumerate(cameras):
@@ -141,7 +130,7 @@ def old_batch_indices(n: int, batch: int, step: int, seed: int) -> np.ndarray:
 
 def test_pose_features_ignore_the_camera_and_the_heading():
     clip, _, world = motion()
-    cameras = [rotation("y", [a])[0] @ rotation("x", [-e])[0] for a, e in VIEWS]
+    cameras = [axis_rotations("y", [a])[0] @ axis_rotations("x", [-e])[0] for a, e in VIEWS]
     per_view = []
     for camera in cameras:
         rig = rot6d_from_matrix(camera.T @ world).reshape(len(world), -1).astype(np.float32)

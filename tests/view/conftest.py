@@ -30,20 +30,22 @@ def data_viewer(scene) -> Viewer:
     return Viewer(model, FrameService(scene, model.lock))
 
 
-@pytest.fixture(scope="module")
-def previs_client() -> Iterator[TestClient]:
-    viewer = data_viewer(PREVIS)
+def data_client(scene) -> Iterator[TestClient]:
+    """A test client of data_viewer(scene)'s app, the viewer closed after it."""
+    viewer = data_viewer(scene)
     with TestClient(create_app(viewer), base_url="http://127.0.0.1") as client:
         yield client
     viewer.close()
+
+
+@pytest.fixture(scope="module")
+def previs_client() -> Iterator[TestClient]:
+    yield from data_client(PREVIS)
 
 
 @pytest.fixture(scope="module")
 def broken_client() -> Iterator[TestClient]:
-    viewer = data_viewer(BROKEN)
-    with TestClient(create_app(viewer), base_url="http://127.0.0.1") as client:
-        yield client
-    viewer.close()
+    yield from data_client(BROKEN)
 
 
 @contextlib.contextmanager

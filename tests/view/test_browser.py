@@ -54,6 +54,16 @@ def wait_frame(page, condition: str, timeout: float = 60_000) -> None:
     )
 
 
+def open_hero_sliders(browser, url: str, sliders: str):
+    """open_page, then /World/Hero picked in the tree once the full-quality frame is drawn,
+    until the inspector shows its `sliders` (a selector): the page and its errors."""
+    page, errors = open_page(browser, url)
+    wait_frame(page, "h.quality === 'full'")
+    page.click('.node[data-path="/World/Hero"]')
+    page.locator(sliders).wait_for()
+    return page, errors
+
+
 def difference(a: list[int], b: list[int]) -> float:
     return sum(abs(x - y) for x, y in zip(a, b, strict=True)) / len(a)
 
@@ -232,10 +242,7 @@ def test_blend_shape_sliders_override_the_animations_weights(browser, tmp_path_f
 
     scene, _ = trained_face(tmp_path_factory)
     with served(scene) as (viewer, url):
-        page, errors = open_page(browser, url)
-        wait_frame(page, "h.quality === 'full'")
-        page.click('.node[data-path="/World/Hero"]')
-        page.locator("#blend-sliders").wait_for()
+        page, errors = open_hero_sliders(browser, url, "#blend-sliders")
         names = page.locator("#blend-sliders input").evaluate_all(
             "nodes => nodes.map(n => n.dataset.shape)"
         )
@@ -281,10 +288,7 @@ def test_a_rigs_controls_get_sliders_over_their_ranges(browser, tmp_path_factory
 
     scene, _ = trained_arm(tmp_path_factory)
     with served(scene) as (_, url):
-        page, errors = open_page(browser, url)
-        wait_frame(page, "h.quality === 'full'")
-        page.click('.node[data-path="/World/Hero"]')
-        page.locator("#control-sliders").wait_for()
+        page, errors = open_hero_sliders(browser, url, "#control-sliders")
         found = page.locator("#control-sliders input").evaluate_all(
             "nodes => nodes.map(n => [n.dataset.control, n.min, n.max])"
         )

@@ -1,4 +1,5 @@
-"""Live-input fixtures: the committed CMU clip and free local ports."""
+"""Live-input fixtures: the committed CMU clip, free local ports, a started source, bindings and
+poses as the tests build them, and a run driven by the frames it renders."""
 
 from __future__ import annotations
 
@@ -11,7 +12,11 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
+from rigspace.runtime.live.buffer import LiveBuffer, LivePose
+from rigspace.runtime.live.decoders.vmc import VmcDecoder, encode_frame
+from rigspace.runtime.live.sources import open_source
 from rigspace.sdk.rotations import quat_multiply
+from rigspace.sdk.schema import LiveBinding
 from tests.conftest import REPO, free_port
 
 CMU_CLIP = REPO / "samples" / "motion" / "cmu_131_01.bvh"
@@ -35,6 +40,42 @@ def compose_world(local: np.ndarray, parents: np.ndarray) -> np.ndarray:
                 world[b] = local[b] if p < 0 else quat_multiply(world[p], local[b])
                 done[b] = True
     return world
+
+
+def started_source(url: str, name: str):
+    """The live source of `url` (open_source), started into a LiveBuffer of its bones: both."""
+    source = open_source(url, name)
+    buffer = LiveBuffer(source.bones)
+    source.start(buffer)
+    return source, buffer
+
+
+def full_pose(rotations: np.ndarray) -> LivePose:
+    """A pose of (bones, 4) `rotations`, every bone valid (no root position, full weight)."""
+    return LivePose(rotations, np.ones(len(rotations), bool), None, "", 1, 0)
+
+
+def sent_over_vmc(clip, f: int, decoder: VmcDecoder) -> LivePose:
+    """Frame `f` of a humanoid clip (live send's) as `decoder` receives it over VMC, in its
+    bones' order (identity where the clip has no bone)."""
+    received = np.tile([1.0, 0.0, 0.0, 0.0], (len(decoder.bones), 1))
+    for d in encode_frame(clip.bones, clip.rotations[f], None, None, float(f)):
+        for frame in decoder.feed(d, 0.0):
+            received[frame.indices] = frame.rotations
+    return full_pose(received)
+
+
+def live_binding(url: str, **kw) -> LiveBinding:
+    """A live binding "suit" from `url` as the schema's defaults give it, but for no smoothing,
+    the latest sample buffered and half a second's timeout; `kw` overrides any field."""
+    values = dict(
+        name="suit", url=url, enabled=True, source_bones=(), target_joints=(),
+        source_up_axis="Y", source_handedness="right", source_meters_per_unit=1.0, rest_pose=(),
+        smoothing="none", smoothing_strength=0.5, buffering="latest", buffer_seconds=0.05,
+        timeout_seconds=0.5,
+    )  # fmt: skip
+    values.update(kw)
+    return LiveBinding(**values)
 
 
 def wait_for(condition: Callable[[], bool], timeout: float = 15.0) -> bool:

@@ -17,22 +17,18 @@ from rigspace.runtime.live.retarget import RetargetError
 from rigspace.runtime.live.source_frame import quat_angle
 from rigspace.sdk.ring_rules import check_live_binding
 from rigspace.sdk.rotations import quat_from_matrix
-from rigspace.sdk.schema import LiveBinding, LiveBindingDeprecationWarning, read_live_bindings
+from rigspace.sdk.schema import LiveBindingDeprecationWarning, read_live_bindings
 from tests.conftest import REPO
-from tests.runtime.live.conftest import CMU_CLIP, SAMPLE_CHARACTER, wait_for
+from tests.runtime.live.conftest import (
+    CMU_CLIP,
+    SAMPLE_CHARACTER,
+    full_pose,
+    live_binding,
+    sent_over_vmc,
+    wait_for,
+)
 
 PREVIS = REPO / "samples" / "scenes" / "previs.usda"
-
-
-def binding(url: str, **kw) -> LiveBinding:
-    values = dict(
-        name="suit", url=url, enabled=True, source_bones=(), target_joints=(),
-        source_up_axis="Y", source_handedness="right", source_meters_per_unit=1.0, rest_pose=(),
-        smoothing="none", smoothing_strength=0.5, buffering="latest", buffer_seconds=0.05,
-        timeout_seconds=0.5,
-    )  # fmt: skip
-    values.update(kw)
-    return LiveBinding(**values)
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +54,7 @@ def changed_joints(skel_prim, before, after) -> list[str]:
 
 def test_replay_binding_uses_the_cmu_preset_and_reports(skel):
     _, skel_prim, local = skel
-    runtime = open_binding(binding(f"replay://{CMU_CLIP}?speed=10"), skel_prim, 0.01)
+    runtime = open_binding(live_binding(f"replay://{CMU_CLIP}?speed=10"), skel_prim, 0.01)
     assert runtime.retargeter.scale == pytest.approx(0.0254 / 0.45 / 0.01)
     runtime.start()
     try:
@@ -77,7 +73,7 @@ def test_replay_binding_uses_the_cmu_preset_and_reports(skel):
 def test_vmc_binding_with_an_authored_map_and_rest_pose(skel):
     _, skel_prim, local = skel
     rest = (0.9238795, 0.0, 0.3826834, 0.0)  # the performer's rest: upper arm turned 45 deg
-    b = binding(
+    b = live_binding(
         "vmc://127.0.0.1:0",
         source_bones=("LeftUpperArm", "Hips"),
         target_joints=("upperarm_l", "pelvis"),
@@ -116,17 +112,17 @@ def test_vmc_binding_with_an_authored_map_and_rest_pose(skel):
 def test_bone_preset_chooses_the_map_when_no_bones_are_authored(skel):
     _, skel_prim, _ = skel
     url = f"replay://{CMU_CLIP}"
-    auto = open_binding(binding(url), skel_prim, 0.01).retargeter
-    cmu = open_binding(binding(url, bone_preset="cmu"), skel_prim, 0.01).retargeter
+    auto = open_binding(live_binding(url), skel_prim, 0.01).retargeter
+    cmu = open_binding(live_binding(url, bone_preset="cmu"), skel_prim, 0.01).retargeter
     np.testing.assert_array_equal(auto.map_target, cmu.map_target)  # auto: replay -> cmu
     assert len(cmu.map_source) == 22
     # none: source bones onto joints of the same name; a CMU clip shares none with the sample.
     with pytest.raises(RetargetError, match="maps none of the source's bones"):
-        open_binding(binding(url, bone_preset="none"), skel_prim, 0.01)
+        open_binding(live_binding(url, bone_preset="none"), skel_prim, 0.01)
     with pytest.raises(RetargetError, match=r"bonePreset 'mixamo' names none of the bones"):
-        open_binding(binding(url, bone_preset="mixamo"), skel_prim, 0.01)
+        open_binding(live_binding(url, bone_preset="mixamo"), skel_prim, 0.01)
     # Authored sourceBones win over any preset.
-    own = binding(url, bone_preset="mixamo", source_bones=("Head",), target_joints=("head",))
+    own = live_binding(url, bone_preset="mixamo", source_bones=("Head",), target_joints=("head",))
     assert len(open_binding(own, skel_prim, 0.01).retargeter.map_source) == 1
 
 
@@ -228,12 +224,12 @@ def scaled_bvh(path, out, factor: float):
 def test_bvh_units_come_from_the_rest_pose(skel, tmp_path, capsys, factor, unit, name):
     _, skel_prim, _ = skel
     clip = scaled_bvh(CMU_CLIP, tmp_path / "clip.bvh", factor)
-    runtime = open_binding(binding(f"replay://{clip}"), skel_prim, 0.01)
+    runtime = open_binding(live_binding(f"replay://{clip}"), skel_prim, 0.01)
     assert runtime.retargeter.scale == pytest.approx(unit / 0.01, rel=1e-6)
     note = capsys.readouterr().err
     assert f"BVH units: {name}" in note and "1.28 m tall" in note
     authored = open_binding(
-        binding(f"replay://{clip}", source_meters_per_unit=0.5), skel_prim, 0.01
+        live_binding(f"replay://{clip}", source_meters_per_unit=0.5), skel_prim, 0.01
     )
     assert authored.retargeter.scale == pytest.approx(0.5 / 0.01)  # authored wins, no guess
 
@@ -241,7 +237,7 @@ def test_bvh_units_come_from_the_rest_pose(skel, tmp_path, capsys, factor, unit,
 def test_an_unsure_unit_guess_says_what_to_author(skel, tmp_path, capsys):
     _, skel_prim, _ = skel
     clip = scaled_bvh(CMU_CLIP, tmp_path / "tiny.bvh", 0.3)  # a 38 cm figure in CMU units
-    open_binding(binding(f"replay://{clip}"), skel_prim, 0.01)
+    open_binding(live_binding(f"replay://{clip}"), skel_prim, 0.01)
     assert "author rigspace:live:suit:sourceMetersPerUnit" in capsys.readouterr().err
 
 
@@ -259,7 +255,7 @@ def test_connect_reconnect_and_loss_move_no_joint_more_than_10_degrees_a_tick(sk
     from rigspace.runtime.live.source_frame import SourceFrame
 
     _, skel_prim, local = skel
-    runtime = open_binding(binding("vmc://127.0.0.1:1"), skel_prim, 0.01)  # never started
+    runtime = open_binding(live_binding("vmc://127.0.0.1:1"), skel_prim, 0.01)  # never started
     bones = runtime.source.bones
     arm = [bones.index("LeftUpperArm"), bones.index("RightUpperArm"), bones.index("Hips")]
 
@@ -296,7 +292,7 @@ def test_a_transition_cut_short_by_a_gap_or_a_reconnect_moves_no_joint_more_than
     from rigspace.runtime.live.source_frame import SourceFrame
 
     _, skel_prim, local = skel
-    runtime = open_binding(binding("vmc://127.0.0.1:1"), skel_prim, 0.01)  # never started
+    runtime = open_binding(live_binding("vmc://127.0.0.1:1"), skel_prim, 0.01)  # never started
     bones = runtime.source.bones
     arm = [bones.index("LeftUpperArm"), bones.index("RightUpperArm"), bones.index("Hips")]
 
@@ -332,7 +328,6 @@ def test_a_bvh_binding_and_a_vmc_binding_pose_the_character_alike(skel):
     preset, the clip's own rest) and the same clip as `live send` puts it on the humanoid,
     received by a VMC binding (the T-pose rest): every joint, the pelvis included, lands on the
     same world rotation, because both bindings align their rest through the one humanoid."""
-    from rigspace.runtime.live.buffer import LivePose
     from rigspace.runtime.live.decoders.bvh import read_bvh
     from rigspace.runtime.live.decoders.vmc import VmcDecoder
     from rigspace.runtime.live.send import humanoid_clip
@@ -341,18 +336,14 @@ def test_a_bvh_binding_and_a_vmc_binding_pose_the_character_alike(skel):
     skeleton, motion, frame_time = read_bvh(CMU_CLIP)
     rotations, roots = skeleton.pose(motion[::150])
     clip = humanoid_clip(skeleton, rotations, roots, frame_time)
-    bvh = open_binding(binding(f"replay://{CMU_CLIP}"), skel_prim, 0.01).retargeter
-    vmc = open_binding(binding("vmc://127.0.0.1:0"), skel_prim, 0.01).retargeter
+    bvh = open_binding(live_binding(f"replay://{CMU_CLIP}"), skel_prim, 0.01).retargeter
+    vmc = open_binding(live_binding("vmc://127.0.0.1:0"), skel_prim, 0.01).retargeter
     decoder = VmcDecoder()
     parents = bvh.target_parents
     worst = 0.0
     for f in range(len(rotations)):
-        received = np.tile([1.0, 0.0, 0.0, 0.0], (len(decoder.bones), 1))
-        for d in encode_frame(clip.bones, clip.rotations[f], None, None, float(f)):
-            for frame in decoder.feed(d, 0.0):
-                received[frame.indices] = frame.rotations
-        a = vmc.apply(local, LivePose(received, np.ones(len(received), bool), None, "", 1, 0))
-        b = bvh.apply(local, LivePose(rotations[f], np.ones(31, bool), None, "", 1, 0))
+        a = vmc.apply(local, sent_over_vmc(clip, f, decoder))
+        b = bvh.apply(local, full_pose(rotations[f]))
         world = []
         for out in (a, b):
             m = np.swapaxes(out[:, :3, :3], 1, 2).copy()

@@ -10,24 +10,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rigspace.runtime.live.buffer import LiveBuffer
 from rigspace.runtime.live.decoders.bvh import BvhError, BvhStreamDecoder, parse_bvh, read_bvh
 from rigspace.runtime.live.sources import open_source
 from rigspace.runtime.live.transports import LiveSourceError
 from rigspace.sdk.rotations import matrix_from_quat
-from tests.runtime.live.conftest import CMU_CLIP, wait_for
-
-
-def axis_matrix(axis: str, degrees: np.ndarray) -> np.ndarray:
-    a = np.radians(degrees)
-    c, s = np.cos(a), np.sin(a)
-    o, z = np.ones_like(a), np.zeros_like(a)
-    rows = {
-        "X": [[o, z, z], [z, c, -s], [z, s, c]],
-        "Y": [[c, z, s], [z, o, z], [-s, z, c]],
-        "Z": [[c, -s, z], [s, c, z], [z, z, o]],
-    }[axis]
-    return np.moveaxis(np.array(rows), (0, 1), (-2, -1))
+from tests.conftest import axis_rotations
+from tests.runtime.live.conftest import CMU_CLIP, started_source, wait_for
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +41,7 @@ def test_rotations_match_matrices_in_channel_order(cmu):
         expected = np.broadcast_to(np.eye(3), (len(rotations), 3, 3))
         for k, channel in enumerate(channels):
             if channel.endswith("rotation"):
-                expected = expected @ axis_matrix(channel[0], motion[::97, column + k])
+                expected = expected @ axis_rotations(channel[0], motion[::97, column + k])
         column += len(channels)
         np.testing.assert_allclose(matrix_from_quat(rotations[:, j]), expected, atol=1e-12)
     np.testing.assert_allclose(root, motion[::97, :3])
@@ -143,9 +131,7 @@ def serve_lines(server: socket.socket, lines: list[bytes], done: threading.Event
 def test_tcp_client_reads_and_reconnects(cmu, free_tcp_port):
     _, motion, _ = cmu
     url = f"bvh+tcp://127.0.0.1:{free_tcp_port}?skeleton={CMU_CLIP}&retry=0.05"
-    source = open_source(url, "neuron")
-    buffer = LiveBuffer(source.bones)
-    source.start(buffer)  # nothing listens yet: the client keeps trying
+    source, buffer = started_source(url, "neuron")  # nothing listens yet: the client keeps trying
     try:
         assert wait_for(lambda: source.error is not None)
         server = socket.create_server(("127.0.0.1", free_tcp_port))

@@ -91,6 +91,19 @@ def angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 2 * np.arccos(np.clip(dot, 0.0, 1.0))
 
 
+def assert_the_take_plays_the_clip_forward(recorded, clip, url: str) -> None:
+    """Every tick recorded after the connect's fade from the stage animation is one of the
+    clip's frames, converted, within 1e-3 rad per joint, running forward with the clip."""
+    expected = expected_locals(clip, LIVE_SCENE, url, 0.0)
+    errors = angles(recorded.rotations[:, None], expected[None]).max(axis=2)  # (T, F)
+    matched = np.flatnonzero(errors.min(axis=1) < 1e-3)
+    assert len(matched) >= 20 and np.all(np.diff(matched) == 1), matched
+    assert matched[-1] == len(recorded.times) - 1
+    frames = errors.argmin(axis=1)[matched]
+    steps = np.diff(frames) % len(clip.rotations)  # the sender loops the clip
+    assert np.all(steps < len(clip.rotations) // 2) and steps.sum() > 2 * len(steps)
+
+
 @pytest.mark.slow
 def test_live_records_the_clip_sent_over_vmc_and_render_replays_the_take(tmp_path, clip, capsys):
     port = free_port()
@@ -127,18 +140,9 @@ def test_live_records_the_clip_sent_over_vmc_and_render_replays_the_take(tmp_pat
         {"binding": "suit", "status": "connected", "weight": 1.0}
     ]
     assert (out / "live.mp4").stat().st_size > 1000
-    # Every tick recorded after the connect's fade from the stage animation is one of the
-    # clip's frames, converted, within 1e-3 rad per joint, running forward with the clip.
     recorded = read_take(take)
     assert len(recorded.times) == 60  # the stage's rate, whatever was dropped
-    expected = expected_locals(clip, LIVE_SCENE, url, 0.0)
-    errors = angles(recorded.rotations[:, None], expected[None]).max(axis=2)  # (T, F)
-    matched = np.flatnonzero(errors.min(axis=1) < 1e-3)
-    assert len(matched) >= 20 and np.all(np.diff(matched) == 1), matched
-    assert matched[-1] == len(recorded.times) - 1
-    frames = errors.argmin(axis=1)[matched]
-    steps = np.diff(frames) % len(clip.rotations)  # the sender loops the clip
-    assert np.all(steps < len(clip.rotations) // 2) and steps.sum() > 2 * len(steps)
+    assert_the_take_plays_the_clip_forward(recorded, clip, url)
     # `rigspace render` re-renders the take: the shot stage poses the character by it.
     shot = tmp_path / "take.shot.usda"
     stage = Usd.Stage.Open(str(shot))
@@ -160,51 +164,55 @@ def degrees_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(angles(a, b))
 
 
-@pytest.mark.slow
-def test_sender_stopping_goes_stale_then_lost_frames_keep_coming_and_it_reconnects(
-    tmp_path, monkeypatch
-):
-    """A sender stops (stale, then lost: frames keep coming while the character blends back),
-    then a new sender process starts (its /VMC/Ext/T from 0, poses of its own) while another
-    sends four absurd /VMC/Ext/T: the binding reconnects, and the take holds what the screen
-    showed at every rendered tick (one evaluation for both: the blends included, no pop), then
-    the new sender's frames. Every phase waits on what the run renders, never on the clock."""
-    port = free_port()
-    url = f"vmc://127.0.0.1:{port}"
-    scene = scene_with(tmp_path, **{"uniform float rigspace:live:suit:timeoutSeconds": "0.5"})
-    out, take = tmp_path / "out", tmp_path / "take.usda"
-    second_clip = cmu_clip(TURN)
-    senders: list[Sender] = []
-    phases: dict[str, list] = {"first": [], "paused": [], "restarted": []}
-    shown: dict[float, np.ndarray] = {}
-    state = {"phase": "warm-up", "settled": 0}
+class StopThenRestart:
+    """on_frame (FrameDriver) of a run whose sender stops and a new one starts: a sender once
+    the engine is loaded; once the binding has settled (connected, no fade) for three frames,
+    that sender stops; once the character blends back from lost, a new sender process starts
+    (its /VMC/Ext/T from 0, poses turned by TURN) while another socket sends four absurd
+    /VMC/Ext/T; done when the binding has settled again. Keeps each phase's binding entries,
+    what every frame showed, and the engine's ticks."""
 
-    def on_frame(engine, frame) -> bool:
+    def __init__(self, url: str, port: int) -> None:
+        self.url, self.port = url, port
+        self.senders: list[Sender] = []
+        self.phases: dict[str, list] = {"first": [], "paused": [], "restarted": []}
+        self.shown: dict[float, np.ndarray] = {}
+        self.phase, self.settled = "warm-up", 0
+        self.ticks = None
+
+    def __call__(self, engine, frame) -> bool:
         live = engine.live.characters["/World/Hero"]
-        if state["phase"] == "warm-up":  # the engine is loaded and its source open
-            senders.append(Sender(url))
-            state["phase"] = "first"
+        if self.phase == "warm-up":  # the engine is loaded and its source open
+            self.senders.append(Sender(self.url))
+            self.phase = "first"
             return False
-        state["ticks"] = getattr(engine.live, "ticks", None)
-        shown[frame.report.time] = live.last_local.copy()  # what this frame used
+        self.ticks = getattr(engine.live, "ticks", None)
+        self.shown[frame.report.time] = live.last_local.copy()  # what this frame used
         entry = frame.report.characters[0]["live"][0]
-        phases[state["phase"]].append(entry)
+        self.phases[self.phase].append(entry)
         settled = entry["status"] == "connected" and not live.runtimes[0].fading
-        state["settled"] = state["settled"] + 1 if settled else 0
-        if state["phase"] == "first" and state["settled"] >= 3:
-            senders.pop().close()
-            state["phase"] = "paused"
-        elif state["phase"] == "paused":
-            lost = [e for e in phases["paused"] if e["status"] == "lost"]
+        self.settled = self.settled + 1 if settled else 0
+        if self.phase == "first" and self.settled >= 3:
+            self.senders.pop().close()
+            self.phase = "paused"
+        elif self.phase == "paused":
+            lost = [e for e in self.phases["paused"] if e["status"] == "lost"]
             if len(lost) >= 2 and min(e["weight"] for e in lost) < 1.0:  # blending back
-                senders.append(Sender(url, TURN))  # a new process: a new port, T from 0
-                with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as other:
-                    for t in (1e12, -1e12, 3e38, 0.0):
-                        other.sendto(build_msg("/VMC/Ext/T", [t]).dgram, ("127.0.0.1", port))
-                state["phase"], state["settled"] = "restarted", 0
-        return state["phase"] == "restarted" and state["settled"] >= 3
+                self.restart()
+        return self.phase == "restarted" and self.settled >= 3
 
-    evaluated: dict[float, str] = {}  # local time -> status, of every evaluation of the pose
+    def restart(self) -> None:
+        self.senders.append(Sender(self.url, TURN))  # a new process: a new port, T from 0
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as other:
+            for t in (1e12, -1e12, 3e38, 0.0):
+                other.sendto(build_msg("/VMC/Ext/T", [t]).dgram, ("127.0.0.1", self.port))
+        self.phase, self.settled = "restarted", 0
+
+
+def record_evaluations(monkeypatch) -> dict[float, str]:
+    """Local time -> status, of every evaluation of a live pose (LiveBindingRuntime.apply_frame)
+    from now on."""
+    evaluated: dict[float, str] = {}
     real_apply_frame = LiveBindingRuntime.apply_frame
 
     def apply_frame(runtime, stage_local, now=None, sample=None, time_code=None):
@@ -213,26 +221,11 @@ def test_sender_stopping_goes_stale_then_lost_frames_keep_coming_and_it_reconnec
         return out
 
     monkeypatch.setattr(LiveBindingRuntime, "apply_frame", apply_frame)
-    FrameDriver(monkeypatch, on_frame)
-    try:
-        code = main(
-            ["live", str(scene), "--out", str(out), "--seconds", "120", "--source", f"suit={url}",
-             "--record", str(take), "--resolution", "64x36", "--max-level", "32"]
-        )  # fmt: skip
-    finally:
-        for sender in senders:
-            sender.close()
-    assert code == 0 and state["phase"] == "restarted" and state["settled"] >= 3
-    # Frames kept coming while nothing arrived (on a loaded machine a frame can take longer
-    # than the stale stage, so the frames may show lost alone; the ticks below show each).
-    paused = [e["status"] for e in phases["paused"]]
-    sequence = [s for k, s in enumerate(paused) if k == 0 or s != paused[k - 1]]
-    assert sequence[-1] == "lost" and "connected" not in sequence[1:], paused
-    assert phases["restarted"][-1]["status"] == "connected"
-    frames = json.loads((out / "report.json").read_text())["frames"]
-    assert frames[-1]["live"][0]["samples"] > frames[0]["live"][0]["samples"]
-    # The take holds what each rendered frame showed, tick for tick.
-    recorded = read_take(take)
+    return evaluated
+
+
+def assert_the_take_holds_what_was_shown(recorded, shown: dict, scene: Path) -> None:
+    """The take holds what each rendered frame showed, tick for tick."""
     codes = np.round(recorded.times * 30).astype(int)  # the stage's rate; ticks from 0
     assert np.array_equal(codes, np.arange(len(codes)))
     stage = Usd.Stage.Open(str(scene))
@@ -246,12 +239,14 @@ def test_sender_stopping_goes_stale_then_lost_frames_keep_coming_and_it_reconnec
         np.testing.assert_allclose(
             shown[t][root, 3, :3], recorded.root_positions[int(t)], atol=1e-3
         )
-    # No pop through the gap: held, blending back, then the reconnect's fade from what was
-    # shown (before: the take froze, then turned 59 deg and moved 108 cm in one tick).
-    ticks = state["ticks"]
-    status = [evaluated[ticks.due(k)] for k in range(len(codes))]
-    gap = [k for k in range(1, len(codes)) if status[k - 1] != "connected"]
-    gap = [k for k in gap if k > min(k for k in range(len(codes)) if status[k] == "stale")]
+
+
+def assert_no_pop_through_the_gap(recorded, status: list[str]) -> None:
+    """No pop through the gap: held, blending back, then the reconnect's fade from what was
+    shown (before: the take froze, then turned 59 deg and moved 108 cm in one tick)."""
+    ticks = len(status)
+    gap = [k for k in range(1, ticks) if status[k - 1] != "connected"]
+    gap = [k for k in gap if k > min(k for k in range(ticks) if status[k] == "stale")]
     assert status[gap[-1]] == "connected" and {"stale", "lost"} <= {status[k] for k in gap}
     # Tick by tick: connected -> stale -> lost -> connected (the pause, then the new sender).
     steps = [s for k, s in enumerate(status) if k == 0 or s != status[k - 1]]
@@ -268,6 +263,46 @@ def test_sender_stopping_goes_stale_then_lost_frames_keep_coming_and_it_reconnec
         turn.max(axis=1),
         move,
     )
+
+
+@pytest.mark.slow
+def test_sender_stopping_goes_stale_then_lost_frames_keep_coming_and_it_reconnects(
+    tmp_path, monkeypatch
+):
+    """A sender stops (stale, then lost: frames keep coming while the character blends back),
+    then a new sender process starts (its /VMC/Ext/T from 0, poses of its own) while another
+    sends four absurd /VMC/Ext/T: the binding reconnects, and the take holds what the screen
+    showed at every rendered tick (one evaluation for both: the blends included, no pop), then
+    the new sender's frames. Every phase waits on what the run renders, never on the clock."""
+    port = free_port()
+    url = f"vmc://127.0.0.1:{port}"
+    scene = scene_with(tmp_path, **{"uniform float rigspace:live:suit:timeoutSeconds": "0.5"})
+    out, take = tmp_path / "out", tmp_path / "take.usda"
+    second_clip = cmu_clip(TURN)
+    script = StopThenRestart(url, port)
+    evaluated = record_evaluations(monkeypatch)
+    FrameDriver(monkeypatch, script)
+    try:
+        code = main(
+            ["live", str(scene), "--out", str(out), "--seconds", "120", "--source", f"suit={url}",
+             "--record", str(take), "--resolution", "64x36", "--max-level", "32"]
+        )  # fmt: skip
+    finally:
+        for sender in script.senders:
+            sender.close()
+    assert code == 0 and script.phase == "restarted" and script.settled >= 3
+    # Frames kept coming while nothing arrived (on a loaded machine a frame can take longer
+    # than the stale stage, so the frames may show lost alone; the ticks below show each).
+    paused = [e["status"] for e in script.phases["paused"]]
+    sequence = [s for k, s in enumerate(paused) if k == 0 or s != paused[k - 1]]
+    assert sequence[-1] == "lost" and "connected" not in sequence[1:], paused
+    assert script.phases["restarted"][-1]["status"] == "connected"
+    frames = json.loads((out / "report.json").read_text())["frames"]
+    assert frames[-1]["live"][0]["samples"] > frames[0]["live"][0]["samples"]
+    recorded = read_take(take)
+    assert_the_take_holds_what_was_shown(recorded, script.shown, scene)
+    status = [evaluated[script.ticks.due(k)] for k in range(len(recorded.times))]
+    assert_no_pop_through_the_gap(recorded, status)
     # After the restart, the take follows the new sender (before: the old stream replayed).
     expected = expected_locals(second_clip, scene, url, 0.0)
     errors = angles(recorded.rotations[-3:, None], expected[None]).max(axis=2)

@@ -26,8 +26,7 @@ from rigspace.runtime.live.source_frame import quat_angle
 from rigspace.runtime.live.sources import open_source
 from rigspace.runtime.live.transports import LiveSourceError
 from rigspace.sdk.rotations import matrix_from_quat, quat_from_matrix
-from rigspace.sdk.schema import LiveBinding
-from tests.runtime.live.conftest import SAMPLE_CHARACTER, wait_for
+from tests.runtime.live.conftest import SAMPLE_CHARACTER, live_binding, wait_for
 
 
 def ev(kind: int, code: int, value: int, t: float = 5.0) -> bytes:
@@ -91,12 +90,7 @@ def test_controller_fd_turns_the_head_on_top_of_the_stage_animation():
         UsdSkel.MakeTransforms(*(a.Get(400) for a in (anim.GetTranslationsAttr(), anim.GetRotationsAttr(), anim.GetScalesAttr())))
     )  # fmt: skip
     read_end, write_end = os.pipe()  # a real file descriptor read through select/os.read
-    binding = LiveBinding(
-        name="pad", url=f"gamepad:///proc/self/fd/{read_end}", enabled=True, source_bones=(),
-        target_joints=(), source_up_axis="Y", source_handedness="right",
-        source_meters_per_unit=1.0, rest_pose=(), smoothing="none", smoothing_strength=0.5,
-        buffering="latest", buffer_seconds=0.05, timeout_seconds=0.5,
-    )  # fmt: skip
+    binding = live_binding(f"gamepad:///proc/self/fd/{read_end}", name="pad")
     runtime = open_binding(binding, skel, 0.01)
     runtime.start()
     try:

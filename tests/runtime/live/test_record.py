@@ -12,7 +12,7 @@ from rigspace.runtime.live.record import TakeError, TakeRecorder
 from rigspace.runtime.live.retarget import PRESETS, Retargeter, target_skeleton
 from rigspace.runtime.live.source_frame import quat_angle
 from rigspace.sdk.rotations import quat_from_matrix
-from tests.runtime.live.conftest import CMU_CLIP, SAMPLE_CHARACTER
+from tests.runtime.live.conftest import CMU_CLIP, SAMPLE_CHARACTER, live_binding, started_source
 
 
 def test_take_binds_as_the_skeletons_animation(tmp_path):
@@ -61,7 +61,6 @@ def test_take_errors():
 
 def test_a_recorded_take_replays_onto_its_skeleton_exactly(tmp_path):
     from rigspace.runtime.live.binding import open_binding
-    from rigspace.sdk.schema import LiveBinding
     from tests.runtime.live.conftest import wait_for
 
     stage = Usd.Stage.Open(str(SAMPLE_CHARACTER))
@@ -77,12 +76,7 @@ def test_a_recorded_take_replays_onto_its_skeleton_exactly(tmp_path):
         )
         recorder.add(t, np.array(local))
     take = recorder.write(tmp_path / "wave.usda", 30.0)
-    binding = LiveBinding(
-        name="take", url=f"replay://{take}?speed=4&loop=0", enabled=True, source_bones=(),
-        target_joints=(), source_up_axis="Y", source_handedness="right",
-        source_meters_per_unit=1.0, rest_pose=(), smoothing="none", smoothing_strength=0.5,
-        buffering="latest", buffer_seconds=0.05, timeout_seconds=0.5,
-    )  # fmt: skip
+    binding = live_binding(f"replay://{take}?speed=4&loop=0", name="take")
     runtime = open_binding(binding, skel_prim, 0.01)
     runtime.start()
     try:
@@ -231,9 +225,7 @@ def test_a_sound_take_reads_back_its_root_motion_and_times(tmp_path):
 
 
 def test_a_take_of_a_face_records_its_blend_shape_weights_and_replays_them(tmp_path):
-    from rigspace.runtime.live.buffer import LiveBuffer
     from rigspace.runtime.live.record import read_take
-    from rigspace.runtime.live.sources import open_source
     from tests.runtime.live.conftest import wait_for
 
     joints, shapes = ["neck", "neck/head"], ["jawOpen", "blink"]
@@ -255,9 +247,7 @@ def test_a_take_of_a_face_records_its_blend_shape_weights_and_replays_them(tmp_p
     ):
         read_take(path)
     recorder.write(path, 30.0)
-    source = open_source(f"replay://{path}?speed=8&loop=0", "take")
-    buffer = LiveBuffer(source.bones)
-    source.start(buffer)
+    source, buffer = started_source(f"replay://{path}?speed=8&loop=0", "take")
     try:
         assert source.finished.wait(60)  # type: ignore[attr-defined]
         assert wait_for(lambda: buffer.pose().weights.get("jawOpen") == 1.0)

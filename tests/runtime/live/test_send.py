@@ -25,8 +25,15 @@ from rigspace.runtime.live.send import humanoid_clip, send_vmc, serve_bvh
 from rigspace.runtime.live.source_frame import quat_angle
 from rigspace.runtime.live.sources import open_source
 from rigspace.sdk.rotations import quat_from_matrix
-from rigspace.sdk.schema import LiveBinding
-from tests.runtime.live.conftest import CMU_CLIP, SAMPLE_CHARACTER, wait_for
+from tests.runtime.live.conftest import (
+    CMU_CLIP,
+    SAMPLE_CHARACTER,
+    full_pose,
+    live_binding,
+    sent_over_vmc,
+    started_source,
+    wait_for,
+)
 
 MATCH_RAD = 1e-3  # the issue's bar for the received take against the clip
 
@@ -91,9 +98,7 @@ def test_cmu_over_vmc_matches_the_clip_retargeted_directly(scene):
 def test_send_vmc_paces_the_clip(scene):
     _, _, skeleton, _, frame_time, rotations, roots = scene
     clip = humanoid_clip(skeleton, rotations[:48], roots[:48], frame_time)
-    source = open_source("vmc://127.0.0.1:0", "suit")
-    buffer = LiveBuffer(source.bones)
-    source.start(buffer)
+    source, buffer = started_source("vmc://127.0.0.1:0", "suit")
     try:
         host, port = source.address
         sent = send_vmc(f"vmc://{host}:{port}", clip, speed=4.0)
@@ -114,9 +119,9 @@ def test_serve_bvh_to_the_tcp_source(scene, free_tcp_port):
         target=serve_bvh, args=("127.0.0.1", free_tcp_port, motion[:60], frame_time, 8.0, stop)
     )
     server.start()
-    source = open_source(f"bvh+tcp://127.0.0.1:{free_tcp_port}?skeleton={CMU_CLIP}&retry=0.05", "n")
-    buffer = LiveBuffer(source.bones)
-    source.start(buffer)
+    source, buffer = started_source(
+        f"bvh+tcp://127.0.0.1:{free_tcp_port}?skeleton={CMU_CLIP}&retry=0.05", "n"
+    )
     try:
         # Pushed, not only decoded: the receiver pushes a read's frames after decoding them all
         # (waiting on the decoder's count read the pose a few frames early on a busy machine).
@@ -139,13 +144,9 @@ def test_humanoid_clip_is_a_humanoid(scene):
 def two_paths(skel, skeleton, joints, rest) -> tuple[Retargeter, Retargeter]:
     """The receiver of the humanoid over VMC (aligned to the T-pose, open_binding's default)
     and the BVH retargeted straight onto the character (rest-aligned), in stage cm."""
-    suit = LiveBinding(
-        name="suit", url="vmc://127.0.0.1:0", enabled=True, source_bones=(), target_joints=(),
-        source_up_axis="Y", source_handedness="right", source_meters_per_unit=1.0, rest_pose=(),
-        smoothing="none", smoothing_strength=0.5, buffering="latest", buffer_seconds=0.05,
-        timeout_seconds=0.5,
-    )  # fmt: skip
-    via_vmc = open_binding(suit, skel, 0.01).retargeter  # the unity preset, T-pose aligned
+    via_vmc = open_binding(
+        live_binding("vmc://127.0.0.1:0"), skel, 0.01
+    ).retargeter  # the unity preset, T-pose aligned
     p = PRESETS["cmu"]
     direct = Retargeter(
         skeleton.names, skeleton.parents, "local", joints, rest, p.bone_map, p.basis,
@@ -243,12 +244,8 @@ def test_the_pelvis_is_the_same_sent_over_vmc_and_retargeted_directly(scene):
     decoder = VmcDecoder()
     worst = np.zeros(len(joints))
     for f, k in enumerate(picks):
-        received = np.tile([1.0, 0.0, 0.0, 0.0], (len(decoder.bones), 1))
-        for d in encode_frame(clip.bones, clip.rotations[f], None, None, float(f)):
-            for frame in decoder.feed(d, 0.0):
-                received[frame.indices] = frame.rotations
-        a = via_vmc.apply(rest, LivePose(received, np.ones(len(received), bool), None, "", 1, 0))
-        b = direct.apply(rest, LivePose(rotations[k], np.ones(31, bool), None, "", 1, 0))
+        a = via_vmc.apply(rest, sent_over_vmc(clip, f, decoder))
+        b = direct.apply(rest, full_pose(rotations[k]))
         angle = np.degrees(quat_angle(_world_rotations(joints, a), _world_rotations(joints, b)))
         worst = np.maximum(worst, angle)
     assert worst.max() < 1e-3, dict(zip(leaves, worst.round(5), strict=True))  # 1e-5: float32

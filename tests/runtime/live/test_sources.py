@@ -13,7 +13,7 @@ from rigspace.runtime.live.source_frame import quat_angle
 from rigspace.runtime.live.sources import open_source
 from rigspace.runtime.live.transports import LiveSourceError, ReplaySource
 from rigspace.sdk.plugins import SOURCES, SourceSpec, discover
-from tests.runtime.live.conftest import CMU_CLIP, wait_for
+from tests.runtime.live.conftest import CMU_CLIP, started_source, wait_for
 
 
 def test_built_in_sources_come_from_entry_points():
@@ -66,9 +66,7 @@ def test_replay_plays_the_clip_in_order_at_speed():
 
 
 def test_replay_loops_with_increasing_timestamps():
-    source = open_source(f"replay://{CMU_CLIP}?speed=200&loop=1", "take")
-    buffer = LiveBuffer(source.bones)
-    source.start(buffer)
+    source, buffer = started_source(f"replay://{CMU_CLIP}?speed=200&loop=1", "take")
     try:
         assert wait_for(lambda: buffer.samples >= 31 * 1200, timeout=60)
     finally:

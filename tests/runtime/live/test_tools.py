@@ -11,10 +11,8 @@ import pytest
 
 from rigspace.apps import live_probe as probe
 from rigspace.apps import live_send as send
-from rigspace.runtime.live.buffer import LiveBuffer
-from rigspace.runtime.live.sources import open_source
 from tests.conftest import free_port
-from tests.runtime.live.conftest import CMU_CLIP, wait_for
+from tests.runtime.live.conftest import CMU_CLIP, started_source, wait_for
 
 
 @pytest.mark.slow
@@ -48,9 +46,8 @@ def test_probe_reports_a_vmc_sender():
 def test_send_serves_bvh_tcp_clients(free_tcp_port):
     url = f"bvh+tcp://127.0.0.1:{free_tcp_port}"
     codes = []
-    source = open_source(f"{url}?skeleton={CMU_CLIP}&retry=0.05", "neuron")
-    buffer = LiveBuffer(source.bones)
-    source.start(buffer)  # the client first: it connects the moment the server listens
+    # The client first: it connects the moment the server listens.
+    source, _ = started_source(f"{url}?skeleton={CMU_CLIP}&retry=0.05", "neuron")
     assert wait_for(lambda: source.error is not None)
     server = threading.Thread(
         target=lambda: codes.append(

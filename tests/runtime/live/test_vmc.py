@@ -27,7 +27,7 @@ from rigspace.runtime.live.decoders.vmc import (
 from rigspace.runtime.live.sources import open_source
 from rigspace.runtime.live.transports import LiveSourceError, UdpSource
 from rigspace.sdk.rotations import matrix_from_quat
-from tests.runtime.live.conftest import wait_for
+from tests.runtime.live.conftest import started_source, wait_for
 
 RNG = np.random.default_rng(7)
 
@@ -139,10 +139,8 @@ def test_fuzz_raw_bytes(data):
 
 
 def test_udp_receiver_with_python_osc_client():
-    source = open_source("vmc://127.0.0.1:0", "suit")
+    source, buffer = started_source("vmc://127.0.0.1:0", "suit")
     assert isinstance(source, UdpSource)
-    buffer = LiveBuffer(source.bones)
-    source.start(buffer)
     try:
         host, port = source.address
         assert host == "127.0.0.1"
@@ -172,9 +170,7 @@ def test_port_in_use_names_the_source_and_the_fix():
 
 
 def test_a_flood_is_counted_and_bounded_and_the_receiver_keeps_going():
-    source = open_source("vmc://127.0.0.1:0", "suit")
-    buffer = LiveBuffer(source.bones)
-    source.start(buffer)
+    source, buffer = started_source("vmc://127.0.0.1:0", "suit")
     try:
         address = source.address
         rng = np.random.default_rng(5)
@@ -218,9 +214,7 @@ def _kernel_drops(sock: socket.socket) -> int:
 def test_datagrams_the_kernel_drops_are_counted_as_dropped():
     """A receive buffer overflowing (a tiny SO_RCVBUF, a burst while the reader is held) loses
     datagrams in the kernel before the receiver sees them: counted, as the kernel counts them."""
-    source = open_source("vmc://127.0.0.1:0", "suit")
-    buffer = LiveBuffer(source.bones)
-    source.start(buffer)
+    source, _ = started_source("vmc://127.0.0.1:0", "suit")
     try:
         source.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
         message = build_msg(BONE_POS, ["Hips", 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]).dgram
@@ -466,9 +460,7 @@ def test_after_a_sender_restarts_every_reader_follows_the_new_stream(same_addres
     """A sender restarted (a new process whose /VMC/Ext/T starts again at 0, or one that binds
     the same port again): the pose now (`pose`) and the pose at a time (`pose_at`, what a take
     records) both show the new sender's frames, never the old stream's."""
-    source = open_source("vmc://127.0.0.1:0", "suit")
-    buffer = LiveBuffer(source.bones)
-    source.start(buffer)
+    source, buffer = started_source("vmc://127.0.0.1:0", "suit")
     try:
         first = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         first.bind(("127.0.0.1", 0))
@@ -495,9 +487,7 @@ def test_a_second_senders_absurd_clocks_do_not_spoil_the_first_senders_stream():
     """Four well-formed /VMC/Ext/T datagrams with absurd times from another sender, one of them
     between the first sender's bone bundle and its own T: every later frame of the first sender
     is what `pose` and `pose_at` give, the hips where it puts them."""
-    source = open_source("vmc://127.0.0.1:0", "suit")
-    buffer = LiveBuffer(source.bones)
-    source.start(buffer)
+    source, buffer = started_source("vmc://127.0.0.1:0", "suit")
     sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     other = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
@@ -524,9 +514,7 @@ def test_a_second_senders_absurd_clocks_do_not_spoil_the_first_senders_stream():
 def test_a_senders_own_clock_jumps_start_its_clock_over():
     """One sender whose /VMC/Ext/T jumps to absurd values and back: its clock is trusted only
     while it is plausible, so each jump starts its clock over and every frame is followed."""
-    source = open_source("vmc://127.0.0.1:0", "suit")
-    buffer = LiveBuffer(source.bones)
-    source.start(buffer)
+    source, buffer = started_source("vmc://127.0.0.1:0", "suit")
     try:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
             for k in range(120):

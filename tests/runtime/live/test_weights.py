@@ -7,9 +7,9 @@ import warnings
 
 import numpy as np
 import pytest
-from pxr import Sdf, Usd
+from pxr import Usd
 
-from tests.blendshapes import CHARACTER, write_blendshape_character
+from tests.blendshapes import CHARACTER, add_face_binding, send_face, write_blendshape_character
 from tests.conftest import free_port
 from tests.runtime.live.conftest import FrameDriver
 
@@ -31,31 +31,8 @@ def test_the_ranges_are_the_capture_rings_where_it_declares_them(tmp_path):
 def _live_face(face, port: int, path) -> None:
     """The trained face with a VMC face binding (its neck and head by name)."""
     stage = Usd.Stage.Open(str(face))
-    prim = stage.GetPrimAtPath(CHARACTER)
-    prim.ApplyAPI("RigspaceLiveBindingAPI", "face")
-    for name, kind, value in (
-        ("url", Sdf.ValueTypeNames.String, f"vmc://127.0.0.1:{port}"),
-        ("sourceBones", Sdf.ValueTypeNames.TokenArray, ["Neck", "Head"]),
-        ("targetJoints", Sdf.ValueTypeNames.TokenArray, ["neck", "head"]),
-        ("timeoutSeconds", Sdf.ValueTypeNames.Float, 60.0),
-    ):
-        prim.CreateAttribute(f"rigspace:live:face:{name}", kind).Set(value)
+    add_face_binding(stage.GetPrimAtPath(CHARACTER), port, 60.0)
     stage.GetRootLayer().Export(str(path))
-
-
-def _send_face(port: int, t: float) -> None:
-    """A VMC face frame from the protocol with python-osc alone: neck and head, each weight's
-    /VMC/Ext/Blend/Val, one /VMC/Ext/Blend/Apply, /VMC/Ext/OK, /VMC/Ext/T."""
-    from pythonosc.udp_client import SimpleUDPClient
-
-    client = SimpleUDPClient("127.0.0.1", port)
-    for bone in ("Neck", "Head"):
-        client.send_message("/VMC/Ext/Bone/Pos", [bone, 0.0, 0.1, 0.0, 0.0, 0.0, 0.0, 1.0])
-    for name, value in SENT.items():
-        client.send_message("/VMC/Ext/Blend/Val", [name, float(value)])
-    client.send_message("/VMC/Ext/Blend/Apply", [])
-    client.send_message("/VMC/Ext/OK", [1])
-    client.send_message("/VMC/Ext/T", [float(t)])
 
 
 @pytest.mark.slow
@@ -82,7 +59,7 @@ def test_absurd_and_out_of_range_weights_reach_no_frame_and_no_take(
             if "smile" in runtimes[0].buffer.pose().weights:
                 applied.append(len(beauty))  # the first frame that may show them
             else:
-                _send_face(port, 0.01 * len(beauty))
+                send_face(port, SENT, 0.01 * len(beauty))
         return bool(applied) and len(beauty) >= applied[0] + 3
 
     FrameDriver(monkeypatch, on_frame)

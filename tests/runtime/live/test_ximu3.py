@@ -14,7 +14,7 @@ from rigspace.runtime.live.buffer import LiveBuffer
 from rigspace.runtime.live.decoders.ximu3 import Ximu3Decoder
 from rigspace.runtime.live.sources import open_source
 from rigspace.runtime.live.transports import LiveSourceError, SerialSource
-from tests.runtime.live.conftest import wait_for
+from tests.runtime.live.conftest import started_source, wait_for
 
 
 def q_lines(ticks: list[int], quats: np.ndarray) -> bytes:
@@ -51,10 +51,8 @@ def test_fuzz(chunks):
 
 
 def test_loop_url_end_to_end():
-    source = open_source("serial://loop://?baud=115200&format=ximu3&bones=pelvis", "imu")
+    source, buffer = started_source("serial://loop://?baud=115200&format=ximu3&bones=pelvis", "imu")
     assert isinstance(source, SerialSource)
-    buffer = LiveBuffer(source.bones)
-    source.start(buffer)
     try:
         source.ports[0].write(q_lines([1000, 21000], QUATS))
         assert wait_for(lambda: buffer.samples == 2)
@@ -70,9 +68,7 @@ def test_two_sensors_on_a_pty_pair_each():
     for _, follower in pairs:
         tty.setraw(follower)
     devices = ",".join(os.ttyname(f) for _, f in pairs)
-    source = open_source(f"serial://{devices}?format=ximu3&bones=thigh_l,calf_l", "legs")
-    buffer = LiveBuffer(source.bones)
-    source.start(buffer)
+    source, buffer = started_source(f"serial://{devices}?format=ximu3&bones=thigh_l,calf_l", "legs")
     try:
         # Each device has its own clock: stream 1's timestamps are far behind stream 0's.
         os.write(pairs[0][0], q_lines([5_000_000, 5_020_000], QUATS))

@@ -36,8 +36,10 @@ def sensor_rows(prefix: str) -> np.ndarray:
     return np.loadtxt(folder / "Quaternion.csv", delimiter=",", skiprows=1, max_rows=ROWS)
 
 
-def test_lower_body_recording_through_ptys():
-    rows = {name: sensor_rows(name) for name in SENSORS}
+def replay_through_ptys(rows: dict[str, np.ndarray]):
+    """Each sensor's rows written as x-IMU3 quaternion messages into a pty pair of its own,
+    read by one serial:// source (format=ximu3) until every sample has arrived: the source
+    (stopped) and its last pose."""
     pairs = [os.openpty() for _ in SENSORS]
     for _, follower in pairs:
         tty.setraw(follower)
@@ -65,6 +67,18 @@ def test_lower_body_recording_through_ptys():
         for leader, follower in pairs:
             os.close(leader)
             os.close(follower)
+    return source, pose
+
+
+def world_rotations(topology: UsdSkel.Topology, local: np.ndarray) -> np.ndarray:
+    """(J, 4) world-space joint rotations of (J, 4, 4) local transforms."""
+    world = UsdSkel.ConcatJointTransforms(topology, Vt.Matrix4dArray.FromNumpy(local))
+    return quat_from_matrix(np.swapaxes(np.array(world)[:, :3, :3], 1, 2))
+
+
+def test_lower_body_recording_through_ptys():
+    rows = {name: sensor_rows(name) for name in SENSORS}
+    source, pose = replay_through_ptys(rows)
     c = source.counters()
     assert c.malformed == 0 and c.dropped == 0 and c.status == "connected"
     first = np.array([r[0, 1:] for r in rows.values()])
@@ -82,24 +96,8 @@ def test_lower_body_recording_through_ptys():
     )  # fmt: skip
     out = r.apply(rest, pose)
     topology = UsdSkel.Topology(joints)
-    world = quat_from_matrix(
-        np.swapaxes(
-            np.array(UsdSkel.ConcatJointTransforms(topology, Vt.Matrix4dArray.FromNumpy(out)))[
-                :, :3, :3
-            ],
-            1,
-            2,
-        )
-    )
-    rest_world = quat_from_matrix(
-        np.swapaxes(
-            np.array(UsdSkel.ConcatJointTransforms(topology, Vt.Matrix4dArray.FromNumpy(rest)))[
-                :, :3, :3
-            ],
-            1,
-            2,
-        )
-    )
+    world = world_rotations(topology, out)
+    rest_world = world_rotations(topology, rest)
     a = quat_from_matrix(basis)
     for k, joint in enumerate(source.bones):
         j = [p.rsplit("/", 1)[-1] for p in joints].index(joint)
