@@ -46,3 +46,19 @@ def trained_regions(tmp_path_factory) -> tuple[Path, Path]:
         stage.GetRootLayer().Save()
         _trained["face"] = (scene, bundle)
     return _trained["face"]
+
+
+def ring_rows(part, pose, table, rows):
+    """For each of `rows` of a dataset's params table, the camera that captured it put in the
+    stage: (the part's network input there (1, J*6 + ...), the recorded rig row (J*6,), the
+    part's billboard). `pose(time)` gives the character's joints (NeuralCharacter.pose)."""
+    from rigspace.sdk.camera import Camera
+
+    for k in rows:
+        size = round(2 * table["intrinsics"][k][2])
+        camera = Camera(table["camera_to_world"][k], size, size,
+                        focal_length=part.view.focal_length,
+                        horizontal_aperture=part.view.horizontal_aperture)  # fmt: skip
+        world = pose(float(table["time"][k]))
+        billboard = part.place(world, camera)
+        yield part.parameters(world, billboard, camera), table["rig"][k].reshape(-1), billboard

@@ -14,6 +14,7 @@ from pxr import Sdf, Usd
 from rigspace.capture.pipeline import capture
 from rigspace.sdk.cli import main
 from tests.capture.conftest import CHARACTER, SCENE, SMALL, scene_variant
+from tests.regions import ring_rows
 
 pytest.importorskip("torch", reason="training needs the train extra (torch)")
 
@@ -60,7 +61,6 @@ def test_the_region_records_its_chain_not_the_limbs(head_region):
 
 def test_the_bundle_reads_the_chain_and_the_runtime_feeds_the_recorded_rows(head_region):
     from rigspace.runtime.character import NeuralCharacter
-    from rigspace.sdk.camera import Camera
     from rigspace.sdk.model import BundleModel
     from rigspace.sdk.stage import open_stage
 
@@ -73,15 +73,8 @@ def test_the_bundle_reads_the_chain_and_the_runtime_feeds_the_recorded_rows(head
     part = NeuralCharacter(stage.GetPrimAtPath(CHARACTER), BundleModel(bundle))
     assert len(part.order) == CHAIN
     table = np.load(dataset / "params.npz")
-    for k in range(0, len(table["time"]), 7):
-        size = round(2 * table["intrinsics"][k][2])
-        camera = Camera(table["camera_to_world"][k], size, size,
-                        focal_length=part.view.focal_length,
-                        horizontal_aperture=part.view.horizontal_aperture)  # fmt: skip
-        world = part.pose(float(table["time"][k]))
-        billboard = part.place(world, camera)
-        rows = part.parameters(world, billboard, camera)
+    for rows, recorded, _ in ring_rows(part, part.pose, table, range(0, len(table["time"]), 7)):
         assert rows.shape == (1, CHAIN * 6)
-        assert np.abs(rows[0] - table["rig"][k].reshape(-1)).max() < 1e-4
+        assert np.abs(rows[0] - recorded).max() < 1e-4
         out = part.model.predict(rows, 16)
         assert np.isfinite(out["albedo"]).all()
