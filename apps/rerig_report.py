@@ -41,6 +41,14 @@ import cv2
 import numpy as np
 
 from rigspace.sdk.render import Maps
+from rigspace.train.evaluate import (
+    DatasetTable,
+    evenly_spaced,
+    heat_tile,
+    normal_tile,
+    put_label,
+)
+from rigspace.train.metrics import MASK_THRESHOLD, angle_deg, map_metrics
 
 DEPART_DEPTH_CM = 0.5
 """Depths further apart than this (centimetres) make a pixel depart from LBS."""
@@ -54,6 +62,8 @@ TILE = 256
 """The side each 128x128 map is enlarged to (nearest neighbour) in the sheet."""
 ERROR_RANGE_DEG = 45.0
 """Normal error shown full scale in the sheet."""
+LABEL_SCALE = 0.5
+"""The sheet's text size (cv2 font scale): its tiles are twice evaluate's."""
 
 
 @dataclass
@@ -92,22 +102,13 @@ def _mean_defined(values: list[float]) -> float:
     return float(np.mean(defined)) if defined else math.nan
 
 
-def angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Per-pixel angle between (..., 3) normals, degrees (atan2: exact near 0)."""
-    a, b = a.astype(np.float64), b.astype(np.float64)
-    cross = np.linalg.norm(np.cross(a, b), axis=-1)
-    return np.degrees(np.arctan2(cross, np.einsum("...i,...i->...", a, b)))
-
-
 def departing(truth: Maps, lbs: Maps, cm_per_unit: float) -> np.ndarray:
     """(H, W) bool: where the truth departs from LBS (the module docstring's rule)."""
-    from rigspace.train.metrics import MASK_THRESHOLD
-
     t, r = truth.mask >= MASK_THRESHOLD, lbs.mask >= MASK_THRESHOLD
     both = t & r
     with np.errstate(invalid="ignore"):
         far = np.abs(truth.depth - lbs.depth) * cm_per_unit > DEPART_DEPTH_CM
-    turned = angles_deg(truth.normal, lbs.normal) > DEPART_ANGLE_DEG
+    turned = angle_deg(truth.normal, lbs.normal) > DEPART_ANGLE_DEG
     return (t ^ r) | (both & (far | turned))
 
 
@@ -154,31 +155,23 @@ def measure(
     truth: Maps, pred: Maps, lbs: Maps, depart: np.ndarray, tally: Tally, cm_per_unit: float
 ) -> None:
     """Add one sample's numbers for one predictor (`pred`) to its tally."""
-    from rigspace.train.metrics import MASK_THRESHOLD
-
     t, p = truth.mask >= MASK_THRESHOLD, pred.mask >= MASK_THRESHOLD
     tally.hits += int((t & p & depart).sum())
     tally.unions += int(((t | p) & depart).sum())
     common = depart & t & (lbs.mask >= MASK_THRESHOLD) & p
-    tally.angles.append(angles_deg(pred.normal[common], truth.normal[common]))
+    a, b = (m.normal[common].astype(np.float64) for m in (pred, truth))  # reported: float64
+    tally.angles.append(angle_deg(a, b))
     tally.depth_err_cm.append(np.abs(pred.depth[common] - truth.depth[common]) * cm_per_unit)
     tally.albedo_se += float(((pred.albedo[depart] - truth.albedo[depart]) ** 2).sum())
     tally.pixels += int(depart.sum())
 
 
-def _normals_tile(normal: np.ndarray) -> np.ndarray:
-    rgb = np.clip(normal * 0.5 + 0.5, 0.0, 1.0)
-    rgb[np.linalg.norm(normal, axis=-1) == 0] = 0.0
-    return (rgb[..., ::-1] * 255).astype(np.uint8)
-
-
 def _error_tile(pred: Maps, truth: Maps, depart: np.ndarray) -> np.ndarray:
-    from rigspace.train.metrics import MASK_THRESHOLD
-
+    """The normal error, full scale where either side is empty; dimmed off the departing
+    pixels."""
     valid = (truth.mask >= MASK_THRESHOLD) & (pred.mask >= MASK_THRESHOLD)
-    angle = np.where(valid, angles_deg(pred.normal, truth.normal), ERROR_RANGE_DEG)
-    scaled = np.clip(np.nan_to_num(angle / ERROR_RANGE_DEG), 0.0, 1.0)
-    heat = cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
+    angle = np.where(valid, angle_deg(pred.normal, truth.normal), ERROR_RANGE_DEG)
+    heat = heat_tile(angle, ERROR_RANGE_DEG, np.ones(valid.shape, bool))
     heat[~depart] //= 4
     return heat
 
@@ -198,34 +191,28 @@ def sheet(rows: list[tuple[str, Maps, Maps, Maps, np.ndarray]]) -> np.ndarray:
     label_h = 22
     image = np.zeros((label_h + len(rows) * (TILE + label_h), len(HEADERS) * TILE, 3), np.uint8)
     for c, name in enumerate(HEADERS):
-        _label(image, name, c * TILE + 4, 16)
+        put_label(image, name, c * TILE + 4, 16, LABEL_SCALE)
     for r, (title, truth, lbs, pred, depart) in enumerate(rows):
         tiles = (
-            _normals_tile(truth.normal),
-            _normals_tile(lbs.normal),
-            _normals_tile(pred.normal),
+            normal_tile(truth.normal),
+            normal_tile(lbs.normal),
+            normal_tile(pred.normal),
             _depart_tile(truth, depart),
             _error_tile(lbs, truth, depart),
             _error_tile(pred, truth, depart),
         )
         top = label_h + r * (TILE + label_h)
-        _label(image, title, 4, top + 16)
+        put_label(image, title, 4, top + 16, LABEL_SCALE)
         for c, tile in enumerate(tiles):
             big = cv2.resize(tile, (TILE, TILE), interpolation=cv2.INTER_NEAREST)
             image[top + label_h : top + label_h + TILE, c * TILE : (c + 1) * TILE] = big
     return image
 
 
-def _label(image: np.ndarray, text: str, x: int, y: int) -> None:
-    cv2.putText(image, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
-
-
 def run(args: argparse.Namespace) -> tuple[dict, np.ndarray]:
     """Measure; returns the report and the sheet image."""
     from tqdm import tqdm
 
-    from rigspace.train.evaluate import DatasetTable, evenly_spaced
-    from rigspace.train.metrics import map_metrics
     from rigspace.train.predictor import BundlePredictor
 
     table, twin = DatasetTable(args.dataset), DatasetTable(args.rerig)

@@ -23,6 +23,7 @@ from rigspace.train.metrics import (
     MASK_THRESHOLD,
     METRICS,
     TEXTURE_METRICS,
+    angle_deg,
     map_metrics,
     psnr,
     texture_metrics,
@@ -621,7 +622,7 @@ def to_json(report: dict[str, Any]) -> str:
 # --- error-map images ---------------------------------------------------------------------------
 
 
-def _heat(values: np.ndarray, full_scale: float, valid: np.ndarray) -> np.ndarray:
+def heat_tile(values: np.ndarray, full_scale: float, valid: np.ndarray) -> np.ndarray:
     """(H,W) values -> (H,W,3) uint8 BGR inferno colours, 0..full_scale; black where not valid."""
     scaled = np.clip(np.nan_to_num(values / full_scale), 0.0, 1.0)
     image = cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
@@ -633,22 +634,26 @@ def _gray(values: np.ndarray) -> np.ndarray:
     return np.repeat((np.clip(values, 0.0, 1.0) * 255).astype(np.uint8)[..., None], 3, axis=-1)
 
 
-def _rgb(values: np.ndarray) -> np.ndarray:
+def rgb_tile(values: np.ndarray) -> np.ndarray:
+    """(H,W,3) RGB in [0, 1] -> (H,W,3) uint8 BGR."""
     return np.ascontiguousarray((np.clip(values, 0.0, 1.0) * 255).astype(np.uint8)[..., ::-1])
+
+
+def normal_tile(normal: np.ndarray) -> np.ndarray:
+    """(H,W,3) normals -> (H,W,3) uint8 BGR, n/2 + 1/2; black where a normal is empty."""
+    shown = np.where(np.linalg.norm(normal, axis=-1, keepdims=True) > 0, normal * 0.5 + 0.5, 0.0)
+    return rgb_tile(shown)
 
 
 def _map_tiles(maps: Maps, near: float, far: float) -> list[np.ndarray]:
     """Albedo, mask, depth (near white .. far dark, empty black), normals (n/2 + 1/2)."""
     finite = np.isfinite(maps.depth)
     depth = np.where(finite, 1.0 - 0.8 * (maps.depth - near) / max(far - near, 1e-12), 0.0)
-    normal = np.where(
-        np.linalg.norm(maps.normal, axis=-1, keepdims=True) > 0, maps.normal * 0.5 + 0.5, 0.0
-    )
     return [
-        _rgb(np.clip(maps.albedo, 0.0, None) ** DISPLAY_GAMMA),
+        rgb_tile(np.clip(maps.albedo, 0.0, None) ** DISPLAY_GAMMA),
         _gray(maps.mask),
         _gray(depth),
-        _rgb(normal),
+        normal_tile(maps.normal),
     ]
 
 
@@ -663,18 +668,16 @@ def _error_tiles(pred: Maps, target: Maps, character_height: float) -> list[np.n
     normals = (lp > 0) & (lt > 0)
     a = pred.normal / np.where(normals, lp, 1.0)[..., None]
     b = target.normal / np.where(normals, lt, 1.0)[..., None]
-    angle = np.degrees(
-        np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.einsum("...i,...i", a, b))
-    )
+    angle = angle_deg(a, b)
     return [
-        _heat(albedo, ALBEDO_ERROR_RANGE, everywhere),
+        heat_tile(albedo, ALBEDO_ERROR_RANGE, everywhere),
         _gray(xor.astype(np.float32)),
-        _heat(depth, DEPTH_ERROR_PCT_RANGE / 100.0 * character_height, both),
-        _heat(angle, NORMAL_ERROR_RANGE_DEG, normals),
+        heat_tile(depth, DEPTH_ERROR_PCT_RANGE / 100.0 * character_height, both),
+        heat_tile(angle, NORMAL_ERROR_RANGE_DEG, normals),
     ]
 
 
-def _label(image: np.ndarray, text: str, x: int, y: int, scale: float = 0.4) -> None:
+def put_label(image: np.ndarray, text: str, x: int, y: int, scale: float = 0.4) -> None:
     cv2.putText(
         image, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA
     )
@@ -715,17 +718,17 @@ def error_map_image(
     width = ROW_LABEL_WIDTH + 4 * tw
     height = LABEL_HEIGHT + 3 * (LABEL_HEIGHT + th)  # title, then per row: header and tiles
     image = np.zeros((height, width, 3), np.uint8)
-    _label(image, title, 4, LABEL_HEIGHT - 5)
+    put_label(image, title, 4, LABEL_HEIGHT - 5)
     for r, tiles in enumerate(grid):
         top = LABEL_HEIGHT * 2 + r * (th + LABEL_HEIGHT)
         names = error_headers if r == 2 else headers
         for c, tile in enumerate(tiles):
             left = ROW_LABEL_WIDTH + c * tw
-            _label(image, names[c], left + 2, top - 5)
+            put_label(image, names[c], left + 2, top - 5)
             image[top : top + th, left : left + tw] = cv2.resize(
                 tile, (tw, th), interpolation=cv2.INTER_NEAREST
             )
-        _label(image, row_names[r], 2, top + th // 2)
+        put_label(image, row_names[r], 2, top + th // 2)
     return image
 
 

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from rigspace.sdk.conditioning import Skeleton2D, joints2d
+from rigspace.train.metrics import angle_deg
 
 MASK_VALID = 0.5
 """Coverage from which a pixel counts as covered (the evaluation's threshold)."""
@@ -106,9 +107,7 @@ def drift(fp32: dict[str, np.ndarray], int8: dict[str, np.ndarray]) -> dict[str,
             a = np.moveaxis(int8["normal"], 1, -1)[covered]
             b = np.moveaxis(fp32["normal"], 1, -1)[covered]
             length = np.linalg.norm(a, axis=-1)
-            angle = np.degrees(
-                np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.einsum("ij,ij->i", a, b))
-            )
+            angle = angle_deg(a, b)
             angle = np.where(length < ZERO_NORMAL, 90.0, angle)
             out["normal_mean_deg"] = float(angle.mean())
             out["normal_zero_fraction"] = float(np.mean(length < ZERO_NORMAL))

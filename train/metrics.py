@@ -112,6 +112,15 @@ def depth_mae(
     return mae, 100.0 * mae / character_height
 
 
+def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per vector, the angle in degrees between (..., 3) vectors `a` and `b`: atan2(|a x b|,
+    a . b), which needs no clipping of the dot product and, unlike arccos, stays exact near 0
+    (one float32 ulp below 1 is already 0.02 degrees through arccos). Scaling either vector
+    leaves it unchanged."""
+    cross = np.linalg.norm(np.cross(a, b), axis=-1)
+    return np.degrees(np.arctan2(cross, np.einsum("...i,...i->...", a, b)))
+
+
 def normal_angle_error(
     pred: np.ndarray, target: np.ndarray, target_mask: np.ndarray
 ) -> tuple[float, float]:
@@ -119,9 +128,7 @@ def normal_angle_error(
 
     Both normals are normalised first; pixels where either has zero length (a map's
     "empty") are left out, as are pixels outside the mask (coverage < MASK_THRESHOLD).
-    The angle is atan2(|a x b|, a . b), which needs no clipping of the dot product and,
-    unlike arccos, stays exact near 0 (one float32 ulp below 1 is already 0.02 degrees
-    through arccos). No such pixel gives (nan, nan).
+    The angle is angle_deg's (atan2: exact near 0). No such pixel gives (nan, nan).
     """
     a, b = _f64(pred), _f64(target)
     la, lb = np.linalg.norm(a, axis=-1), np.linalg.norm(b, axis=-1)
@@ -130,8 +137,7 @@ def normal_angle_error(
         return math.nan, math.nan
     a = a[inside] / la[inside, None]
     b = b[inside] / lb[inside, None]
-    cross = np.linalg.norm(np.cross(a, b), axis=-1)
-    angle = np.degrees(np.arctan2(cross, np.einsum("ij,ij->i", a, b)))
+    angle = angle_deg(a, b)
     return float(angle.mean()), float(np.median(angle))
 
 

@@ -282,8 +282,7 @@ def test_blend_shape_sliders_override_the_animations_weights(browser, tmp_path_f
 def test_a_rigs_controls_get_sliders_over_their_ranges(browser, tmp_path_factory):
     """A character whose model reads a named control (docs/point_caches.md) gets a slider for
     it over the control's own range, and a slider moved travels in the frame request (the
-    engine takes it as an override once Engine.set_weights accepts controls: see
-    tests/train/test_point_caches.py's xfail)."""
+    engine takes it as an override: tests/train/test_point_caches.py)."""
     from tests.point_caches import CONTROL, trained_arm
 
     scene, _ = trained_arm(tmp_path_factory)
