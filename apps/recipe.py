@@ -5,6 +5,7 @@
     python -m rigspace.apps.recipe unpack FILES             # here: the bundle and the GPU table
     python -m rigspace.apps.recipe run --smoke --out DIR    # anywhere: the whole recipe on the
                                                             # CPU at 32x32 in about a minute (CI)
+    python3 apps/recipe.py test --out "$OUT" -- TESTS       # there: part of the suite on CUDA
 
 A lent GPU machine (docs/gpu.md) has torch with CUDA, numpy, numba, onnx, onnxruntime and
 OpenCV, Python 3.12, no package registry, about 15 minutes at a stretch and 10 minutes a
@@ -23,6 +24,9 @@ most 16 MiB come back. So:
   views, the held-out clip, at display size), runs the GPU check (apps/gpu_check.py), and
   packs the bundle and every number into at most MAX_FILES files under --out, after each
   stage: a run stopped at its limit still returns what it finished.
+- `test` installs the payload the same way and runs part of the suite with the machine's own
+  pytest (a test running past HANG_SECONDS has its threads' stacks written), so code that
+  trains, evaluates and renders is checked on CUDA and the NVIDIA EGL, not only on the CPU.
 - `unpack` joins what came back, checks it, puts the bundle in samples/models/sample (or
   --bundle-into) and writes the GPU table to docs/bench/gpu.md and gpu.json.
 """
@@ -50,7 +54,7 @@ import tarfile
 import tempfile
 import time
 import zipfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -271,25 +275,45 @@ def _download_debs(folder: Path) -> list[Path]:
 def tree_bytes(root: Path) -> int:
     """Bytes of what a device call sends of the tree: tracked files and untracked files git
     does not ignore."""
+    return sum(tree_sizes(root).values())
+
+
+def tree_sizes(root: Path) -> dict[str, int]:
+    """Each file a device call sends of the tree (tree_bytes) and its size."""
     listed = subprocess.run(
         ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
         cwd=root, check=True, capture_output=True,
     ).stdout  # fmt: skip
     names = {n for n in listed.decode().split("\0") if n}
-    return sum((root / n).stat().st_size for n in names if (root / n).is_file())
+    return {n: (root / n).stat().st_size for n in names if (root / n).is_file()}
+
+
+def largest_folders(sizes: dict[str, int], depth: int = 3, count: int = 3) -> list[tuple[str, int]]:
+    """The `count` folders `depth` deep that send the most bytes (samples/models/film...)."""
+    folders: dict[str, int] = {}
+    for name, size in sizes.items():
+        folder = "/".join(name.split("/")[:depth])
+        folders[folder] = folders.get(folder, 0) + size
+    return sorted(folders.items(), key=lambda kv: -kv[1])[:count]
 
 
 def travel_check(root: Path, payload: Path) -> dict[str, int]:
-    """Tree + payload against TRAVEL_LIMIT less TRAVEL_MARGIN; RecipeError when over."""
-    tree = tree_bytes(root)
+    """Tree + payload against TRAVEL_LIMIT less TRAVEL_MARGIN; RecipeError when over, naming
+    the tree's largest folders (docs/gpu.md, "When the tree is too large")."""
+    sizes = tree_sizes(root)
+    tree = sum(sizes.values())
     carried = sum(p.stat().st_size for p in payload.rglob("*") if p.is_file())
     total = tree + carried
     if total > TRAVEL_LIMIT - TRAVEL_MARGIN:
+        largest = ", ".join(f"{f} {b / 2**20:.1f} MiB" for f, b in largest_folders(sizes))
         raise RecipeError(
             f"the tree ({tree / 2**20:.1f} MiB) and the payload ({carried / 2**20:.1f} MiB) "
             f"come to {total / 2**20:.1f} MiB; a device call carries at most "
-            f"{TRAVEL_LIMIT / 2**20:.0f} MiB (this recipe keeps {TRAVEL_MARGIN / 2**20:.0f} free)",
-            "make the tree smaller (git ls-files sizes), or the payload (PAYLOAD_PACKAGES)",
+            f"{TRAVEL_LIMIT / 2**20:.0f} MiB (this recipe keeps {TRAVEL_MARGIN / 2**20:.0f} free)."
+            f" The largest folders: {largest}",
+            "leave folders the call does not need out of the index for the call and put them "
+            'back after it (docs/gpu.md, "When the tree is too large"), or make the payload '
+            "smaller (PAYLOAD_PACKAGES)",
         )
     return {"tree": tree, "payload": carried, "total": total, "limit": TRAVEL_LIMIT}
 
@@ -539,6 +563,64 @@ def pack(r: Run, model: Path) -> list[Path]:
     return parts
 
 
+# ------------------------------------------------------------------------------------- test
+
+HANG_SECONDS = 120
+"""`test`: a test still running after this long has every thread's stack written to
+pytest.txt (pytest's faulthandler_timeout), so a hang on CUDA or the NVIDIA EGL says where."""
+
+
+def test_suite(out: Path, root: Path, payload: Path, minutes: float, args: list[str]) -> int:
+    """Part of the suite on the GPU machine (module doc): the payload installed, then the
+    machine's own pytest (its image has pytest, hypothesis, pytest-xdist) on `args`; torch
+    trains on CUDA there (`--device auto`) and the gl renderer draws through the NVIDIA EGL.
+    pytest.txt, junit.xml and numbers.json land under `out` as they are written."""
+    work = Path(tempfile.mkdtemp(prefix="rigspace-test-"))
+    r = Run(out, replace(Plan.toy(), minutes=minutes), work)
+    try:
+        if not _importable("rigspace.sdk", r.env):
+            install(r, root, payload)
+        command = [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-ra"]
+        command += ["-o", f"faulthandler_timeout={HANG_SECONDS}", "--durations=25"]
+        command += ["--junitxml", str(out / "junit.xml"), *args]
+        r.say(f"test: {' '.join(command[2:])}")
+        start = time.monotonic()
+        with (out / "pytest.txt").open("w", encoding="utf-8") as log:
+            try:
+                code = subprocess.call(
+                    command, cwd=root, env=r.env, stdout=log, stderr=subprocess.STDOUT,
+                    timeout=max(r.left(), 1.0),
+                )  # fmt: skip
+            except subprocess.TimeoutExpired:
+                code = 124
+        r.numbers["stages"]["test"] = round(time.monotonic() - start, 1)
+        r.numbers["pytest"] = {"exit": code, **_junit_counts(out / "junit.xml")}
+        r.say(f"test: exit {code} in {r.numbers['stages']['test']} s ({r.numbers['pytest']})")
+        return 0 if code == 0 else 1
+    except RecipeError as exc:
+        r.numbers["failed"] = exc.what + (f" Fix: {exc.fix}" if exc.fix else "")
+        r.say(f"test: {exc.what}" + (f"\nFix: {exc.fix}" if exc.fix else ""))
+        return 1
+    finally:
+        r.save()
+        r.log.close()
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def _junit_counts(path: Path) -> dict[str, int]:
+    """tests / failures / errors / skipped of pytest's junit XML ({} before it is written: a
+    run stopped at its limit)."""
+    import xml.etree.ElementTree as ET
+
+    if not path.is_file():
+        return {}
+    root = ET.parse(path).getroot()
+    suite = root if root.tag == "testsuite" else root.find("testsuite")
+    if suite is None:
+        return {}
+    return {k: int(suite.get(k, 0)) for k in ("tests", "failures", "errors", "skipped")}
+
+
 # ----------------------------------------------------------------------------------- unpack
 
 
@@ -692,6 +774,12 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--keep", action="store_true", help="keep the datasets and the run")
     r.add_argument("--train-flag", action="append", default=[], metavar="FLAG",
                    help="an extra `rigspace train` argument (repeat; e.g. --train-flag=--bf16)")  # fmt: skip
+    s = verbs.add_parser("test", help="part of the suite on the GPU machine (after --)")
+    s.add_argument("--out", type=Path, required=True, help="results folder (the device's $OUT)")
+    s.add_argument("--payload", type=Path, default=PAYLOAD)
+    s.add_argument("--minutes", type=float, default=9.0, help="the whole run's time (default 9)")
+    s.add_argument("pytest_args", nargs="*", metavar="PYTEST_ARG",
+                   help="what pytest gets, after `--` (e.g. -- -x -n 8 tests/train)")  # fmt: skip
     u = verbs.add_parser("unpack", help="the returned files into the tree")
     u.add_argument("files", type=Path, help="the folder the device's files came back to")
     u.add_argument("--bundle-into", type=Path, default=BUNDLE_HOME)
@@ -715,6 +803,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"MiB = {t['total'] / 2**20:.1f} MiB of {t['limit'] / 2**20:.0f} MiB: it travels"
             )
             return 0
+        if args.verb == "test":
+            return test_suite(args.out, root, args.payload, args.minutes, args.pytest_args)
         if args.verb == "run":
             extra = tuple(args.train_flag)
             plan = Plan.toy(extra) if args.smoke else Plan.gpu(args.minutes, extra)

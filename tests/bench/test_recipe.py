@@ -114,3 +114,22 @@ def test_run_starts_with_the_standard_library_alone_and_names_prepare(tmp_path):
     assert "Traceback" not in done.stderr
     numbers = json.loads((tmp_path / "out" / "numbers.json").read_text())
     assert "not installed" in numbers["failed"]
+
+
+def test_the_test_verb_runs_pytest_and_brings_back_its_counts(tmp_path):
+    """`recipe test` (part of the suite on the GPU machine) here, where rigspace is installed:
+    pytest's output, its junit XML and the counts come back under --out; a failing test makes
+    the exit 1."""
+    tests = tmp_path / "test_probe.py"
+    tests.write_text("def test_passes():\n    assert True\n\n\ndef test_fails():\n    assert 1 == 2\n")
+    out = tmp_path / "out"
+    done = subprocess.run(
+        [sys.executable, "-m", "rigspace.apps.recipe", "test", "--out", str(out), "--minutes",
+         "5", "--", "-q", str(tests)],
+        cwd=ROOT, capture_output=True, text=True,
+    )  # fmt: skip
+    assert done.returncode == 1, done.stderr[-2000:]
+    numbers = json.loads((out / "numbers.json").read_text())
+    assert numbers["pytest"] == {"exit": 1, "tests": 2, "failures": 1, "errors": 0, "skipped": 0}
+    assert "test_fails" in (out / "pytest.txt").read_text()
+    assert (out / "junit.xml").is_file() and (out / "log.txt").is_file()
