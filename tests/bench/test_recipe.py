@@ -121,7 +121,9 @@ def test_the_test_verb_runs_pytest_and_brings_back_its_counts(tmp_path):
     pytest's output, its junit XML and the counts come back under --out; a failing test makes
     the exit 1."""
     tests = tmp_path / "test_probe.py"
-    tests.write_text("def test_passes():\n    assert True\n\n\ndef test_fails():\n    assert 1 == 2\n")
+    tests.write_text(
+        "def test_passes():\n    assert True\n\n\ndef test_fails():\n    assert 1 == 2\n"
+    )
     out = tmp_path / "out"
     done = subprocess.run(
         [sys.executable, "-m", "rigspace.apps.recipe", "test", "--out", str(out), "--minutes",
