@@ -46,6 +46,7 @@ def test_the_bulge_departs_from_the_rerig_and_both_are_measured_there(arm, tmp_p
     assert 0.0 <= lbs["departing_mask_iou"] < 1.0
     assert 0.0 <= network["departing_mask_iou"] <= 1.0
     assert lbs["whole_mask_iou"] > 0.5  # elsewhere the re-rig is the arm itself
+    assert report["network_ms_per_sample"] > 0.0
     sheet = cv2.imread(str(out / "rerig_sheet.png"))
     assert sheet.shape[1] == 6 * rerig_report.TILE
     assert sheet.shape[0] == 22 + 3 * (rerig_report.TILE + 22)
