@@ -54,6 +54,7 @@ import tarfile
 import tempfile
 import time
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -377,20 +378,39 @@ class Run:
 def run(out: Path, plan: Plan, root: Path, payload: Path, keep: bool = False) -> int:
     """The whole recipe (module doc); every stage's numbers are in --out as soon as it ends.
     `keep`: leave the working folder (datasets, the run) in place and say where."""
-    work = Path(tempfile.mkdtemp(prefix="rigspace-recipe-"))
+
+    def body(r: Run) -> int:
+        stages(r, root)
+        return 0
+
+    return _installed(out, plan, root, payload, body, keep=keep)
+
+
+def _installed(
+    out: Path,
+    plan: Plan,
+    root: Path,
+    payload: Path,
+    body: Callable[[Run], int],
+    keep: bool = False,
+    verb: str = "recipe",
+) -> int:
+    """`body`'s exit status, run with rigspace installed (from the payload where it is not):
+    a RecipeError is said and recorded (exit 1); the numbers are saved whatever happens, and
+    the working folder removed unless `keep`."""
+    work = Path(tempfile.mkdtemp(prefix=f"rigspace-{verb}-"))
     r = Run(out, plan, work)
     try:
         if not _importable("rigspace.sdk", r.env):
             install(r, root, payload)
-        stages(r, root)
-        return 0
+        return body(r)
     except RecipeError as exc:
         r.numbers["failed"] = exc.what + (f" Fix: {exc.fix}" if exc.fix else "")
-        r.say(f"recipe: {exc.what}" + (f"\nFix: {exc.fix}" if exc.fix else ""))
+        r.say(f"{verb}: {exc.what}" + (f"\nFix: {exc.fix}" if exc.fix else ""))
         return 1
     finally:
         if keep:
-            r.say(f"recipe: the datasets and the run are kept in {work}")
+            r.say(f"{verb}: the datasets and the run are kept in {work}")
         r.save()
         r.log.close()
         if not keep:
@@ -575,11 +595,8 @@ def test_suite(out: Path, root: Path, payload: Path, minutes: float, args: list[
     machine's own pytest (its image has pytest, hypothesis, pytest-xdist) on `args`; torch
     trains on CUDA there (`--device auto`) and the gl renderer draws through the NVIDIA EGL.
     pytest.txt, junit.xml and numbers.json land under `out` as they are written."""
-    work = Path(tempfile.mkdtemp(prefix="rigspace-test-"))
-    r = Run(out, replace(Plan.toy(), minutes=minutes), work)
-    try:
-        if not _importable("rigspace.sdk", r.env):
-            install(r, root, payload)
+
+    def body(r: Run) -> int:
         command = [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-ra"]
         command += ["-o", f"faulthandler_timeout={HANG_SECONDS}", "--durations=25"]
         command += ["--junitxml", str(out / "junit.xml"), *args]
@@ -597,14 +614,9 @@ def test_suite(out: Path, root: Path, payload: Path, minutes: float, args: list[
         r.numbers["pytest"] = {"exit": code, **_junit_counts(out / "junit.xml")}
         r.say(f"test: exit {code} in {r.numbers['stages']['test']} s ({r.numbers['pytest']})")
         return 0 if code == 0 else 1
-    except RecipeError as exc:
-        r.numbers["failed"] = exc.what + (f" Fix: {exc.fix}" if exc.fix else "")
-        r.say(f"test: {exc.what}" + (f"\nFix: {exc.fix}" if exc.fix else ""))
-        return 1
-    finally:
-        r.save()
-        r.log.close()
-        shutil.rmtree(work, ignore_errors=True)
+
+    plan = replace(Plan.toy(), minutes=minutes)  # the deadline; test runs no recipe stage
+    return _installed(out, plan, root, payload, body, verb="test")
 
 
 def _junit_counts(path: Path) -> dict[str, int]:
