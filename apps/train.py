@@ -103,6 +103,15 @@ def _add_bundle_arguments(parser: argparse.ArgumentParser) -> None:
         "touched; --minutes is shared by the regions' image sizes",
     )
     parser.add_argument(
+        "--region-width",
+        type=int,
+        default=None,
+        metavar="N",
+        help="conv channels at 4x4 and 8x8 of each region's network (its --base-width; "
+        "default half the body's, at least its --min-width): a region draws a smaller part "
+        "of the character than the body and costs the frame its own time (docs/regions.md)",
+    )
+    parser.add_argument(
         "--force",
         action="store_true",
         help="replace a model bundle (and its training run) already in --out; other files "
@@ -237,6 +246,25 @@ def region_datasets(dataset: Path) -> list[tuple[str, int]]:
     return [(p.name, read_manifest(p).resolution) for p in found]
 
 
+def region_training_config(config: TrainConfig, resolution: int, width: int | None) -> TrainConfig:
+    """A region's training options: the body's at the region's resolution, its network
+    `width` channels at 4x4 and 8x8 (None: half the body's, at least its min_width), so that
+    three regions cost a frame about a quarter of the body's network (docs/regions.md)."""
+    if width is not None and width < 1:
+        raise RigspaceError(
+            f"--region-width is {width}.", "pass a number of channels of 1 or more (e.g. 64)."
+        )
+    base = max(config.min_width, config.base_width // 2) if width is None else width
+    region = dataclasses.replace(
+        config,
+        resolution=resolution,
+        start_resolution=min(config.start_resolution, resolution),
+        base_width=base,
+    )
+    region.check()
+    return region
+
+
 def budget_shares(body: int, regions: Sequence[int], minutes: float | None) -> list[float | None]:
     """--minutes split between the body and its regions in proportion to their images'
     pixels (a step's cost grows with them), so each trains about as many steps; None for
@@ -302,11 +330,7 @@ def _train_regions(
     done = []
     for (name, resolution), minutes in zip(regions, shares, strict=True):
         home = out / REGIONS / name
-        region_config = dataclasses.replace(
-            config,
-            resolution=resolution,
-            start_resolution=min(config.start_resolution, resolution),
-        )
+        region_config = region_training_config(config, resolution, args.region_width)
         print(f"region {name}: training at {resolution}x{resolution} into {home}")
         resume = args.resume and (home / TRAINING / RUN_FILE).is_file()
         result = train(

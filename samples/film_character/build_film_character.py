@@ -631,21 +631,30 @@ def _eyes(stage: Usd.Stage, rig: _Rig, look) -> None:
     _mesh(stage, "/Character/Eyes", rig.skeleton, ep, et, euv, eidx, ewts, look)
 
 
+def _hand(side: str) -> dict[str, tuple[str, str]]:
+    """A hand region framed at its knuckles: the square about `middle_01` (17.6 cm from its
+    farthest point over the clips, where the wrist's `hand` joint is 23.8 cm from it) spends
+    the 64x64 pixels on the hand, about 4 pixels a finger's width."""
+    fingers = [
+        f"{f}_0{k}_{side}" for f in ("thumb", "index", "middle", "ring", "pinky") for k in (1, 2, 3)
+    ]
+    joints = ", ".join(f'"{j}"' for j in [f"hand_{side}", *fingers])
+    return {
+        "joint": ("token", f'"middle_01_{side}"'),
+        "joints": ("token[]", f"[{joints}]"),
+        "size": ("float", "36"),
+        "resolution": ("int", "64"),
+        "viewsPerRing": ("int", "8"),
+    }
+
+
 REGIONS = {
     "face": {"joint": ("token", '"head"'), "resolution": ("int", "64")},
-    "leftHand": {
-        "joint": ("token", '"hand_l"'),
-        "resolution": ("int", "32"),
-        "viewsPerRing": ("int", "8"),
-    },
-    "rightHand": {
-        "joint": ("token", '"hand_r"'),
-        "resolution": ("int", "32"),
-        "viewsPerRing": ("int", "8"),
-    },
+    "leftHand": _hand("l"),
+    "rightHand": _hand("r"),
 }
 """The shot's regions (docs/regions.md): the head with every face shape at 64x64, each hand
-with its fingers at 32x32 on a ring of 8 views (a third fewer samples than the face's: the
+with its fingers at 64x64 on a ring of 8 views (a third fewer samples than the face's: the
 capture's and the training's time goes to the face first); the body network's 128x128 is
 spent on the body."""
 

@@ -9,9 +9,11 @@ import json
 import numpy as np
 import pytest
 
-from rigspace.apps.train import budget_shares
+from rigspace.apps.train import budget_shares, region_training_config
 from rigspace.sdk.bundle import BundleError, read_manifest
 from rigspace.sdk.cli import main
+from rigspace.sdk.errors import RigspaceError
+from rigspace.train.config import preset
 from tests.blendshapes import write_blendshape_character
 from tests.capture.test_regions import _with_region
 
@@ -136,6 +138,19 @@ def test_the_budget_is_shared_by_image_size():
     body, face, hand = budget_shares(128, [64, 32], 21.0)
     assert body + face + hand == pytest.approx(21.0)
     assert body == pytest.approx(4 * face) and face == pytest.approx(4 * hand)
+
+
+def test_a_region_trains_a_narrower_network_at_its_own_resolution():
+    body = preset("small")
+    region = region_training_config(body, 64, None)
+    assert (region.resolution, region.start_resolution) == (64, 16)
+    assert region.base_width == body.base_width // 2 and region.latent == body.latent
+    assert region_training_config(body, 64, 128).base_width == 128
+    tiny = preset("tiny")  # half of 16 is 8, its min_width: never below it
+    assert region_training_config(tiny, 16, None).base_width == 8
+    assert region_training_config(tiny, 16, None).start_resolution == 16
+    with pytest.raises(RigspaceError, match="--region-width is 0"):
+        region_training_config(body, 64, 0)
 
 
 @pytest.mark.parametrize(
