@@ -547,7 +547,16 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="SHAPE",
         help="also measure the shape response: each blend shape's weight 0 -> 1 with the pose "
         "and camera held, the network's albedo change against the mesh's (ratio, correlation) "
-        "on 8 samples of --split; no names: every shape the model reads (train/shapes.py)",
+        "on --shape-samples samples of --split; no names: every shape the model reads "
+        "(train/shapes.py)",
+    )
+    parser.add_argument(
+        "--shape-samples",
+        type=int,
+        default=8,
+        metavar="N",
+        help="samples of --split the shape response is measured on, evenly spaced (default 8; "
+        "each renders the mesh twice per shape)",
     )
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument(
@@ -639,6 +648,10 @@ def run_eval(args: argparse.Namespace) -> int:
 
     if args.errors:
         check_folder(Path(args.errors), "--errors")  # before the evaluation, not after it
+    if args.shape_samples < 1:
+        raise RigspaceError(
+            f"--shape-samples is {args.shape_samples}.", "pass 1 or more samples (default 8)."
+        )
     if args.display:
         return run_display(args)
     model, dataset = Path(args.model), Path(args.dataset)
@@ -683,7 +696,9 @@ def _shapes(args: argparse.Namespace, model: Path, dataset: Path) -> list[dict]:
         _note(f"{model} does not read {missing}: not measured there")
     if not names:
         return []
-    rows = shape_response(model, dataset, names, args.split, 8, args.predictor, args.device)
+    rows = shape_response(
+        model, dataset, names, args.split, args.shape_samples, args.predictor, args.device
+    )
     return [dataclasses.asdict(r) for r in rows]
 
 

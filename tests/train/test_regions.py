@@ -55,9 +55,13 @@ def test_train_trains_each_region_into_a_bundle_the_body_lists(region_dataset, t
     assert f"region face ({out / 'regions' / 'face'} on" in printed
     assert "shape response of the model" in printed and "shape response of region face" in printed
     assert main(["eval", str(out), str(region_dataset), "--no-baselines", "--limit", "2",
-                 "--json", "--shapes"]) == 0  # fmt: skip
+                 "--json", "--shapes", "--shape-samples", "3"]) == 0  # fmt: skip
     result = json.loads(capsys.readouterr().out)
     shapes = {r["shape"]: r for r in result["regions"]["face"]["shapes"]}
+    assert {r["samples"] for r in shapes.values()} == {3}
+    assert main(["eval", str(out), str(region_dataset), "--no-baselines", "--shapes",
+                 "--shape-samples", "0"]) == 2  # fmt: skip
+    assert "--shape-samples is 0" in capsys.readouterr().err
     assert set(shapes) == set(read_manifest(out / "regions" / "face").blend_shapes)
     blink = shapes["blink"]  # the eyes' points pulled in: the mesh's face moves where seen
     assert blink["samples"] > 0 and blink["mesh_change"] > 0 and blink["network_change"] >= 0
