@@ -103,13 +103,20 @@ def _add_bundle_arguments(parser: argparse.ArgumentParser) -> None:
         "touched; --minutes is shared by the regions' image sizes",
     )
     parser.add_argument(
+        "--region",
+        action="append",
+        metavar="NAME",
+        help="with --regions-only: train this region alone (repeat for several); the bundle's "
+        "other regions are kept as they are",
+    )
+    parser.add_argument(
         "--region-width",
         type=int,
         default=None,
         metavar="N",
         help="conv channels at 4x4 and 8x8 of each region's network (its --base-width; "
-        "default half the body's, at least its --min-width): a region draws a smaller part "
-        "of the character than the body and costs the frame its own time (docs/regions.md)",
+        "default the body's): narrower trains more steps a minute and costs less a frame; "
+        "the film face lost its hair and lips at half width (docs/regions.md)",
     )
     parser.add_argument(
         "--force",
@@ -185,6 +192,12 @@ def run_train(args: argparse.Namespace) -> int:
             "--force starts over and cannot be combined with --resume or --upgrade.",
             "drop --force to continue the run in --out, or drop --resume/--upgrade to replace it.",
         )
+    if args.region and not args.regions_only:
+        raise RigspaceError(
+            "--region picks the regions --regions-only trains.",
+            "add --regions-only to train those regions alone beside the body in --out, or drop "
+            "--region to train the body and every region.",
+        )
     if not args.regions_only:  # the body bundle in --out is kept: _regions_only checks it
         check_out(out, resume=args.resume or args.upgrade, force=args.force)
     if args.nproc > 1 and not distributed.under_torchrun():
@@ -248,13 +261,12 @@ def region_datasets(dataset: Path) -> list[tuple[str, int]]:
 
 def region_training_config(config: TrainConfig, resolution: int, width: int | None) -> TrainConfig:
     """A region's training options: the body's at the region's resolution, its network
-    `width` channels at 4x4 and 8x8 (None: half the body's, at least its min_width), so that
-    three regions cost a frame about a quarter of the body's network (docs/regions.md)."""
+    `width` channels at 4x4 and 8x8 (None: the body's base_width; docs/regions.md)."""
     if width is not None and width < 1:
         raise RigspaceError(
             f"--region-width is {width}.", "pass a number of channels of 1 or more (e.g. 64)."
         )
-    base = max(config.min_width, config.base_width // 2) if width is None else width
+    base = config.base_width if width is None else width
     region = dataclasses.replace(
         config,
         resolution=resolution,
@@ -299,6 +311,17 @@ def _regions_only(args: argparse.Namespace, out: Path, config: TrainConfig, ctx:
             "capture them: rigspace capture SCENE --out DATASET --regions (or --region NAME "
             "--out DATASET/regions/NAME).",
         )
+    if args.region:
+        held = [name for name, _ in regions]
+        missing = [name for name in args.region if name not in held]
+        if missing:
+            raise RigspaceError(
+                f"--region {', '.join(missing)}: {args.dataset} holds no such region dataset "
+                f"(it holds {', '.join(held)}).",
+                "name a region it holds, or capture it: rigspace capture SCENE --region NAME "
+                "--out DATASET/regions/NAME.",
+            )
+        regions = [r for r in regions if r[0] in args.region]
     for name, _ in regions:
         home = out / REGIONS / name
         check_out(home, resume=args.resume, force=args.force)

@@ -632,9 +632,22 @@ def _eyes(stage: Usd.Stage, rig: _Rig, look) -> None:
 
 
 def _hand(side: str) -> dict[str, tuple[str, str]]:
-    """A hand region framed at its knuckles: the square about `middle_01` (17.6 cm from its
-    farthest point over the clips, where the wrist's `hand` joint is 23.8 cm from it) spends
-    the 64x64 pixels on the hand, about 4 pixels a finger's width."""
+    """A hand region on a ring of 8 views (a third fewer samples than the face's).
+
+    The left hand: its joints and fingers at 64x64, framed at its knuckles, the square about
+    `middle_01_l` (17.6 cm from the hand's farthest point over the clips, where the wrist's
+    `hand_l` is 23.8 cm from it). The right hand keeps the 32x32 square about its wrist it
+    was trained on first: this character's right finger joints point up the forearm (FINGERS
+    is laid out along the hand's local +X, and the right arm's bones run along -X), so
+    `middle_01_r` lies 14 cm above the wrist and a square about it misses the hand's block
+    (README.md here, "Regions"); the fix changes the character and waits for the body's
+    recapture."""
+    if side == "r":
+        return {
+            "joint": ("token", '"hand_r"'),
+            "resolution": ("int", "32"),
+            "viewsPerRing": ("int", "8"),
+        }
     fingers = [
         f"{f}_0{k}_{side}" for f in ("thumb", "index", "middle", "ring", "pinky") for k in (1, 2, 3)
     ]
@@ -653,10 +666,8 @@ REGIONS = {
     "leftHand": _hand("l"),
     "rightHand": _hand("r"),
 }
-"""The shot's regions (docs/regions.md): the head with every face shape at 64x64, each hand
-with its fingers at 64x64 on a ring of 8 views (a third fewer samples than the face's: the
-capture's and the training's time goes to the face first); the body network's 128x128 is
-spent on the body."""
+"""The shot's regions (docs/regions.md): the head with every face shape at 64x64 and the hands
+(`_hand`); the body network's 128x128 is spent on the body."""
 
 
 def write_scene(out: Path, drawn: list[str]) -> Path:

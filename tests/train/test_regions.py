@@ -135,6 +135,13 @@ def test_regions_only_adds_regions_to_a_body_trained_before(region_dataset, tmp_
     assert "region face was trained into" in capsys.readouterr().err
     assert main([*args, "--regions-only", "--force"]) == 0
     assert read_manifest(out).regions[0].name == "face"
+    # --region picks the regions to train again; one the dataset lacks is named before any work.
+    assert main([*args, "--regions-only", "--force", "--region", "face"]) == 0
+    assert "region face: training at 16x16" in capsys.readouterr().out
+    assert main([*args, "--regions-only", "--force", "--region", "leftHand"]) == 2
+    assert "--region leftHand" in capsys.readouterr().err and (out / "regions" / "face").is_dir()
+    assert main([*args, "--region", "face"]) == 2
+    assert "--region picks the regions --regions-only trains" in capsys.readouterr().err
 
 
 def test_the_budget_is_shared_by_image_size():
@@ -144,15 +151,13 @@ def test_the_budget_is_shared_by_image_size():
     assert body == pytest.approx(4 * face) and face == pytest.approx(4 * hand)
 
 
-def test_a_region_trains_a_narrower_network_at_its_own_resolution():
+def test_a_region_trains_at_its_own_resolution_and_width():
     body = preset("small")
     region = region_training_config(body, 64, None)
     assert (region.resolution, region.start_resolution) == (64, 16)
-    assert region.base_width == body.base_width // 2 and region.latent == body.latent
-    assert region_training_config(body, 64, 128).base_width == 128
-    tiny = preset("tiny")  # half of 16 is 8, its min_width: never below it
-    assert region_training_config(tiny, 16, None).base_width == 8
-    assert region_training_config(tiny, 16, None).start_resolution == 16
+    assert region.base_width == body.base_width and region.latent == body.latent
+    assert region_training_config(body, 64, 64).base_width == 64
+    assert region_training_config(preset("tiny"), 8, None).start_resolution == 8
     with pytest.raises(RigspaceError, match="--region-width is 0"):
         region_training_config(body, 64, 0)
 
