@@ -164,6 +164,10 @@ def degrees_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(angles(a, b))
 
 
+NEW_SENDER_SAMPLES = 30
+"""Samples the restarted binding counts before the run may end: a second of the new sender's."""
+
+
 class StopThenRestart:
     """on_frame (FrameDriver) of a run whose sender stops and a new one starts: a sender once
     the engine is loaded; once the binding has settled (connected, no fade) for three frames,
@@ -178,6 +182,7 @@ class StopThenRestart:
         self.phases: dict[str, list] = {"first": [], "paused": [], "restarted": []}
         self.shown: dict[float, np.ndarray] = {}
         self.phase, self.settled = "warm-up", 0
+        self.samples_at_restart = 0
         self.ticks = None
 
     def __call__(self, engine, frame) -> bool:
@@ -198,8 +203,16 @@ class StopThenRestart:
         elif self.phase == "paused":
             lost = [e for e in self.phases["paused"] if e["status"] == "lost"]
             if len(lost) >= 2 and min(e["weight"] for e in lost) < 1.0:  # blending back
+                self.samples_at_restart = (
+                    live.runtimes[0].counters(time.monotonic()).as_dict()["samples"]
+                )
                 self.restart()
-        return self.phase == "restarted" and self.settled >= 3
+        # Done once the new sender's own samples arrive (its process may start late on a
+        # loaded machine: the four absurd /VMC/Ext/T alone must not end the run) and the
+        # binding has settled on them.
+        samples = live.runtimes[0].counters(time.monotonic()).as_dict()["samples"]
+        arrived = samples >= self.samples_at_restart + NEW_SENDER_SAMPLES
+        return self.phase == "restarted" and arrived and self.settled >= 3
 
     def restart(self) -> None:
         self.senders.append(Sender(self.url, TURN))  # a new process: a new port, T from 0
