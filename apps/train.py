@@ -198,6 +198,7 @@ def run_train(args: argparse.Namespace) -> int:
             "add --regions-only to train those regions alone beside the body in --out, or drop "
             "--region to train the body and every region.",
         )
+    region_training_config(config, config.resolution, args.region_width)  # before the body trains
     if not args.regions_only:  # the body bundle in --out is kept: _regions_only checks it
         check_out(out, resume=args.resume or args.upgrade, force=args.force)
     if args.nproc > 1 and not distributed.under_torchrun():
@@ -267,14 +268,12 @@ def region_training_config(config: TrainConfig, resolution: int, width: int | No
             f"--region-width is {width}.", "pass a number of channels of 1 or more (e.g. 64)."
         )
     base = config.base_width if width is None else width
-    region = dataclasses.replace(
+    return dataclasses.replace(
         config,
         resolution=resolution,
         start_resolution=min(config.start_resolution, resolution),
         base_width=base,
     )
-    region.check()
-    return region
 
 
 def budget_shares(body: int, regions: Sequence[int], minutes: float | None) -> list[float | None]:

@@ -195,6 +195,7 @@ class StopThenRestart:
         self.shown[frame.report.time] = live.last_local.copy()  # what this frame used
         entry = frame.report.characters[0]["live"][0]
         self.phases[self.phase].append(entry)
+        samples = live.runtimes[0].counters().samples
         settled = entry["status"] == "connected" and not live.runtimes[0].fading
         self.settled = self.settled + 1 if settled else 0
         if self.phase == "first" and self.settled >= 3:
@@ -203,14 +204,11 @@ class StopThenRestart:
         elif self.phase == "paused":
             lost = [e for e in self.phases["paused"] if e["status"] == "lost"]
             if len(lost) >= 2 and min(e["weight"] for e in lost) < 1.0:  # blending back
-                self.samples_at_restart = (
-                    live.runtimes[0].counters(time.monotonic()).as_dict()["samples"]
-                )
+                self.samples_at_restart = samples
                 self.restart()
         # Done once the new sender's own samples arrive (its process may start late on a
         # loaded machine: the four absurd /VMC/Ext/T alone must not end the run) and the
         # binding has settled on them.
-        samples = live.runtimes[0].counters(time.monotonic()).as_dict()["samples"]
         arrived = samples >= self.samples_at_restart + NEW_SENDER_SAMPLES
         return self.phase == "restarted" and arrived and self.settled >= 3
 
