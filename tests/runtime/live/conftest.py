@@ -140,4 +140,8 @@ class Sender:
 
     def close(self) -> None:
         self.process.terminate()
-        self.process.wait(30)
+        try:
+            self.process.wait(30)
+        except subprocess.TimeoutExpired:  # only a bound: SIGTERM ends it at once
+            self.process.kill()
+            self.process.wait()

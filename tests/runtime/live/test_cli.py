@@ -340,11 +340,12 @@ def test_an_unknown_source_name_is_refused(tmp_path, capsys):
     assert code == 2 and "--source body" in err and "they have: suit" in err
 
 
-def test_send_and_probe_subcommands(tmp_path, capsys):
-    port = free_port()
+def probe_on(port: int) -> tuple[threading.Thread, list[int]]:
+    """`live probe` on `port`, listening until 30 frames arrived (120 s: only a bound), once
+    its socket is bound or it ended: its thread and (once ended) exit code."""
     url = f"vmc://127.0.0.1:{port}"
     result: list[int] = []
-    probe = threading.Thread(  # listens until 30 frames arrived (120 s: only a bound)
+    probe = threading.Thread(
         target=lambda: result.append(
             main(["live", "probe", url, "--frames", "30", "--seconds", "120"])
         )
@@ -353,7 +354,24 @@ def test_send_and_probe_subcommands(tmp_path, capsys):
     # The probe's first run on a fresh clone imports and compiles for a while: wait for its
     # socket (or its end), bounded only by its own 120 s.
     assert wait_for(lambda: udp_port_bound(port) or not probe.is_alive(), timeout=120.0)
+    return probe, result
+
+
+def started_probe(capsys) -> tuple[str, threading.Thread, list[int]]:
+    """A listening probe_on a free port: its URL, thread and result. A port another program
+    took between the pick and the probe's bind (seen once on a loaded machine) is picked
+    again."""
+    for _ in range(5):
+        port = free_port()
+        probe, result = probe_on(port)
+        if probe.is_alive() or "in use by another program" not in capsys.readouterr().err:
+            break
     assert probe.is_alive(), f"live probe ended before it listened: {result}"
+    return f"vmc://127.0.0.1:{port}", probe, result
+
+
+def test_send_and_probe_subcommands(capsys):
+    url, probe, result = started_probe(capsys)
     assert main(["live", "send", url, "--bvh", str(CMU_CLIP), "--seconds", "0.8"]) == 0
     probe.join()
     lines = capsys.readouterr().out.strip().splitlines()
