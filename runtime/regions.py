@@ -126,34 +126,67 @@ def merge_region(
     (its branches include the body's); a map the body lacks stays absent. The blend is one
     compiled pass over the region's rectangle (`kernel` False: numpy, `_blend_reference`,
     which the pass is tested against)."""
-    if (body.albedo is None) != (region.albedo is None) or (
-        body.depth is not None and (region.depth is None or region.normal is None)
-    ):
-        raise ValueError(
-            f"a region's layer (branches {region.branches}) must have every map of the body's "
-            f"(branches {body.branches})"
-        )
-    weight, union = region_weight(body, region, feather, tolerance)
-    if not np.any(weight > 0):
-        return body
-    # The body's maps copied into the rectangle holding both (its cached layer stays as it is).
-    out = Layer(
+    return merge_regions(body, [region], feather, tolerance, kernel)
+
+
+def merge_regions(
+    body: Layer,
+    regions: list[Layer],
+    feather: float = FEATHER_PX,
+    tolerance: float = DEPTH_TOLERANCE,
+    kernel: bool = True,
+) -> Layer:
+    """The body's layer with `regions` merged in, in order: each as merge_region merges it
+    into the layer the ones before it made (a hand drawn after the face is depth-tested
+    against the face), over the rectangle holding the body and all of them. The body's maps
+    are copied into that rectangle once, when the first region wins a pixel (the frame merges
+    its three regions with one copy, not three); `body` itself when none wins any."""
+    for region in regions:
+        if (body.albedo is None) != (region.albedo is None) or (
+            body.depth is not None and (region.depth is None or region.normal is None)
+        ):
+            raise ValueError(
+                f"a region's layer (branches {region.branches}) must have every map of the "
+                f"body's (branches {body.branches})"
+            )
+    out: Layer | None = None
+    for region in regions:
+        # Against the layer so far: where `out` reaches beyond it, it holds the fills that
+        # _window gives outside a layer (no coverage, infinite depth), so the weight is the
+        # one merge_region would find against the smaller merged layer.
+        weight, _ = region_weight(body if out is None else out, region, feather, tolerance)
+        if not np.any(weight > 0):
+            continue
+        if out is None:
+            out = _copied_over(body, regions)
+        if kernel:
+            _blend(out, region, weight)
+        else:
+            _blend_reference(out, region, weight)
+    return body if out is None else out
+
+
+def _copied_over(body: Layer, regions: list[Layer]) -> Layer:
+    """The body's maps copied into the rectangle holding it and `regions` (its cached layer
+    stays as it is), a uv and chart map (zeros) where a region has one and the body not."""
+    union = (
+        min(body.x0, *(r.x0 for r in regions)),
+        min(body.y0, *(r.y0 for r in regions)),
+        max(body.x0 + body.mask.shape[1], *(r.x0 + r.mask.shape[1] for r in regions)),
+        max(body.y0 + body.mask.shape[0], *(r.y0 + r.mask.shape[0] for r in regions)),
+    )
+    uv = body.uv is not None or any(r.uv is not None for r in regions)
+    chart = body.chart is not None or any(r.chart is not None for r in regions)
+    return Layer(
         union[0], union[1],
         None if body.albedo is None else _onto(body.albedo, body, union, 0.0),
         _onto(body.mask, body, union, 0.0),
         None if body.depth is None else _onto(body.depth, body, union, np.inf),
         None if body.normal is None else _onto(body.normal, body, union, 0.0),
         body.level, body.branches, dict(body.info),
-        None if body.uv is None and region.uv is None
-        else _onto(_or_zeros(body.uv, body, 2), body, union, 0.0),
-        None if body.chart is None and region.chart is None
-        else _onto(_or_zeros(body.chart, body, 0, np.int32), body, union, 0),
+        _onto(_or_zeros(body.uv, body, 2), body, union, 0.0) if uv else None,
+        _onto(_or_zeros(body.chart, body, 0, np.int32), body, union, 0) if chart else None,
     )  # fmt: skip
-    if kernel:
-        _blend(out, region, weight)
-    else:
-        _blend_reference(out, region, weight)
-    return out
 
 
 def _blend_reference(out: Layer, region: Layer, weight: np.ndarray) -> None:

@@ -13,7 +13,7 @@ import numpy as np
 from rigspace.runtime.character import Layer, NeuralCharacter, NeuralPart
 from rigspace.runtime.frame import CachedLayer, Candidate, FrameCaches, FrameState
 from rigspace.runtime.live.engine import LiveInput
-from rigspace.runtime.regions import merge_region, region_skip
+from rigspace.runtime.regions import merge_regions, region_skip
 from rigspace.runtime.settings import EngineSettings
 from rigspace.runtime.shadows.frame import casts_shadows
 from rigspace.sdk.camera import Camera
@@ -274,9 +274,7 @@ class CharacterStages:
         kept = self.caches.merges.get(c.key)
         if kept is not None and kept[0] == key:
             return kept[1]
-        layer = body.layer
-        for region in regions:
-            layer = merge_region(layer, region.layer)
+        layer = merge_regions(body.layer, [r.layer for r in regions])
         merged = body if layer is body.layer else CachedLayer(body.pose, body.view, layer)
         self.caches.merges[c.key] = (key, merged)
         return merged

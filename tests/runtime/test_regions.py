@@ -22,6 +22,7 @@ from rigspace.runtime.regions import (
     FEATHER_PX,
     SOLID,
     merge_region,
+    merge_regions,
     region_skip,
     region_weight,
 )
@@ -202,6 +203,31 @@ def test_the_compiled_blend_equals_numpys(scene_layers):
                 assert np.array_equal(finite, np.isfinite(a)), name
                 assert np.abs(a[finite] - b[finite]).max() < MERGE_TOLERANCE, name
         assert (fast.chart is None and slow.chart is None) or np.array_equal(fast.chart, slow.chart)
+
+
+def test_regions_merged_at_once_equal_merging_them_one_by_one(scene_layers):
+    """merge_regions copies the body once for all its regions: the result is the chain of
+    merge_region (a later region depth-tested against the earlier ones, a hand before the
+    face), over the rectangle holding them all; beyond the chain's, the fills."""
+    body, face = scene_layers
+    rng = np.random.default_rng(3)
+    face.uv = rng.random((*face.mask.shape, 2), np.float32)
+    face.chart = np.full(face.mask.shape, 2, np.int32)
+    hand = _layer(face.x0 + 4, face.y0 - 2, _disc(10, 10, 5.0, 5.0, 4.0), 2.7, (0.9, 0.8, 0.1))
+    behind = _layer(0, 0, _disc(8, 8, 4.0, 4.0, 3.5), 4.0, (0.2, 0.9, 0.2))  # beyond the body
+    nothing = _layer(face.x0, face.y0, np.zeros_like(face.mask), 2.0, (1, 1, 1))
+    regions = [face, nothing, hand, behind]
+    at_once = merge_regions(body, regions)
+    chain = body
+    for r in regions:
+        chain = merge_region(chain, r)
+    assert (at_once.x0, at_once.y0) == (0, 0) == (chain.x0, chain.y0)
+    h, w = chain.mask.shape
+    for name in ("mask", "albedo", "depth", "normal", "uv", "chart"):
+        a, c = getattr(at_once, name), getattr(chain, name)
+        assert np.array_equal(a[:h, :w], c), name  # the same pass on the same values
+    assert np.all(at_once.mask[h:] == 0) and np.all(at_once.mask[:, w:] == 0)
+    assert merge_regions(body, [nothing]) is body and merge_regions(body, []) is body
 
 
 def _billboard(size: float, visible: bool = True, reason: str = "") -> Billboard:
