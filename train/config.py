@@ -88,6 +88,14 @@ class TrainConfig:
         default=0.0,
         metadata={"help": "extra mask/alpha loss weight on silhouette-edge pixels (0: off)"},
     )
+    shape_weight: float = field(
+        default=0.0,
+        metadata={
+            "help": "extra loss weight where the blend shapes move the surface: albedo, normals, "
+            "depth and texture terms weigh 1 + this x the pixel's mobility (0..1, its most "
+            "moving shape's displacement there over that shape's largest; 0: off)"
+        },
+    )
     conditioning: str = field(
         default="none",
         metadata={
@@ -196,6 +204,11 @@ class TrainConfig:
                     f"choose one of {', '.join(allowed)}.",
                 )
         check_oversample(self.oversample)
+        if not (0.0 <= self.shape_weight < float("inf")):
+            raise ConfigError(
+                f"Training option --shape-weight is {self.shape_weight}.",
+                "give 0 (off) or a positive weight, such as 4.",
+            )
         top = self.conditioning_top
         if top and (top < 8 or top & (top - 1)):
             raise ConfigError(

@@ -12,7 +12,9 @@ from __future__ import annotations
 import sys
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
 from rigspace.capture.cache import FOLDER as CACHE_FOLDER
@@ -29,6 +31,9 @@ from rigspace.sdk.conditioning import Skeleton2D, joints2d
 from rigspace.sdk.render import Maps
 from rigspace.sdk.rotations import matrix_from_rot6d, rig_inputs, rot6d_from_matrix
 from rigspace.train.config import check_oversample
+
+if TYPE_CHECKING:
+    from rigspace.train.regions import ShapeMobility
 
 SPLITS = ("train", "heldout-views", "heldout-clips")
 
@@ -181,6 +186,17 @@ RARITY_DECIMALS = 4
 resumed run, do not depend on how BLAS ordered a matrix product's sums."""
 
 
+def mobility_target(mobility: ShapeMobility, maps: Maps, factor: int) -> np.ndarray:
+    """(1, R/factor, R/factor) float32 how much the blend shapes move what each pixel of a
+    sample's maps shows (--shape-weight), from its chart and uv maps: the mobility of the
+    surface there, the most within one pixel (what a moving part uncovers or covers: the eyes
+    under a blink's lids, the silhouette's edge by an opening jaw), box-downsampled."""
+    assert maps.chart is not None and maps.uv is not None
+    seen = mobility.pixels(np.where(maps.mask > 0, maps.chart, 0), maps.uv)
+    seen = cv2.dilate(seen, np.ones((3, 3), np.uint8))  # a 3x3 maximum
+    return area_downsample(seen[None], factor).astype(np.float32)
+
+
 class SplitInfo:
     """What turning one sample's files into a training item needs of its dataset split.
 
@@ -207,6 +223,9 @@ class SplitInfo:
         """Set (train.conditioning.dataset_skeleton) to add each item's `joints2d`."""
         self.charts: tuple[np.ndarray, np.ndarray] | None = None
         """Set (chart_boxes) to add each item's `chart` and `uv` (the texture head's targets)."""
+        self.mobility: ShapeMobility | None = None
+        """Set (train.regions.shape_mobility) to add each item's `mobility` (1, R, R): how much
+        the blend shapes move the surface each pixel shows (--shape-weight)."""
 
     def make_item(self, maps: Maps, row: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """A sample's item from its maps and its params row (ITEM_COLUMNS, and BLEND_COLUMN
@@ -248,6 +267,16 @@ class SplitInfo:
                 self.dataset_resolution // self.resolution,
             )
             item["chart"], item["uv"] = chart[None], uv
+        if self.mobility is not None:  # --shape-weight: where the blend shapes move it
+            if maps.chart is None or maps.uv is None:
+                raise DatasetError(
+                    "A sample of this dataset has no texture AOVs (uv, chart), which "
+                    "--shape-weight reads to find where the blend shapes move the surface.",
+                    "capture the dataset again with this rigspace, or train without "
+                    "--shape-weight.",
+                )
+            factor = self.dataset_resolution // self.resolution
+            item["mobility"] = mobility_target(self.mobility, maps, factor)
         return item
 
     def batch_of(self, items: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:

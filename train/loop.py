@@ -28,7 +28,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, ParamSpec, TypeVar
+from typing import TYPE_CHECKING, Any, ParamSpec, TypeVar
 
 import cv2
 import numpy as np
@@ -60,6 +60,9 @@ from rigspace.train.network import Rig2Image, Shape, albedo_maps, geometry_maps,
 from rigspace.train.resident import ResidentBatches, resident_or_not
 from rigspace.train.step import forward_loss, make_optimizer, optimise, schedule, to_torch
 from rigspace.train.stream import is_shards, open_split, prefetcher
+
+if TYPE_CHECKING:
+    from rigspace.train.regions import ShapeMobility
 
 CHECKPOINT = "checkpoint.pt"
 RUN_FILE = "run.json"
@@ -524,9 +527,50 @@ def _set_up(
     if model.charts:  # every item gets its texture head's targets (chart, uv)
         samples.charts = held_out.charts = boxes
         texel_scale = texels_per_coordinate(dataset, manifest) if ctx.is_main else None
+    if config.shape_weight > 0:  # every item gets its mobility (where the shapes move)
+        samples.mobility = held_out.mobility = dataset_mobility(dataset, manifest)
     if config.channels_last:
         model = model.to(memory_format=torch.channels_last)
     return _Run(dataset, out, manifest, config, existing, samples, held_out, model, texel_scale)
+
+
+def dataset_mobility(dataset: Path, manifest: Any) -> ShapeMobility:
+    """Where the blend shapes of the dataset's character move its surface (train.regions.
+    shape_mobility over the dataset's texture charts), for --shape-weight; a TrainingError
+    naming what is missing (the scene, blend shapes, texture charts)."""
+    from rigspace.sdk.posing import CharacterRig
+    from rigspace.sdk.stage import open_stage
+    from rigspace.train.regions import shape_mobility
+
+    off = "or train without --shape-weight."
+    boxes = chart_boxes(dataset)
+    if boxes is None:
+        raise TrainingError(
+            f"--shape-weight finds where the blend shapes move through the texture charts, "
+            f"and {dataset} has none (its character has no texture).",
+            f"give the character a texture and capture again, {off}",
+        )
+    if not manifest.blend_shapes:
+        raise TrainingError(
+            f"--shape-weight weighs where the blend shapes move, and {dataset} records none.",
+            f"capture a character with blend shapes (skel:blendShapes), {off}",
+        )
+    scene = Path(manifest.scene)
+    if not scene.is_file():
+        raise TrainingError(
+            f"--shape-weight reads the blend shapes from the captured scene {scene}, which is "
+            "not here.",
+            f"restore the scene (the dataset's manifest names it), {off}",
+        )
+    stage = open_stage(scene)  # held while the rig is read
+    rig = CharacterRig(stage.GetPrimAtPath(manifest.character))
+    mobility = shape_mobility(rig, *boxes)
+    if mobility is None:
+        raise TrainingError(
+            f"No blend shape of {manifest.character} moves a textured triangle.",
+            f"check the shapes' offsets and the meshes' uvs, {off}",
+        )
+    return mobility
 
 
 def _plan(

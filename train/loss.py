@@ -10,6 +10,11 @@ empty pixels just outside the silhouette, so that "no chart" is learned there), 
 coordinates, the same (1 - a) L2 + a L1 on only the target chart's (u, v) pair where the
 target has a chart and at least half covers the pixel: coordinates are never compared
 across a seam, and a chart's field is free wherever its chart is not seen.
+
+Where the blend shapes move the surface (config.shape_weight, the batch's `mobility`: train.
+regions.ShapeMobility), the albedo, normal, depth, chart and coordinate terms weigh a pixel
+1 + shape_weight x its mobility (a weighted mean): a blink's few eyelid pixels are otherwise
+a small share of a face's loss.
 """
 
 from __future__ import annotations
@@ -103,7 +108,24 @@ def targets_for(
         targets["chart"], targets["uv"] = chart_downsample(
             batch["chart"], batch["uv"], size, charts
         )
+    if "mobility" in batch:
+        targets["mobility"] = downsample(batch["mobility"], size)
     return targets
+
+
+def shape_weights(target: dict[str, torch.Tensor], config: TrainConfig) -> torch.Tensor | None:
+    """1 + config.shape_weight x the targets' mobility (where the blend shapes move the
+    surface, train.regions.ShapeMobility); None when off or the batch has no mobility."""
+    if config.shape_weight <= 0 or "mobility" not in target:
+        return None
+    return 1.0 + config.shape_weight * target["mobility"].float()
+
+
+def _times(a: torch.Tensor | None, b: torch.Tensor | None) -> torch.Tensor | None:
+    """a x b, where either may be None (1 everywhere)."""
+    if a is None or b is None:
+        return b if a is None else a
+    return a * b
 
 
 def head_charts(head: torch.Tensor, branch: str = "albedo") -> int:
@@ -118,10 +140,15 @@ there; farther out the runtime never reads a chart)."""
 
 
 def texture_loss(
-    logits: torch.Tensor, coords: torch.Tensor, target: dict[str, torch.Tensor], config: TrainConfig
+    logits: torch.Tensor,
+    coords: torch.Tensor,
+    target: dict[str, torch.Tensor],
+    config: TrainConfig,
+    shapes: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """The chart and chart-coordinate terms of one level from the texture head's chart logits
-    (N, K+1, R, R) and coordinates (N, 2K, R, R) (see the module doc)."""
+    (N, K+1, R, R) and coordinates (N, 2K, R, R) (see the module doc); `shapes` (N, 1, R, R),
+    shape_weights, multiplies both terms' weights."""
     n, channels, h, w = coords.shape
     chart = target["chart"][:, 0].long()
     coverage = target["mask"][:, 0].float()
@@ -130,6 +157,8 @@ def texture_loss(
     # "no chart" is learned where the runtime reads charts at an edge (2 pixels around).
     border = F.max_pool2d((coverage > 0).float()[:, None], 5, 1, 2)[:, 0]
     weight = torch.maximum(coverage, BORDER_CHART_WEIGHT * border)
+    if shapes is not None:
+        weight = weight * shapes[:, 0]
     chart_term = (ce * weight).sum() / weight.sum().clamp_min(1.0)
     # The target chart's own (u, v) pair per pixel, in one gather (chart 0 reads pair 0 but
     # has no weight). Gathering, not slicing: a slice's backward zero-fills a gradient the
@@ -137,6 +166,8 @@ def texture_loss(
     pair = (chart - 1).clamp_min(0)[:, None, None].expand(n, 1, 2, h, w)
     uv = coords.reshape(n, channels // 2, 2, h, w).gather(1, pair)[:, 0]
     valid = ((chart > 0) & (coverage > 0.5)).to(coords.dtype)[:, None]
+    if shapes is not None:
+        valid = valid * shapes.to(coords.dtype)
     uv_term = mixed(uv.float(), target["uv"].float(), config.l1_weight, valid)
     return {"chart": config.chart_weight * chart_term, "uv": config.uv_weight * uv_term}
 
@@ -169,8 +200,10 @@ def level_loss(
     depth, normal, _ = geometry_maps(geometry_head)
     inside = (target["mask"] > 0.5).float()  # depth and normals where the target has surface
     edges = edge_weights(target["mask"], config.edge_weight)
+    shapes = shape_weights(target, config)  # where the blend shapes move (--shape-weight)
+    inside = _times(inside, shapes)
     terms = {
-        "albedo": mixed(albedo_maps(albedo_head), target["albedo"], a),
+        "albedo": mixed(albedo_maps(albedo_head), target["albedo"], a, shapes),
         "mask": config.mask_weight
         * coverage_loss(geometry_head[:, 4:5], target["mask"], config, edges),
         "alpha": config.mask_weight
@@ -179,7 +212,7 @@ def level_loss(
         "normal": config.normal_weight * mixed(normal, target["normal"], a, inside),
     }
     if texture is not None:
-        terms |= texture_loss(*texture, target, config)
+        terms |= texture_loss(*texture, target, config, shapes)
     return terms
 
 

@@ -79,20 +79,96 @@ class SurfaceRegion:
         return out & (maps.mask >= 0.5)
 
 
-def moved_vertices(rig: CharacterRig, time: float) -> list[np.ndarray]:
-    """Per posed mesh (posed_meshes order), (N,) bool: the vertices some blend shape moves."""
+def shape_displacements(rig: CharacterRig, time: float) -> tuple[list[np.ndarray], float]:
+    """Per posed mesh (posed_meshes order), (S, N): how far each of the S blend shapes at full
+    weight moves each vertex (scene units, posed at `time`); and the character's size."""
     zero = np.zeros(len(rig.blend_shapes), np.float32)
     base = rig.posed_meshes(time, weights=zero)
     size = max(float(np.ptp(np.concatenate([m.points for m in base]), axis=0).max()), 1e-12)
-    moved = [np.zeros(len(m.points), bool) for m in base]
+    moved = [np.zeros((len(rig.blend_shapes), len(m.points))) for m in base]
     for k in range(len(rig.blend_shapes)):
         weights = zero.copy()
         weights[k] = 1.0
-        for flags, rest, posed in zip(
+        for out, rest, posed in zip(
             moved, base, rig.posed_meshes(time, weights=weights), strict=True
         ):
-            flags |= np.linalg.norm(posed.points - rest.points, axis=1) > MOVED * size
-    return moved
+            out[k] = np.linalg.norm(posed.points - rest.points, axis=1)
+    return moved, size
+
+
+def moved_vertices(rig: CharacterRig, time: float) -> list[np.ndarray]:
+    """Per posed mesh (posed_meshes order), (N,) bool: the vertices some blend shape moves."""
+    displacements, size = shape_displacements(rig, time)
+    return [np.asarray((d > MOVED * size).any(axis=0)) for d in displacements]
+
+
+MOBILITY_TEXELS = 128
+"""Resolution of each chart's mobility over the chart's whole uv box."""
+
+
+@dataclass(frozen=True)
+class ShapeMobility:
+    """Where the blend shapes move the surface, in texture space: per chart, a (T, T) grid over
+    its uv box (row = v) of the mobility in [0, 1] (`shape_mobility`)."""
+
+    grids: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]
+    """chart -> (uv_min (2,), uv_max (2,), (T, T) float32 over that box)."""
+
+    def pixels(self, chart: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """(H, W) float32 the mobility of the surface each pixel shows, from its (H, W) chart and
+        (H, W, 2) uv maps; 0 where no chart or a chart the shapes do not move."""
+        out = np.zeros(chart.shape, np.float32)
+        for k, (lo, hi, grid) in self.grids.items():
+            sel = chart == k
+            if not sel.any():
+                continue
+            size = grid.shape[0]
+            texel = (uv[sel] - lo) / np.maximum(hi - lo, 1e-12) * size
+            col = np.clip(texel[:, 0].astype(np.int64), 0, size - 1)
+            row = np.clip(texel[:, 1].astype(np.int64), 0, size - 1)
+            out[sel] = grid[row, col]
+        return out
+
+
+def shape_mobility(
+    rig: CharacterRig, center: np.ndarray, half: np.ndarray, time: float = 0.0
+) -> ShapeMobility | None:
+    """The mobility of the character's surface, per texture chart over its uv box (`center`
+    and `half`: (K+1, 2), row k chart k's; a dataset's charts.json, train.data.chart_boxes,
+    or CharacterRig.texture_charts().boxes()): each blend shape's displacement of a vertex over that shape's
+    largest, the most of these over the shapes, and per triangle the most of its corners' (a
+    blink's eyelid and an open jaw's chin both reach 1; the neck a shape never moves, 0). None
+    for a rig without blend shapes, or when no shape moves a charted triangle."""
+    if not rig.blend_shapes:
+        return None
+    displacements, size = shape_displacements(rig, time)
+    largest = np.max([d.max(axis=1) for d in displacements], axis=0)  # (S,) over every mesh
+    largest = np.where(largest > MOVED * size, largest, np.inf)  # a shape that moves nothing
+    boxes = {k: (center[k] - half[k], center[k] + half[k]) for k in range(1, len(center))}
+    grids: dict[int, np.ndarray] = {}
+    for mesh, d in zip(rig.posed_meshes(time, charts=True), displacements, strict=True):
+        if mesh.chart is None or mesh.corner_uv is None:
+            continue
+        vertex = (d / largest[:, None]).max(axis=0)  # (N,) in [0, 1]
+        triangle = vertex[mesh.triangles].max(axis=1)
+        order = np.argsort(triangle, kind="stable")  # the most mobile drawn last, on top
+        for t in order[triangle[order] > 0]:
+            chart = int(mesh.chart[t])
+            if chart not in boxes:
+                continue
+            lo, hi = boxes[chart]
+            grid = grids.setdefault(chart, np.zeros((MOBILITY_TEXELS, MOBILITY_TEXELS), np.float32))
+            scale = (1 << SUBPIXEL_BITS) * MOBILITY_TEXELS / np.maximum(hi - lo, 1e-12)
+            corners = np.rint((mesh.corner_uv[t] - lo) * scale).astype(np.int32)
+            cv2.fillConvexPoly(grid, corners, float(triangle[t]), cv2.LINE_8, SUBPIXEL_BITS)
+    if not grids:
+        return None
+    closed = {}  # triangles far smaller than a texel can fall between texel centres
+    for k, grid in grids.items():
+        lo, hi = boxes[k]
+        wider = cv2.dilate(grid, np.ones((3, 3), np.uint8))  # a 3x3 maximum
+        closed[k] = (lo.astype(np.float32), hi.astype(np.float32), wider)
+    return ShapeMobility(closed)
 
 
 def blend_shape_region(rig: CharacterRig, time: float = 0.0) -> SurfaceRegion | None:

@@ -209,3 +209,15 @@ def test_the_shape_response_compares_the_network_s_change_with_the_mesh_s():
     still = summarise("jawOpen", [(moved, np.zeros_like(moved), pixels)])  # ignores the shape
     assert still.ratio == 0.0 and np.isnan(still.correlation)
     assert np.isnan(summarise("jawOpen", [(moved, moved, ~pixels)]).ratio)  # no pixel: no number
+
+
+def test_shape_weight_without_texture_charts_is_named_before_anything_is_written(
+    region_dataset, tmp_path, capsys
+):
+    out = tmp_path / "model"
+    args = ["train", str(region_dataset), "--out", str(out), "--preset", "tiny", "--steps", "1",
+            "--no-int8", "--shape-weight", "4"]  # fmt: skip
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "--shape-weight" in err and "texture charts" in err and "Traceback" not in err
+    assert not out.exists()

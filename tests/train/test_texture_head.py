@@ -15,6 +15,7 @@ onnx = pytest.importorskip("onnx", reason="the export needs the train extra (onn
 
 from rigspace.sdk.model import BundleModel  # noqa: E402
 from rigspace.train import graph_rewrite, loop  # noqa: E402
+from rigspace.train import loss as loss_module  # noqa: E402
 from rigspace.train.config import preset  # noqa: E402
 from rigspace.train.data import SampleSet, chart_boxes, chart_targets  # noqa: E402
 from rigspace.train.export import export_bundle  # noqa: E402
@@ -99,6 +100,51 @@ def test_the_loss_reads_only_the_target_charts_coordinates():
     assert loss(own)["uv"] > base["uv"] + 0.1
 
 
+def test_the_shape_weight_makes_an_error_where_the_shapes_move_cost_more():
+    """--shape-weight: the same albedo error costs 1 + weight times more on pixels of mobility
+    1 than on still ones (a weighted mean), and nothing changes at weight 0 or without a
+    mobility map."""
+    size = 8
+    chart, uv = _labels(size)
+    target_chart, local = chart_targets(chart, uv, BOXES, 1)
+    mobility = torch.zeros(2, 1, size, size)
+    mobility[:, :, :4] = 1.0  # the top half moves (a mouth), the bottom half is still
+    target = {
+        "albedo": torch.full((2, 3, size, size), 0.5),
+        "mask": torch.ones(2, 1, size, size),
+        "normal": torch.nn.functional.normalize(torch.ones(2, 3, size, size), dim=1),
+        "depth": torch.zeros(2, 1, size, size),
+        "chart": torch.from_numpy(target_chart)[None, None].repeat(2, 1, 1, 1),
+        "uv": torch.from_numpy(local)[None].repeat(2, 1, 1, 1),
+        "mobility": mobility,
+    }
+    albedo_head = torch.zeros(2, 4 + texture_channels(2), size, size)
+    albedo_head[:, 3] = 10.0  # alpha logit: covered
+    geometry_head = torch.zeros(2, 5, size, size)
+    geometry_head[:, :3] = 1.0
+    geometry_head[:, 4] = 10.0
+
+    def terms(weight: float, rows: slice, with_mobility: bool = True) -> dict[str, float]:
+        head = albedo_head.clone()
+        head[:, :3, rows] += 0.3  # an albedo error on those rows
+        config = replace(TINY, shape_weight=weight)
+        wanted = target if with_mobility else {k: v for k, v in target.items() if k != "mobility"}
+        out = loss_module.level_loss(head, geometry_head, dict(wanted), config)
+        return {k: float(v) for k, v in out.items()}
+
+    moving, still = slice(0, 4), slice(4, 8)
+    assert terms(0.0, moving)["albedo"] == pytest.approx(terms(0.0, still)["albedo"])
+    ratio = terms(4.0, moving)["albedo"] / terms(4.0, still)["albedo"]
+    assert ratio == pytest.approx(5.0, rel=1e-3)
+    assert terms(4.0, moving, with_mobility=False) == terms(0.0, moving)
+
+
+def test_a_negative_or_nan_shape_weight_is_named():
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(Exception, match="--shape-weight"):
+            replace(TINY, shape_weight=bad).check()
+
+
 @pytest.mark.parametrize(
     "overrides",
     [
@@ -114,6 +160,7 @@ def test_the_loss_reads_only_the_target_charts_coordinates():
         {"mask_loss": "soft-iou", "edge_weight": 2.0},
         {"texture_branch": "geometry"},
         {"texture_branch": "texture", "conditioning": "bones2d", "conditioning_mode": "add"},
+        {"shape_weight": 4.0, "edge_weight": 1.0},
     ],
 )
 def test_forward_loss_and_backward_on_the_meta_device(overrides):
@@ -134,6 +181,7 @@ def test_forward_loss_and_backward_on_the_meta_device(overrides):
         "depth": torch.empty(2, 1, size, size, device=meta),
         "chart": torch.zeros(2, 1, size, size, dtype=torch.long, device=meta),
         "uv": torch.empty(2, 2, size, size, device=meta),
+        "mobility": torch.empty(2, 1, size, size, device=meta) if config.shape_weight else None,
     }
     # Through the training step's own forward_loss (its autocast included), bf16 on and off.
     loss, _ = loop.forward_loss(
