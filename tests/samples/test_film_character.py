@@ -92,32 +92,39 @@ def test_posing_equals_usdskel_bake_skinning_with_fingers_and_face(built, tmp_pa
             np.testing.assert_allclose(got, want, atol=2e-3)  # cm, float32
 
 
+def _around_the_head(info: dict):
+    """The shot's character (its rig) and its maps at time 0 from each view of its capture
+    ring's first elevation, around the head (the gl renderer)."""
+    from rigspace.capture.settings import resolve_settings
+    from rigspace.sdk.render import RenderSettings, choose_renderer
+
+    settings, rig = resolve_settings(info["scene"], "/World/Hero", None, warn=lambda _: None)
+    meshes = rig.posed_meshes(0.0, charts=True)
+    head = rig.world_transforms(0.0)[rig.joints.index(settings.look_at_joint)][:3, 3]
+    views = [v for v in settings.views() if v.elevation == settings.views()[0].elevation]
+    with choose_renderer("gl").create(RenderSettings(1)) as renderer:
+        return rig, [renderer.render(meshes, v.camera(head, settings.lens)) for v in views]
+
+
 def test_the_face_region_is_found_from_the_shapes_and_seen_only_from_the_front(built):
     """train/regions.py: the surface the blend shapes move, found in texture space and read
     back from a render's uv and chart maps: seen in the head's part of the image from the
     front, all but hidden from behind."""
-    from rigspace.capture.settings import resolve_settings
-    from rigspace.sdk.render import RenderSettings, choose_renderer
     from rigspace.train.regions import WholeCharacter, blend_shape_region
 
-    info, _ = built
-    settings, rig = resolve_settings(info["scene"], "/World/Hero", None, warn=lambda _: None)
+    rig, ring = _around_the_head(built[0])
     face = blend_shape_region(rig)
     assert face is not None and face.name == "face"
-    meshes = rig.posed_meshes(0.0, charts=True)
-    head = rig.world_transforms(0.0)[rig.joints.index(settings.look_at_joint)][:3, 3]
     counts = []
-    with choose_renderer("gl").create(RenderSettings(1)) as renderer:
-        for view in [v for v in settings.views() if v.elevation == settings.views()[0].elevation]:
-            maps = renderer.render(meshes, view.camera(head, settings.lens))
-            pixels = face.pixels(maps)
-            character = WholeCharacter().pixels(maps)
-            assert pixels is not None and not np.any(pixels & ~character)
-            if pixels.any():  # the face is the top of the character, never its legs
-                rows = np.flatnonzero(character.any(axis=1))
-                top, height = rows[0], rows[-1] - rows[0]
-                assert np.flatnonzero(pixels.any(axis=1))[-1] < top + 0.25 * height
-            counts.append(int(pixels.sum()))
+    for maps in ring:
+        pixels = face.pixels(maps)
+        character = WholeCharacter().pixels(maps)
+        assert pixels is not None and not np.any(pixels & ~character)
+        if pixels.any():  # the face is the top of the character, never its legs
+            rows = np.flatnonzero(character.any(axis=1))
+            top, height = rows[0], rows[-1] - rows[0]
+            assert np.flatnonzero(pixels.any(axis=1))[-1] < top + 0.25 * height
+        counts.append(int(pixels.sum()))
     # Seen from the front; from behind, at most the jaw's edge by the neck.
     assert max(counts) > 20 and min(counts) <= 0.05 * max(counts)
 
@@ -126,34 +133,25 @@ def test_the_shapes_mobility_covers_the_moving_face_and_nothing_behind_the_head(
     """--shape-weight's map (train.regions.shape_mobility, train.data.mobility_target): in
     [0, 1], reaching 1 where a shape moves most, on the face's pixels from the front, none
     from behind beyond the jaw's edge, none off the character; downsampled by box means."""
-    from rigspace.capture.settings import resolve_settings
-    from rigspace.sdk.render import RenderSettings, choose_renderer
     from rigspace.train.data import mobility_target
     from rigspace.train.regions import blend_shape_region, shape_mobility
 
-    info, _ = built
-    settings, rig = resolve_settings(info["scene"], "/World/Hero", None, warn=lambda _: None)
+    rig, ring = _around_the_head(built[0])
     mobility = shape_mobility(rig, *rig.texture_charts().boxes())
     face = blend_shape_region(rig)
     assert mobility is not None and face is not None
-    meshes = rig.posed_meshes(0.0, charts=True)
-    head = rig.world_transforms(0.0)[rig.joints.index(settings.look_at_joint)][:3, 3]
     seen = []
-    with choose_renderer("gl").create(RenderSettings(1)) as renderer:
-        for view in [v for v in settings.views() if v.elevation == settings.views()[0].elevation]:
-            maps = renderer.render(meshes, view.camera(head, settings.lens))
-            full = mobility_target(mobility, maps, 1)[0]
-            assert full.min() >= 0.0 and full.max() <= 1.0
-            assert np.all(
-                full[cv2.dilate((maps.mask > 0).astype(np.uint8), np.ones((3, 3))) == 0] == 0
-            )
-            half = mobility_target(mobility, maps, 2)[0]
-            np.testing.assert_allclose(
-                half, full.reshape(half.shape[0], 2, -1, 2).mean((1, 3)), atol=1e-6
-            )
-            pixels = face.pixels(maps)
-            moving = full * (maps.mask >= 0.5)
-            seen.append((float(moving.sum()), float(moving.max()), int(pixels.sum())))
+    for maps in ring:
+        full = mobility_target(mobility, maps, 1)[0]
+        assert full.min() >= 0.0 and full.max() <= 1.0
+        assert np.all(full[cv2.dilate((maps.mask > 0).astype(np.uint8), np.ones((3, 3))) == 0] == 0)
+        half = mobility_target(mobility, maps, 2)[0]
+        np.testing.assert_allclose(
+            half, full.reshape(half.shape[0], 2, -1, 2).mean((1, 3)), atol=1e-6
+        )
+        pixels = face.pixels(maps)
+        moving = full * (maps.mask >= 0.5)
+        seen.append((float(moving.sum()), float(moving.max()), int(pixels.sum())))
     front = max(seen)
     assert front[1] == pytest.approx(1.0) and front[0] > 0.2 * front[2]  # most of the face moves
     assert min(s[0] for s in seen) <= 0.05 * front[0]  # from behind, at most the jaw's edge
