@@ -267,10 +267,11 @@ def assert_no_pop_through_the_gap(recorded, status: list[str]) -> None:
     move = np.linalg.norm(
         recorded.root_positions[gap] - recorded.root_positions[np.subtract(gap, 1)], axis=1
     )
-    worst = gap[int(np.argmax(turn.max(axis=1)))]
+    row = int(np.argmax(turn.max(axis=1)))
+    worst, joint = gap[row], int(np.argmax(turn[row]))
     assert turn.max() < 25.0 and move.max() < 25.0, (
-        f"tick {worst}: {turn.max():.1f} deg, statuses around it "
-        f"{status[max(worst - 3, 0) : worst + 3]}",
+        f"tick {worst}: {turn.max():.1f} deg at joint {joint}, statuses around it "
+        f"{status[max(worst - 3, 0) : worst + 3]}, gap ticks {gap[0]}-{gap[-1]}",
         turn.max(axis=1),
         move,
     )
