@@ -204,7 +204,7 @@ class TrainConfig:
                     f"choose one of {', '.join(allowed)}.",
                 )
         check_oversample(self.oversample)
-        if not (0.0 <= self.shape_weight < float("inf")):
+        if not (math.isfinite(self.shape_weight) and self.shape_weight >= 0):
             raise ConfigError(
                 f"Training option --shape-weight is {self.shape_weight}.",
                 "give 0 (off) or a positive weight, such as 4.",

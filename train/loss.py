@@ -121,13 +121,6 @@ def shape_weights(target: dict[str, torch.Tensor], config: TrainConfig) -> torch
     return 1.0 + config.shape_weight * target["mobility"].float()
 
 
-def _times(a: torch.Tensor | None, b: torch.Tensor | None) -> torch.Tensor | None:
-    """a x b, where either may be None (1 everywhere)."""
-    if a is None or b is None:
-        return b if a is None else a
-    return a * b
-
-
 def head_charts(head: torch.Tensor, branch: str = "albedo") -> int:
     """K, the texture charts a branch's head predicts (0: no texture head)."""
     extra = head.shape[1] - BRANCH_CHANNELS[branch]
@@ -201,7 +194,8 @@ def level_loss(
     inside = (target["mask"] > 0.5).float()  # depth and normals where the target has surface
     edges = edge_weights(target["mask"], config.edge_weight)
     shapes = shape_weights(target, config)  # where the blend shapes move (--shape-weight)
-    inside = _times(inside, shapes)
+    if shapes is not None:
+        inside = inside * shapes
     terms = {
         "albedo": mixed(albedo_maps(albedo_head), target["albedo"], a, shapes),
         "mask": config.mask_weight

@@ -71,12 +71,21 @@ class SurfaceRegion:
             sel = maps.chart == chart
             if not sel.any():
                 continue
-            texel = (maps.uv[sel] - lo) / np.maximum(hi - lo, 1e-12) * TEXELS
-            inside = np.all((texel >= 0) & (texel < TEXELS), axis=1)
-            col = np.clip(texel[:, 0].astype(np.int64), 0, TEXELS - 1)
-            row = np.clip(texel[:, 1].astype(np.int64), 0, TEXELS - 1)
+            col, row, inside = _texels(maps.uv[sel], lo, hi, TEXELS)
             out[sel] = inside & mask[row, col]
         return out & (maps.mask >= 0.5)
+
+
+def _texels(
+    uv: np.ndarray, lo: np.ndarray, hi: np.ndarray, size: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(n, 2) uv points on a size x size grid over the box [lo, hi] (row = v): each one's
+    column and row (clipped into the grid) and whether it lies inside the box."""
+    texel = (uv - lo) / np.maximum(hi - lo, 1e-12) * size
+    inside = np.all((texel >= 0) & (texel < size), axis=1)
+    col = np.clip(texel[:, 0].astype(np.int64), 0, size - 1)
+    row = np.clip(texel[:, 1].astype(np.int64), 0, size - 1)
+    return col, row, inside
 
 
 def shape_displacements(rig: CharacterRig, time: float) -> tuple[list[np.ndarray], float]:
@@ -122,10 +131,7 @@ class ShapeMobility:
             sel = chart == k
             if not sel.any():
                 continue
-            size = grid.shape[0]
-            texel = (uv[sel] - lo) / np.maximum(hi - lo, 1e-12) * size
-            col = np.clip(texel[:, 0].astype(np.int64), 0, size - 1)
-            row = np.clip(texel[:, 1].astype(np.int64), 0, size - 1)
+            col, row, _ = _texels(uv[sel], lo, hi, grid.shape[0])
             out[sel] = grid[row, col]
         return out
 
@@ -135,10 +141,11 @@ def shape_mobility(
 ) -> ShapeMobility | None:
     """The mobility of the character's surface, per texture chart over its uv box (`center`
     and `half`: (K+1, 2), row k chart k's; a dataset's charts.json, train.data.chart_boxes,
-    or CharacterRig.texture_charts().boxes()): each blend shape's displacement of a vertex over that shape's
-    largest, the most of these over the shapes, and per triangle the most of its corners' (a
-    blink's eyelid and an open jaw's chin both reach 1; the neck a shape never moves, 0). None
-    for a rig without blend shapes, or when no shape moves a charted triangle."""
+    or CharacterRig.texture_charts().boxes()): each blend shape's displacement of a vertex
+    over that shape's largest, the most of these over the shapes, and per triangle the most
+    of its corners' (a blink's eyelid and an open jaw's chin both reach 1; the neck a shape
+    never moves, 0). None for a rig without blend shapes, or when no shape moves a charted
+    triangle."""
     if not rig.blend_shapes:
         return None
     displacements, size = shape_displacements(rig, time)
