@@ -29,6 +29,7 @@ from rigspace.runtime.live.retarget import (
     Retargeter,
     RetargetError,
     blend_transforms,
+    fade_transforms,
     source_basis,
     source_hierarchy,
     target_skeleton,
@@ -76,6 +77,9 @@ class LiveBindingRuntime:
     _fade: tuple[float, float, np.ndarray | None] | None = None
     """(start, seconds, held from-transforms or None: from the stage animation as it plays)
     of the transition in progress."""
+    _arcs: np.ndarray | None = None
+    """The fade's per-joint turns at the last frame (`fade_transforms`: it turns on the way it
+    went)."""
     _blend_cache: tuple[tuple[str, ...], dict[str, list[int]]] | None = None
     """(the character's shapes, source name -> indices of the shapes it drives)."""
     _anchor: np.ndarray | None = None
@@ -157,6 +161,7 @@ class LiveBindingRuntime:
             frozen = self._shown.copy() if held and self._shown is not None else None
             turn = float(_turn_degrees(in_place if frozen is None else frozen, out).max())
             self._fade = (now, max(self.buffer.settings.blend, turn / TURN_RATE), frozen)
+            self._arcs = None
         if self._fade is not None:
             start, seconds, frozen = self._fade
             u = (now - start) / seconds if seconds > 0 else 1.0
@@ -167,7 +172,8 @@ class LiveBindingRuntime:
                 if pose.status == CONNECTED:
                     self._anchor = None
             else:
-                out = blend_transforms(in_place if frozen is None else frozen, out, max(u, 0.0))
+                start_pose = in_place if frozen is None else frozen
+                out, self._arcs = fade_transforms(start_pose, out, max(u, 0.0), self._arcs)
         self._shown = out
         return out
 

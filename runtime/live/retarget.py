@@ -25,7 +25,7 @@ from rigspace.runtime.live.buffer import LivePose
 from rigspace.runtime.live.decoders.vmc import HUMAN_BODY_BONES, ROOT
 from rigspace.runtime.live.source_frame import quat_slerp
 from rigspace.sdk.errors import RigspaceError
-from rigspace.sdk.rotations import matrix_from_quat, quat_from_matrix
+from rigspace.sdk.rotations import matrix_from_quat, quat_from_matrix, quat_multiply
 
 
 class RetargetError(RigspaceError):
@@ -605,6 +605,33 @@ def blend_transforms(a: np.ndarray, b: np.ndarray, weight: float) -> np.ndarray:
     out[:, :3, :3] = rotation * scale[:, :, None]
     out[:, 3, :3] = (1 - weight) * a[:, 3, :3] + weight * b[:, 3, :3]
     return out
+
+
+def fade_transforms(
+    a: np.ndarray, b: np.ndarray, weight: float, arcs: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """`blend_transforms` for a fade whose ends move from call to call: each joint turns from
+    a towards b along the arc it took in the last call (`arcs`, (J, 4) its turns a^-1 b then;
+    None: the short arc), so a b that turns through the rotation opposite a keeps the blend
+    turning the way it went instead of flipping to the other short arc (a pop of up to
+    180 deg times the weight in one tick). Returns the blend and the arcs for the next call."""
+    scale_a = np.linalg.norm(a[:, :3, :3], axis=2)
+    scale_b = np.linalg.norm(b[:, :3, :3], axis=2)
+    qa = quat_from_matrix(np.swapaxes(a[:, :3, :3] / scale_a[:, :, None], 1, 2))
+    qb = quat_from_matrix(np.swapaxes(b[:, :3, :3] / scale_b[:, :, None], 1, 2))
+    turn = quat_multiply(qa * [1.0, -1.0, -1.0, -1.0], qb)  # a^-1 b: unit, so conj = inverse
+    side = turn[:, 0] if arcs is None else np.sum(turn * arcs, axis=1)
+    turn = np.where(side[:, None] < 0, -turn, turn)  # w < 0: past half a turn, the long way
+    sine = np.linalg.norm(turn[:, 1:], axis=1)
+    half = np.arctan2(sine, turn[:, 0]) * weight  # the half angle, 0..pi, times the weight
+    axis = turn[:, 1:] / np.maximum(sine, 1e-12)[:, None]
+    part = np.concatenate([np.cos(half)[:, None], axis * np.sin(half)[:, None]], axis=1)
+    rotation = np.swapaxes(matrix_from_quat(quat_multiply(qa, part)), 1, 2)
+    scale = (1 - weight) * scale_a + weight * scale_b
+    out = a.copy()
+    out[:, :3, :3] = rotation * scale[:, :, None]
+    out[:, 3, :3] = (1 - weight) * a[:, 3, :3] + weight * b[:, 3, :3]
+    return out, turn
 
 
 def _nearest_pair(

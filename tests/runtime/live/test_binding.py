@@ -323,6 +323,48 @@ def test_a_transition_cut_short_by_a_gap_or_a_reconnect_moves_no_joint_more_than
     assert _joint_angles(shown[-1], runtime.apply(local, now=t)[0]).max() < 1e-6  # arrived
 
 
+def test_a_fade_towards_a_pose_turning_through_the_opposite_one_does_not_flip(skel):
+    """A fade's target can turn through the rotation opposite the one it fades from: the
+    stage animation's root half a turn from where the performer left it, turning on while the
+    loss fades back (or, at a connect, the stage root half a turn from the live one). The
+    blend keeps turning the way it went; before, it flipped to the other short arc in one
+    tick (the live reconnect test saw 172 deg at one tick of a loss on a loaded machine)."""
+    from rigspace.runtime.live.source_frame import SourceFrame
+    from rigspace.sdk.rotations import matrix_from_quat, quat_multiply
+
+    _, skel_prim, local = skel
+    runtime = open_binding(live_binding("vmc://127.0.0.1:1"), skel_prim, 0.01)  # never started
+    bones = runtime.source.bones
+    hips, root = bones.index("Hips"), runtime.retargeter.target_root
+    live_root = np.array([np.cos(1.05), 0.0, 0.0, np.sin(1.05)])  # 120 deg about z
+
+    def stage_turned(degrees: float) -> np.ndarray:
+        """The stage pose, its root `degrees` about y from the live root's rotation."""
+        half = np.radians(degrees) / 2
+        q = quat_multiply(live_root, [np.cos(half), 0.0, np.sin(half), 0.0])
+        out = local.copy()
+        out[root, :3, :3] = np.swapaxes(matrix_from_quat(q), 0, 1)
+        return out
+
+    lost_after, step = runtime.buffer.settings.lost_after, 1 / 30
+    shown, statuses, t, crossing = [], [], 0.0, 0.4  # the stage root at 180 deg then
+    while t < 1.5 + lost_after + 2.0:
+        if t < 1.5:  # connected (its fade from the stage: the connect case), then a gap
+            frame = SourceFrame(0, t, np.array([hips]), live_root[None], np.zeros(3))
+            runtime.buffer.push(frame, t)
+        # The stage root crosses the opposite rotation 0.4 s into the connect's fade, and
+        # again 0.4 s into the loss's (lost_after after the last sample), 40 deg a second.
+        since = t - 0.0 if t < 1.5 else t - (1.5 + lost_after)
+        out, pose = runtime.apply_frame(stage_turned(180.0 + 40.0 * (since - crossing)), t)
+        shown.append(out)
+        statuses.append(pose.status)
+        t += step
+    assert {"connected", "lost"} <= set(statuses)
+    per_tick = np.array([_joint_angles(a, b)[root] for a, b in itertools.pairwise(shown)])
+    worst = int(np.argmax(per_tick))
+    assert per_tick.max() <= 10.0, (worst, statuses[worst], per_tick.max())
+
+
 def test_a_bvh_binding_and_a_vmc_binding_pose_the_character_alike(skel):
     """Issue 21's pelvis rule through open_binding itself: the clip replayed as BVH (the cmu
     preset, the clip's own rest) and the same clip as `live send` puts it on the humanoid,
