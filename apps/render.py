@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import sys
@@ -165,7 +166,11 @@ def run(args: argparse.Namespace) -> int:
             video.close()
     cv2.imwrite(str(out / "contact_sheet.png"), contact_sheet(thumbs))
     paths = [c.path for c in engine.characters]
-    warnings = never_drawn(reports, paths) + draws_nothing(reports, paths)
+    warnings = (
+        never_drawn(reports, paths)
+        + draws_nothing(reports, paths)
+        + novel_views(reports, engine.characters)
+    )
     for warning in warnings:
         print(f"rigspace render: warning: {warning}", file=sys.stderr)
     warnings = engine.region_warnings + warnings  # said when the engine loaded them
@@ -280,6 +285,68 @@ def never_drawn(reports: list[dict], characters: list[str]) -> list[str]:
             f"{path} is in none of the {len(reports)} frames: {reason} ({count} of them)."
         )
     return warnings
+
+
+def novel_views(reports: list[dict], characters: list) -> list[str]:
+    """A sentence per body or region (NeuralPart) whose evaluated frames saw its look-at
+    joint further than NOVEL_VIEW_DEG outside the views its network learned (the frames'
+    `novel_view`): which frames, how far, which way, and the ring that would cover them
+    (sdk.view_coverage)."""
+    from collections import Counter
+
+    from rigspace.sdk.view_coverage import NOVEL_VIEW_DEG, advice
+
+    warnings = []
+    for character in characters:
+        for part in [character, *character.regions]:
+            seen: list[tuple[float, float, str]] = []
+            for r in reports:
+                for e in r["characters"]:
+                    if e.get("path") != character.path:
+                        continue
+                    if part is not character:
+                        e = next((x for x in e.get("regions", ()) if x["name"] == part.name), {})
+                    if "novel_view_deg" in e:
+                        seen.append((r["time"], e["novel_view_deg"], e.get("novel_view", "")))
+            far = [(t, d, way) for t, d, way in seen if way]
+            if not far or part.views is None:
+                continue
+            way = Counter(way for _, _, way in far).most_common(1)[0][0]
+            worst = max(d for _, d, _ in far)
+            held = (part.views.held_out or {}).get("median")
+            attribute = (
+                "rigspace:captureRing:elevations"
+                if part is character
+                else f"rigspace:region:{part.name}:elevations"
+            )
+            joint = character.rig.joints[part.look_at].rsplit("/", 1)[-1]
+            warnings.append(
+                f"{character.path}'s {part.name} network: in {len(far)} of {len(seen)} frames "
+                f"({_spans([t for t, _, _ in far])}) the camera saw its joint {joint} up to "
+                f"{worst:.1f} deg outside the views it learned (more than {NOVEL_VIEW_DEG:g}), "
+                f"mostly {way}"
+                + (
+                    f" (its held-out views: {held:.1f} deg outside, median)"
+                    if held is not None
+                    else ""
+                )
+                + ": there its image is a guess, an average of the views it learned. To cover "
+                "them, " + advice(way, worst, part.views.elevations, attribute) + "."
+            )
+    return warnings
+
+
+def _spans(times: list[float]) -> str:
+    """Time codes as spans: [440, 460, 480, 600] -> "440-480, 600" (consecutive in the
+    list's own step)."""
+    step = min((b - a for a, b in itertools.pairwise(times)), default=0.0)
+    spans: list[list[float]] = []
+    for t in times:
+        if spans and t - spans[-1][1] <= step + 1e-6:
+            spans[-1][1] = t
+        else:
+            spans.append([t, t])
+    return ", ".join(f"{a:g}" if a == b else f"{a:g}-{b:g}" for a, b in spans)
 
 
 def draws_nothing(reports: list[dict], characters: list[str]) -> list[str]:

@@ -44,6 +44,7 @@ from rigspace.sdk.exr import read_exr
 from rigspace.sdk.fields import Field, Positive, Size, problems, spec_of
 from rigspace.sdk.files import write_atomic
 from rigspace.sdk.render import Maps
+from rigspace.sdk.view_coverage import ViewCoverage, build_views
 
 FORMAT = "rigspace.dataset"
 FORMAT_VERSION = 1
@@ -786,3 +787,30 @@ def read_sample(folder: Path, manifest: DatasetManifest, relative: str) -> Maps:
             f"{folder} --resume`: the settings come from its capture.json), which re-renders "
             "missing and damaged samples.",
         ) from exc
+
+
+def training_views(folder: str | Path, joints: Sequence[str]) -> tuple[ViewCoverage, int] | None:
+    """The training views of a dataset's look-at joint (sdk.view_coverage) for a network
+    reading `joints` (its manifest's, in input order), with how many training rows there were;
+    None without training rows or a look-at joint. Reads params.npz alone (no torch)."""
+    from rigspace.sdk import schema
+
+    folder = Path(folder)
+    manifest = read_manifest(folder)
+    if not manifest.look_at_joint:
+        return None
+    joint = schema.find_joint(manifest.look_at_joint, list(joints))
+    with np.load(folder / "params.npz", allow_pickle=False) as table:
+        rig, split = table["rig"], table["split"]
+    if rig.ndim != 3 or rig.shape[1] != len(joints):
+        raise DatasetError(
+            f"Dataset {folder} records {rig.shape[1] if rig.ndim == 3 else '?'} joints a "
+            f"sample, the network reads {len(joints)}.",
+            "pass the dataset the network was trained on.",
+        )
+    rows = rig.reshape(len(rig), -1)
+    train = rows[split == SPLITS.index(TRAIN)]
+    if not len(train):
+        return None
+    held = rows[split == SPLITS.index(HELDOUT_VIEWS)]
+    return build_views(train, held if len(held) else None, joint, manifest.ring.elevations)

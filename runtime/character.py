@@ -29,6 +29,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from pxr import Usd, UsdGeom, Vt
@@ -50,6 +51,12 @@ from rigspace.sdk.texturing import (
     magnification,
     region_warper,
     sharpen_coverage,
+)
+from rigspace.sdk.view_coverage import (
+    NOVEL_VIEW_DEG,
+    ViewCoverage,
+    ViewCoverageError,
+    read_views,
 )
 
 COVERAGE_EPSILON = 1e-4
@@ -175,6 +182,34 @@ class NeuralPart:
         self._chart_table: dict | None = None
         self.no_texture = self._load_textures(rig, shared)
         """Why its colour comes from the albedo branch alone ("" when it samples textures)."""
+        self.views: ViewCoverage | None = None
+        """The training views of its look-at joint (sdk.view_coverage), when its bundle has
+        them: each evaluation's distance to them goes in the frame's report."""
+        self.no_views = self._load_views()
+        """Why its frames report no novel views ("" when they do)."""
+
+    def _load_views(self) -> str:
+        section = self.model.manifest.views
+        if section is None:
+            return (
+                "its model bundle has no training views (views.npy; `python -m "
+                "rigspace.apps.views BUNDLE DATASET` adds them)"
+            )
+        try:
+            self.views = read_views(self.model.manifest.folder, section, len(self.model.joints))
+        except ViewCoverageError as exc:
+            return str(exc)
+        return ""
+
+    def novel_view(self, rig: np.ndarray) -> dict[str, Any]:
+        """The report's account of how far rig row `rig`'s view of the look-at joint lies
+        outside the views its network learned, and which way when it is novel (empty without
+        training views)."""
+        if self.views is None:
+            return {}
+        degrees, way = self.views.outside(rig)
+        far = degrees > NOVEL_VIEW_DEG
+        return {"novel_view_deg": round(degrees, 1), **({"novel_view": way} if far else {})}
 
     def _load_textures(self, rig: CharacterRig, shared: NeuralPart | None = None) -> str:
         """Its texture charts over the character's textures; those of `shared` (the body)

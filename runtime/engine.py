@@ -151,7 +151,8 @@ class Engine:
         return characters, without_model
 
     def _warn_characters(self) -> None:
-        """Warn once, at the start, of characters that cast no shadow or sample no texture."""
+        """Warn once, at the start, of characters that cast no shadow, sample no texture, or
+        whose training views (views.npy) cannot be read."""
         textured = self.settings.textures and not self.settings.reference
         for path, why in self._no_shadow:  # said once, here and in the first frame's report
             print(f"rigspace render: warning: {path} casts no shadow: {why}.", file=sys.stderr)
@@ -162,6 +163,13 @@ class Engine:
                     print(
                         f"rigspace render: warning: {which} samples no texture, its colour comes "
                         f"from the albedo branch: {part.no_texture}.",
+                        file=sys.stderr,
+                    )
+                if part.model.manifest.views is not None and part.views is None:
+                    which = c.path if part is c else f"{c.path} (region {part.name})"
+                    print(
+                        f"rigspace render: warning: {which} reports no views its network never "
+                        f"learned: {part.no_views}",
                         file=sys.stderr,
                     )
         for warning in self.region_warnings:

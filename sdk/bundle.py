@@ -148,6 +148,9 @@ class ModelManifest:
     """The torch predictor's section (train.torch_predictor): weights file, shape, config."""
     regions: tuple[RegionBundle, ...] = ()
     """The character's regions with networks of their own (docs/regions.md), in training order."""
+    views: dict[str, Any] | None = field(default=None, repr=False)
+    """The training views of its look-at joint (sdk.view_coverage: file, joint, elevations);
+    None in a bundle exported before them."""
 
     @property
     def folder(self) -> Path:
@@ -316,6 +319,7 @@ def _sections(
         conditioning=data.get("conditioning") or None,
         torch=data.get("torch") if isinstance(data.get("torch"), dict) else None,
         regions=_regions(data.get("regions") or [], file),
+        views=data.get("views") if isinstance(data.get("views"), dict) else None,
     )
 
 

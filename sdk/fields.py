@@ -244,6 +244,10 @@ BUNDLE_MANIFEST = (
     Field("regions[].name", "text", required=True),
     Field("regions[].joint", "text", required=True),
     Field("regions[].bundle", "text", required=True),
+    Field("views", "object"),
+    Field("views.file", "text", required=True),
+    Field("views.joint", "count", required=True),
+    Field("views.elevations", "numbers"),
 )
 """The fields of a model bundle's manifest.json that rigspace reads (sdk.bundle.read_manifest)."""
 

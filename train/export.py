@@ -38,6 +38,7 @@ from __future__ import annotations
 import hashlib
 import json
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +46,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from rigspace.capture.dataset import CHARTS_FILE, DatasetManifest, read_manifest
+from rigspace.capture.dataset import CHARTS_FILE, DatasetManifest, read_manifest, training_views
 from rigspace.sdk.bundle import (
     CONDITIONED_VERSION,
     FORMAT,
@@ -60,6 +61,7 @@ from rigspace.sdk.conditioning import Skeleton2D
 from rigspace.sdk.controls import controls_json
 from rigspace.sdk.files import replacing, write_atomic
 from rigspace.sdk.predictors import GraphSet, OrtRunner
+from rigspace.sdk.view_coverage import VIEWS_FILE, views_bytes
 from rigspace.sdk.weights import write_safetensors
 from rigspace.train.budget import trained_levels
 from rigspace.train.conditioning import dataset_skeleton
@@ -221,6 +223,10 @@ def export_bundle(
         manifest["texture"] = _write_texture(model, dataset, out)
         written.append(CHARTS_FILE)
     written.append(add_weights(out, manifest, model, step, run.config, rows, split, skeleton))
+    views = _write_views(out, dataset, run.joints)
+    if views is not None:
+        manifest["views"] = views
+        written.append(VIEWS_FILE)
     manifest["files"] = {
         name: {"bytes": (out / name).stat().st_size, "sha256": _sha256(out / name)}
         for name in sorted(written)
@@ -228,6 +234,17 @@ def export_bundle(
     write_manifest_document(out, manifest)  # checked as the readers check it, then written
     remove_stale(out, set(written))
     return manifest
+
+
+def _write_views(out: Path, dataset: Path, joints: Sequence[str]) -> dict[str, Any] | None:
+    """The training views of the look-at joint (sdk.view_coverage): `views.npy` and the
+    manifest's `views` section; None for a dataset without training rows or look-at joint."""
+    views = training_views(dataset, joints)
+    if views is None:
+        return None
+    coverage, every = views
+    write_atomic(out / VIEWS_FILE, views_bytes(coverage))
+    return coverage.to_json(len(coverage.rotations), every)
 
 
 def _int8_check(

@@ -220,6 +220,7 @@ class CharacterStages:
         with f.timed("rig"):
             for c in (c for group in pending.values() for c in group):
                 c.rig = c.part.parameters(c.world, c.billboard, f.camera, c.weights)
+                c.entry.update(c.part.novel_view(c.rig))
         # One network call per (model, level, branches): characters sharing a bundle batch.
         # They run on the network thread, with the resampling of their maps into the frame,
         # while the frame's thread draws and lights the prims (Engine.render).

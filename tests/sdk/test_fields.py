@@ -63,10 +63,13 @@ CONTROL_FIELDS = (
     "controls", "controls[]", "controls[].name", "controls[].range", "torch.controls",
 )  # fmt: skip
 """What a bundle of a rig with named controls adds (docs/point_caches.md; the sample has none)."""
+VIEW_FIELDS = ("views", "views.file", "views.joint", "views.elevations")
+"""What a bundle exported with its training views adds (sdk.view_coverage; the sample bundle,
+exported before them, has none)."""
 
 
 def test_the_sample_bundle_has_almost_every_field():
-    added = BLEND_FIELDS + REGION_FIELDS + CONTROL_FIELDS
+    added = BLEND_FIELDS + REGION_FIELDS + CONTROL_FIELDS + VIEW_FIELDS
     others = [f for f in BUNDLE_MANIFEST if f.path not in added]
     assert len(BUNDLE_FIELDS) >= len(others) - 2  # all but capsules' text etc.
 
@@ -83,6 +86,19 @@ def test_a_wrong_type_in_a_control_field_is_a_named_error(tmp_path, path):
     with pytest.raises(BundleError, match="Fix:") as info:
         read_manifest(bundle)
     assert f"'{path.replace('[]', '[0]').removesuffix('[0]')}" in str(info.value)
+
+
+@pytest.mark.parametrize("path", VIEW_FIELDS)
+def test_a_wrong_type_in_a_views_field_is_a_named_error(tmp_path, path):
+    data = copy.deepcopy(SAMPLE_MANIFEST)
+    data["views"] = {"file": "views.npy", "joint": 0, "elevations": [0.0, 20.0]}
+    field = next(f for f in BUNDLE_MANIFEST if f.path == path)
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    (bundle / "manifest.json").write_text(json.dumps(broken(data, field)))
+    with pytest.raises(BundleError, match="Fix:") as info:
+        read_manifest(bundle)
+    assert f"'{path}" in str(info.value)
 
 
 @pytest.mark.parametrize(

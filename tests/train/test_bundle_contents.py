@@ -36,6 +36,7 @@ from rigspace.train.data import DatasetError, SampleSet  # noqa: E402
 from rigspace.train.evaluate import DatasetTable  # noqa: E402
 from rigspace.train.export import export_bundle  # noqa: E402
 from rigspace.train.int8check import failure_lines  # noqa: E402
+from tests.conftest import REPO  # noqa: E402
 
 TINY = preset("tiny")
 
@@ -460,3 +461,76 @@ def test_capsules_in_the_dataset_travel_with_the_bundle(tmp_path, tiny_run, tiny
     capsules.write_text("{not json")
     with pytest.raises(CapsuleError, match=r"capsules\.json are not readable"):
         export_bundle(run, bundle, int8=False)
+
+
+def test_the_bundle_keeps_its_training_views_and_a_render_from_below_says_so(
+    tmp_path, tiny_run, tiny_dataset, capsys
+):
+    """The export keeps the look-at joint's training views (views.npy); a render whose camera
+    looks up at the character from far below its ring (elevation 0 alone) reports each
+    frame's distance from them and warns once, naming the elevation that would cover it."""
+    bundle = tmp_path / "bundle"
+    manifest = export_bundle(tiny_run, bundle, int8=False)
+    views = manifest["views"]
+    assert views["file"] == "views.npy" and "views.npy" in manifest["files"]
+    assert views["rows"] == views["of"] == len(SampleSet(tiny_dataset, "train"))
+    # The held-out views, 22.5 deg from the nearest training view (between two of the 8), lie
+    # inside the training views: interpolated, not novel.
+    assert views["elevations"] == [0.0] and views["held_out_deg"]["p95"] < 1.0
+    assert read_manifest(bundle).views == views
+    scene = tmp_path / "low.usda"
+    scene.write_text(
+        "#usda 1.0\n(\n    subLayers = [@"
+        + str(REPO / "samples" / "scenes" / "cesium_man.usda")
+        + '@]\n)\nover "World"\n{\n    over "ShotCam"\n    {\n'
+        "        double3 xformOp:translate = (0, -1.2, 2.6)\n"
+        "        float xformOp:rotateX = 38\n    }\n}\n"
+    )
+    out = tmp_path / "out"
+    code = main(["render", str(scene), "--out", str(out), "--frames", "2:3",
+                 "--resolution", "160x90", "--model", f"/World/CesiumMan={bundle}"])  # fmt: skip
+    assert code == 0
+    err = capsys.readouterr().err
+    frames = json.loads((out / "report.json").read_text())["frames"]
+    entries = [f["characters"][0] for f in frames]
+    assert all(e["decision"] == "evaluated" for e in entries), entries
+    assert all(e["novel_view_deg"] > 12.0 and e["novel_view"] == "from below" for e in entries)
+    assert "/World/CesiumMan's body network: in 2 of 2 frames (2-3)" in err
+    assert "mostly from below" in err and "rigspace:captureRing:elevations = [-" in err
+    # A damaged views file: said once, the frames render without the check.
+    (bundle / "views.npy").write_bytes(b"damaged")
+    code = main(["render", str(scene), "--out", str(tmp_path / "again"), "--frames", "2:2",
+                 "--resolution", "160x90", "--model", f"/World/CesiumMan={bundle}"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0 and "reports no views its network never learned" in err
+    assert "views.npy cannot be read" in err and "rigspace.apps.views" in err
+
+
+def test_views_added_to_an_older_bundle_from_its_dataset_are_the_exports(
+    tmp_path, tiny_run, tiny_dataset, capsys
+):
+    """A bundle exported before training views (no views.npy, no `views`) gets the export's
+    own from the dataset it was trained on; another dataset is refused, nothing written."""
+    from rigspace.apps.views import main as views_main
+    from rigspace.sdk.bundle import read_manifest_document, write_manifest_document
+
+    bundle = tmp_path / "bundle"
+    exported = export_bundle(tiny_run, bundle, int8=False)
+    data = (bundle / "views.npy").read_bytes()
+    (bundle / "views.npy").unlink()
+    document = read_manifest_document(bundle)
+    del document["views"], document["files"]["views.npy"]
+    write_manifest_document(bundle, document)
+    other = tmp_path / "other"
+    shutil.copytree(tiny_dataset, other, ignore=shutil.ignore_patterns("cache"))
+    manifest = json.loads((other / "manifest.json").read_text())
+    (other / "manifest.json").write_text(json.dumps({**manifest, "checksum": "0" * 64}))
+    assert views_main([str(bundle), str(other)]) == 1
+    assert "pass the dataset the bundle was trained on" in capsys.readouterr().err
+    assert not (bundle / "views.npy").exists()
+    assert views_main([str(bundle), str(tiny_dataset)]) == 0
+    assert "32 training views of Skeleton_torso_joint_1" in capsys.readouterr().out
+    restored = read_manifest_document(bundle)
+    assert restored["views"] == exported["views"]
+    assert restored["files"]["views.npy"] == exported["files"]["views.npy"]
+    assert (bundle / "views.npy").read_bytes() == data
