@@ -6,6 +6,12 @@ const STAGES = ["scene", "rig", "network", "shadows", "lighting", "composite"];
 const COLORS = { scene: "#5fb3ff", rig: "#c99cff", network: "#ff9f5f", shadows: "#8a93a3", lighting: "#f2c14e", composite: "#5fd39a" };
 const HISTORY = 90;
 
+// A body's or region's view of its look-at joint outside the views its network learned
+// (report novel_view: sdk/view_coverage.py): its image there is a guess.
+function novelView(entry) {
+  return entry.novel_view ? `view ${entry.novel_view_deg}° outside what it learned (${entry.novel_view})` : "";
+}
+
 export class Viewport {
   constructor(app) {
     this.app = app;
@@ -115,13 +121,13 @@ export class Viewport {
       el("td", {}, el("span", { class: `st ${c.decision}` }, c.decision)),
       el("td", { class: "num" }, c.level ? `${c.level}/${c.top_level}` : "—"),
       el("td", {}, c.mode || ""),
-      el("td", { class: "muted" }, [c.reason, c.mode_reason, c.level_reason].filter(Boolean).join("; "))),
+      el("td", { class: "muted" }, [c.reason, c.mode_reason, c.level_reason, novelView(c)].filter(Boolean).join("; "))),
     ...(c.regions || []).map((r) => el("tr", { "data-region": `${c.path}#${r.name}` },
       el("td", { class: "value" }, `  ↳ region ${r.name}`),
       el("td", {}, el("span", { class: `st ${r.decision}` }, r.decision)),
       el("td", { class: "num" }, r.level ? `${r.level}/${r.top_level}` : "—"),
       el("td", {}, r.mode || ""),
-      el("td", { class: "muted" }, [r.reason, r.level_reason].filter(Boolean).join("; "))))]);
+      el("td", { class: "muted" }, [r.reason, r.level_reason, novelView(r)].filter(Boolean).join("; "))))]);
     const secs = report.seconds;
     document.getElementById("decisions").replaceChildren(
       el("table", {}, el("tr", {}, ...["character", "decision", "level", "mode", "why"].map((h) => el("th", {}, h))), ...rows),
