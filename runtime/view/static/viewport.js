@@ -105,7 +105,8 @@ export class Viewport {
         ctx.setLineDash([2, 3]);
         ctx.strokeRect(x + 0.5, y + 0.5, w, h);
         ctx.setLineDash([]);
-        const label = `${r.name} ${r.decision} · level ${r.level}/${r.top_level} · ${r.size_px} px`;
+        const novel = r.novel_view ? ` · view ${r.novel_view_deg}° outside` : "";
+        const label = `${r.name} ${r.decision} · level ${r.level}/${r.top_level} · ${r.size_px} px${novel}`;
         ctx.fillStyle = "rgba(12, 14, 18, 0.78)";
         ctx.fillRect(x, y + h - 18, ctx.measureText(label).width + 10, 18);
         ctx.fillStyle = ctx.strokeStyle;
