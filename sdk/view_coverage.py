@@ -2,14 +2,14 @@
 
 A network draws its look-at joint as its training cameras saw it: the joint's rotation in the
 camera's frame (the rig input's rows for that joint) over the ring's views and the clips'
-poses. Where a shot's camera sees the joint from where no training camera stood (the film
-character's face seen from below while its ring had elevations 0 and 20 alone: a head tilted
-back in the held-out wave clip), the network draws a guess: a frontal, average face. The
-export keeps those rotations (`views.npy`, its manifest's `views` section); the runtime gives
-each evaluated body and region its distance to the nearest (`novel_view_deg` in the frame's
-report, and which way when it is far), and `rigspace render` names a network whose frames
-were far, and the ring elevation that would have covered them (docs/regions.md, "Views a
-network never learned").
+poses. Where a shot's camera sees the joint from outside those (the film character's head in
+the held-out wave clip, tilted about the line of sight as no trained clip tilts it), the
+network draws a guess: a frontal, average face. The export keeps those rotations
+(`views.npy`, its manifest's `views` section); the runtime gives each evaluated body and
+region how far its view lies outside them (`novel_view_deg` in the frame's report, and which
+way when it is far), and `rigspace render` names a network whose frames were far, and the ring
+elevation or the clips that would have covered them (docs/regions.md, "Views a network never
+learned").
 
 How far is "outside": the views a network learned surround most of a shot's (between two
 ring azimuths, between two elevations, between two poses of a clip: interpolated, as the
@@ -37,14 +37,14 @@ VIEWS_FILE = "views.npy"
 MAX_VIEWS = 16384
 """Training rotations a bundle keeps (evenly over its training rows, all of them up to this):
 256 KiB. Fewer leave holes a trained view falls into (a quarter of the film face's 12,420
-put trained frames of its stretch clip 6-8 deg outside them); a frame's search costs about
-0.2 ms."""
+put trained frames of its stretch clip 6-8 deg outside them); a frame's search, where it runs,
+costs about 0.5 ms."""
 NOVEL_VIEW_DEG = 6.0
 """A frame's view this far (degrees) outside the training views around it is a guess of its
 network's. The film face's held-out views lie inside theirs (between the ring's azimuths:
-0.7 deg outside at the 95th percentile); the frames of the held-out wave clip 6.3-8.2 deg
-outside, its head rolled as no trained clip rolls it (its image there: a frontal, average
-face)."""
+0.7 deg outside at the 95th percentile); the render's frames of the held-out wave clip
+7.0-10.4 deg outside, its head rolled as no trained clip rolls it (its image there: a
+frontal, average face)."""
 NEIGHBOURS = 48
 """Training views around a frame's view whose hull it is measured against."""
 WAYS = ("from below", "from above", "turned beyond the ring's views", "rolled")
@@ -198,7 +198,8 @@ def read_views(folder: Path, section: dict[str, Any], joints: int) -> ViewCovera
 
 
 def _quaternions(a: np.ndarray) -> bool:
-    return a.ndim == 2 and a.shape[1] == 4 and len(a) > 0 and bool(np.all(np.isfinite(a)))
+    shaped = a.ndim == 2 and a.shape[1] == 4 and len(a) > 0
+    return shaped and np.issubdtype(a.dtype, np.floating) and bool(np.all(np.isfinite(a)))
 
 
 def advice(way: str, worst: float, elevations: tuple[float, ...], attribute: str) -> str:

@@ -95,6 +95,7 @@ def test_the_views_file_round_trips_and_a_bad_one_is_named(ring, tmp_path):
     with pytest.raises(ViewCoverageError, match=r"views\.npy cannot be read") as error:
         read_views(tmp_path, section, 2)
     assert "rigspace.apps.views BUNDLE DATASET" in error.value.fix
-    np.save(tmp_path / "views.npy", np.full((3, 4), np.nan, np.float32))
-    with pytest.raises(ViewCoverageError, match="finite quaternions"):
-        read_views(tmp_path, section, 2)
+    for bad in (np.full((3, 4), np.nan, np.float32), np.array([["w", "x", "y", "z"]])):
+        np.save(tmp_path / "views.npy", bad)
+        with pytest.raises(ViewCoverageError, match="finite quaternions"):
+            read_views(tmp_path, section, 2)
