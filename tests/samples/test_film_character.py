@@ -5,6 +5,7 @@ lightest (no subdivision, small textures); the default build's numbers are in it
 from __future__ import annotations
 
 import importlib.util
+import json
 
 import cv2
 import numpy as np
@@ -155,3 +156,26 @@ def test_the_shapes_mobility_covers_the_moving_face_and_nothing_behind_the_head(
     front = max(seen)
     assert front[1] == pytest.approx(1.0) and front[0] > 0.2 * front[2]  # most of the face moves
     assert min(s[0] for s in seen) <= 0.05 * front[0]  # from behind, at most the jaw's edge
+
+
+def test_the_committed_bundle_says_where_the_held_out_wave_is_new_to_it(built, tmp_path, capsys):
+    """The film bundle's training views (views.npy of the body and each region): in the wave
+    clip, held out of its training, the shot sees the face and the waving right hand as no
+    trained clip showed them (tilted: "rolled"), the body's pelvis as it learned it; the
+    render warns about those two networks alone (docs/regions.md, "Views a network never
+    learned")."""
+    from rigspace.sdk.cli import main
+
+    info, _ = built
+    out = tmp_path / "out"
+    code = main(["render", info["scene"], "--out", str(out), "--frames", "500:500",
+                 "--resolution", "320x180"])  # fmt: skip
+    assert code == 0
+    err = capsys.readouterr().err
+    entry = json.loads((out / "report.json").read_text())["frames"][0]["characters"][0]
+    assert entry["novel_view_deg"] == 0.0 and "novel_view" not in entry
+    regions = {r["name"]: r for r in entry["regions"]}
+    assert regions["face"]["novel_view"] == "rolled" and regions["face"]["novel_view_deg"] > 6
+    assert regions["rightHand"]["novel_view_deg"] > 6 and "novel_view" not in regions["leftHand"]
+    assert "/World/Hero's face network: in 1 of 1 frames (500)" in err
+    assert "/World/Hero's rightHand network" in err and "body network" not in err
