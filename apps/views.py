@@ -17,9 +17,9 @@ from rigspace.sdk.files import write_atomic
 from rigspace.sdk.view_coverage import VIEWS_FILE, ViewCoverageError, views_bytes
 
 
-def add_views(bundle: str | Path, dataset: str | Path) -> dict:
+def add_views(bundle: str | Path, dataset: str | Path) -> tuple[dict, str]:
     """Write views.npy into `bundle` from `dataset` and name it in the manifest (`views`,
-    `files`), every other field as it was; returns the `views` section. A dataset other than
+    `files`), every other field as it was; returns the `views` section and its joint's name. A dataset other than
     the one the bundle records (its checksum) is refused before anything is written."""
     bundle, dataset = Path(bundle), Path(dataset)
     if not (bundle / MANIFEST_FILE).is_file():
@@ -51,7 +51,7 @@ def add_views(bundle: str | Path, dataset: str | Path) -> dict:
         "sha256": hashlib.sha256(data).hexdigest(),
     }
     write_manifest_document(bundle, document)
-    return section
+    return section, document["joints"][coverage.joint]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -63,12 +63,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     try:
-        section = add_views(args.bundle, args.dataset)
+        section, joint = add_views(args.bundle, args.dataset)
     except RigspaceError as exc:
         print(f"rigspace views: error: {exc}", file=sys.stderr)
         return 1
     held = section.get("held_out_deg")
-    joint = read_manifest_document(args.bundle)["joints"][section["joint"]]
     print(
         f"{section['rows']} training views of {joint} (of {section['of']}) -> "
         f"{Path(args.bundle) / VIEWS_FILE}"

@@ -158,15 +158,14 @@ class Engine:
             print(f"rigspace render: warning: {path} casts no shadow: {why}.", file=sys.stderr)
         for c in self.characters:
             for part in (c, *c.regions):
+                which = c.path if part is c else f"{c.path} (region {part.name})"
                 if part.model.charts and part.no_texture and textured:
-                    which = c.path if part is c else f"{c.path} (region {part.name})"
                     print(
                         f"rigspace render: warning: {which} samples no texture, its colour comes "
                         f"from the albedo branch: {part.no_texture}.",
                         file=sys.stderr,
                     )
                 if part.model.manifest.views is not None and part.views is None:
-                    which = c.path if part is c else f"{c.path} (region {part.name})"
                     print(
                         f"rigspace render: warning: {which} reports no views its network never "
                         f"learned: {part.no_views}",

@@ -595,26 +595,18 @@ def blend_transforms(a: np.ndarray, b: np.ndarray, weight: float) -> np.ndarray:
     slerped, translations and scales interpolated linearly (as UsdSkel interpolates samples)."""
     if weight <= 0:
         return a
-    scale_a = np.linalg.norm(a[:, :3, :3], axis=2)
-    scale_b = np.linalg.norm(b[:, :3, :3], axis=2)
-    qa = quat_from_matrix(np.swapaxes(a[:, :3, :3] / scale_a[:, :, None], 1, 2))
-    qb = quat_from_matrix(np.swapaxes(b[:, :3, :3] / scale_b[:, :, None], 1, 2))
-    rotation = np.swapaxes(matrix_from_quat(quat_slerp(qa, qb, weight)), 1, 2)
-    scale = (1 - weight) * scale_a + weight * scale_b
-    out = a.copy()
-    out[:, :3, :3] = rotation * scale[:, :, None]
-    out[:, 3, :3] = (1 - weight) * a[:, 3, :3] + weight * b[:, 3, :3]
-    return out
+    return fade_transforms(a, b, weight)[0]  # from the start: the short arc
 
 
 def fade_transforms(
     a: np.ndarray, b: np.ndarray, weight: float, arcs: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """`blend_transforms` for a fade whose ends move from call to call: each joint turns from
-    a towards b along the arc it took in the last call (`arcs`, (J, 4) its turns a^-1 b then;
-    None: the short arc), so a b that turns through the rotation opposite a keeps the blend
-    turning the way it went instead of flipping to the other short arc (a pop of up to
-    180 deg times the weight in one tick). Returns the blend and the arcs for the next call."""
+    """The blend of `blend_transforms` for a fade whose ends move from call to call: each
+    joint turns from a towards b along the arc it took in the last call (`arcs`, (J, 4) its
+    turns a^-1 b then; None: the short arc), so a b that turns through the rotation opposite
+    a keeps the blend turning the way it went instead of flipping to the other short arc (a
+    pop of up to 180 deg times the weight in one tick). Returns the blend and the arcs for
+    the next call."""
     scale_a = np.linalg.norm(a[:, :3, :3], axis=2)
     scale_b = np.linalg.norm(b[:, :3, :3], axis=2)
     qa = quat_from_matrix(np.swapaxes(a[:, :3, :3] / scale_a[:, :, None], 1, 2))
