@@ -677,27 +677,30 @@ def display_colour(
 
     Coverage (h, w): `coverage` as warped (the geometry mask, or the albedo branch's alpha)
     sharpened. Colour: from the textures where the texture head says (sample_textures), the
-    albedo branch's elsewhere, premultiplied by the albedo branch's own alpha sharpened the
-    same way (the edge it was trained with; the coverage without an alpha). Without
-    magnification nothing is sharpened and the albedo branch's premultiplied colour passes
-    through unchanged. `info` holds, when there is a texture head, "textured" (the share of
+    albedo branch's elsewhere (its colour divided by its own alpha), premultiplied by that
+    coverage, so that no pixel's colour claims more than the layer's mask (a colour
+    premultiplied by the albedo branch's wider alpha lit a pale halo around the silhouette).
+    Where the coverage is the alpha (unlit) and nothing is magnified, the albedo branch's
+    premultiplied colour passes through unchanged. `info` holds, when there is a texture head, "textured" (the share of
     covered pixels the textures coloured), "texture_ms" (the sampler's milliseconds) and
     "sample" (the TextureSample: st and chart per pixel)."""
     warp = region_warper(homography, region)
     scale = magnification(homography, region)
     sharp = sharpen_coverage(coverage, scale)
     alpha = np.clip(warp(out["alpha"])[..., 0], 0.0, 1.0) if "alpha" in out else coverage
-    edge = sharpen_coverage(alpha, scale)
     premultiplied = np.clip(warp(out["albedo"]), 0.0, 1.0)
-    # Sharpening moves the edge: the albedo branch's colour follows it (exactly 1 unsharpened).
-    gain = np.divide(edge, alpha, out=np.zeros_like(edge), where=alpha > COLOUR_EPSILON)
-    colour = premultiplied * gain[..., None]
+    # The albedo branch's colour un-premultiplied by its own alpha, premultiplied again by the
+    # coverage returned: the two branches' edges differ by a pixel or two (the alpha is the
+    # wider), and colour premultiplied by a wider coverage than the layer's mask lights the
+    # background around the silhouette (a pale halo). Exactly 1 where the coverage is the alpha.
+    gain = np.divide(sharp, alpha, out=np.zeros_like(sharp), where=alpha > COLOUR_EPSILON)
+    colour = np.minimum(premultiplied * gain[..., None], sharp[..., None])
     info: dict = {}
     if textures is not None and "chart" in out:
         began = time.perf_counter()
         sample = sample_textures(textures, homography, region, sharp, out["chart"], out["uv"])
         info["texture_ms"] = round(1e3 * (time.perf_counter() - began), 3)
-        colour = np.where(sample.used[..., None], sample.colour * edge[..., None], colour)
+        colour = np.where(sample.used[..., None], sample.colour * sharp[..., None], colour)
         covered = max(int(np.count_nonzero(sharp > 0)), 1)
         info["textured"] = round(float(sample.used.sum()) / covered, 4)
         info["sample"] = sample

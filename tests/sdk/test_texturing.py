@@ -11,8 +11,10 @@ from rigspace.sdk.render.embree import sample_bilinear
 from rigspace.sdk.texturing import (
     ChartTextures,
     TextureMismatch,
+    display_colour,
     magnification,
     mip_chain,
+    region_warper,
     sample_textures,
     sharpen_coverage,
 )
@@ -244,6 +246,54 @@ def test_sharpened_coverage_has_a_one_pixel_edge_at_the_same_place():
     thin = np.full((1, 5), 0.4, np.float32)
     np.testing.assert_array_equal(sharpen_coverage(thin, 1.0), thin)
     assert sharpen_coverage(thin, 2.0)[0, 0] == pytest.approx(0.3)  # weaker, not erased
+
+
+def test_colour_is_premultiplied_by_the_coverage_it_returns():
+    """The albedo branch's alpha is a network pixel wider than the geometry's mask (as the film
+    character's are): the colour, textured or the albedo branch's, is premultiplied by the
+    coverage returned, never more (before: by the wider alpha, a pale halo lit around every
+    silhouette), and the straight colour inside is the branch's, or the texture's."""
+    size, scale = 32, 4.0
+    y, x = np.mgrid[0:size, 0:size] + 0.5
+    r = np.hypot(x - 16, y - 16)
+    mask = np.clip(9.0 - r + 0.5, 0, 1).astype(np.float32)[None]  # the geometry: radius 9
+    alpha = np.clip(11.0 - r + 0.5, 0, 1).astype(np.float32)[None]  # the albedo branch: 11
+    straight = np.array([0.8, 0.6, 0.4], np.float32)
+    out = {"mask": mask, "alpha": alpha, "albedo": alpha * straight[:, None, None]}
+    homography = np.diag([scale, scale, 1.0])
+    frame = int(size * scale)
+    region = (0, 0, frame, frame)
+    warp = region_warper(homography, region)
+    coverage = np.clip(warp(mask)[..., 0], 0.0, 1.0)  # as the runtime warps the geometry's
+    colour, sharp, _ = display_colour(out, homography, region, coverage, None)
+    assert (colour <= sharp[..., None] + 1e-6).all()
+    inside = sharp > 0.5
+    np.testing.assert_allclose(
+        colour[inside] / sharp[inside][:, None],
+        np.broadcast_to(straight, (int(inside.sum()), 3)),
+        atol=1e-5,
+    )
+    # Textured: the texture's colour, premultiplied by the same coverage.
+    textures = ChartTextures.build(
+        _table([((0.0, 0.0), (1.0, 1.0))]), {"Body": _source(np.ones((4, 4, 3), np.float32))}
+    )
+    probabilities = np.zeros((2, size, size), np.float32)
+    probabilities[1] = 1.0
+    out.update(chart=probabilities, uv=np.zeros((2, size, size), np.float32))
+    colour, sharp, info = display_colour(out, homography, region, coverage, textures)
+    assert info["sample"].used[inside].all()
+    np.testing.assert_allclose(colour, np.repeat(sharp[..., None], 3, axis=-1), atol=1e-6)
+    # Unlit (the coverage is the alpha): the branch's own edge, its straight colour inside.
+    unlit = {"alpha": out["alpha"], "albedo": out["albedo"]}
+    alpha_coverage = np.clip(warp(alpha)[..., 0], 0.0, 1.0)
+    colour, sharp, _ = display_colour(unlit, homography, region, alpha_coverage, None)
+    assert (colour <= sharp[..., None] + 1e-6).all() and (sharp > 0.5).sum() > inside.sum()
+    wide = sharp > 0.5
+    np.testing.assert_allclose(
+        colour[wide] / sharp[wide][:, None],
+        np.broadcast_to(straight, (int(wide.sum()), 3)),
+        atol=1e-5,
+    )
 
 
 def test_magnification_is_the_local_scale_of_the_homography():
