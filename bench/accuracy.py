@@ -185,7 +185,7 @@ def _model_error(settings, rig, model: BundleModel, samples: int) -> _ModelError
             view = held_out[(k * 5) % len(held_out)]  # spread over azimuths and elevations
             world = rig.world_transforms(float(time))
             joint = world[look_at][:3, 3]
-            camera = view.camera(joint, settings.lens)
+            camera = view.camera(joint, settings.lens, settings.camera_up(world[look_at]))
             truth = renderer.render(rig.posed_meshes(float(time)), camera)
             if height is None:
                 points = np.concatenate([m.points for m in rig.posed_meshes(float(time))])

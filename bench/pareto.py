@@ -87,7 +87,8 @@ class Samples:
                 for t, view in items:
                     world = self.rig.world_transforms(t)
                     joint = world[self.look_at][:3, 3]
-                    camera = view.camera(joint, self.settings.lens)
+                    up = self.settings.camera_up(world[self.look_at])
+                    camera = view.camera(joint, self.settings.lens, up)
                     meshes = self.rig.posed_meshes(t)
                     if not self.height:
                         points = np.concatenate([m.points for m in meshes])

@@ -229,7 +229,7 @@ class ItemWorker:
         """Render, write and describe one sample (a posed frame from one view)."""
         t, world, joint_position = frame.time, frame.world, frame.joint_position
         start = time.perf_counter()
-        camera = view.camera(joint_position, self.lens)
+        camera = view.camera(joint_position, self.lens, self.settings.camera_up(world[self.joint]))
         maps = self.render(frame, camera)
         timings["render"] += time.perf_counter() - start
         for phase, seconds in getattr(self.renderer, "last_timings", {}).items():

@@ -19,9 +19,13 @@ body with `--regions`), made by the same pipeline with these settings (region_se
 - the region's blend shapes (authored, or every shape that moves a point of its surface) are
   drawn in every frame uniformly within its range, whatever the animation does, so the
   region's network sees each shape's weight apart from the pose (said when capture starts);
-- the dataset records the region's own inputs (input_joints): its joint's chain from the root
-  and its own joints, its own blend shapes (a hand's none) and the character's controls; its
-  network reads those alone, whatever the rest of the body does.
+- the dataset records the region's own inputs (input_joints): its joint and its own joints
+  with their parents, its own blend shapes (a hand's none) and the character's controls; its
+  network reads those alone, whatever the rest of the body does;
+- with `upright = "joint"` its cameras keep the joint's own up upright (the local direction
+  that is the stage's up in the rest pose; CaptureSettings.upright_axis), not the stage's: a
+  head tilted, or a hand rolled, as no clip turns it is then a view its network learned, and
+  the runtime's billboard turns with the joint instead (runtime/character.py).
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from rigspace.capture.ring import stage_axes
 from rigspace.capture.settings import (
     BOUNDS_FRAMES,
     CaptureError,
@@ -42,6 +47,7 @@ from rigspace.capture.settings import (
 from rigspace.sdk import schema
 from rigspace.sdk.posing import CharacterRig
 from rigspace.sdk.render import DrawMesh, Maps, freeze
+from rigspace.sdk.rotations import rest_up_axis
 from rigspace.sdk.validation import MAX_RESOLUTION, MIN_RESOLUTION
 
 CORNERS_INSIDE = 2
@@ -94,17 +100,17 @@ def region_joints(rig: CharacterRig, region: schema.Region) -> tuple[int, ...]:
 
 
 def input_joints(rig: CharacterRig, joint: int, joints: tuple[int, ...]) -> tuple[str, ...]:
-    """The joints a region's network reads, in skeleton order: its joint's chain from the
-    root (what places and turns it) and its own joints with theirs (what moves its surface),
-    not the rest of the body. A face reads the spine, neck and head, not the arms: with every joint,
-    an arm pose the clips never showed makes the face's input new (samples/film_character
-    README, "The face's yaw")."""
-    paths = [rig.joints[k] for k in (joint, *joints)]
-    return tuple(
-        name
-        for name in rig.joints  # a joint read is read with its ancestors: a closed tree
-        if any(path == name or path.startswith(name + "/") for path in paths)
-    )
+    """The joints a region's network reads, in skeleton order: its look-at joint and its own
+    joints (what turns and moves its surface) and the parent of each (the neck under the head,
+    the forearm at the wrist: skinning weights reach across the region's seam), not the chain
+    from the root nor the rest of the body. Each joint is read as its rotation in the camera's
+    frame, so the head's turn is in the head's own row whatever the spine did. With every
+    joint, an arm pose the clips never showed made the face's input new and its image a frontal
+    average (samples/film_character README, "The face's yaw"); with the chain from the root, a
+    spine or pelvis pose did."""
+    own = {rig.joints[k] for k in (joint, *joints)}
+    wanted = own | {path.rsplit("/", 1)[0] for path in own if "/" in path}
+    return tuple(name for name in rig.joints if name in wanted)
 
 
 def region_points(rig: CharacterRig, joints: tuple[int, ...]) -> list[np.ndarray]:
@@ -245,7 +251,26 @@ def region_settings(
         region_joints=tuple(rig.joints[j] for j in joints),
         input_joints=input_joints(rig, joint, joints),
         input_shapes=tuple(s for s in rig.blend_shapes if s in shapes),
+        upright_axis=_upright_axis(rig, joint, region, body),
     )
+
+
+def _upright_axis(
+    rig: CharacterRig, joint: int, region: schema.Region, body: CaptureSettings
+) -> tuple[float, ...]:
+    """The joint's local up that a region's cameras keep upright (`upright = "joint"`): the
+    direction that is the stage's up in the skeleton's rest pose; () for the stage's own."""
+    if region.upright == schema.UPRIGHT_STAGE:
+        return ()
+    if not rig.rest_local():
+        raise CaptureError(
+            f'rigspace:region:{region.name}:upright is "joint", but the skeleton has no '
+            "restTransforms to find the joint's up in.",
+            'author the skeleton\'s restTransforms, or set upright to "stage".',
+        )
+    rest = rig.world_transforms(body.clips[0].first, rig.rest_local())[joint]
+    up, _, _ = stage_axes(body.up_axis)
+    return tuple(round(float(v), 9) for v in rest_up_axis(rest, up))
 
 
 def _check_resolution_and_shapes(rig: CharacterRig, region: schema.Region, where: str) -> None:
@@ -262,6 +287,11 @@ def _check_resolution_and_shapes(rig: CharacterRig, region: schema.Region, where
         raise CaptureError(
             f"{where}:blendShapeRange is ({low:g}, {high:g}).",
             "author a finite (low, high) with low <= high, e.g. (0, 1).",
+        )
+    if region.upright not in schema.UPRIGHT_TOKENS:
+        raise CaptureError(
+            f"{where}:upright is {region.upright!r}.",
+            f"use {' or '.join(repr(t) for t in schema.UPRIGHT_TOKENS)}.",
         )
     unknown = [s for s in region.blend_shapes if s not in rig.blend_shapes]
     if unknown:

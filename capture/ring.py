@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rigspace.sdk.camera import Camera
+from rigspace.sdk.rotations import upright_usable
 
 TRAIN = "train"
 HELDOUT_VIEWS = "heldout-views"
@@ -52,13 +53,18 @@ class RingView:
     up: np.ndarray
     """(3,) the stage's up axis."""
 
-    def camera(self, joint_position: np.ndarray, lens: Lens) -> Camera:
-        """This view's camera for a joint at `joint_position` (world, scene units)."""
+    def camera(
+        self, joint_position: np.ndarray, lens: Lens, up: np.ndarray | None = None
+    ) -> Camera:
+        """This view's camera for a joint at `joint_position` (world, scene units), upright
+        to `up` (world; a region's joint's own up) or, without it or looking along it, to the
+        stage's up axis."""
         joint = np.asarray(joint_position, dtype=np.float64)
+        upright = self.up if up is None or not upright_usable(-self.offset, up) else up
         return Camera.look_at(
             joint + self.offset,
             joint,
-            self.up,
+            upright,
             width=lens.resolution,
             height=lens.resolution,
             focal_length=lens.focal_length,

@@ -26,6 +26,7 @@ from rigspace.sdk import schema, timecodes
 from rigspace.sdk.controls import Control
 from rigspace.sdk.errors import RigspaceError
 from rigspace.sdk.posing import CharacterRig, centre_joint
+from rigspace.sdk.rotations import joint_up
 from rigspace.sdk.stage import meters_per_unit, open_stage, up_axis
 from rigspace.sdk.validation import (
     MAX_RESOLUTION,
@@ -160,11 +161,23 @@ class CaptureSettings:
     """A region's joints: its surface is the points whose largest skinning weight is on one."""
     input_joints: tuple[str, ...] = ()
     """The joints the dataset records as the network's input, in skeleton order (): every
-    joint. A region's: its joint's chain from the root and its own joints, so that its network
+    joint. A region's: its joint and its own joints with their parents, so that its network
     reads what moves its surface and not the rest of the body (capture/regions.py)."""
     input_shapes: tuple[str, ...] = ()
     """With `input_joints`, the blend shapes the dataset records (a region's own; () none);
     without, every shape of `blend_shapes`."""
+    upright_axis: tuple[float, ...] = ()
+    """(): every camera keeps the stage's up axis upright. A region's (x, y, z), RegionAPI
+    `upright = "joint"`: the look-at joint's own up, in its local frame (the direction that is
+    the stage's up in the skeleton's rest pose), which every camera keeps upright instead, so
+    that the images turn with the joint about the line of sight (capture/regions.py)."""
+
+    def camera_up(self, joint_to_world: np.ndarray) -> np.ndarray | None:
+        """The world direction the cameras of a frame keep upright, the look-at joint at
+        `joint_to_world` (4, 4): its own up (`upright_axis`), or None for the stage's."""
+        if not self.upright_axis:
+            return None
+        return joint_up(joint_to_world, np.asarray(self.upright_axis, np.float64))
 
     @property
     def dataset_joints(self) -> tuple[str, ...]:
@@ -204,7 +217,7 @@ class CaptureSettings:
         # likewise, for a rig without blend shapes, and for the whole character
         for key in (
             "blend_shapes", "controls", "blend_draws", "region", "region_joints",
-            "input_joints", "input_shapes",
+            "input_joints", "input_shapes", "upright_axis",
         ):  # fmt: skip
             if not data[key]:
                 del data[key]
@@ -229,6 +242,7 @@ class CaptureSettings:
         values["blend_draws"] = tuple(tuple(d) for d in values.get("blend_draws", ()))
         for key in ("region_joints", "input_joints", "input_shapes"):
             values[key] = tuple(values.get(key, ()))
+        values["upright_axis"] = tuple(float(v) for v in values.get("upright_axis", ()))
         return cls(**values)
 
     def frame_weights(self, rig: CharacterRig, clip: str, time: float) -> np.ndarray:

@@ -28,6 +28,7 @@ instead change only the sections they own and the rest passes through untouched.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -119,6 +120,9 @@ class ModelManifest:
     training_aperture: float = 0.0
     training_resolution: int | None = None
     """The capture's resolution (training_camera.resolution); None in older manifests."""
+    training_upright: tuple[float, ...] = ()
+    """training_camera.upright_axis: the look-at joint's local up that its cameras kept
+    upright (a region's `upright = "joint"`); (): the stage's up axis."""
     format_version: int = FORMAT_VERSION
     blend_shapes: tuple[str, ...] = ()
     """Blend shapes whose weights follow the rotations in the rig input (manifest order)."""
@@ -274,6 +278,15 @@ def _sections(
 ) -> ModelManifest:
     """The checked document's sections, typed."""
     camera = data.get("training_camera", {})
+    upright = camera.get("upright_axis") or []
+    if upright and not (
+        len(upright) == 3 and all(math.isfinite(v) for v in upright) and any(upright)
+    ):
+        raise BundleError(
+            f"{file}: training_camera.upright_axis is {upright!r}: the look-at joint's up must be "
+            "three finite numbers, not all 0.",
+            "re-export the bundle with `rigspace train` from its dataset.",
+        )
     check = data.get("int8_check") or {}
     offered = check.get("offered_levels")
     texture = data.get("texture")
@@ -288,6 +301,7 @@ def _sections(
         training_focal_length=float(camera.get("focal_length", 0.0)),
         training_aperture=float(camera.get("horizontal_aperture", 0.0)),
         training_resolution=int(camera["resolution"]) if "resolution" in camera else None,
+        training_upright=tuple(float(v) for v in camera.get("upright_axis") or ()),
         format_version=version,
         blend_shapes=tuple(data.get("blend_shapes") or ()),
         controls=_controls(data.get("controls") or [], file),

@@ -205,6 +205,7 @@ BUNDLE_MANIFEST = (
     Field("training_camera.focal_length", "positive"),
     Field("training_camera.horizontal_aperture", "positive"),
     Field("training_camera.resolution", "size"),
+    Field("training_camera.upright_axis", "numbers"),
     Field("meters_per_unit", "positive"),
     Field("trunk", "object"),
     Field("trunk.graphs", "object"),

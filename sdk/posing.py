@@ -294,6 +294,11 @@ class CharacterRig:
             local = self._mapper.Remap(local, self._rest)
         return local
 
+    def rest_local(self) -> Vt.Matrix4dArray:
+        """The skeleton's rest transforms (joint-local, skeleton order): its rest pose (empty
+        when the skeleton has none)."""
+        return Vt.Matrix4dArray(self._rest or [])
+
     def skeleton_to_world(self, time: float) -> np.ndarray:
         """(4, 4) skeleton-space to world transform at `time`."""
         xf = UsdGeom.XformCache(Usd.TimeCode(time))

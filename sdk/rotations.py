@@ -168,3 +168,31 @@ def rig_parameters(
     joints = orthonormalize(np.asarray(joint_to_world)[..., :3, :3])
     camera = orthonormalize(np.asarray(camera_to_world)[:3, :3])
     return encode(camera.T @ joints, encoding).astype(np.float32)
+
+
+UPRIGHT_LIMIT = 0.05
+"""Below this sine of the angle between a line of sight and the direction a camera keeps
+upright (within 3 degrees of looking straight along it) that direction cannot be upright in
+the image: the ring and the billboard keep the stage's up axis instead."""
+
+
+def joint_up(joint_to_world: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """(3,) unit world direction of a joint's own up `axis` (its local frame) at
+    `joint_to_world` (4, 4, column vectors; scale and shear stripped)."""
+    up = orthonormalize(np.asarray(joint_to_world, np.float64)[:3, :3]) @ np.asarray(axis, float)
+    return up / max(float(np.linalg.norm(up)), _EPS)
+
+
+def rest_up_axis(rest_joint_to_world: np.ndarray, stage_up: np.ndarray) -> np.ndarray:
+    """(3,) the joint's local direction that is the stage's up in its rest pose
+    (`rest_joint_to_world`, 4x4): the up a region's cameras keep upright with the joint."""
+    rotation = orthonormalize(np.asarray(rest_joint_to_world, np.float64)[:3, :3])
+    axis = rotation.T @ np.asarray(stage_up, np.float64)
+    return axis / max(float(np.linalg.norm(axis)), _EPS)
+
+
+def upright_usable(line_of_sight: np.ndarray, up: np.ndarray) -> bool:
+    """Whether a camera looking along `line_of_sight` can keep `up` upright (UPRIGHT_LIMIT)."""
+    forward = np.asarray(line_of_sight, float) / max(float(np.linalg.norm(line_of_sight)), _EPS)
+    side = np.cross(forward, np.asarray(up, float) / max(float(np.linalg.norm(up)), _EPS))
+    return bool(np.linalg.norm(side) >= UPRIGHT_LIMIT)

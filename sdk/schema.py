@@ -273,6 +273,14 @@ class Region:
     """0: the capture ring's."""
     elevations: tuple[float, ...] = ()
     """Empty: the capture ring's."""
+    upright: str = "stage"
+    """What its cameras keep upright: UPRIGHT_STAGE (the stage's up axis, as the body's
+    ring) or UPRIGHT_JOINT (the joint's own up: its images turn with the joint)."""
+
+
+UPRIGHT_STAGE = "stage"
+UPRIGHT_JOINT = "joint"
+UPRIGHT_TOKENS = (UPRIGHT_STAGE, UPRIGHT_JOINT)
 
 
 def region_names(prim: Usd.Prim) -> list[str]:
@@ -300,6 +308,7 @@ def read_regions(prim: Usd.Prim) -> list[Region]:
                 resolution=int(get("resolution", 64)),
                 views_per_ring=int(get("viewsPerRing", 0)),
                 elevations=tuple(float(e) for e in get("elevations", ())),
+                upright=str(get("upright", UPRIGHT_STAGE)),
             )
         )
     return regions

@@ -1,8 +1,9 @@
 """A character with a face region, captured and trained in seconds, for the runtime's tests.
 
 The blend shape character (tests/blendshapes.py: a 2-unit cylinder skinned to neck and head)
-with RigspaceRegionAPI:face on its head joint: a 0.8-unit square at 32x32, so that from the
-scene's camera (5 units away) the body's billboard is magnified and the face adds detail.
+with RigspaceRegionAPI:face on its head joint: a 0.8-unit square at 32x32, its cameras upright
+to the head (`upright = "joint"`), so that from the scene's camera (5 units away) the body's
+billboard is magnified and the face adds detail.
 Captured small (2 views, every 6th frame, the body at 32x32) and trained with the tiny preset
 for 3 steps (levels 8 and 16 of each bundle; about 10 s), once per test session. The skinned
 asset is then made a guide, so that frames show the network's character.
@@ -25,7 +26,7 @@ def trained_regions(tmp_path_factory) -> tuple[Path, Path]:
     if "face" not in _trained:
         folder = tmp_path_factory.mktemp("regions_model")
         scene = write_blendshape_character(folder)
-        _with_region(scene, joint="head", resolution=32, size=0.8)
+        _with_region(scene, joint="head", resolution=32, size=0.8, upright="joint")
         dataset, bundle = folder / "ds", folder / "model"
         capture = ["capture", str(scene), "--out", str(dataset), "--views", "2", "--every", "6",
                    "--resolution", "32", "--workers", "1", "--regions"]  # fmt: skip

@@ -411,6 +411,11 @@ def bundle_manifest(
             "focal_length": ring.focal_length,
             "horizontal_aperture": ring.horizontal_aperture,
             "resolution": data_manifest.resolution,
+            **(
+                {"upright_axis": list(data_manifest.settings["upright_axis"])}
+                if data_manifest.settings.get("upright_axis")
+                else {}
+            ),
         },
         **(
             {"meters_per_unit": data_manifest.meters_per_unit}

@@ -22,11 +22,13 @@ from rigspace.capture.regions import (
 from rigspace.capture.settings import (
     CaptureError,
     CaptureOverrides,
+    CaptureSettings,
     fit_radius,
     resolve_settings,
 )
 from rigspace.sdk import schema
 from rigspace.sdk.render import Maps
+from rigspace.sdk.rotations import matrix_from_rot6d, rig_parameters
 from tests.blendshapes import ANIMATED, CHARACTER, weights_at, write_blendshape_character
 
 SMALL = CaptureOverrides(views=4, elevations=(0.0,), resolution=32, frames_per_item=4, every=3)
@@ -44,6 +46,7 @@ def _with_region(scene, name="face", **values):
         "blendShapeRange": Sdf.ValueTypeNames.Float2,
         "size": Sdf.ValueTypeNames.Float,
         "resolution": Sdf.ValueTypeNames.Int,
+        "upright": Sdf.ValueTypeNames.Token,
     }
     for key, value in values.items():
         prim.CreateAttribute(f"rigspace:region:{name}:{key}", kinds[key]).Set(value)
@@ -101,6 +104,38 @@ def test_a_region_is_the_points_its_joints_weigh_most(face_scene):
     assert all(p.all() for p in everything)  # the root and all below it: every point
 
 
+def test_an_upright_joint_region_s_cameras_turn_with_the_joint(tmp_path):
+    """`upright = "joint"`: every camera of the region's ring keeps the head's own up upright
+    (its right axis square to it), the head bending 36 degrees about X over the clip, which the
+    side views see as a roll; the stage's region keeps the stage's up. The recorded head row
+    (its rotation in the camera) then never rolls: its up has no part along the camera's X."""
+    scene = _with_region(
+        write_blendshape_character(tmp_path / "face"), joint="head", upright="joint"
+    )
+    body, rig = resolve_settings(scene, CHARACTER, SMALL, warn=lambda _: None)
+    settings = region_settings(body, rig, find_region(rig.character, "face"), lambda _: None)
+    np.testing.assert_allclose(settings.upright_axis, (0.0, 1.0, 0.0), atol=1e-9)  # rest: upright
+    stage_settings = _settings(
+        _with_region(write_blendshape_character(tmp_path / "s"), joint="head")
+    )[2]
+    assert stage_settings.upright_axis == () and "upright_axis" not in stage_settings.to_json()
+    assert CaptureSettings.from_json(settings.to_json()) == settings
+    head = rig.joints.index("neck/head")
+    rolled = 0.0
+    for t in (0.0, 6.0, 12.0):
+        world = rig.world_transforms(t)
+        own = world[head][:3, :3] @ np.array([0.0, 1.0, 0.0])
+        for view in settings.views():
+            camera = view.camera(world[head][:3, 3], settings.lens, settings.camera_up(world[head]))
+            assert abs(camera.camera_to_world[:3, 0] @ own) < 1e-9
+            upright = view.camera(world[head][:3, 3], settings.lens)
+            assert abs(upright.camera_to_world[:3, 0] @ np.array([0.0, 1.0, 0.0])) < 1e-9
+            rolled = max(rolled, abs(float(upright.camera_to_world[:3, 0] @ own)))
+            row = rig_parameters(world[head][None], camera.camera_to_world)[0]
+            assert abs(matrix_from_rot6d(row)[0, 1]) < 1e-6  # the head's up: no X in the camera
+    assert rolled > np.sin(np.radians(30))  # the stage-upright side views see the bend as a roll
+
+
 @pytest.mark.parametrize(
     ("values", "message"),
     [
@@ -109,6 +144,7 @@ def test_a_region_is_the_points_its_joints_weigh_most(face_scene):
         ({"joint": "head", "blendShapes": ["grin"]}, "names grin, which the character"),
         ({"joint": "head", "blendShapeRange": (1.0, 0.0)}, r"blendShapeRange is \(1, 0\)"),
         ({"resolution": 32}, "names no joint"),
+        ({"joint": "head", "upright": "sideways"}, "upright is 'sideways'.*'stage' or 'joint'"),
     ],
 )
 def test_bad_region_values_are_named_before_any_work(tmp_path, values, message):

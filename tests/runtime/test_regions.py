@@ -27,6 +27,7 @@ from rigspace.runtime.regions import (
     region_weight,
 )
 from rigspace.sdk.bundle import read_manifest_document, write_manifest_document
+from rigspace.sdk.camera import Camera
 from rigspace.sdk.cli import main
 from tests.regions import ring_rows, trained_regions
 
@@ -317,6 +318,41 @@ def test_the_region_reads_at_a_ring_camera_the_rig_its_dataset_recorded(face):
         for ours, recorded, billboard in ring_rows(part, hero.pose, table, rows):
             assert np.allclose(billboard.rotation, np.eye(3), atol=1e-6)  # it looks at the head
             assert np.abs(ours[0, :joints] - recorded).max() < 1e-4
+
+
+@pytest.mark.slow  # the face fixture trains two bundles (10-30 s)
+def test_a_head_rolled_about_the_line_of_sight_turns_the_face_s_billboard_not_its_input(face):
+    """The face's ring kept the head's own up upright (`upright = "joint"`): the head turned
+    30 degrees about the line of sight (with the joints below it) gives its network the same
+    head row, and its billboard's corners turn 30 degrees about the head's projection; the
+    body's (stage-upright) billboard does not turn."""
+    scene, _ = face
+    with _engine(scene, 2.5) as engine:
+        hero = engine.characters[0]
+        (part,) = hero.regions
+        assert part.upright_axis is not None and hero.upright_axis is None
+        camera = Camera.from_usd(engine.camera_prim, 6.0, 96, 72)
+        world = hero.pose(6.0)
+        head = part.look_at
+        sight = world[head][:3, 3] - camera.camera_to_world[:3, 3]
+        turn = np.eye(4)
+        turn[:3, :3] = Gf.Matrix3d(Gf.Rotation(Gf.Vec3d(*sight), 30.0)).GetTranspose()
+        # Turned about the head's own position: the head and below it, the neck not.
+        about = np.eye(4)
+        about[:3, 3] = world[head][:3, 3]
+        rolled = world.copy()
+        rolled[head] = about @ turn @ np.linalg.inv(about) @ world[head]
+        before, after = part.place(world, camera), part.place(rolled, camera)
+        row = slice(part.order.tolist().index(head) * 6, part.order.tolist().index(head) * 6 + 6)
+        ours = part.parameters(world, before, camera)[0, row]
+        theirs = part.parameters(rolled, after, camera)[0, row]
+        assert np.abs(ours - theirs).max() < 1e-6
+        edge = lambda b: b.corners[1] - b.corners[0]  # noqa: E731 (the top edge, in pixels)
+        a, b = edge(before), edge(after)
+        angle = math.degrees(math.atan2(a[0] * b[1] - a[1] * b[0], a @ b))
+        assert abs(abs(angle) - 30.0) < 1.0
+        body = hero.place(world, camera), hero.place(rolled, camera)
+        np.testing.assert_allclose(body[0].corners, body[1].corners)
 
 
 @pytest.mark.slow  # the face fixture trains two bundles (10-30 s)

@@ -57,8 +57,12 @@ BUNDLE_FIELDS = [f for f in BUNDLE_MANIFEST if present(SAMPLE_MANIFEST, f)]
 
 BLEND_FIELDS = ("blend_shapes", "torch.blend_shapes")
 """What a bundle of a character with blend shapes adds (the sample character has none)."""
-REGION_FIELDS = ("regions", "regions[]", "regions[].name", "regions[].joint", "regions[].bundle")
-"""What a bundle with regions adds (docs/regions.md; the sample bundle has none)."""
+REGION_FIELDS = (
+    "regions", "regions[]", "regions[].name", "regions[].joint", "regions[].bundle",
+    "training_camera.upright_axis",
+)  # fmt: skip
+"""What a bundle with regions adds, and a region's bundle whose cameras kept its joint upright
+(docs/regions.md; the sample bundle has neither)."""
 CONTROL_FIELDS = (
     "controls", "controls[]", "controls[].name", "controls[].range", "torch.controls",
 )  # fmt: skip
@@ -75,13 +79,17 @@ def test_the_sample_bundle_has_almost_every_field():
 
 
 @pytest.mark.parametrize(
-    "path", [p for p in CONTROL_FIELDS if p != "controls[]"] + list(VIEW_FIELDS)
+    "path",
+    [p for p in CONTROL_FIELDS if p != "controls[]"]
+    + list(VIEW_FIELDS)
+    + ["training_camera.upright_axis"],
 )
 def test_a_wrong_type_in_a_control_or_views_field_is_a_named_error(tmp_path, path):
     data = copy.deepcopy(SAMPLE_MANIFEST)
     data["controls"] = [{"name": "bulge", "range": [0.0, 1.0]}]
     data["torch"]["controls"] = 1
     data["views"] = {"file": "views.npy", "joint": 0, "elevations": [0.0, 20.0]}
+    data["training_camera"]["upright_axis"] = [0.0, 1.0, 0.0]
     field = next(f for f in BUNDLE_MANIFEST if f.path == path)
     bundle = tmp_path / "bundle"
     bundle.mkdir()
@@ -89,6 +97,17 @@ def test_a_wrong_type_in_a_control_or_views_field_is_a_named_error(tmp_path, pat
     with pytest.raises(BundleError, match="Fix:") as info:
         read_manifest(bundle)
     assert f"'{path.replace('[]', '[0]').removesuffix('[0]')}" in str(info.value)
+
+
+@pytest.mark.parametrize("axis", [[0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 1e400, 0.0]])
+def test_an_upright_axis_that_is_no_direction_is_a_named_error(tmp_path, axis):
+    data = copy.deepcopy(SAMPLE_MANIFEST)
+    data["training_camera"]["upright_axis"] = axis
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    (bundle / "manifest.json").write_text(json.dumps(data).replace("Infinity", "1e400"))
+    with pytest.raises(BundleError, match=r"upright_axis.? is .*(three finite|not a list)"):
+        read_manifest(bundle)
 
 
 @pytest.mark.parametrize(
