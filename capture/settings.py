@@ -161,7 +161,7 @@ class CaptureSettings:
     """A region's joints: its surface is the points whose largest skinning weight is on one."""
     input_joints: tuple[str, ...] = ()
     """The joints the dataset records as the network's input, in skeleton order (): every
-    joint. A region's: its joint and its own joints with their parents, so that its network
+    joint. A region's: its joint's chain from the root and its own joints, so that its network
     reads what moves its surface and not the rest of the body (capture/regions.py)."""
     input_shapes: tuple[str, ...] = ()
     """With `input_joints`, the blend shapes the dataset records (a region's own; () none);

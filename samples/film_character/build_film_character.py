@@ -662,17 +662,12 @@ def _hand(side: str) -> dict[str, tuple[str, str]]:
 
 
 REGIONS = {
-    "face": {
-        "joint": ("token", '"head"'),
-        "resolution": ("int", "64"),
-        "upright": ("token", '"joint"'),
-    },
+    "face": {"joint": ("token", '"head"'), "resolution": ("int", "64")},
     "leftHand": _hand("l"),
     "rightHand": _hand("r"),
 }
-"""The shot's regions (docs/regions.md): the head with every face shape at 64x64, its cameras
-upright to the head (a tilted head is a view its network learned), and the hands (`_hand`);
-the body network's 128x128 is spent on the body."""
+"""The shot's regions (docs/regions.md): the head with every face shape at 64x64 and the hands
+(`_hand`); the body network's 128x128 is spent on the body."""
 
 
 def write_scene(out: Path, drawn: list[str]) -> Path:

@@ -1,6 +1,7 @@
-"""A region reads its own inputs (issue 33): CesiumMan's head region records and reads the head
-and its parent (2 of the skeleton's 19), not the torso, arms and legs; it trains with pose
-conditioning on that tree, and the runtime feeds its network the same rows at a ring camera."""
+"""A region reads its own inputs (issue 33): CesiumMan's head region records and reads the joints
+from the root to the head (5 of the skeleton's 19), not the arms and legs; it trains with pose
+conditioning on that closed tree, and the runtime feeds its network the same rows at a ring
+camera."""
 
 from __future__ import annotations
 
@@ -18,8 +19,8 @@ from tests.regions import ring_rows
 pytest.importorskip("torch", reason="training needs the train extra (torch)")
 
 HEAD = "Skeleton_neck_joint_2"
-CHAIN = 2
-"""The neck and the head."""
+CHAIN = 5
+"""The root's torso joints (3), the neck and the head."""
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +46,7 @@ def head_region(tmp_path_factory):
     return scene, dataset, bundle
 
 
-def test_the_region_records_its_joint_and_parent_not_the_torso_or_limbs(head_region):
+def test_the_region_records_its_chain_not_the_limbs(head_region):
     _, dataset, _ = head_region
     manifest = json.loads((dataset / "manifest.json").read_text())
     joints = manifest["joints"]
