@@ -29,11 +29,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from rigspace.sdk.camera import Camera
+from rigspace.sdk.rotations import UPRIGHT_LIMIT
 
-UPRIGHT_LIMIT = 0.05
-"""Below this sine of the angle between the joint ray and the up axis (within 3 degrees of
-looking straight up or down) the upright virtual camera is undefined: R falls back to the
-minimal rotation."""
+# Within UPRIGHT_LIMIT of looking along the up axis the upright virtual camera is undefined:
+# R falls back to the minimal rotation (`upright_rotation` returns None).
+
 MIN_DEPTH_FACTOR = 1.0
 """A joint closer than near * this (or behind the camera) cannot be drawn as a billboard."""
 
