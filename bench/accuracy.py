@@ -19,8 +19,10 @@ Each map is compared over the billboard's region, as eval compares whole trainin
 images: albedo PSNR (premultiplied), mask IoU, normal mean angle (render-camera frame),
 depth MAE in % of the character's height. The scene's other prims are deactivated and no
 beauty is asked for, so the comparison is of the character alone, unlit. The runtime draws
-the albedo branch here (`textures=False`), the map the model's own row measures; what the
-character's textures change at display size is the bench's `texture` part.
+the albedo branch here (`textures=False`), the map the model's own row measures (its colour
+premultiplied by the geometry's mask, as the runtime premultiplies it: sdk.texturing
+`repremultiplied`); what the character's textures change at display size is the bench's
+`texture` part.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ from rigspace.sdk.model import BundleModel
 from rigspace.sdk.render import Maps, RenderSettings, choose_renderer
 from rigspace.sdk.rotations import rig_parameters
 from rigspace.sdk.stage import overlay_layer
+from rigspace.sdk.texturing import repremultiplied
 from rigspace.train.metrics import map_metrics
 from rigspace.train.predictor import to_maps
 
@@ -192,6 +195,10 @@ def _model_error(settings, rig, model: BundleModel, samples: int) -> _ModelError
                 height = float(np.ptp(points @ view.up))
             rig_q = rig_parameters(world[order], camera.camera_to_world).reshape(1, -1)
             out = model.predict(rig_q, settings.resolution)
+            if "alpha" in out:  # the colour as the runtime makes it: premultiplied by the mask
+                alpha, mask = np.clip(out["alpha"][:, 0], 0, 1), np.clip(out["mask"][:, 0], 0, 1)
+                albedo = np.moveaxis(np.clip(out["albedo"], 0, 1), 1, -1)
+                out = {**out, "albedo": np.moveaxis(repremultiplied(albedo, alpha, mask), -1, 1)}
             joint_depth = np.array([-camera.to_camera(joint[None])[0, 2]])
             (maps,) = to_maps(out, joint_depth, model.depth_scale)  # as `rigspace eval` reads them
             model_rows.append(map_metrics(maps, truth, height))

@@ -688,13 +688,7 @@ def display_colour(
     scale = magnification(homography, region)
     sharp = sharpen_coverage(coverage, scale)
     alpha = np.clip(warp(out["alpha"])[..., 0], 0.0, 1.0) if "alpha" in out else coverage
-    premultiplied = np.clip(warp(out["albedo"]), 0.0, 1.0)
-    # The albedo branch's colour un-premultiplied by its own alpha, premultiplied again by the
-    # coverage returned: the two branches' edges differ by a pixel or two (the alpha is the
-    # wider), and colour premultiplied by a wider coverage than the layer's mask lights the
-    # background around the silhouette (a pale halo). Exactly 1 where the coverage is the alpha.
-    gain = np.divide(sharp, alpha, out=np.zeros_like(sharp), where=alpha > COLOUR_EPSILON)
-    colour = np.minimum(premultiplied * gain[..., None], sharp[..., None])
+    colour = repremultiplied(np.clip(warp(out["albedo"]), 0.0, 1.0), alpha, sharp)
     info: dict = {}
     if textures is not None and "chart" in out:
         began = time.perf_counter()
@@ -705,6 +699,16 @@ def display_colour(
         info["textured"] = round(float(sample.used.sum()) / covered, 4)
         info["sample"] = sample
     return colour.astype(np.float32), sharp, info
+
+
+def repremultiplied(albedo: np.ndarray, alpha: np.ndarray, coverage: np.ndarray) -> np.ndarray:
+    """(..., 3) the albedo branch's colour (`albedo`, premultiplied by its own `alpha`, (...))
+    premultiplied by `coverage` (...) instead, never above it; 0 where the alpha is under
+    COLOUR_EPSILON. The two branches' edges differ by a pixel or two (the alpha is the wider),
+    and a colour premultiplied by a wider coverage than the layer's mask lights the background
+    around the silhouette (a pale halo). Exactly `albedo` where the coverage is the alpha."""
+    gain = np.divide(coverage, alpha, out=np.zeros_like(coverage), where=alpha > COLOUR_EPSILON)
+    return np.minimum(albedo * gain[..., None], coverage[..., None])
 
 
 def magnification(homography: np.ndarray, region: tuple[int, int, int, int]) -> float:
