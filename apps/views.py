@@ -19,8 +19,9 @@ from rigspace.sdk.view_coverage import VIEWS_FILE, ViewCoverageError, views_byte
 
 def add_views(bundle: str | Path, dataset: str | Path) -> tuple[dict, str]:
     """Write views.npy into `bundle` from `dataset` and name it in the manifest (`views`,
-    `files`), every other field as it was; returns the `views` section and its joint's name. A dataset other than
-    the one the bundle records (its checksum) is refused before anything is written."""
+    `files`), every other field as it was; returns the `views` section and its joint's name.
+    A dataset other than the one the bundle records (its checksum) is refused before anything
+    is written."""
     bundle, dataset = Path(bundle), Path(dataset)
     if not (bundle / MANIFEST_FILE).is_file():
         raise ViewCoverageError(

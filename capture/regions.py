@@ -264,13 +264,14 @@ def _upright_axis(
     direction that is the stage's up in the skeleton's rest pose; () for the stage's own."""
     if region.upright == schema.UPRIGHT_STAGE:
         return ()
-    if not rig.rest_local():
+    rest_local = rig.rest_local()
+    if not rest_local:
         raise CaptureError(
             f'rigspace:region:{region.name}:upright is "joint", but the skeleton has no '
             "restTransforms to find the joint's up in.",
             'author the skeleton\'s restTransforms, or set upright to "stage".',
         )
-    rest = rig.world_transforms(body.clips[0].first, rig.rest_local())[joint]
+    rest = rig.world_transforms(body.clips[0].first, rest_local)[joint]
     up, _, _ = stage_axes(body.up_axis)
     return tuple(round(float(v), 9) for v in rest_up_axis(rest, up))
 

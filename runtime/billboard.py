@@ -154,12 +154,15 @@ def place(
     view: TrainingView,
     scale: float = 1.0,
     up: np.ndarray | None = None,
+    fallback_up: np.ndarray | None = None,
 ) -> Billboard:
     """The billboard of a character whose look-at joint is at `joint_world`.
 
-    With `up` (the stage's up axis, world space) the virtual camera keeps it upright, as
-    the training ring's cameras did; without it, or looking along it, R is the minimal
-    rotation from the centre ray (the paper's)."""
+    With `up` (world space: the stage's up axis, or a region's joint's own) the virtual
+    camera keeps it upright, as the training ring's cameras did; looking along it,
+    `fallback_up` (the stage's, as a region's ring fell back to: capture.ring.RingView.camera);
+    without either, or looking along both, R is the minimal rotation from the centre ray (the
+    paper's)."""
     p = camera.to_camera(np.asarray(joint_world, dtype=np.float64)[None])[0]
     side = view.side * scale
     if not -p[2] > camera.near * MIN_DEPTH_FACTOR:
@@ -178,9 +181,12 @@ def place(
             p, np.eye(3), np.zeros((4, 2)), side, False, "the camera is inside the billboard"
         )
     rotation = rotation_between(np.array([0.0, 0.0, -1.0]), p / np.linalg.norm(p))
-    if up is not None:
-        upright = upright_rotation(p, camera.world_to_camera[:3, :3] @ np.asarray(up, float))
-        rotation = rotation if upright is None else upright
+    for axis in (up, fallback_up):
+        if axis is not None:
+            upright = upright_rotation(p, camera.world_to_camera[:3, :3] @ np.asarray(axis, float))
+            if upright is not None:
+                rotation = upright
+                break
     right, up = rotation[:, 0], rotation[:, 1]
     half = side / 2
     corners_cam = np.stack(

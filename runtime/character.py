@@ -43,7 +43,7 @@ from rigspace.sdk.capsules import CapsuleError, read_capsules
 from rigspace.sdk.errors import RigspaceError, SceneError
 from rigspace.sdk.model import BundleModel
 from rigspace.sdk.posing import CharacterRig
-from rigspace.sdk.rotations import joint_up, rig_inputs, rig_parameters, upright_usable
+from rigspace.sdk.rotations import joint_up, rig_inputs, rig_parameters
 from rigspace.sdk.texturing import (
     ChartTextures,
     TextureMismatch,
@@ -178,9 +178,7 @@ class NeuralPart:
         self.up = up
         """The stage's up axis: the training ring kept it upright in every view."""
         self.upright_axis = (
-            np.asarray(manifest.training_upright, np.float64)
-            if len(manifest.training_upright) == 3
-            else None
+            np.asarray(manifest.training_upright, np.float64) if manifest.training_upright else None
         )
         """The look-at joint's own up (its local frame) that a region's ring kept upright
         instead (`upright = "joint"`), None for the stage's: its billboard turns with the
@@ -249,16 +247,14 @@ class NeuralPart:
     def place(self, world: np.ndarray, camera: Camera) -> Billboard:
         """Its billboard at its look-at joint, upright as its training ring's cameras were: to
         the stage's up, or to the joint's own (`upright_axis`; the stage's where the camera
-        looks along it, as the ring's did: capture.ring.RingView.camera)."""
+        looks along it, as the ring's did)."""
         joint = world[self.look_at]
         scale = float(np.cbrt(abs(np.linalg.det(joint[:3, :3]))))
         # Joint scale is the character's own world scale (the rig has no joint scaling).
-        up = self.up
-        if self.upright_axis is not None:
-            own = joint_up(joint, self.upright_axis)
-            if upright_usable(joint[:3, 3] - camera.camera_to_world[:3, 3], own):
-                up = own
-        return place(joint[:3, 3], camera, self.view, scale, up)
+        if self.upright_axis is None:
+            return place(joint[:3, 3], camera, self.view, scale, self.up)
+        own = joint_up(joint, self.upright_axis)
+        return place(joint[:3, 3], camera, self.view, scale, own, fallback_up=self.up)
 
     def parameters(
         self,

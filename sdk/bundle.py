@@ -301,7 +301,7 @@ def _sections(
         training_focal_length=float(camera.get("focal_length", 0.0)),
         training_aperture=float(camera.get("horizontal_aperture", 0.0)),
         training_resolution=int(camera["resolution"]) if "resolution" in camera else None,
-        training_upright=tuple(float(v) for v in camera.get("upright_axis") or ()),
+        training_upright=tuple(float(v) for v in upright),
         format_version=version,
         blend_shapes=tuple(data.get("blend_shapes") or ()),
         controls=_controls(data.get("controls") or [], file),

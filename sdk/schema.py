@@ -274,13 +274,12 @@ class Region:
     elevations: tuple[float, ...] = ()
     """Empty: the capture ring's."""
     upright: str = "stage"
-    """What its cameras keep upright: UPRIGHT_STAGE (the stage's up axis, as the body's
-    ring) or UPRIGHT_JOINT (the joint's own up: its images turn with the joint)."""
+    """What its cameras keep upright (UPRIGHT_TOKENS): "stage" (the stage's up axis, as the
+    body's ring) or "joint" (the joint's own up: its images turn with the joint)."""
 
 
 UPRIGHT_STAGE = "stage"
-UPRIGHT_JOINT = "joint"
-UPRIGHT_TOKENS = (UPRIGHT_STAGE, UPRIGHT_JOINT)
+UPRIGHT_TOKENS = (UPRIGHT_STAGE, "joint")
 
 
 def region_names(prim: Usd.Prim) -> list[str]:

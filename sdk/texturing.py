@@ -681,9 +681,9 @@ def display_colour(
     coverage, so that no pixel's colour claims more than the layer's mask (a colour
     premultiplied by the albedo branch's wider alpha lit a pale halo around the silhouette).
     Where the coverage is the alpha (unlit) and nothing is magnified, the albedo branch's
-    premultiplied colour passes through unchanged. `info` holds, when there is a texture head, "textured" (the share of
-    covered pixels the textures coloured), "texture_ms" (the sampler's milliseconds) and
-    "sample" (the TextureSample: st and chart per pixel)."""
+    premultiplied colour passes through unchanged. `info` holds, when there is a texture
+    head, "textured" (the share of covered pixels the textures coloured), "texture_ms" (the
+    sampler's milliseconds) and "sample" (the TextureSample: st and chart per pixel)."""
     warp = region_warper(homography, region)
     scale = magnification(homography, region)
     sharp = sharpen_coverage(coverage, scale)
