@@ -19,16 +19,19 @@ part of the body is in front). Over them, per draw:
   grown by NEAR_PX (a limb the network leaves out scores near 0 there; the body around it
   does not count).
 
-Writes DIR/regions_report.json, DIR/regions_report.md (a table per part) and, per part,
-DIR/part_NAME.png: the frames where the part is largest, reference then each draw, cropped
-around the part and enlarged (nearest neighbour) to CROP_PX, so that a viewer sees what each
-draw makes of a face or the fingers at the size they have on screen. Nothing is written when a
-frame fails.
+Writes DIR/regions_report.json (the totals and, per part and draw, a row per frame: time,
+pixels, beauty PSNR, FLIP, mask IoU), DIR/regions_report.md (a table per part, and the frames
+where the draws differ most) and, per part, DIR/part_NAME.png: the frames where the part is
+largest, reference then each draw, cropped around the part and enlarged (nearest neighbour) to
+CROP_PX, so that a viewer sees what each draw makes of a face or the fingers at the size they
+have on screen; with two draws or more, DIR/frames_NAME.png plots each draw's beauty PSNR frame
+by frame (where along the shot one draw wins or loses). Nothing is written when a frame fails.
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import sys
 from dataclasses import dataclass, field
@@ -46,6 +49,8 @@ CROPS = 4
 """Frames shown per part image (those where the part covers the most pixels)."""
 CROP_PX = 192
 """The side each crop is enlarged to in the part images."""
+SPREAD_ROWS = 8
+"""Frames listed per part in the markdown's "where the draws differ most"."""
 
 
 @dataclass
@@ -60,8 +65,10 @@ class Tally:
     iou_hits: int = 0
     iou_union: int = 0
     frame_iou: list[float] = field(default_factory=list)
+    rows: list[dict] = field(default_factory=list)
+    """Per frame measured: time, pixels, beauty PSNR, FLIP, mask IoU near the part."""
 
-    def add(self, frame, truth, own: np.ndarray, near: np.ndarray, coverage) -> None:
+    def add(self, t: float, frame, truth, own: np.ndarray, near: np.ndarray, coverage) -> None:
         from rigspace.sdk.flip import flip_map
 
         count = int(own.sum())
@@ -75,14 +82,23 @@ class Tally:
         self.frame_psnr.append(_psnr(float(beauty.mean())))
         ys, xs = np.nonzero(near)
         box = np.s_[ys.min() : ys.max() + 1, xs.min() : xs.max() + 1]
-        error = flip_map(frame.beauty[box], truth.beauty[box])
-        self.flip_sum += float(error[own[box]].sum())
+        flip = float(flip_map(frame.beauty[box], truth.beauty[box])[own[box]].sum())
+        self.flip_sum += flip
         drawn, mesh = coverage
         a, b = (drawn >= 0.5) & near, (mesh >= 0.5) & near
         hits, union = int((a & b).sum()), int((a | b).sum())
         self.iou_hits += hits
         self.iou_union += union
         self.frame_iou.append(hits / union if union else 1.0)
+        self.rows.append(
+            {
+                "t": t,
+                "pixels": count,
+                "psnr": round(self.frame_psnr[-1], 2),
+                "flip": round(flip / count, 4),
+                "mask_iou": round(self.frame_iou[-1], 3),
+            }
+        )
 
     def summary(self) -> dict:
         if not self.pixels:
@@ -269,6 +285,9 @@ def run(args: argparse.Namespace) -> tuple[dict, list[Part], list[str]]:
                 for p in parts
             },
             "crops": {p.name: [[n, t] for n, t, _ in p.crops] for p in parts},
+            "per_frame": {
+                p.name: {label: tallies[p.name, label].rows for label, _, _ in draws} for p in parts
+            },
         },
         parts,
         [label for label, _, _ in draws],
@@ -297,7 +316,7 @@ def _measure(t: float, truth, engines, renderer, parts, labels, tallies) -> None
             drawn = engine.coverage_of(character.path, t)
             if drawn is None:  # not drawn this frame: it covers nothing
                 drawn = np.zeros_like(own, np.float32)
-            tallies[part.name, label].add(frame, reference, own, near, (drawn, mesh_cover))
+            tallies[part.name, label].add(t, frame, reference, own, near, (drawn, mesh_cover))
         shown = [crop(reference.beauty, near), *(crop(f.beauty, near) for f in frames)]
         part.crops.append((int(own.sum()), t, shown))
         part.crops = sorted(part.crops, key=lambda c: -c[0])[:CROPS]
@@ -327,7 +346,68 @@ def table(result: dict) -> str:
                 f"{s['mask_iou']:.3f} | {s['worst_frame_iou']:.3f} |"
             )
         lines.append("")
+        lines += _spread(result["per_frame"][part])
     return "\n".join(lines)
+
+
+def _spread(rows: dict[str, list[dict]]) -> list[str]:
+    """Markdown: the SPREAD_ROWS frames where the draws' beauty PSNR differ most, every draw's
+    PSNR and FLIP in each (none with fewer than two draws)."""
+    labels = list(rows)
+    by_time: dict[float, dict[str, dict]] = {}
+    for label in labels:
+        for row in rows[label]:
+            by_time.setdefault(row["t"], {})[label] = row
+    shared = {t: r for t, r in by_time.items() if len(r) == len(labels)}
+    if len(labels) < 2 or not shared:
+        return []
+
+    def spread(t: float) -> float:
+        values = [shared[t][label]["psnr"] for label in labels]
+        return max(values) - min(values)
+
+    worst = sorted(shared, key=lambda t: -spread(t))[:SPREAD_ROWS]
+    lines = [
+        "Where the draws differ most (beauty PSNR dB / FLIP per frame):",
+        "",
+        "| frame | pixels | " + " | ".join(labels) + " |",
+        "|---" * (len(labels) + 2) + "|",
+    ]
+    for t in worst:
+        cells = [
+            f"{shared[t][label]['psnr']:.2f} / {shared[t][label]['flip']:.3f}" for label in labels
+        ]
+        lines.append(f"| {t:g} | {shared[t][labels[0]]['pixels']} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
+
+
+def plot_frames(rows: dict[str, list[dict]], path: Path, part: str) -> bool:
+    """Each draw's beauty PSNR over the part's own pixels, frame by frame, as a PNG at `path`.
+    False (nothing written) with fewer than two draws or without matplotlib (the dev extra)."""
+    if len(rows) < 2:
+        return False
+    try:
+        import matplotlib
+    except ImportError:
+        return False
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from rigspace.sdk.files import write_atomic
+
+    fig, ax = plt.subplots(figsize=(10, 3.6))
+    for label, frames in rows.items():
+        ax.plot([r["t"] for r in frames], [r["psnr"] for r in frames], marker=".", label=label)
+    ax.set_xlabel("stage frame")
+    ax.set_ylabel(f"{part}: beauty PSNR over its own pixels (dB)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=90)
+    plt.close(fig)
+    write_atomic(path, buffer.getvalue())
+    return True
 
 
 def write(out: Path, result: dict, parts: list[Part], labels: list[str]) -> None:
@@ -349,6 +429,7 @@ def write(out: Path, result: dict, parts: list[Part], labels: list[str]) -> None
         ok, png = cv2.imencode(".png", np.concatenate([header, sheet], axis=0))
         if ok:
             write_atomic(out / f"part_{part.name}.png", png.tobytes())
+        plot_frames(result["per_frame"][part.name], out / f"frames_{part.name}.png", part.name)
     write_atomic(out / "regions_report.json", json.dumps(result, indent=1) + "\n")
     write_atomic(out / "regions_report.md", table(result) + "\n")
 

@@ -17,8 +17,10 @@ body with `--regions`), made by the same pipeline with these settings (region_se
   where the region's surface is not behind the character's nearest surface (visible_region):
   a hand in front of the face hides the face there, as it does on screen;
 - the region's blend shapes (authored, or every shape that moves a point of its surface) are
-  drawn in every frame uniformly within its range, whatever the animation does, so the
-  region's network sees each shape's weight apart from the pose (said when capture starts);
+  drawn in every frame, whatever the animation does, so the region's network sees each
+  shape's weight apart from the pose (said when capture starts): each at rest or uniformly
+  within its range, the share at work drawn per frame (CaptureSettings.shape_draws), so that
+  a face at rest, one shape alone and all of them at once are all learned;
 - the dataset records the region's own inputs (input_joints): its joint's chain from the root
   and its own joints, its own blend shapes (a hand's none) and the character's controls; its
   network reads those alone, whatever the rest of the body does;
@@ -236,8 +238,9 @@ def region_settings(
     if shapes:
         warn(
             f"region {region.name}: the weights of {', '.join(shapes)} are drawn in every "
-            f"frame within [{low:g}, {high:g}], apart from the animation, so that its network "
-            "learns each shape apart from the pose"
+            f"frame apart from the animation, each at rest or within [{low:g}, {high:g}] (how "
+            "many are at work uniform from none to all), so that its network learns each shape "
+            "apart from the pose and the others"
         )
     return replace(
         body,

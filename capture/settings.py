@@ -35,6 +35,9 @@ from rigspace.sdk.validation import (
     require_valid,
 )
 
+SHAPE_DRAWS = ("sparse", "uniform")
+"""How a capture draws the blend shape weights it draws apart from the animation
+(CaptureSettings.shape_draws)."""
 BOUNDS_MARGIN = 1.1
 """Radius derived from the bounds leaves 10% room around the character's farthest point."""
 BOUNDS_FRAMES = 24
@@ -155,6 +158,12 @@ class CaptureSettings:
     """(clip, shape, low, high): a shape whose weight the clip does not move, drawn per frame
     within the ring's blendShapeRanges (`frame_weights`); for a region, every one of its
     shapes in every clip, whatever the clip does (capture/regions.py)."""
+    shape_draws: str = "sparse"
+    """How a frame's `blend_draws` are drawn (`frame_weights`): "sparse", each at rest (the
+    value of its range nearest 0) or drawn uniformly in its range, the share drawn itself
+    drawn per frame, so that the number of shapes at work is uniform from none to all of
+    them; "uniform" (captures before 2026-11-28 night), every one drawn in its range, so that
+    a frame at rest, the runtime's commonest, was a corner no sample came near."""
     region: str = ""
     """The RigspaceRegionAPI instance this dataset captures ("": the whole character)."""
     region_joints: tuple[str, ...] = ()
@@ -214,6 +223,8 @@ class CaptureSettings:
         data["clips"] = [asdict(c) for c in self.clips]
         if self.every == 1:  # as captures before the option recorded it (resume compares)
             del data["every"]
+        if not self.blend_draws:
+            del data["shape_draws"]
         # likewise, for a rig without blend shapes, and for the whole character
         for key in (
             "blend_shapes", "controls", "blend_draws", "region", "region_joints",
@@ -240,6 +251,13 @@ class CaptureSettings:
             for c in values.get("controls", ())
         )
         values["blend_draws"] = tuple(tuple(d) for d in values.get("blend_draws", ()))
+        values["shape_draws"] = str(values.get("shape_draws", "uniform"))  # recorded since
+        if values["shape_draws"] not in SHAPE_DRAWS:
+            raise CaptureError(
+                f"capture.json: shape_draws is {values['shape_draws']!r}, not one of "
+                f"{', '.join(SHAPE_DRAWS)}.",
+                "restore the file, or capture into a new folder.",
+            )
         for key in ("region_joints", "input_joints", "input_shapes"):
             values[key] = tuple(values.get(key, ()))
         values["upright_axis"] = tuple(float(v) for v in values.get("upright_axis", ()))
@@ -248,16 +266,25 @@ class CaptureSettings:
     def frame_weights(self, rig: CharacterRig, clip: str, time: float) -> np.ndarray:
         """(B + C,) the blend shape weights of a captured frame, then its controls' values as
         the stage gives them: the animation's weights, except the shapes `blend_draws` names
-        for this clip, drawn uniformly in their range from a hash of (clip, time, shape), so
+        for this clip, drawn as `shape_draws` says from hashes of (clip, time, shape), so
         every view of the frame, a resumed capture and another worker all draw the same
         weight."""
         weights = rig.scalars(time)
+        at_work = _hashed(clip, time, "shapes at work")  # "sparse": the share drawn
         for name, shape, low, high in self.blend_draws:  # a region's: every clip ("*")
-            if name in (clip, "*"):
-                key = f"{clip}|{time:.6f}|{shape}".encode()
-                u = int.from_bytes(hashlib.sha256(key).digest()[:8], "little") / 2.0**64
-                weights[self.blend_shapes.index(shape)] = low + (high - low) * u
+            if name not in (clip, "*"):
+                continue
+            value = low + (high - low) * _hashed(clip, time, shape)
+            if self.shape_draws == "sparse" and _hashed(clip, time, shape + "|at work") >= at_work:
+                value = min(max(0.0, low), high)  # at rest
+            weights[self.blend_shapes.index(shape)] = value
         return weights
+
+
+def _hashed(clip: str, time: float, what: str) -> float:
+    """A number in [0, 1) from (clip, time, what): the same in every view, worker and resume."""
+    key = f"{clip}|{time:.6f}|{what}".encode()
+    return int.from_bytes(hashlib.sha256(key).digest()[:8], "little") / 2.0**64
 
 
 def scene_fingerprint(stage: Usd.Stage) -> str:

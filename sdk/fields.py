@@ -261,6 +261,7 @@ CAPTURE_SETTINGS = (
     Field("controls[].name", "text", required=True),
     Field("controls[].range", "numbers", required=True),
     Field("blend_draws", "list"),
+    Field("shape_draws", "text"),
     Field("clips", "list", required=True),
     Field("clips[].name", "text", required=True),
     Field("clips[].first", "number", required=True),

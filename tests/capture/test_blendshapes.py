@@ -4,6 +4,7 @@ are drawn within the ring's authored ranges (issue 23)."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 
@@ -48,11 +49,72 @@ def test_every_sample_records_the_weights_it_was_posed_with(captured):
         assert rows[0, names.index("smile")] == pytest.approx(animated["smile"], abs=1e-6)
     frown = blend[:, names.index("frown")]  # still in the clip (never animated): drawn
     assert frown.min() >= 0.2 - 1e-6 and frown.max() <= 0.9 + 1e-6
-    assert len(np.unique(frown)) == len(np.unique(times))  # one draw per frame
-    assert np.ptp(frown) > 0.2
+    per_frame = np.array([frown[times == t][0] for t in np.unique(times)])
+    # Sparse draws: at rest (its range's value nearest 0, 0.2 here) or drawn, a draw per frame.
+    rest = np.isclose(per_frame, 0.2)
+    assert 0 < rest.sum() < len(per_frame)
+    assert len(np.unique(per_frame[~rest])) == (~rest).sum() and np.ptp(per_frame) > 0.2
     assert manifest["settings"]["blend_draws"] == [
         ["talk", "frown", pytest.approx(0.2), pytest.approx(0.9)]
     ]
+    assert manifest["settings"]["shape_draws"] == "sparse"
+
+
+def _settings(captured, shapes: int, draws: str):
+    """The capture's settings drawing `shapes` shapes of a 0..1 range in every clip."""
+    from dataclasses import replace
+
+    from rigspace.capture.settings import CaptureSettings
+
+    settings = CaptureSettings.from_json(json.loads((captured / "capture.json").read_text()))
+    names = tuple(f"shape{k}" for k in range(shapes))
+    draws_ = tuple(("*", name, 0.0, 1.0) for name in names)
+    return replace(settings, blend_shapes=names, blend_draws=draws_, shape_draws=draws)
+
+
+class _StillRig:
+    """A rig whose animation leaves every weight at 0 (frame_weights reads `scalars` alone)."""
+
+    def __init__(self, shapes: int) -> None:
+        self.shapes = shapes
+
+    def scalars(self, time: float) -> np.ndarray:
+        return np.zeros(self.shapes)
+
+
+def test_sparse_draws_put_a_uniform_number_of_shapes_at_work(captured):
+    """15 shapes drawn over 3,200 frames: each count of shapes at work, none to all 15, in about
+    1/16 of the frames (a face at rest among them), each shape at work in about half; the
+    same frame draws the same weights again (every view, a resume, another worker)."""
+    settings = _settings(captured, 15, "sparse")
+    rig = _StillRig(15)
+    weights = np.array([settings.frame_weights(rig, "talk", t / 3) for t in range(3200)])
+    counts = np.bincount((weights > 0).sum(axis=1), minlength=16)
+    assert counts.min() > 3200 / 16 * 0.6 and counts.max() < 3200 / 16 * 1.4, counts
+    assert np.all(np.abs((weights > 0).mean(axis=0) - 0.5) < 0.06)
+    assert weights.max() <= 1.0 and weights.min() >= 0.0
+    np.testing.assert_array_equal(weights[7], settings.frame_weights(rig, "talk", 7 / 3))
+    # "uniform" (captures before sparse draws) draws every shape, as those captures did.
+    uniform = _settings(captured, 15, "uniform")
+    drawn = np.array([uniform.frame_weights(rig, "talk", t / 3) for t in range(200)])
+    assert (drawn > 0).all()
+    key = f"talk|{7 / 3:.6f}|shape4".encode()
+    old = int.from_bytes(hashlib.sha256(key).digest()[:8], "little") / 2.0**64
+    assert drawn[7, 4] == pytest.approx(old)
+
+
+def test_a_capture_json_without_shape_draws_is_read_as_the_uniform_draws_it_was_made_with(
+    captured,
+):
+    from rigspace.capture.settings import CaptureSettings
+
+    data = json.loads((captured / "capture.json").read_text())
+    assert data["shape_draws"] == "sparse"
+    del data["shape_draws"]
+    assert CaptureSettings.from_json(data).shape_draws == "uniform"
+    data["shape_draws"] = "gaussian"
+    with pytest.raises(CaptureError, match="shape_draws is 'gaussian'"):
+        CaptureSettings.from_json(data)
 
 
 def test_the_weights_shape_the_images(face, captured, tmp_path):

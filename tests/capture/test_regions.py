@@ -234,7 +234,9 @@ def test_a_region_s_shapes_are_drawn_apart_from_the_animation(captured_face):
             drawn[name].append(row[names.index(name)])
     for name, values in drawn.items():
         values = np.array(values)
-        assert values.min() >= 0 and values.max() <= 1 and len(np.unique(values)) == len(frames)
+        assert values.min() >= 0 and values.max() <= 1
+        at_work = values[values > 0]  # sparse draws: at rest (0) or a weight of its own
+        assert 0 < len(at_work) < len(frames) and len(np.unique(at_work)) == len(at_work)
         animation = np.array([dict(zip(ANIMATED, weights_at(float(t)), strict=True))[name]
                               for t in frames])  # fmt: skip
         assert not np.allclose(values, animation, atol=1e-3)  # not the clip's weights

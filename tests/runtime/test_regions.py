@@ -468,6 +468,17 @@ def test_the_regions_report_measures_each_part_with_and_without_its_region(face,
     side = regions_report.CROP_PX
     assert sheet.shape[1] == 3 * side and (sheet.shape[0] - 24) % side == 0
     assert "| regions |" in (out / "regions_report.md").read_text()
+    # A row per frame and draw, which add up to the totals; the plot of them, one line a draw.
+    rows = result["per_frame"]["face"]
+    assert [r["t"] for r in rows["regions"]] == [6.0, 7.0]
+    for label, frames in rows.items():
+        assert sum(r["pixels"] for r in frames) == face_rows[label]["pixels"]
+        assert np.median([r["psnr"] for r in frames]) == pytest.approx(
+            face_rows[label]["median_frame_psnr"], abs=0.01
+        )
+    assert "Where the draws differ most" in (out / "regions_report.md").read_text()
+    plot = cv2.imread(str(out / "frames_face.png"))
+    assert plot is not None and plot.shape[1] > 400
 
 
 @pytest.mark.slow  # the face fixture trains two bundles (10-30 s)
@@ -512,3 +523,22 @@ def test_a_region_with_a_texture_head_samples_the_characters_textures(tmp_path):
     (entry,) = frame.report.characters[0]["regions"]
     assert entry["decision"] == "evaluated", entry
     assert entry["colour"].startswith("its textures on"), entry["colour"]
+
+
+def test_the_regions_report_lists_the_frames_where_its_draws_differ_most():
+    from rigspace.apps.regions_report import _spread
+
+    def row(t, psnr):
+        return {"t": t, "pixels": 100, "psnr": psnr, "flip": 0.3, "mask_iou": 0.9}
+
+    rows = {
+        "a": [row(0.0, 12.0), row(10.0, 14.0), row(20.0, 13.0)],
+        "b": [row(0.0, 12.5), row(10.0, 9.0), row(20.0, 13.0)],
+    }
+    lines = _spread(rows)
+    table = [line for line in lines if line.startswith("| ") and line[2].isdigit()]
+    assert [line.split(" | ")[0] for line in table] == ["| 10", "| 0", "| 20"]
+    assert "14.00 / 0.300 | 9.00 / 0.300" in table[0]
+    # One draw, or no frame every draw measured: nothing to compare.
+    assert _spread({"a": rows["a"]}) == []
+    assert _spread({"a": rows["a"], "b": []}) == []
