@@ -381,15 +381,15 @@ def _spread(rows: dict[str, list[dict]]) -> list[str]:
     return [*lines, ""]
 
 
-def plot_frames(rows: dict[str, list[dict]], path: Path, part: str) -> bool:
-    """Each draw's beauty PSNR over the part's own pixels, frame by frame, as a PNG at `path`.
-    False (nothing written) with fewer than two draws or without matplotlib (the dev extra)."""
+def plot_frames(rows: dict[str, list[dict]], path: Path, part: str) -> str:
+    """Each draw's beauty PSNR over the part's own pixels, frame by frame, as a PNG at `path`;
+    "" when written, else why not (fewer than two draws; no matplotlib, the dev extra)."""
     if len(rows) < 2:
-        return False
+        return "one draw: nothing to compare"
     try:
         import matplotlib
     except ImportError:
-        return False
+        return "matplotlib is not installed (pip install matplotlib, or rigspace's dev extra)"
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -407,15 +407,17 @@ def plot_frames(rows: dict[str, list[dict]], path: Path, part: str) -> bool:
     fig.savefig(buffer, format="png", dpi=90)
     plt.close(fig)
     write_atomic(path, buffer.getvalue())
-    return True
+    return ""
 
 
-def write(out: Path, result: dict, parts: list[Part], labels: list[str]) -> None:
+def write(out: Path, result: dict, parts: list[Part], labels: list[str]) -> str:
+    """The report's files (module doc) in `out`; "" or why the frame plots are not there."""
     import cv2
 
     from rigspace.sdk.files import write_atomic
 
     out.mkdir(parents=True, exist_ok=True)
+    unplotted = ""
     for part in parts:
         if not part.crops:
             continue
@@ -429,9 +431,12 @@ def write(out: Path, result: dict, parts: list[Part], labels: list[str]) -> None
         ok, png = cv2.imencode(".png", np.concatenate([header, sheet], axis=0))
         if ok:
             write_atomic(out / f"part_{part.name}.png", png.tobytes())
-        plot_frames(result["per_frame"][part.name], out / f"frames_{part.name}.png", part.name)
+        unplotted = plot_frames(
+            result["per_frame"][part.name], out / f"frames_{part.name}.png", part.name
+        )
     write_atomic(out / "regions_report.json", json.dumps(result, indent=1) + "\n")
     write_atomic(out / "regions_report.md", table(result) + "\n")
+    return unplotted
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -443,9 +448,11 @@ def main(argv: list[str] | None = None) -> int:
     except RigspaceError as exc:
         print(f"regions_report: error: {exc}", file=sys.stderr)
         return 1
-    write(Path(args.out), result, parts, labels)
+    unplotted = write(Path(args.out), result, parts, labels)
     print(table(result))
     print(f"wrote {args.out}/regions_report.json, regions_report.md and the part images")
+    if unplotted:
+        print(f"no frames_NAME.png plots: {unplotted}")
     return 0
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import sys
 
 import cv2
 import numpy as np
@@ -542,3 +543,14 @@ def test_the_regions_report_lists_the_frames_where_its_draws_differ_most():
     # One draw, or no frame every draw measured: nothing to compare.
     assert _spread({"a": rows["a"]}) == []
     assert _spread({"a": rows["a"], "b": []}) == []
+
+
+def test_the_regions_report_says_why_it_draws_no_frame_plot(tmp_path, monkeypatch):
+    from rigspace.apps.regions_report import plot_frames
+
+    row = {"t": 0.0, "pixels": 100, "psnr": 12.0, "flip": 0.3, "mask_iou": 0.9}
+    path = tmp_path / "frames_face.png"
+    assert plot_frames({"a": [row]}, path, "face") == "one draw: nothing to compare"
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # not installed
+    assert "matplotlib is not installed" in plot_frames({"a": [row], "b": [row]}, path, "face")
+    assert not path.exists()
