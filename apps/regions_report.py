@@ -61,10 +61,8 @@ class Tally:
     beauty_se: float = 0.0
     albedo_se: float = 0.0
     flip_sum: float = 0.0
-    frame_psnr: list[float] = field(default_factory=list)
     iou_hits: int = 0
     iou_union: int = 0
-    frame_iou: list[float] = field(default_factory=list)
     rows: list[dict] = field(default_factory=list)
     """Per frame measured: time, pixels, beauty PSNR, FLIP, mask IoU near the part."""
 
@@ -79,7 +77,6 @@ class Tally:
         self.pixels += count
         self.beauty_se += float(beauty.sum()) / 3
         self.albedo_se += float(albedo.sum()) / 3
-        self.frame_psnr.append(_psnr(float(beauty.mean())))
         ys, xs = np.nonzero(near)
         box = np.s_[ys.min() : ys.max() + 1, xs.min() : xs.max() + 1]
         flip = float(flip_map(frame.beauty[box], truth.beauty[box])[own[box]].sum())
@@ -89,29 +86,36 @@ class Tally:
         hits, union = int((a & b).sum()), int((a | b).sum())
         self.iou_hits += hits
         self.iou_union += union
-        self.frame_iou.append(hits / union if union else 1.0)
         self.rows.append(
             {
                 "t": t,
                 "pixels": count,
-                "psnr": round(self.frame_psnr[-1], 2),
-                "flip": round(flip / count, 4),
-                "mask_iou": round(self.frame_iou[-1], 3),
+                "psnr": _psnr(float(beauty.mean())),
+                "flip": flip / count,
+                "mask_iou": hits / union if union else 1.0,
             }
         )
+
+    def frame_rows(self) -> list[dict]:
+        """The rows as the report writes them (PSNR to 0.01 dB, FLIP to 1e-4, IoU to 1e-3)."""
+        return [
+            {**r, "psnr": round(r["psnr"], 2), "flip": round(r["flip"], 4),
+             "mask_iou": round(r["mask_iou"], 3)}
+            for r in self.rows
+        ]  # fmt: skip
 
     def summary(self) -> dict:
         if not self.pixels:
             return {"frames": 0}
         return {
-            "frames": len(self.frame_psnr),
+            "frames": len(self.rows),
             "pixels": self.pixels,
             "psnr": round(_psnr(self.beauty_se / self.pixels), 2),
             "albedo_psnr": round(_psnr(self.albedo_se / self.pixels), 2),
-            "median_frame_psnr": round(float(np.median(self.frame_psnr)), 2),
+            "median_frame_psnr": round(float(np.median([r["psnr"] for r in self.rows])), 2),
             "flip": round(self.flip_sum / self.pixels, 4),
             "mask_iou": round(self.iou_hits / max(self.iou_union, 1), 3),
-            "worst_frame_iou": round(float(min(self.frame_iou)), 3),
+            "worst_frame_iou": round(float(min(r["mask_iou"] for r in self.rows)), 3),
         }
 
 
@@ -286,7 +290,8 @@ def run(args: argparse.Namespace) -> tuple[dict, list[Part], list[str]]:
             },
             "crops": {p.name: [[n, t] for n, t, _ in p.crops] for p in parts},
             "per_frame": {
-                p.name: {label: tallies[p.name, label].rows for label, _, _ in draws} for p in parts
+                p.name: {label: tallies[p.name, label].frame_rows() for label, _, _ in draws}
+                for p in parts
             },
         },
         parts,

@@ -251,7 +251,8 @@ class CaptureSettings:
             for c in values.get("controls", ())
         )
         values["blend_draws"] = tuple(tuple(d) for d in values.get("blend_draws", ()))
-        values["shape_draws"] = str(values.get("shape_draws", "uniform"))  # recorded since
+        # absent: a capture from before sparse draws, which drew every shape uniformly
+        values["shape_draws"] = str(values.get("shape_draws", "uniform"))
         if values["shape_draws"] not in SHAPE_DRAWS:
             raise CaptureError(
                 f"capture.json: shape_draws is {values['shape_draws']!r}, not one of "
