@@ -51,6 +51,14 @@ def _add_ring_arguments(parser: argparse.ArgumentParser) -> None:
         "--frames", type=time_range, metavar="A:B", help="capture time codes A to B as one clip"
     )
     choose.add_argument("--clips", nargs="+", help="capture only these clips of the ring")
+    parser.add_argument(
+        "--held-out-clips",
+        nargs="*",
+        metavar="NAME",
+        help="hold these of the ring's clips out of training instead of its heldOutClips; "
+        "given without a name, none: every clip trains (a model for the shot that plays them "
+        "all; its held-out views still measure it)",
+    )
 
 
 def _add_render_arguments(parser: argparse.ArgumentParser) -> None:
@@ -131,6 +139,7 @@ def _character_and_flags(args: argparse.Namespace) -> tuple[str | None, dict[str
         "radius": args.radius,
         "frames": args.frames,
         "clips": tuple(args.clips) if args.clips else None,
+        "held_out_clips": None if args.held_out_clips is None else tuple(args.held_out_clips),
         "renderer": args.renderer,
         "samples_per_axis": args.samples,
         "frames_per_item": args.frames_per_item,

@@ -89,6 +89,7 @@ def saved_flags(folder: str | Path) -> dict[str, Any] | None:
             flags["frames"] = (float(clips[0]["first"]), float(clips[0]["last"]))
         else:
             flags["clips"] = tuple(str(c["name"]) for c in clips)
+            flags["held_out_clips"] = tuple(str(c["name"]) for c in clips if c.get("held_out"))
         flags["renderer"] = str(settings["renderer"])
         flags["samples_per_axis"] = int(settings["samples_per_axis"])
         flags["frames_per_item"] = int(settings["frames_per_item"])
@@ -114,7 +115,7 @@ def resume_command(folder: str | Path) -> str:
     if "frames" in flags:
         args += ["--frames", f"{_number(flags['frames'][0])}:{_number(flags['frames'][1])}"]
     else:
-        args += ["--clips", *flags["clips"]]
+        args += ["--clips", *flags["clips"], "--held-out-clips", *flags["held_out_clips"]]
     args += ["--renderer", flags["renderer"], "--samples", str(flags["samples_per_axis"])]
     args += ["--frames-per-item", str(flags["frames_per_item"])]
     if flags["every"] != 1:

@@ -112,6 +112,12 @@ class CaptureOverrides:
     clips: tuple[str, ...] | None = field(
         default=None, metadata={"help": "capture only these clips of the capture ring"}
     )
+    held_out_clips: tuple[str, ...] | None = field(
+        default=None,
+        metadata={
+            "help": "the ring's clips held out of training (None: its heldOutClips; (): none)"
+        },
+    )
     renderer: str = field(default="auto", metadata={"help": "gl, embree or auto"})
     samples_per_axis: int = field(
         default=2, metadata={"help": "anti-aliasing: s x s samples per pixel"}
@@ -340,8 +346,21 @@ def _chosen_clips(
     ring: schema.CaptureRing | None, overrides: CaptureOverrides, span: tuple[float, float]
 ) -> tuple[list[Clip], str]:
     """The clips asked for, as authored, and where they come from: --frames, else the ring's
-    clips (those --clips names), else the whole animation."""
+    clips (those --clips names), else the whole animation. The clips held out of training are
+    the ring's heldOutClips, or those --held-out-clips names (none when it names none)."""
     held = set(ring.held_out_clips) if ring else set()
+    if overrides.held_out_clips is not None:
+        known = set(ring.clip_names) if ring else set()
+        unknown = [c for c in overrides.held_out_clips if c not in known]
+        if unknown:
+            raise CaptureError(
+                f"--held-out-clips names {', '.join(unknown)}, which the capture ring does not "
+                "define.",
+                f"use some of: {', '.join(sorted(known))}"
+                if known
+                else "name the ring's clips (rigspace:captureRing:clipNames) first",
+            )
+        held = set(overrides.held_out_clips)
     if ring and ring.clip_names:
         clips = [
             Clip(n, float(a), float(b), n in held)

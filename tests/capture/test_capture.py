@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -17,6 +18,7 @@ from rigspace.capture import dataset as ds
 from rigspace.capture.pipeline import capture
 from rigspace.capture.settings import CaptureError, CaptureOverrides
 from rigspace.sdk import rotations
+from rigspace.sdk.cli import main
 from rigspace.sdk.errors import RigspaceError, SceneError
 from rigspace.sdk.exr import CHANNELS, TEXTURE_CHANNELS, read_exr
 from rigspace.sdk.posing import CharacterRig
@@ -404,3 +406,31 @@ def test_sigterm_stops_quietly_keeps_the_items_and_says_how_to_resume(tmp_path, 
     overrides = CaptureOverrides(**{**SMALL.__dict__, "frames_per_item": 1})
     resumed = capture(SCENE, CHARACTER, out, overrides, resume=True, workers=1, progress=False)
     assert resumed.complete
+
+
+def test_held_out_clips_from_the_command_line(tmp_path):
+    """--held-out-clips replaces the ring's heldOutClips (previs.usda holds out the wave): none
+    held out, every clip trains; a name the ring does not define is refused before anything is
+    written; the resume command carries the split."""
+    previs = REPO / "samples" / "scenes" / "previs.usda"
+    small = {"views": 1, "elevations": (0.0,), "resolution": 16, "every": 60}
+    none = CaptureOverrides(**small, clips=("walk", "wave"), held_out_clips=())
+    result = capture(previs, "/World/Hero", tmp_path / "none", none, progress=False)
+    assert [(c.name, c.held_out) for c in result.settings.clips] == [
+        ("walk", False),
+        ("wave", False),
+    ]
+    assert result.manifest.counts["heldout-clips"] == 0
+    command = ds.resume_command(tmp_path / "none")
+    assert "--clips walk wave --held-out-clips --renderer" in command
+    (tmp_path / "none" / ds.MANIFEST_FILE).unlink()  # unfinished: the command finishes it
+    assert main(shlex.split(command)[1:]) == 0  # the same split, or "different settings"
+    assert ds.read_manifest(tmp_path / "none").counts["heldout-clips"] == 0
+    walk = CaptureOverrides(**small, clips=("walk", "wave"), held_out_clips=("walk",))
+    result = capture(previs, "/World/Hero", tmp_path / "walk", walk, progress=False)
+    assert [c.name for c in result.settings.clips if c.held_out] == ["walk"]
+    assert ds.saved_flags(tmp_path / "walk")["held_out_clips"] == ("walk",)
+    bad = CaptureOverrides(**small, held_out_clips=("dance",))
+    with pytest.raises(CaptureError, match="--held-out-clips names dance.*use some of: roll"):
+        capture(previs, "/World/Hero", tmp_path / "bad", bad, progress=False)
+    assert not (tmp_path / "bad").exists()
