@@ -431,6 +431,6 @@ def test_held_out_clips_from_the_command_line(tmp_path):
     assert [c.name for c in result.settings.clips if c.held_out] == ["walk"]
     assert ds.saved_flags(tmp_path / "walk")["held_out_clips"] == ("walk",)
     bad = CaptureOverrides(**small, held_out_clips=("dance",))
-    with pytest.raises(CaptureError, match="--held-out-clips names dance.*use some of: roll"):
+    with pytest.raises(CaptureError, match=r"--held-out-clips names dance.*use some of: roll"):
         capture(previs, "/World/Hero", tmp_path / "bad", bad, progress=False)
     assert not (tmp_path / "bad").exists()
