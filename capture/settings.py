@@ -350,16 +350,9 @@ def _chosen_clips(
     the ring's heldOutClips, or those --held-out-clips names (none when it names none)."""
     held = set(ring.held_out_clips) if ring else set()
     if overrides.held_out_clips is not None:
-        known = set(ring.clip_names) if ring else set()
-        unknown = [c for c in overrides.held_out_clips if c not in known]
-        if unknown:
-            raise CaptureError(
-                f"--held-out-clips names {', '.join(unknown)}, which the capture ring does not "
-                "define.",
-                f"use some of: {', '.join(sorted(known))}"
-                if known
-                else "name the ring's clips (rigspace:captureRing:clipNames) first",
-            )
+        _check_clip_names(
+            "--held-out-clips", overrides.held_out_clips, ring.clip_names if ring else ()
+        )
         held = set(overrides.held_out_clips)
     if ring and ring.clip_names:
         clips = [
@@ -371,19 +364,25 @@ def _chosen_clips(
         clips = [Clip("all", span[0], span[1])]
         source = "the animation's time samples"
     if overrides.clips is not None:
-        known = {c.name for c in clips}
-        unknown = [c for c in overrides.clips if c not in known]
-        if unknown:
-            raise CaptureError(
-                f"--clips names {', '.join(unknown)}, which the capture ring does not define.",
-                f"use some of: {', '.join(sorted(known))}",
-            )
+        _check_clip_names("--clips", overrides.clips, [c.name for c in clips])
         clips = [c for c in clips if c.name in overrides.clips]
     if overrides.frames is not None:
         first, last = overrides.frames
         clips = [Clip("frames", float(first), float(last))]
         source = "--frames"
     return clips, source
+
+
+def _check_clip_names(flag: str, names: Sequence[str], known: Sequence[str]) -> None:
+    """A CaptureError naming those of a flag's clip `names` that are not in `known`."""
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise CaptureError(
+            f"{flag} names {', '.join(unknown)}, which the capture ring does not define.",
+            f"use some of: {', '.join(sorted(known))}"
+            if known
+            else "name the ring's clips (rigspace:captureRing:clipNames) first",
+        )
 
 
 def _fit_clip(
