@@ -390,12 +390,38 @@ def _train_regions(
     return 0
 
 
+def _listed_regions(out: Path) -> list[dict]:
+    """The regions the bundle in `out` lists whose bundles are still there: a body exported
+    again over it (--resume, --upgrade) lists them too: the export writes a new manifest.
+    Empty where it lists none or its manifest cannot be read."""
+    from rigspace.sdk.bundle import BundleError, read_manifest_document
+
+    if not (out / "manifest.json").is_file():
+        return []
+    try:
+        listed = read_manifest_document(out).get(REGIONS) or []
+    except BundleError:
+        return []
+    return [
+        r for r in listed
+        if isinstance(r, dict) and isinstance(r.get("bundle"), str)
+        and (out / r["bundle"] / "manifest.json").is_file()
+    ]  # fmt: skip
+
+
 def _export(args: argparse.Namespace, out: Path, metrics: dict | None = None) -> int:
     """Export the run in out/training, then say what the bundle holds and what failed."""
     from rigspace.train.export import export_bundle
     from rigspace.train.int8check import failure_lines
 
+    listed = _listed_regions(out)
     manifest = export_bundle(out / TRAINING, out, int8=not args.no_int8, metrics=metrics)
+    if listed:  # a body exported again (--resume, --upgrade) keeps its regions listed
+        from rigspace.sdk.bundle import read_manifest_document, write_manifest_document
+
+        document = read_manifest_document(out)
+        document[REGIONS] = listed
+        write_manifest_document(out, document)
     graphs = [name for name in manifest["files"] if name.endswith(".onnx")]
     size = sum(v["bytes"] for v in manifest["files"].values())
     training = manifest["training"]

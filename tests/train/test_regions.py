@@ -142,6 +142,9 @@ def test_regions_only_adds_regions_to_a_body_trained_before(region_dataset, tmp_
     assert "--region leftHand" in capsys.readouterr().err and (out / "regions" / "face").is_dir()
     assert main([*args, "--region", "face"]) == 2
     assert "--region picks the regions --regions-only trains" in capsys.readouterr().err
+    # The body trained on (--resume, a new export of it): its regions stay listed.
+    assert main([*args, "--no-regions", "--resume", "--steps", "5"]) == 0
+    assert [r.name for r in read_manifest(out).regions] == ["face"]
 
 
 def test_the_budget_is_shared_by_image_size():
