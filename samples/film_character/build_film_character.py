@@ -176,20 +176,27 @@ def finger_curl(t: np.ndarray) -> np.ndarray:
     return curl * (1 - fist) + 80.0 * fist
 
 
+SIDES = {"l": np.array([1.0, 1.0, 1.0]), "r": np.array([-1.0, 1.0, 1.0])}
+"""Each hand's mirror of FINGERS: the left arm's bones run along its joints' local +X, the
+right arm's along -X (`hand_r` sits at x = -26 from its parent), both frames unrotated, so the
+right hand's fingers are the left's with X negated."""
+
+
 def finger_joints(joints: list[str]) -> list[tuple[str, int, np.ndarray]]:
     """(path, parent index, (3,) local translation) per finger joint, parents first; finger
-    joints keep their hand's orientation (the arm chain's rest frame: bone along local X)."""
+    joints keep their hand's orientation (the arm chain's rest frame: bone along local +X on
+    the left, -X on the right: SIDES)."""
     out: list[tuple[str, int, np.ndarray]] = []
     paths = list(joints)
-    for tag in ("l", "r"):
+    for tag, mirror in SIDES.items():
         hand = next(i for i, j in enumerate(paths) if j.endswith(f"/hand_{tag}"))
         for finger, (base, lengths) in FINGERS.items():
-            direction = (
+            direction = mirror * (
                 THUMB_DIRECTION / np.linalg.norm(THUMB_DIRECTION)
                 if finger == "thumb"
                 else np.array([1.0, 0, 0])
             )
-            parent, offset = hand, np.array(base, dtype=float)
+            parent, offset = hand, mirror * np.array(base, dtype=float)
             for k, length in enumerate(lengths):
                 path = f"{paths[parent]}/{finger}_{k + 1:02d}_{tag}"
                 out.append((path, parent, offset))
@@ -533,6 +540,8 @@ def _animation(stage: Usd.Stage, base: Usd.Stage, rig: _Rig) -> None:
     curl = finger_curl(np.array(times))
     faces = face_weights(np.array(times))
     finger_t = np.array([o for _, _, o in rig.fingers], dtype=np.float32)
+    curl_sign = np.array([SIDES[p[-1]][0] * -1.0 for p, _, _ in rig.fingers])
+    zeros = np.zeros(len(rig.fingers))
     scales = Vt.Vec3hArray([Gf.Vec3h(1, 1, 1)] * len(rig.joints))
     anim.CreateScalesAttr(scales)
     rot_attr, tr_attr, w_attr = (
@@ -543,7 +552,11 @@ def _animation(stage: Usd.Stage, base: Usd.Stage, rig: _Rig) -> None:
     for k, t in enumerate(times):
         q = np.array(anim0.GetRotationsAttr().Get(t))  # (J, 4) as (i, j, k, r)
         bend = np.radians(curl[k]) / 2
-        fq = np.tile([0.0, 0.0, -np.sin(bend), np.cos(bend)], (len(rig.fingers), 1))  # local Z
+        # About local Z, towards the palm (-Y): clockwise seen from +Z on the left, where the
+        # fingers point along +X, anticlockwise on the right (along -X).
+        fq = np.stack(
+            [zeros, zeros, curl_sign * np.sin(bend), np.full(len(rig.fingers), np.cos(bend))], 1
+        )
         rot_attr.Set(Vt.QuatfArray.FromNumpy(np.concatenate([q, fq]).astype(np.float32)), t)
         tr = np.array(anim0.GetTranslationsAttr().Get(t))
         tr_attr.Set(Vt.Vec3fArray.FromNumpy(np.concatenate([tr, finger_t]).astype(np.float32)), t)
@@ -632,22 +645,9 @@ def _eyes(stage: Usd.Stage, rig: _Rig, look) -> None:
 
 
 def _hand(side: str) -> dict[str, tuple[str, str]]:
-    """A hand region on a ring of 8 views (a third fewer samples than the face's).
-
-    The left hand: its joints and fingers at 64x64, framed at its knuckles, the square about
-    `middle_01_l` (17.6 cm from the hand's farthest point over the clips, where the wrist's
-    `hand_l` is 23.8 cm from it). The right hand keeps the 32x32 square about its wrist it
-    was trained on first: this character's right finger joints point up the forearm (FINGERS
-    is laid out along the hand's local +X, and the right arm's bones run along -X), so
-    `middle_01_r` lies 14 cm above the wrist and a square about it misses the hand's block
-    (README.md here, "Regions"); the fix changes the character and waits for the body's
-    recapture."""
-    if side == "r":
-        return {
-            "joint": ("token", '"hand_r"'),
-            "resolution": ("int", "32"),
-            "viewsPerRing": ("int", "8"),
-        }
+    """A hand region on a ring of 8 views (a third fewer samples than the face's): its joints
+    and fingers at 64x64, framed at its knuckles, the square about `middle_01_{side}` (17.6 cm
+    from the hand's farthest point over the clips, where the wrist is 23.8 cm from it)."""
     fingers = [
         f"{f}_0{k}_{side}" for f in ("thumb", "index", "middle", "ring", "pinky") for k in (1, 2, 3)
     ]
