@@ -93,6 +93,37 @@ def test_posing_equals_usdskel_bake_skinning_with_fingers_and_face(built, tmp_pa
             np.testing.assert_allclose(got, want, atol=2e-3)  # cm, float32
 
 
+def test_the_right_hand_mirrors_the_left(built):
+    """Both hands' fingers leave the wrist along the forearm and curl towards the palm: the
+    right hand's finger joints are the left's mirrored in X, in the hands' own frames, open
+    and in the roll clip's fist (the right ones once pointed up the forearm: FINGERS is laid
+    out along +X, the right arm's bones run along -X)."""
+    from rigspace.sdk.posing import CharacterRig
+
+    info, _ = built
+    stage = Usd.Stage.Open(info["scene"])
+    rig = CharacterRig(stage.GetPrimAtPath("/World/Hero"))
+    names = [j.rsplit("/", 1)[-1] for j in rig.joints]
+    mirror = np.array([-1.0, 1.0, 1.0])
+    for t in (0.0, 1100.0):  # open, a fist
+        world = np.asarray(rig.world_transforms(t))
+        reach = {}
+        for side in "lr":
+            hand = world[names.index(f"hand_{side}")]
+            forearm = hand[:3, 3] - world[names.index(f"lowerarm_{side}")][:3, 3]
+            tips = {}
+            for finger in ("thumb", "index", "middle", "ring", "pinky"):
+                tip = world[names.index(f"{finger}_03_{side}")]
+                tips[finger] = (np.linalg.inv(hand) @ tip)[:3, 3]  # in the hand's frame
+            middle = world[names.index(f"middle_03_{side}")][:3, 3] - hand[:3, 3]
+            reach[side] = (tips, float(middle @ forearm / np.linalg.norm(forearm)))
+        (left, left_reach), (right, right_reach) = reach["l"], reach["r"]
+        for finger, tip in left.items():
+            np.testing.assert_allclose(right[finger], tip * mirror, atol=1e-3)
+        assert left_reach > 10 and right_reach == pytest.approx(left_reach, abs=1e-3)
+        assert left["middle"][1] < -1  # curled towards the palm (-Y)
+
+
 def _around_the_head(info: dict):
     """The shot's character (its rig) and its maps at time 0 from each view of its capture
     ring's first elevation, around the head (the gl renderer)."""
