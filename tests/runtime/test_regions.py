@@ -9,6 +9,7 @@ import json
 import math
 import shutil
 import sys
+import threading
 
 import cv2
 import numpy as np
@@ -303,6 +304,37 @@ def test_a_close_camera_draws_the_face_over_the_body(face):
         again = engine.render(6.0)
         assert again.report.characters[0]["regions"][0]["decision"] == "reused"
         assert again.report.counts["regions reused"] == 1 and calls == [1]
+
+
+@pytest.mark.slow  # the face fixture trains two bundles (10-30 s)
+def test_the_face_s_network_runs_beside_the_body_s_and_draws_the_same(face, monkeypatch):
+    """A frame's network calls run on NETWORK_WORKERS threads: the body's and the face's at
+    once (each waits at a barrier for the other: on one thread the barrier would break), each
+    holding its own model's lock; the frame is the one a single thread draws, bit for bit."""
+    from rigspace.runtime.stages import characters
+
+    scene, _ = face
+    with _engine(scene, 2.5) as engine:
+        meeting, calls = threading.Barrier(2, timeout=120), []
+        evaluate = characters._evaluate
+
+        def met(group, level, branches, camera, lock):
+            calls.append((group[0].part.model, threading.current_thread().name, lock))
+            if len(calls) <= 2:
+                meeting.wait()  # both calls are running now
+            assert lock.locked() is False  # a model's own calls are never this frame's two
+            return evaluate(group, level, branches, camera, lock)
+
+        monkeypatch.setattr(characters, "_evaluate", met)
+        frame = engine.render(6.0)
+    assert frame.report.characters[0]["regions"][0]["decision"] == "evaluated"
+    (body, first, body_lock), (face_model, second, face_lock) = calls
+    assert body is not face_model and first != second and body_lock is not face_lock
+    monkeypatch.setattr(characters, "_evaluate", evaluate)
+    monkeypatch.setattr(characters, "NETWORK_WORKERS", 1)
+    with _engine(scene, 2.5) as engine:
+        alone = engine.render(6.0)
+    assert np.array_equal(frame.beauty, alone.beauty)
 
 
 @pytest.mark.slow  # the face fixture trains two bundles (10-30 s)
