@@ -417,11 +417,10 @@ def _export(args: argparse.Namespace, out: Path, metrics: dict | None = None) ->
     listed = _listed_regions(out)
     manifest = export_bundle(out / TRAINING, out, int8=not args.no_int8, metrics=metrics)
     if listed:  # a body exported again (--resume, --upgrade) keeps its regions listed
-        from rigspace.sdk.bundle import read_manifest_document, write_manifest_document
+        from rigspace.sdk.bundle import write_manifest_document
 
-        document = read_manifest_document(out)
-        document[REGIONS] = listed
-        write_manifest_document(out, document)
+        manifest[REGIONS] = listed  # the document export_bundle just wrote
+        write_manifest_document(out, manifest)
     graphs = [name for name in manifest["files"] if name.endswith(".onnx")]
     size = sum(v["bytes"] for v in manifest["files"].values())
     training = manifest["training"]

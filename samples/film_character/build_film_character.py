@@ -540,7 +540,7 @@ def _animation(stage: Usd.Stage, base: Usd.Stage, rig: _Rig) -> None:
     curl = finger_curl(np.array(times))
     faces = face_weights(np.array(times))
     finger_t = np.array([o for _, _, o in rig.fingers], dtype=np.float32)
-    curl_sign = np.array([SIDES[p[-1]][0] * -1.0 for p, _, _ in rig.fingers])
+    curl_sign = np.array([-SIDES[p[-1]][0] for p, _, _ in rig.fingers])
     zeros = np.zeros(len(rig.fingers))
     scales = Vt.Vec3hArray([Gf.Vec3h(1, 1, 1)] * len(rig.joints))
     anim.CreateScalesAttr(scales)
