@@ -76,6 +76,16 @@ def _add_budget_arguments(parser: argparse.ArgumentParser) -> None:
     budget.add_argument("--minutes", type=float, help="stop after this many minutes (checkpointed)")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out")
     parser.add_argument(
+        "--anneal",
+        type=float,
+        default=0.0,
+        metavar="SHARE",
+        help="over the last SHARE (0-1) of this call's run (its --minutes, else its steps) the "
+        "learning rate falls along a half cosine to 1/50 of --lr, at the final level only; "
+        "with --resume, within the resumed call's budget (0: constant, the default; "
+        "docs/training.md)",
+    )
+    parser.add_argument(
         "--upgrade",
         action="store_true",
         help="bring the finished run in --out up to this rigspace's network (adds the albedo "
@@ -184,8 +194,10 @@ def _print_result(result: TrainResult, out: Path) -> None:
 def run_train(args: argparse.Namespace) -> int:
     from rigspace.capture.dataset import read_manifest
     from rigspace.train import distributed
+    from rigspace.train.config import check_anneal
 
     config = _train_config(args)
+    check_anneal(args.anneal)
     out = Path(args.out)
     if args.force and (args.resume or args.upgrade):
         raise RigspaceError(
@@ -228,6 +240,7 @@ def run_train(args: argparse.Namespace) -> int:
         device=args.device,
         cache=not args.no_cache,
         resident=args.resident,
+        anneal=args.anneal,
     )
     if not ctx.is_main:  # rank 0 reports and exports; the others wait for it
         if result.stopped == "interrupted":
@@ -358,7 +371,7 @@ def _train_regions(
         result = train(
             Path(args.dataset) / REGIONS / name, home / TRAINING, region_config,
             steps=args.steps, minutes=minutes, resume=resume, device=args.device,
-            cache=not args.no_cache, resident=args.resident,
+            cache=not args.no_cache, resident=args.resident, anneal=args.anneal,
         )  # fmt: skip
         if not ctx.is_main:
             if result.stopped == "interrupted":
@@ -524,6 +537,8 @@ def torchrun_argv(args: argparse.Namespace, nproc: int) -> list[str]:
         argv += ["--steps", str(args.steps)]
     if args.minutes is not None:
         argv += ["--minutes", repr(args.minutes)]
+    if getattr(args, "anneal", 0.0):
+        argv += ["--anneal", repr(args.anneal)]
     argv += [f"--{f.replace('_', '-')}" for f in ("resume", "no_int8", "force") if getattr(args, f)]
     if getattr(args, "device", None):
         argv += ["--device", str(args.device)]

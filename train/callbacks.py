@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from rigspace.train.budget import Pace
 from rigspace.train.config import TrainConfig
-from rigspace.train.step import schedule
+from rigspace.train.step import annealed, schedule
 
 
 @dataclass
@@ -51,6 +51,8 @@ class LoopState:
     seconds_before: float = 0.0
     """Training seconds of earlier calls of this run (log.jsonl): the x axis of the curves."""
     started: float = field(default_factory=time.monotonic)
+    anneal: Anneal | None = None
+    """The learning rate's fall at the end of the run (--anneal); None: constant."""
 
     @property
     def elapsed(self) -> float:
@@ -127,6 +129,48 @@ class Pacer:
                 f"{ahead}) so that the run reaches the final level within the budget"
             )
         return int(ahead)
+
+
+class Anneal:
+    """`--anneal SHARE`: over the last SHARE of this call's run the learning rate falls along a
+    half cosine to ANNEAL_FLOOR of --lr (train.step.annealed), at the final level only.
+
+    The run is this call's: its time budget (`began` to `deadline`), else its steps (state.start
+    to state.total), so a resumed run anneals within its own --minutes. A final level first
+    trained inside the window anneals from that step on, from the full rate. The constant rate
+    leaves the weights wandering around a minimum (the film body's loss swung 0.53-0.78 over its
+    last steps); the fall lets them settle in it. The factor is rank 0's (`agree`), so every
+    rank steps alike."""
+
+    def __init__(
+        self,
+        config: TrainConfig,
+        share: float,
+        agree: Callable[[int], int],
+        began: float | None = None,
+        deadline: float | None = None,
+    ) -> None:
+        self.config, self.share, self.agree = config, share, agree
+        self.began, self.deadline = began, deadline
+        self.final = len(config.levels()) - 1
+        self._start: float | None = None
+        """Where (0..1 through the run) the window began in this call; None: not yet."""
+
+    def progress(self, state: LoopState) -> float:
+        """How far (0..1) this call's run is: by the clock with a budget, else by steps."""
+        if self.began is not None and self.deadline is not None:
+            return (time.monotonic() - self.began) / max(self.deadline - self.began, 1e-9)
+        return (state.step - state.start) / max(state.total - state.start, 1)
+
+    def factor(self, state: LoopState) -> float:
+        """The learning rate's factor for the step about to train (1 before the window)."""
+        if self.share <= 0 or schedule(self.config, state.step).level < self.final:
+            return 1.0
+        now = self.progress(state)
+        if self._start is None:
+            self._start = max(1.0 - self.share, now)
+        t = max(now - self._start, 0.0) / max(1.0 - self._start, 1e-9)
+        return annealed(self.agree(round(t * 1e6)) / 1e6)
 
 
 def run_steps(

@@ -23,6 +23,16 @@ def check_oversample(oversample: float) -> None:
         )
 
 
+def check_anneal(share: float) -> None:
+    """A ConfigError naming --anneal unless it is a share from 0 to 1 (NaN is not)."""
+    if not (math.isfinite(share) and 0.0 <= share <= 1.0):
+        raise ConfigError(
+            f"Training option --anneal is {share!r}.",
+            "give the share of the run at whose end the learning rate falls, from 0 (off) to 1 "
+            "(the whole run), such as 0.3.",
+        )
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Everything that determines a training run (saved as run.json beside the checkpoints)."""

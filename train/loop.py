@@ -43,6 +43,7 @@ from rigspace.sdk.files import replacing, write_atomic
 from rigspace.train import distributed
 from rigspace.train.budget import Pace, apply_plan, plan_schedule
 from rigspace.train.callbacks import (
+    Anneal,
     Callback,
     Checkpoints,
     LoopState,
@@ -53,12 +54,19 @@ from rigspace.train.callbacks import (
     run_steps,
 )
 from rigspace.train.conditioning import dataset_skeleton, parents_of
-from rigspace.train.config import TrainConfig
+from rigspace.train.config import TrainConfig, check_anneal
 from rigspace.train.data import SampleSet, chart_boxes, ensure_cache, texels_per_coordinate
 from rigspace.train.loss import targets_for
 from rigspace.train.network import Rig2Image, Shape, albedo_maps, geometry_maps, texture_maps
 from rigspace.train.resident import ResidentBatches, resident_or_not
-from rigspace.train.step import forward_loss, make_optimizer, optimise, schedule, to_torch
+from rigspace.train.step import (
+    forward_loss,
+    make_optimizer,
+    optimise,
+    schedule,
+    set_lr,
+    to_torch,
+)
 from rigspace.train.stream import is_shards, open_split, prefetcher
 
 if TYPE_CHECKING:
@@ -423,11 +431,15 @@ def train(
     device: str | None = None,
     cache: bool = True,
     resident: str = "auto",
+    anneal: float = 0.0,
 ) -> TrainResult:
     """Train Rig2Image on a capture dataset (see the module doc). `device`: a --device value
     (train.distributed.resolve_device; None: the CPU, or the context already made). `cache`:
     decode a dataset folder's samples once into its cache first (train.data.ensure_cache).
-    `resident`: keep the training items in the device's memory (train.resident)."""
+    `resident`: keep the training items in the device's memory (train.resident). `anneal`:
+    the share of this call's run (its `minutes`, else its steps) at whose end the learning
+    rate falls at the final level (train.callbacks.Anneal; 0: constant)."""
+    check_anneal(anneal)
     dataset, out = Path(dataset), Path(out)
     began = time.monotonic()  # the budget counts from here: the step-rate probe is part of it
     ctx = distributed.context(device)  # one process unless under torchrun (train.distributed)
@@ -446,6 +458,10 @@ def train(
     state.last_good = checkpoint_path if checkpoint_path.exists() else None
     state.seconds_before = logged_seconds(out / "log.jsonl", state.start) if state.start else 0.0
     pacer = None
+    if anneal > 0:
+        state.anneal = Anneal(
+            config, anneal, ctx.agree, *((began, began + 60 * minutes) if minutes else ())
+        )
     if minutes:
         # A time budget is the user's "train the best model in M minutes": when the planned
         # steps finish early (the probe ran on a busier machine), the final level trains on
@@ -668,6 +684,8 @@ def _train_step(state: LoopState, *, net: Any, prefetch: Any, ctx: Any) -> dict[
     if where.first_step_of_level and step > state.start:
         # A new block joins: fresh optimizer state (the paper resets per level).
         state.optimizer = make_optimizer(state.model, config)
+    lr = config.lr * (state.anneal.factor(state) if state.anneal is not None else 1.0)
+    set_lr(state.optimizer, lr)
     batch = prefetch.get(step)
     if not isinstance(prefetch, ResidentBatches):  # numpy from the dataset
         batch = ctx.to_device(to_torch(batch, config.channels_last))
@@ -687,6 +705,7 @@ def _train_step(state: LoopState, *, net: Any, prefetch: Any, ctx: Any) -> dict[
         "loss": shown,
         **terms,
         "fade": where.alpha,  # the newest block's fade-in weight; "alpha" is its loss term
+        "lr": lr,
         "resolution": where.resolution,
         "seconds": round(state.seconds_before + state.elapsed, 2),
     }

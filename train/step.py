@@ -5,6 +5,7 @@ the update. `rigspace.train.loop` runs these over a dataset; the GPU check
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,6 +35,23 @@ def schedule(config: TrainConfig, step: int) -> Schedule:
     fade_steps = max(1, int(config.fade_fraction * config.steps_per_level))
     alpha = 1.0 if level == 0 else min(1.0, local / fade_steps)
     return Schedule(level, levels[level], alpha, local == 0)
+
+
+ANNEAL_FLOOR = 0.02
+"""The share of --lr an annealed run ends at (`rigspace train --anneal`)."""
+
+
+def annealed(t: float) -> float:
+    """The learning rate's factor at `t` (0..1) through the annealing window: a half cosine
+    from 1 at its start to ANNEAL_FLOOR at its end (SGDR's, Loshchilov and Hutter 2017)."""
+    t = min(max(t, 0.0), 1.0)
+    return ANNEAL_FLOOR + (1.0 - ANNEAL_FLOOR) * 0.5 * (1.0 + math.cos(math.pi * t))
+
+
+def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
+    """Every parameter group's learning rate (Adam's moments are kept)."""
+    for group in optimizer.param_groups:
+        group["lr"] = lr
 
 
 def make_optimizer(model: torch.nn.Module, config: TrainConfig) -> torch.optim.Optimizer:

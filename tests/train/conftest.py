@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -43,3 +45,42 @@ def tiny_run(tmp_path_factory, tiny_dataset) -> Path:
     result = loop.train(tiny_dataset, run, preset("tiny"), progress=False)
     assert result.stopped == "done" and result.step == preset("tiny").total_steps()
     return run
+
+
+class _Clock:
+    """The training loop's monotonic clock (train.loop, train.callbacks), moved on only by
+    training steps, `seconds[resolution]` each: a run with a time budget takes the same steps
+    on any machine, however loaded."""
+
+    def __init__(self, seconds: dict[int, float]) -> None:
+        self.now, self.seconds = 1000.0, seconds
+
+    def monotonic(self) -> float:
+        return self.now
+
+
+@pytest.fixture
+def step_clock(monkeypatch):
+    """install(seconds per step by resolution, probe=the plan's measured rates): the budget's
+    clock ticks per training step, and the probe measures `probe` (default: the same)."""
+
+    def install(seconds: dict[int, float], probe: dict[int, float] | None = None) -> _Clock:
+        from rigspace.train import callbacks, loop
+
+        clock = _Clock(seconds)
+        fake = SimpleNamespace(monotonic=clock.monotonic, perf_counter=time.perf_counter)
+        monkeypatch.setattr(loop, "time", fake)
+        monkeypatch.setattr(callbacks, "time", fake)
+        measured = dict(probe or seconds)
+        monkeypatch.setattr(loop, "measure_step_seconds", lambda *args, **kwargs: measured)
+        real = loop._train_step
+
+        def step(state, **kwargs):
+            record = real(state, **kwargs)
+            clock.now += seconds[record["resolution"]]
+            return record
+
+        monkeypatch.setattr(loop, "_train_step", step)
+        return clock
+
+    return install

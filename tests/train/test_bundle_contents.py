@@ -6,11 +6,9 @@ from __future__ import annotations
 import json
 import math
 import shutil
-import time
 import warnings
 from dataclasses import replace
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -21,7 +19,7 @@ from rigspace.sdk.bundle import read_manifest  # noqa: E402
 from rigspace.sdk.capsules import CapsuleError, read_capsules  # noqa: E402
 from rigspace.sdk.cli import main  # noqa: E402
 from rigspace.sdk.model import BundleModel  # noqa: E402
-from rigspace.train import callbacks, loop  # noqa: E402
+from rigspace.train import loop  # noqa: E402
 from rigspace.train.budget import (  # noqa: E402
     MIN_STEPS_PER_LEVEL,
     PACE_WARMUP,
@@ -150,43 +148,6 @@ def test_a_fade_in_ends_within_the_budget_however_slow_the_level_runs():
     rates = {16: 0.01, 32: 0.02, 64: 0.04}
     step, trained = _run_paced(Pace(three, rates, deadline=5.0), 5.0, [0.01, 0.12, 0.5], 100)
     assert trained_levels(three, step)[:2] == [16, 32]
-
-
-class _Clock:
-    """The training loop's monotonic clock (train.loop, train.callbacks), moved on only by
-    training steps, `seconds[resolution]` each: a run with a time budget takes the same steps
-    on any machine, however loaded."""
-
-    def __init__(self, seconds: dict[int, float]) -> None:
-        self.now, self.seconds = 1000.0, seconds
-
-    def monotonic(self) -> float:
-        return self.now
-
-
-@pytest.fixture
-def step_clock(monkeypatch):
-    """install(seconds per step by resolution, probe=the plan's measured rates): the budget's
-    clock ticks per training step, and the probe measures `probe` (default: the same)."""
-
-    def install(seconds: dict[int, float], probe: dict[int, float] | None = None) -> _Clock:
-        clock = _Clock(seconds)
-        fake = SimpleNamespace(monotonic=clock.monotonic, perf_counter=time.perf_counter)
-        monkeypatch.setattr(loop, "time", fake)
-        monkeypatch.setattr(callbacks, "time", fake)
-        measured = dict(probe or seconds)
-        monkeypatch.setattr(loop, "measure_step_seconds", lambda *args, **kwargs: measured)
-        real = loop._train_step
-
-        def step(state, **kwargs):
-            record = real(state, **kwargs)
-            clock.now += seconds[record["resolution"]]
-            return record
-
-        monkeypatch.setattr(loop, "_train_step", step)
-        return clock
-
-    return install
 
 
 @pytest.mark.slow
