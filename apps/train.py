@@ -81,7 +81,7 @@ def _add_budget_arguments(parser: argparse.ArgumentParser) -> None:
         default=0.0,
         metavar="SHARE",
         help="over the last SHARE (0-1) of this call's run (its --minutes, else its steps) the "
-        "learning rate falls along a half cosine to 1/50 of --lr, at the final level only; "
+        "learning rate falls along a half cosine to 1/50 of --lr, at the level the run ends at; "
         "with --resume, within the resumed call's budget (0: constant, the default; "
         "docs/training.md)",
     )

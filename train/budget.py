@@ -191,10 +191,19 @@ class Pace:
         self._level, self._seen, self._scale, self._faded = -1, 0, 1.0, 0
         self._jumped_to: int | None = None
         self._recent: deque[tuple[int, float]] = deque(maxlen=PACE_WINDOW + 1)
+        self._held = False
+
+    def hold(self) -> None:
+        """Keep the current level to the end of the budget, whatever the rate does later: the
+        learning rate's fall began on it (train.callbacks.Anneal), and a level left for the
+        next would take the fallen rate with it."""
+        self._held = self.out_of_reach = True
 
     def next_step(self, step: int, now: float) -> int:
         """The step to train next: `step`, or a later one when behind (the next level's first
         step, or a later step of a fade-in)."""
+        if self._held:
+            return step
         if step == self._jumped_to:  # the step this pace jumped to: judged already, trained now
             self._jumped_to = None
             return step

@@ -133,14 +133,18 @@ class Pacer:
 
 class Anneal:
     """`--anneal SHARE`: over the last SHARE of this call's run the learning rate falls along a
-    half cosine to ANNEAL_FLOOR of --lr (train.step.annealed), at the final level only.
+    half cosine to ANNEAL_FLOOR of --lr (train.step.annealed), at the level the run ends at.
 
     The run is this call's: its time budget (`began` to `deadline`), else its steps (state.start
-    to state.total), so a resumed run anneals within its own --minutes. A final level first
-    trained inside the window anneals from that step on, from the full rate. The constant rate
-    leaves the weights wandering around a minimum (the film body's loss swung 0.53-0.78 over its
-    last steps); the fall lets them settle in it. The factor is rank 0's (`agree`), so every
-    rank steps alike."""
+    to state.total), so a resumed run anneals within its own --minutes. The level it ends at
+    is the last of its steps' (a step budget), else the final level, or the level the pace
+    (train.budget.Pace) finds the budget cannot leave (`out_of_reach`: it trains on until the
+    budget ends); once the fall begins on such a level the pace holds it, so the fallen rate
+    never carries into a level that would need the full one. A level first trained inside the
+    window anneals from that step on, from the full rate. The constant rate leaves the weights
+    wandering around a minimum (the film body's loss swung 0.53-0.78 over its last steps); the
+    fall lets them settle in it. The factor and the pace's verdict are rank 0's (`agree`), so
+    every rank steps alike."""
 
     def __init__(
         self,
@@ -149,12 +153,15 @@ class Anneal:
         agree: Callable[[int], int],
         began: float | None = None,
         deadline: float | None = None,
+        pace: Pace | None = None,
     ) -> None:
         self.config, self.share, self.agree = config, share, agree
-        self.began, self.deadline = began, deadline
+        self.began, self.deadline, self.pace = began, deadline, pace
         self.final = len(config.levels()) - 1
-        self._start: float | None = None
-        """Where (0..1 through the run) the window began in this call; None: not yet."""
+        self._level: int | None = None
+        """The level the window is on in this call; None: not yet."""
+        self._start = 1.0
+        """Where (0..1 through the run) the window began on that level."""
 
     def progress(self, state: LoopState) -> float:
         """How far (0..1) this call's run is: by the clock with a budget, else by steps."""
@@ -162,15 +169,29 @@ class Anneal:
             return (time.monotonic() - self.began) / max(self.deadline - self.began, 1e-9)
         return (state.step - state.start) / max(state.total - state.start, 1)
 
+    def ends_at(self, level: int, state: LoopState) -> bool:
+        """Whether the run ends at `level` (see the class doc)."""
+        if self.began is None or self.deadline is None:
+            return level == schedule(self.config, max(state.total - 1, state.start)).level
+        if level == self.final:
+            return True
+        return self.pace is not None and bool(self.agree(int(self.pace.out_of_reach)))
+
     def factor(self, state: LoopState) -> float:
         """The learning rate's factor for the step about to train (1 before the window)."""
-        if self.share <= 0 or schedule(self.config, state.step).level < self.final:
+        if self.share <= 0:
+            return 1.0
+        level = schedule(self.config, state.step).level
+        if not self.ends_at(level, state):
             return 1.0
         now = self.progress(state)
-        if self._start is None:
-            self._start = max(1.0 - self.share, now)
+        if level != self._level:  # only before the fall: once it began, the level is held
+            self._level, self._start = level, max(1.0 - self.share, now)
         t = max(now - self._start, 0.0) / max(1.0 - self._start, 1e-9)
-        return annealed(self.agree(round(t * 1e6)) / 1e6)
+        t = self.agree(round(t * 1e6)) / 1e6
+        if t > 0 and level < self.final and self.pace is not None:
+            self.pace.hold()
+        return annealed(t)
 
 
 def run_steps(

@@ -457,11 +457,7 @@ def train(
     state.total = config.total_steps() if steps is None else min(steps, config.total_steps())
     state.last_good = checkpoint_path if checkpoint_path.exists() else None
     state.seconds_before = logged_seconds(out / "log.jsonl", state.start) if state.start else 0.0
-    pacer = None
-    if anneal > 0:
-        state.anneal = Anneal(
-            config, anneal, ctx.agree, *((began, began + 60 * minutes) if minutes else ())
-        )
+    pacer, pace = None, None
     if minutes:
         # A time budget is the user's "train the best model in M minutes": when the planned
         # steps finish early (the probe ran on a busier machine), the final level trains on
@@ -472,6 +468,9 @@ def train(
         pace = Pace(config, rates, deadline) if planned else None
         pacer = Pacer(config, deadline, pace, ctx.agree)
         pacer.extends = steps is None
+    if anneal > 0:
+        budget = (began, began + 60 * minutes) if minutes else (None, None)
+        state.anneal = Anneal(config, anneal, ctx.agree, *budget, pace=pace)
     done = "done" if steps is None else "step budget"
     stopped = _run(run, state, ctx, pacer, progress, done, resident)
     if stopped != "interrupted":

@@ -1,4 +1,4 @@
-"""--anneal: the learning rate falls at the end of a run, at its final level only, within the
+"""--anneal: the learning rate falls at the end of a run, at the level it ends at, within the
 call's own budget (a resumed run's too), and a bad share is refused before anything is written."""
 
 from __future__ import annotations
@@ -6,6 +6,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -14,6 +15,7 @@ torch = pytest.importorskip("torch", reason="training needs the train extra (tor
 
 from rigspace.sdk.cli import main  # noqa: E402
 from rigspace.train import loop  # noqa: E402
+from rigspace.train.budget import Pace  # noqa: E402
 from rigspace.train.config import ConfigError, check_anneal, preset  # noqa: E402
 from rigspace.train.step import ANNEAL_FLOOR, annealed  # noqa: E402
 
@@ -81,6 +83,55 @@ def test_a_resumed_time_budget_anneals_within_its_own_minutes(tmp_path, tiny_dat
     more = loop.train(tiny_dataset, run, TINY, minutes=0.01, resume=True, progress=False)
     assert more.step > again.step
     assert {_rates(run)[s][1] for s in range(again.step + 1, more.step + 1)} == {TINY.lr}
+
+
+@pytest.mark.slow
+def test_a_step_budget_short_of_the_final_level_anneals_the_level_it_ends_at(
+    tmp_path, tiny_dataset
+):
+    run = tmp_path / "run"
+    loop.train(tiny_dataset, run, TINY, steps=20, anneal=0.5, progress=False)
+    rates = _rates(run)
+    assert sorted(rates) == list(range(1, 21)) and {r for r, _ in rates.values()} == {16}
+    assert all(rates[s][1] == TINY.lr for s in range(1, 11))
+    fall = [rates[s][1] for s in range(11, 21)]
+    assert fall[0] == pytest.approx(TINY.lr)
+    assert all(a > b for a, b in itertools.pairwise(fall)) and fall[-1] < 0.05 * TINY.lr
+
+
+@pytest.mark.slow
+def test_a_budget_that_cannot_leave_its_level_anneals_that_level(
+    tmp_path, tiny_dataset, step_clock
+):
+    """The probe said 0.01 s a 16x16 step; they take 0.5 s, so 30 s hold 60 of the level's 100
+    and its 32x32 block can never fade in (the pace: out of reach). That level is what the
+    run ends with: its last half falls, and no step reaches 32x32 at the fallen rate."""
+    step_clock({16: 0.5, 32: 0.02}, probe={16: 0.01, 32: 0.02})
+    config = replace(TINY, steps_per_level=100)
+    run = tmp_path / "run"
+    result = loop.train(tiny_dataset, run, config, minutes=0.5, anneal=0.5, progress=False)
+    assert result.stopped == "time budget" and result.step == pytest.approx(60, abs=1)
+    rates = _rates(run)
+    assert {r for r, _ in rates.values()} == {16}
+    steps = sorted(rates)
+    assert all(rates[s][1] == TINY.lr for s in steps if s <= 30)
+    fall = [rates[s][1] for s in steps if s > 30]
+    assert fall[0] > 0.95 * TINY.lr and fall[-1] < 0.05 * TINY.lr
+    assert all(a > b for a, b in itertools.pairwise(fall))
+
+
+def test_a_held_pace_keeps_its_level_when_the_rate_recovers():
+    config = replace(TINY, resolution=64, steps_per_level=100)  # levels 16, 32, 64; fade 50
+    probe = {16: 0.01, 32: 0.02, 64: 0.04}
+    for held in (False, True):
+        pace = Pace(config, probe, deadline=100.0)
+        assert all(pace.next_step(s, 1.0 * s) == s for s in range(30))  # a second a step
+        assert pace.out_of_reach
+        if held:
+            pace.hold()
+        # Then the probe's rate: 32 and 64 come back in reach, and 16 ends unless held.
+        jumped = any(pace.next_step(s, 30.0 + 0.01 * (s - 29)) != s for s in range(30, 99))
+        assert jumped != held and pace.out_of_reach == held
 
 
 @pytest.mark.parametrize("share", [-0.1, 1.5, math.nan, math.inf])
