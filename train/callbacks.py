@@ -135,7 +135,7 @@ class Anneal:
     """`--anneal SHARE`: over the last SHARE of this call's run the learning rate falls along a
     half cosine to ANNEAL_FLOOR of --lr (train.step.annealed), at the level the run ends at.
 
-    The run is this call's: its time budget (`began` to `deadline`), else its steps (state.start
+    The run is this call's: its time budget (`budget`), else its steps (state.start
     to state.total), so a resumed run anneals within its own --minutes. The level it ends at
     is the last of its steps' (a step budget), else the final level, or the level the pace
     (train.budget.Pace) finds the budget cannot leave (`out_of_reach`: it trains on until the
@@ -151,12 +151,12 @@ class Anneal:
         config: TrainConfig,
         share: float,
         agree: Callable[[int], int],
-        began: float | None = None,
-        deadline: float | None = None,
+        budget: tuple[float, float] | None = None,
         pace: Pace | None = None,
     ) -> None:
         self.config, self.share, self.agree = config, share, agree
-        self.began, self.deadline, self.pace = began, deadline, pace
+        self.budget, self.pace = budget, pace
+        """`budget`: this call's (began, deadline) on the monotonic clock; None: its steps."""
         self.final = len(config.levels()) - 1
         self._level: int | None = None
         """The level the window is on in this call; None: not yet."""
@@ -165,13 +165,14 @@ class Anneal:
 
     def progress(self, state: LoopState) -> float:
         """How far (0..1) this call's run is: by the clock with a budget, else by steps."""
-        if self.began is not None and self.deadline is not None:
-            return (time.monotonic() - self.began) / max(self.deadline - self.began, 1e-9)
+        if self.budget is not None:
+            began, deadline = self.budget
+            return (time.monotonic() - began) / max(deadline - began, 1e-9)
         return (state.step - state.start) / max(state.total - state.start, 1)
 
     def ends_at(self, level: int, state: LoopState) -> bool:
         """Whether the run ends at `level` (see the class doc)."""
-        if self.began is None or self.deadline is None:
+        if self.budget is None:
             return level == schedule(self.config, max(state.total - 1, state.start)).level
         if level == self.final:
             return True
@@ -179,8 +180,6 @@ class Anneal:
 
     def factor(self, state: LoopState) -> float:
         """The learning rate's factor for the step about to train (1 before the window)."""
-        if self.share <= 0:
-            return 1.0
         level = schedule(self.config, state.step).level
         if not self.ends_at(level, state):
             return 1.0

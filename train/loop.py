@@ -438,7 +438,7 @@ def train(
     decode a dataset folder's samples once into its cache first (train.data.ensure_cache).
     `resident`: keep the training items in the device's memory (train.resident). `anneal`:
     the share of this call's run (its `minutes`, else its steps) at whose end the learning
-    rate falls at the final level (train.callbacks.Anneal; 0: constant)."""
+    rate falls, at the level the run ends at (train.callbacks.Anneal; 0: constant)."""
     check_anneal(anneal)
     dataset, out = Path(dataset), Path(out)
     began = time.monotonic()  # the budget counts from here: the step-rate probe is part of it
@@ -457,7 +457,7 @@ def train(
     state.total = config.total_steps() if steps is None else min(steps, config.total_steps())
     state.last_good = checkpoint_path if checkpoint_path.exists() else None
     state.seconds_before = logged_seconds(out / "log.jsonl", state.start) if state.start else 0.0
-    pacer, pace = None, None
+    pacer, pace, budget = None, None, None
     if minutes:
         # A time budget is the user's "train the best model in M minutes": when the planned
         # steps finish early (the probe ran on a busier machine), the final level trains on
@@ -468,9 +468,9 @@ def train(
         pace = Pace(config, rates, deadline) if planned else None
         pacer = Pacer(config, deadline, pace, ctx.agree)
         pacer.extends = steps is None
+        budget = (began, deadline)
     if anneal > 0:
-        budget = (began, began + 60 * minutes) if minutes else (None, None)
-        state.anneal = Anneal(config, anneal, ctx.agree, *budget, pace=pace)
+        state.anneal = Anneal(config, anneal, ctx.agree, budget, pace)
     done = "done" if steps is None else "step budget"
     stopped = _run(run, state, ctx, pacer, progress, done, resident)
     if stopped != "interrupted":
