@@ -209,14 +209,16 @@ class ItemWorker:
         return PosedFrame(t, meshes, world, world[self.joint][:3, 3], weights, region)
 
     def render(self, frame: PosedFrame, camera: Camera) -> Maps:
-        """The frame's maps from `camera`; for a region's capture, the region's surface where
-        it is the nearest."""
-        maps = self.renderer.render(frame.meshes, camera)
-        if frame.region is not None:
-            from rigspace.capture.regions import visible_region
+        """The frame's maps from `camera`; for a region's capture, the region's surface alone
+        (CaptureSettings.region_surface "whole"), or where it is the nearest ("visible")."""
+        if frame.region is None:
+            return self.renderer.render(frame.meshes, camera)
+        region = self.renderer.render(frame.region, camera)
+        if self.settings.region_surface == "whole":
+            return region
+        from rigspace.capture.regions import visible_region
 
-            maps = visible_region(maps, self.renderer.render(frame.region, camera))
-        return maps
+        return visible_region(self.renderer.render(frame.meshes, camera), region)
 
     def _sample(
         self,
@@ -418,12 +420,16 @@ def nothing_in_view(
 def _empty_views_warning(settings: CaptureSettings, empty: dict[int, int], total: int) -> str:
     count = sum(empty.values())
     by_view = ", ".join(f"view {v}: {n}" for v, n in sorted(empty.items()))
-    if settings.region:  # the rest of the character hides a region from some views: expected
+    if settings.region:
+        hidden = (
+            "the rest of the character hides it there (a hand behind the body), or "
+            if settings.region_surface == "visible"
+            else ""
+        )
         return (
             f"{count} of {total} samples show less than {ds.EMPTY_PIXELS:g} pixels of region "
-            f"{settings.region} of {settings.character} ({by_view}): the rest of the character "
-            "hides it there (a hand behind the body), or its ring misses it (radius "
-            f"{settings.radius:g}; rigspace:region:{settings.region}:size widens it)."
+            f"{settings.region} of {settings.character} ({by_view}): {hidden}its ring misses "
+            f"it (radius {settings.radius:g}; rigspace:region:{settings.region}:size widens it)."
         )
     return (
         f"{count} of {total} samples show less than {ds.EMPTY_PIXELS:g} pixels of "

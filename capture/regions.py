@@ -12,10 +12,11 @@ body with `--regions`), made by the same pipeline with these settings (region_se
 - the region's surface is the skinned points whose largest skinning weight is on one of the
   region's joints (CharacterRig.dominant_joints; by default the joint and every joint below
   it): a triangle belongs when two of its three corners do (region_triangles);
-- each sample shows that surface alone, where it is visible: the whole character is drawn
-  for its depth, the region's triangles on their own, and a pixel keeps the region's maps
-  where the region's surface is not behind the character's nearest surface (visible_region):
-  a hand in front of the face hides the face there, as it does on screen;
+- each sample shows that surface alone and whole (CaptureSettings.region_surface): an arm
+  raised before the head does not cut it, since the region's network does not read the arm
+  and could not foresee the hole; on screen the body's arm goes in front of it by depth
+  (runtime/regions.py). Captures before kept it only where it was the character's nearest
+  surface (visible_region; "visible"), which cut a quarter of the film face's yoga views;
 - the region's blend shapes (authored, or every shape that moves a point of its surface) are
   drawn in every frame, whatever the animation does, so the region's network sees each
   shape's weight apart from the pose (said when capture starts): each at rest or uniformly

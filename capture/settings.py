@@ -38,6 +38,8 @@ from rigspace.sdk.validation import (
 SHAPE_DRAWS = ("sparse", "uniform")
 """How a capture draws the blend shape weights it draws apart from the animation
 (CaptureSettings.shape_draws)."""
+REGION_SURFACES = ("whole", "visible")
+"""What of a region's surface its capture keeps (CaptureSettings.region_surface)."""
 BOUNDS_MARGIN = 1.1
 """Radius derived from the bounds leaves 10% room around the character's farthest point."""
 BOUNDS_FRAMES = 24
@@ -172,6 +174,13 @@ class CaptureSettings:
     a frame at rest, the runtime's commonest, was a corner no sample came near."""
     region: str = ""
     """The RigspaceRegionAPI instance this dataset captures ("": the whole character)."""
+    region_surface: str = "whole"
+    """What of a region's surface each sample keeps: "whole", all of it the view sees, as if
+    nothing else of the character were there (its network reads its own joints, not the arm
+    that passes before it: the runtime's depth test hides it behind the body's arm);
+    "visible" (region captures before 2026-11-29 evening), only where it is the character's
+    nearest surface, so that an arm raised beside the head cut a quarter of it from the film
+    face's yoga views, a hole its network could not foresee (capture/regions.py)."""
     region_joints: tuple[str, ...] = ()
     """A region's joints: its surface is the points whose largest skinning weight is on one."""
     input_joints: tuple[str, ...] = ()
@@ -231,6 +240,8 @@ class CaptureSettings:
             del data["every"]
         if not self.blend_draws:
             del data["shape_draws"]
+        if not self.region:
+            del data["region_surface"]
         # likewise, for a rig without blend shapes, and for the whole character
         for key in (
             "blend_shapes", "controls", "blend_draws", "region", "region_joints",
@@ -263,6 +274,16 @@ class CaptureSettings:
             raise CaptureError(
                 f"capture.json: shape_draws is {values['shape_draws']!r}, not one of "
                 f"{', '.join(SHAPE_DRAWS)}.",
+                "restore the file, or capture into a new folder.",
+            )
+        # absent from a region's: a capture from before whole surfaces, which kept the visible
+        values["region_surface"] = str(
+            values.get("region_surface", "visible" if values.get("region") else "whole")
+        )
+        if values["region_surface"] not in REGION_SURFACES:
+            raise CaptureError(
+                f"capture.json: region_surface is {values['region_surface']!r}, not one of "
+                f"{', '.join(REGION_SURFACES)}.",
                 "restore the file, or capture into a new folder.",
             )
         for key in ("region_joints", "input_joints", "input_shapes"):

@@ -6,11 +6,14 @@ The steps of the paper's scene composition, for one character and one camera:
 2. the billboard at the look-at joint (runtime/billboard.py) and the virtual camera C R;
 3. rig parameters q^ in that frame, 6D; the smallest level of detail that covers the
    billboard's on-screen size; only the branches the frame needs;
-4. the maps warped into the frame through the billboard's homography, mask-aware (the
-   unlit mode runs the albedo branch alone and takes coverage from its alpha):
-   normals and depth are warped premultiplied by coverage and divided back, so empty
-   pixels never bleed in; normals rotated by R into the render camera's frame; depth =
-   the billboard plane plus the network's offset. Coverage magnified past the network's
+4. the maps re-seen from the camera's distance to the joint, each pixel moved by the
+   parallax of its depth offset (runtime/parallax.py: the network drew the joint from its
+   training distance), then warped into the frame through the billboard's homography,
+   mask-aware (the unlit mode runs the albedo branch alone and takes coverage from its
+   alpha, and has no depth to move its pixels by): normals and depth are warped
+   premultiplied by coverage and divided back, so empty pixels never bleed in; normals
+   rotated by R into the render camera's frame; depth = the billboard plane plus the
+   network's offset. Coverage magnified past the network's
    resolution gets its edge back to one frame pixel (sdk.texturing.sharpen_coverage);
 5. colour: with a texture head (bundle `texture`), the character's own textures sampled
    where the network says each pixel lands, at the size on screen (rigspace.sdk.texturing);
@@ -35,6 +38,7 @@ import numpy as np
 from pxr import Usd, UsdGeom, Vt
 
 from rigspace.runtime.billboard import Billboard, TrainingView, place
+from rigspace.runtime.parallax import reseen
 from rigspace.runtime.shadows import PosedCapsules, chains, pose_capsules
 from rigspace.sdk import schema
 from rigspace.sdk.bundle import BundleError
@@ -304,6 +308,15 @@ class NeuralPart:
         return mask, normal, depth
 
     def resample(self, out, billboard: Billboard, camera: Camera, level: int, branches) -> Layer:
+        # The network drew its joint from its training distance; the camera sees it from
+        # its own (runtime/parallax.py: each pixel moved by its depth offset's parallax).
+        scale = billboard.side / self.view.side
+        out = reseen(
+            out,
+            self.view.distance * scale,
+            float(np.linalg.norm(billboard.joint_camera)),
+            self.model.depth_scale * scale,
+        )
         out = {name: value[0] for name, value in out.items()}  # the batch of one
         x0, y0, w, h = billboard.region(camera)
         homography = billboard.homography(level)  # network pixels -> frame pixels

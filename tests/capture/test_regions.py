@@ -1,9 +1,11 @@
 """Regions (capture/regions.py): a part of the character captured around its own joint, at its
-own resolution, its surface alone where visible, its blend shapes drawn apart from the pose."""
+own resolution, its surface alone (whole, whatever passes before it), its blend shapes drawn
+apart from the pose."""
 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -27,7 +29,7 @@ from rigspace.capture.settings import (
     resolve_settings,
 )
 from rigspace.sdk import schema
-from rigspace.sdk.render import Maps
+from rigspace.sdk.render import DrawMesh, Maps
 from rigspace.sdk.rotations import matrix_from_rot6d, rig_parameters
 from tests.blendshapes import ANIMATED, CHARACTER, weights_at, write_blendshape_character
 
@@ -195,11 +197,28 @@ def captured_face(face_scene, tmp_path_factory):
     return out
 
 
-def test_a_region_dataset_shows_its_surface_alone(face_scene, captured_face):
+def _occluder(camera, joint) -> DrawMesh:
+    """A two-sided quad halfway between `camera` and `joint`, over the left half of the view."""
+    axes = camera.camera_to_world[:3, :3]
+    right, up = axes[:, 0], axes[:, 1]
+    middle = (camera.position + np.asarray(joint)) / 2.0
+    big = 10.0 * float(np.linalg.norm(camera.position - joint))
+    points = np.array([middle - big * right - big * up, middle - big * up,
+                       middle + big * up, middle - big * right + big * up], np.float32)  # fmt: skip
+    faces = np.array([[0, 1, 2], [0, 2, 3], [0, 2, 1], [0, 3, 2]], np.int32)
+    return DrawMesh(points=points, triangles=faces)
+
+
+def test_a_region_dataset_shows_its_whole_surface_alone(face_scene, captured_face):
+    """Each sample is the region's surface alone, all of it the view sees: what passes before
+    it (an arm raised beside the head) is not cut out of it, since its network does not read
+    what moves that; a dataset captured before (region_surface "visible") cut it."""
     settings = json.loads((captured_face / "capture.json").read_text())
     assert settings["region"] == "face" and settings["look_at_joint"] == "neck/head"
+    assert settings["region_surface"] == "whole"
     _, _, region = _settings(face_scene)
     worker = ItemWorker(region, captured_face)
+    visible = ItemWorker(replace(region, region_surface="visible"), captured_face)
     try:
         frame = worker.pose("talk", 6.0)
         assert frame.region is not None
@@ -208,14 +227,45 @@ def test_a_region_dataset_shows_its_surface_alone(face_scene, captured_face):
         )
         view = region.views()[0]
         camera = view.camera(frame.joint_position, worker.lens)
+        alone = worker.renderer.render(frame.region, camera)
         whole = worker.renderer.render(frame.meshes, camera)
-        shown = visible_region(whole, worker.renderer.render(frame.region, camera))
+        before = replace(frame, meshes=[*frame.meshes, _occluder(camera, frame.joint_position)])
+        kept, cut = worker.render(before, camera), visible.render(before, camera)
     finally:
         worker.close()
-    inside = shown.mask > 0
+        visible.close()
+    inside = alone.mask > 0
     assert 0 < inside.sum() < (whole.mask > 0).sum()  # the head, not the whole cylinder
-    assert np.all(whole.mask[inside] > 0)
-    assert np.all(shown.depth[inside] <= whole.depth[inside] * 1.001)
+    np.testing.assert_array_equal(kept.mask, alone.mask)  # the quad in front changes nothing
+    np.testing.assert_array_equal(kept.albedo, alone.albedo)
+    left = np.zeros_like(inside)
+    left[:, : inside.shape[1] // 2 - 1] = True
+    assert (inside & left).sum() > 10 and (inside & ~left).sum() > 10
+    assert np.all(cut.mask[left] == 0) and np.all(np.isinf(cut.depth[left]))  # cut behind it
+    # clear of the quad's edge, as without it: where it is the character's nearest surface
+    right = np.s_[:, inside.shape[1] // 2 + 1 :]
+    np.testing.assert_array_equal(cut.mask[right], visible_region(whole, alone).mask[right])
+    # The captured sample of that frame and view is the surface alone too.
+    from rigspace.sdk.exr import read_exr
+
+    (sample,) = (captured_face / "samples" / "talk").glob("t000006.0_v000.exr")
+    np.testing.assert_array_equal(read_exr(sample).mask > 0, inside)
+
+
+def test_a_region_capture_json_without_region_surface_is_read_as_the_visible_one_it_was_made_with(
+    face_scene,
+):
+    _, _, region = _settings(face_scene)
+    data = json.loads(json.dumps(region.to_json()))
+    assert data["region_surface"] == "whole"
+    del data["region_surface"]
+    assert CaptureSettings.from_json(data).region_surface == "visible"
+    data["region_surface"] = "nearest"
+    with pytest.raises(CaptureError, match="region_surface is 'nearest'"):
+        CaptureSettings.from_json(data)
+    body, _, _ = _settings(face_scene)
+    assert "region_surface" not in body.to_json()  # the whole character's has none
+    assert CaptureSettings.from_json(body.to_json()).region_surface == "whole"
 
 
 def test_a_region_s_shapes_are_drawn_apart_from_the_animation(captured_face):
