@@ -189,12 +189,13 @@ def test_the_shapes_mobility_covers_the_moving_face_and_nothing_behind_the_head(
     assert min(s[0] for s in seen) <= 0.05 * front[0]  # from behind, at most the jaw's edge
 
 
-def test_the_committed_bundle_says_where_the_held_out_wave_is_new_to_it(built, tmp_path, capsys):
-    """The film bundle's training views (views.npy of the body and each region): its face
-    network was trained with the wave clip held out, its body and hands on every clip. In the
-    wave the shot sees the face as no trained clip showed it (tilted: "rolled"), the pelvis
-    and the waving right hand as they learned them; the render warns about the face alone
-    (docs/regions.md, "Views a network never learned")."""
+def test_the_committed_bundle_has_seen_the_wave_every_network_of_it(built, tmp_path, capsys):
+    """The film bundle's training views (views.npy of the body and each region): since
+    2026-11-29 evening each network was trained on every clip, the wave included, so at its
+    frame 500 (the face tilted as only the wave tilts it, the right hand raised) the shot sees
+    each of them as it learned them, and the render warns about none (docs/regions.md, "Views
+    a network never learned"; the face of before, trained with the wave held out, read
+    "rolled", 7-10 degrees outside its views, there)."""
     from rigspace.sdk.cli import main
 
     info, _ = built
@@ -206,7 +207,7 @@ def test_the_committed_bundle_says_where_the_held_out_wave_is_new_to_it(built, t
     entry = json.loads((out / "report.json").read_text())["frames"][0]["characters"][0]
     assert entry["novel_view_deg"] == 0.0 and "novel_view" not in entry
     regions = {r["name"]: r for r in entry["regions"]}
-    assert regions["face"]["novel_view"] == "rolled" and regions["face"]["novel_view_deg"] > 6
-    assert "novel_view" not in regions["rightHand"] and "novel_view" not in regions["leftHand"]
-    assert "/World/Hero's face network: in 1 of 1 frames (500)" in err
-    assert "rightHand network" not in err and "body network" not in err
+    assert set(regions) == {"face", "leftHand", "rightHand"}
+    for name, region in regions.items():
+        assert "novel_view" not in region and region["novel_view_deg"] < 6, (name, region)
+    assert "network: in 1 of 1 frames" not in err
