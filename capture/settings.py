@@ -269,23 +269,12 @@ class CaptureSettings:
         )
         values["blend_draws"] = tuple(tuple(d) for d in values.get("blend_draws", ()))
         # absent: a capture from before sparse draws, which drew every shape uniformly
-        values["shape_draws"] = str(values.get("shape_draws", "uniform"))
-        if values["shape_draws"] not in SHAPE_DRAWS:
-            raise CaptureError(
-                f"capture.json: shape_draws is {values['shape_draws']!r}, not one of "
-                f"{', '.join(SHAPE_DRAWS)}.",
-                "restore the file, or capture into a new folder.",
-            )
+        _read_choice(values, "shape_draws", "uniform", SHAPE_DRAWS)
         # absent from a region's: a capture from before whole surfaces, which kept the visible
-        values["region_surface"] = str(
-            values.get("region_surface", "visible" if values.get("region") else "whole")
-        )
-        if values["region_surface"] not in REGION_SURFACES:
-            raise CaptureError(
-                f"capture.json: region_surface is {values['region_surface']!r}, not one of "
-                f"{', '.join(REGION_SURFACES)}.",
-                "restore the file, or capture into a new folder.",
-            )
+        _read_choice(
+            values, "region_surface", "visible" if values.get("region") else "whole",
+            REGION_SURFACES,
+        )  # fmt: skip
         for key in ("region_joints", "input_joints", "input_shapes"):
             values[key] = tuple(values.get(key, ()))
         values["upright_axis"] = tuple(float(v) for v in values.get("upright_axis", ()))
@@ -313,6 +302,17 @@ def _hashed(clip: str, time: float, what: str) -> float:
     """A number in [0, 1) from (clip, time, what): the same in every view, worker and resume."""
     key = f"{clip}|{time:.6f}|{what}".encode()
     return int.from_bytes(hashlib.sha256(key).digest()[:8], "little") / 2.0**64
+
+
+def _read_choice(values: dict[str, Any], key: str, absent: str, choices: tuple[str, ...]) -> None:
+    """capture.json's `key` in `values` as one of `choices` (`absent` when the file has none:
+    what captures before the setting did), or CaptureError naming it."""
+    values[key] = str(values.get(key, absent))
+    if values[key] not in choices:
+        raise CaptureError(
+            f"capture.json: {key} is {values[key]!r}, not one of {', '.join(choices)}.",
+            "restore the file, or capture into a new folder.",
+        )
 
 
 def scene_fingerprint(stage: Usd.Stage) -> str:

@@ -255,16 +255,14 @@ def test_a_region_dataset_shows_its_whole_surface_alone(face_scene, captured_fac
 def test_a_region_capture_json_without_region_surface_is_read_as_the_visible_one_it_was_made_with(
     face_scene,
 ):
-    _, _, region = _settings(face_scene)
-    data = json.loads(json.dumps(region.to_json()))
-    assert data["region_surface"] == "whole"
-    del data["region_surface"]
-    assert CaptureSettings.from_json(data).region_surface == "visible"
-    data["region_surface"] = "nearest"
-    with pytest.raises(CaptureError, match="region_surface is 'nearest'"):
-        CaptureSettings.from_json(data)
-    body, _, _ = _settings(face_scene)
+    body, _, region = _settings(face_scene)
     assert "region_surface" not in body.to_json()  # the whole character's has none
+    stored = {**json.loads(json.dumps(region.to_json())), "region_surface": "nearest"}
+    with pytest.raises(CaptureError, match="region_surface is 'nearest'"):
+        CaptureSettings.from_json(stored)
+    assert region.to_json()["region_surface"] == "whole"
+    before = {k: v for k, v in stored.items() if k != "region_surface"}
+    assert CaptureSettings.from_json(before).region_surface == "visible"
     assert CaptureSettings.from_json(body.to_json()).region_surface == "whole"
 
 
