@@ -81,29 +81,39 @@ def reseen(
     px, py = np.ascontiguousarray(px), np.ascontiguousarray(py)
     mask = np.ascontiguousarray(out["mask"][0], np.float32)
     moved_mask = np.zeros_like(mask)
-    gather_bilinear(mask, px, py, np.arange(r * r, dtype=np.int64), moved_mask)
+    gather_bilinear(
+        mask, np.arange(r * r, dtype=np.int64), *bilinear_taps(px, py, None), moved_mask
+    )
     # The other maps only matter where the moved coverage is, and a pixel beyond (the warp's
     # bilinear taps); elsewhere (two thirds of a body's square, whose 256 chart and texture
     # channels dominate the cost) they are 0, as beyond the network's image.
     near = cv2.dilate((moved_mask[0] > 0).astype(np.uint8), np.ones((3, 3), np.uint8))
     pixels = np.flatnonzero(near).astype(np.int64)
+    index, weight = bilinear_taps(px, py, pixels)  # once for every map
     moved = {"mask": moved_mask[None].astype(out["mask"].dtype, copy=False)}
     for name, value in out.items():
         if name != "mask":
             target = np.zeros(value.shape[1:], np.float32)
-            gather_bilinear(np.ascontiguousarray(value[0], np.float32), px, py, pixels, target)
+            source = np.ascontiguousarray(value[0], np.float32)
+            gather_bilinear(source, pixels, index, weight, target)
             moved[name] = target[None].astype(value.dtype, copy=False)
     return moved
 
 
+def bilinear_taps(
+    px: np.ndarray, py: np.ndarray, pixels: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The four bilinear taps (flat index, weight; 0 outside the image) of each flat pixel of
+    `pixels` (None: every pixel) read at (px, py) (R, R, OpenCV's pixel centres at
+    integers): computed once a frame and shared by every map's gather_bilinear."""
+    if pixels is None:
+        pixels = np.arange(px.size, dtype=np.int64)
+    return _taps(np.ascontiguousarray(px, np.float32), np.ascontiguousarray(py, np.float32), pixels)
+
+
 @nb.njit(cache=True, nogil=True)
-def gather_bilinear(source, px, py, pixels, target):  # pragma: no cover - compiled
-    """target[c].flat[p] = source[c] read bilinearly at (px.flat[p], py.flat[p]) (OpenCV's
-    pixel centres at integers; 0 outside the image) for each flat index p of `pixels`; the
-    other pixels of `target` are left as they are. Every channel of a (C, R, R) map through
-    one inverse map, plane by plane (cv2.remap in its (R, R, C) layout took 43 ms for a
-    128x128 body's 256 channels, mostly in transposes; this about 8 on a busy machine)."""
-    channels, h, w = source.shape
+def _taps(px, py, pixels):  # pragma: no cover - compiled
+    h, w = px.shape
     count = pixels.shape[0]
     index = np.empty(4 * count, np.int64)
     weight = np.empty(4 * count, np.float32)
@@ -121,6 +131,17 @@ def gather_bilinear(source, px, py, pixels, target):  # pragma: no cover - compi
             inside = 0 <= xi < w and 0 <= yi < h
             index[k + t] = yi * w + xi if inside else 0
             weight[k + t] = wx * wy if inside else 0.0
+    return index, weight
+
+
+@nb.njit(cache=True, nogil=True)
+def gather_bilinear(source, pixels, index, weight, target):  # pragma: no cover - compiled
+    """target[c].flat[p] = source[c] read through the taps (bilinear_taps) of each flat index
+    p of `pixels`; the other pixels of `target` are left as they are. Every channel of a
+    (C, R, R) map, plane by plane (cv2.remap in its (R, R, C) layout took 43 ms for a 128x128
+    body's 256 channels, mostly in transposes; this about 8 on a busy machine)."""
+    channels, h, w = source.shape
+    count = pixels.shape[0]
     flat_source = source.reshape(channels, h * w)
     flat_target = target.reshape(channels, h * w)
     for c in range(channels):
